@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 #: Constraint activation rule. ``"safe"`` (default) activates a constraint with a margin that
@@ -91,3 +92,19 @@ class Limits:
             raise ValueError(f"Limits: expected z_min_m <= z_max_m, found {self.z_min_m} and {self.z_max_m}")
         if self.activation not in ("safe", "paper"):
             raise ValueError(f"Limits.activation: expected 'safe' or 'paper', found {self.activation!r}")
+
+    @cached_property
+    def turn_buffer_m(self) -> float:
+        """Worst approach (m) of a drone turning away from a head-on course at minimum speed.
+
+        s_min Σ_k max(0, cos(k α)) with α = min(φ_max, θ_max): the distance a drone still
+        closes on a surface while its heading swings away at the maximum turn rate. Used by
+        the safety filter of :func:`planner.control.control_step`.
+        """
+        alpha = min(self.heading_change_max_rad, self.tilt_change_max_rad)
+        total = 0.0
+        k = 1
+        while alpha > 0.0 and k * alpha < 0.5 * math.pi:
+            total += math.cos(k * alpha)
+            k += 1
+        return self.step_min_m * total

@@ -1,0 +1,348 @@
+"""Projected-gradient control law (paper eqs. 14-17) with kinematic limits and a safety filter.
+
+One drone's step, batched over leading dimensions (trials, drones):
+
+1. Constraints g = d - d* (eqs. 15-17): distance to every known peer (d_U*), to the estimated
+   source (d_S*, inflated by the estimate's uncertainty by the caller), to the nearest
+   obstacle (d_O*). With ``activation="paper"`` a constraint is active only once violated
+   (g < 0), as printed; with ``"safe"`` (default) it is active within a margin that covers one
+   step of motion of both parties (g < a) and is then held at that margin.
+2. The step of eq. 14: u = −ξ P ∇C − N (NᵀN)⁻¹ g̃, with P = I − N (NᵀN)⁻¹ Nᵀ over the (at most
+   three most violated) active constraints. ξ is either given (m per unit gradient) or, by
+   default, chosen so that ‖ξ P∇C‖ = v_max Δt (normalised steepest descent at top speed).
+3. Kinematic limits of eq. 2: speed in [v_min, v_max]·Δt, heading change within ±φ_max, tilt
+   change within ±θ_max per step; altitude box [z_min, z_max] (the paper clamps z).
+4. ``"safe"`` only: a safety filter checks the limited step against every safety distance
+   with worst-case motion of the peers (age of their data + one step) and a turn-away buffer;
+   if it fails, the closest step of the kinematic envelope that passes is taken instead (or,
+   if none passes, the one with the largest worst margin).
+
+When J is singular (e.g. bearing-only drones all in NLOS) the drone keeps moving along its last
+direction with a random heading/tilt perturbation, as the paper does (Sec. V).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planner.fim import FimStatus
+from planner.geometry import distance_to_boxes, distance_to_boxes_with_gradient
+from planner.params import Limits
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Indices of the constraint families in :attr:`StepResult.active`.
+UAV, SOURCE, OBSTACLE, ALTITUDE = 0, 1, 2, 3
+FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude")
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """The next position of one drone and why it moved as it did.
+
+    Attributes:
+        next_position: p_i^(k+1), (..., 3), m, ENU.
+        displacement: u_i^(k+1), (..., 3), m.
+        active: (..., 4) bool, constraint families active in the projection or the filter:
+            inter-drone, source, obstacle, altitude (see :data:`FAMILIES`).
+        singular: (...) bool, J was singular and the random-perturbation fallback was used.
+        filtered: (...) bool, the safety filter replaced the kinematically limited step.
+        infeasible: (...) bool, no step of the kinematic envelope met every safety clearance
+            (the least bad one was taken).
+    """
+
+    next_position: FloatArray
+    displacement: FloatArray
+    active: BoolArray
+    singular: BoolArray
+    filtered: BoolArray
+    infeasible: BoolArray
+
+
+def _tilt_buffer(tilt: FloatArray, limits: Limits) -> FloatArray:
+    """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0."""
+    k = np.arange(1.0, 4.0) * limits.tilt_change_max_rad
+    return limits.step_max_m * np.maximum(0.0, np.sin(np.asarray(tilt)[..., None] - k)).sum(-1)
+
+
+def _spherical(u: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    s = np.sqrt((u * u).sum(-1))
+    return s, np.arctan2(u[..., 1], u[..., 0]), np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
+
+
+def _cartesian(s: FloatArray, psi: FloatArray, theta: FloatArray) -> FloatArray:
+    sc = s * np.cos(theta)
+    out = np.empty(np.shape(sc) + (3,))
+    out[..., 0] = sc * np.cos(psi)
+    out[..., 1] = sc * np.sin(psi)
+    out[..., 2] = s * np.sin(theta)
+    return out
+
+
+def _wrap(a: FloatArray) -> FloatArray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class _Clearances:
+    """Everything the safety filter needs to score candidate end positions."""
+
+    peers: FloatArray  # (..., N, 3)
+    peer_required: FloatArray  # (..., N), +inf-free; masked peers get -inf
+    source: FloatArray  # (..., 3)
+    source_required: FloatArray  # (...)
+    obstacle_required: float
+
+
+def _subset(c: _Clearances, idx: tuple[NDArray[np.intp], ...]) -> _Clearances:
+    keep = np.broadcast_to(c.source_required, c.source.shape[:-1])
+    return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required)
+
+
+def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatArray, boxes_max: FloatArray, limits: Limits) -> tuple[FloatArray, BoolArray]:
+    """Worst clearance margin (m) of candidate end positions (..., C, 3); and altitude binding."""
+    diff = cand[..., :, None, :] - c.peers[..., None, :, :]
+    dist = np.sqrt((diff * diff).sum(-1))
+    worst = (dist - c.peer_required[..., None, :]).min(-1)
+    ds = cand - c.source[..., None, :]
+    worst = np.minimum(worst, np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None])
+    if boxes_min.shape[0]:
+        worst = np.minimum(worst, distance_to_boxes(cand, boxes_min, boxes_max) - c.obstacle_required)
+    z = cand[..., 2]
+    alt = np.minimum(limits.z_max_m - z - _tilt_buffer(tilt, limits), z - limits.z_min_m - _tilt_buffer(-tilt, limits))
+    return np.minimum(worst, alt), alt < 0.0
+
+
+def control_step(
+    own_position: ArrayLike,
+    previous_step: ArrayLike,
+    gradient: ArrayLike,
+    status: ArrayLike,
+    peers: ArrayLike,
+    peer_mask: ArrayLike,
+    peer_age_steps: ArrayLike,
+    source_estimate: ArrayLike,
+    source_keepout_m: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+    limits: Limits,
+    perturbation_uniforms: ArrayLike,
+    xi: float | None = None,
+    perturbation_rad: float = math.radians(20.0),
+) -> StepResult:
+    """One drone's control step: eq. 14 under constraints (15-17) and the limits of eq. 2/7.
+
+    Args:
+        own_position: p_i^(k), (..., 3), m, ENU.
+        previous_step: u_i^(k), the last displacement (..., 3), m; zeros before the first step
+            (no heading or tilt limit then).
+        gradient: ∇_{p_i} C of eq. 6 (..., 3), from :func:`planner.fim.cost_gradient`.
+        status: :class:`planner.fim.FimStatus` of drone i's J (...).
+        peers: positions of the other drones as known to drone i, (..., N, 3), m, ENU.
+        peer_mask: (..., N) bool, which rows of ``peers`` are real peers (False for drone i
+            itself and for peers never heard of).
+        peer_age_steps: (..., N) int ≥ 0, age in steps of each peer's known position.
+        source_estimate: p̂_0 (..., 3), m, ENU.
+        source_keepout_m: d_S* (possibly inflated by the estimate's uncertainty), (...), m.
+        boxes_min, boxes_max: obstacles (B, 3), m, ENU.
+        limits: safety distances and per-step kinematic limits.
+        perturbation_uniforms: (..., 2) uniforms in [0, 1) for the singular fallback.
+        xi: spatial step ξ (m per unit of gradient); None = normalised step at v_max Δt.
+        perturbation_rad: half-width of the uniform heading and tilt perturbation of the
+            singular fallback (rad).
+
+    Returns:
+        The :class:`StepResult`.
+    """
+    p = np.asarray(own_position, dtype=float)
+    if p.ndim == 1:
+        # One drone: run the batched code on a batch of one and unwrap.
+        r = control_step(
+            p[None], np.asarray(previous_step, dtype=float)[None], np.asarray(gradient, dtype=float)[None],
+            np.asarray(status)[None], np.asarray(peers, dtype=float)[None], np.asarray(peer_mask)[None],
+            np.asarray(peer_age_steps)[None], np.asarray(source_estimate, dtype=float)[None],
+            np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1], boxes_min, boxes_max, limits,
+            np.asarray(perturbation_uniforms, dtype=float)[None], xi, perturbation_rad,
+        )
+        return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
+    prev = np.asarray(previous_step, dtype=float)
+    grad = np.asarray(gradient, dtype=float)
+    q = np.asarray(peers, dtype=float)
+    mask = np.asarray(peer_mask, dtype=bool)
+    age = np.asarray(peer_age_steps, dtype=float)
+    src = np.asarray(source_estimate, dtype=float)
+    keepout = np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1])
+    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
+    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    batch = p.shape[:-1]
+    safe = limits.activation == "safe"
+    smax, smin = limits.step_max_m, limits.step_min_m
+    tb = limits.turn_buffer_m
+
+    # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
+    diff = p[..., None, :] - q
+    dist = np.sqrt((diff * diff).sum(-1))
+    n_u = diff / np.where(dist > 0.0, dist, 1.0)[..., None]
+    g_u = np.where(mask, dist - limits.d_uav_m, np.inf)
+    ds = p - src
+    dist_s = np.sqrt((ds * ds).sum(-1))
+    n_s = ds / np.where(dist_s > 0.0, dist_s, 1.0)[..., None]
+    g_s = dist_s - keepout
+    sd, n_o = distance_to_boxes_with_gradient(p, bmin, bmax)
+    g_o = sd - limits.d_obstacle_m
+    G = np.concatenate([g_u, g_s[..., None], g_o[..., None]], axis=-1)
+    normals = np.concatenate([n_u, n_s[..., None, :], n_o[..., None, :]], axis=-2)
+    if safe:
+        gt = G.copy()
+        gt[..., :-2] -= smax * (2.0 + age) + 2.0 * tb
+        gt[..., -2:] -= 2.0 * smax + tb
+    else:
+        gt = G
+    active_all = gt < 0.0
+
+    # 2. Projection onto the active constraints (at most the three most violated).
+    k = min(3, G.shape[-1])
+    if active_all.any():
+        sel = np.argsort(gt, axis=-1)[..., :k]
+        g_sel = np.take_along_axis(gt, sel, -1)
+        on = g_sel < 0.0
+        Nm = np.swapaxes(np.take_along_axis(normals, sel[..., None], -2), -1, -2) * on[..., None, :]  # (..., 3, k)
+        pinv = np.linalg.pinv(Nm)  # (..., k, 3) = (NᵀN)⁻¹Nᵀ
+        P = np.eye(3) - Nm @ pinv
+        correction = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
+    else:
+        P = None
+        correction = np.zeros_like(p)
+
+    def project(v: FloatArray) -> FloatArray:
+        return v if P is None else np.einsum("...ij,...j->...i", P, v)
+
+    singular = np.asarray(status) == int(FimStatus.SINGULAR)
+    pg = project(grad)
+    pg_norm = np.sqrt((pg * pg).sum(-1))
+    if xi is None:
+        descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None]
+    else:
+        descent = -float(xi) * pg
+    prev_s, prev_psi, prev_theta = _spherical(prev)
+    has_prev = prev_s > 0.0
+    if singular.any():
+        uni = np.asarray(perturbation_uniforms, dtype=float)
+        jitter = (2.0 * uni - 1.0) * perturbation_rad
+        psi_r = np.where(has_prev, prev_psi + jitter[..., 0], 2.0 * np.pi * uni[..., 0])
+        th_r = np.where(has_prev, np.clip(prev_theta + jitter[..., 1], -0.5 * np.pi, 0.5 * np.pi), 0.0)
+        wander = project(_cartesian(np.full(batch, smax), psi_r, th_r))
+        descent = np.where(singular[..., None], wander, descent)
+    u_d = descent + correction
+
+    # 3. Kinematic limits (eq. 2): speed, heading and tilt rates.
+    s, psi, theta = _spherical(u_d)
+    tiny = s < 1e-12
+    psi = np.where(tiny, prev_psi, psi)
+    theta = np.where(tiny, prev_theta, theta)
+    s = np.minimum(np.maximum(s, smin), smax)
+    hmax, tmax = limits.heading_change_max_rad, limits.tilt_change_max_rad
+    dpsi = np.minimum(np.maximum(_wrap(psi - prev_psi), -hmax), hmax)
+    psi = np.where(has_prev, prev_psi + dpsi, psi)
+    theta = np.where(has_prev, np.minimum(np.maximum(theta, prev_theta - tmax), prev_theta + tmax), theta)
+    u = _cartesian(s, psi, theta)
+
+    active = np.zeros(batch + (4,), dtype=bool)
+    active[..., UAV] = active_all[..., :-2].any(-1)
+    active[..., SOURCE] = active_all[..., -2]
+    active[..., OBSTACLE] = active_all[..., -1]
+    filtered = np.zeros(batch, dtype=bool)
+    infeasible = np.zeros(batch, dtype=bool)
+
+    if not safe:
+        # The paper clamps the altitude to its box.
+        z_next = p[..., 2] + u[..., 2]
+        clamped = np.clip(z_next, limits.z_min_m, limits.z_max_m)
+        active[..., ALTITUDE] = clamped != z_next
+        u = u.copy()
+        u[..., 2] = clamped - p[..., 2]
+    else:
+        # 4. Safety filter over the kinematic envelope.
+        clear = _Clearances(
+            peers=q,
+            peer_required=np.where(mask, limits.d_uav_m + (age + 1.0) * smax + 2.0 * tb, -np.inf),
+            source=src,
+            source_required=keepout + tb,
+            obstacle_required=limits.d_obstacle_m + 0.5 * smax + tb,
+        )
+        # Worst margin now, from the constraint values already computed.
+        now = np.minimum(
+            (G[..., :-2] - (clear.peer_required - limits.d_uav_m)).min(-1, initial=np.inf),
+            np.minimum(g_s - tb, g_o - (clear.obstacle_required - limits.d_obstacle_m)),
+        )
+        need = np.minimum(now, 0.0)
+        # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
+        # s_max of a clearance need their step scored; the altitude box is checked for all.
+        z_next = p[..., 2] + u[..., 2]
+        alt = np.minimum(limits.z_max_m - z_next - _tilt_buffer(theta, limits), z_next - limits.z_min_m - _tilt_buffer(-theta, limits))
+        alt_now = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
+        need = np.minimum(need, np.minimum(alt_now, 0.0))
+        bad = alt < need
+        active[..., ALTITUDE] = alt < 0.0
+        near = now - smax < need
+        if near.any():
+            idx = np.nonzero(near)
+            score, _ = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(clear, idx), bmin, bmax, limits)
+            bad[idx] |= score[..., 0] < need[idx]
+        if bad.any():
+            idx = np.nonzero(bad)
+            u_b, score_b, alt_b, inf_b = _envelope_search(
+                p[idx], u[idx], prev[idx], has_prev[idx], theta[idx], need[idx], _subset(clear, idx), bmin, bmax, limits
+            )
+            u = u.copy()
+            u[idx] = u_b
+            filtered[idx] = True
+            infeasible[idx] = inf_b
+            active[idx + (ALTITUDE,)] = alt_b
+    return StepResult(
+        next_position=p + u,
+        displacement=u,
+        active=active,
+        singular=singular,
+        filtered=filtered,
+        infeasible=infeasible,
+    )
+
+
+def _envelope_search(
+    p: FloatArray,
+    u: FloatArray,
+    prev: FloatArray,
+    has_prev: BoolArray,
+    theta: FloatArray,
+    need: FloatArray,
+    clear: _Clearances,
+    bmin: FloatArray,
+    bmax: FloatArray,
+    limits: Limits,
+) -> tuple[FloatArray, BoolArray, BoolArray, BoolArray]:
+    """Best step of the kinematic envelope for the flat batch ``p`` (n, 3)."""
+    _, prev_psi, prev_theta = _spherical(prev)
+    fr_h = np.linspace(-1.0, 1.0, 9)
+    fr_t = np.linspace(-1.0, 1.0, 5)
+    speeds = np.array([limits.step_min_m, limits.step_max_m])
+    H, T, S = np.meshgrid(fr_h, fr_t, speeds, indexing="ij")
+    H, T, S = H.ravel(), T.ravel(), S.ravel()
+    psi = np.where(has_prev[:, None], prev_psi[:, None] + H * limits.heading_change_max_rad, np.pi * (H[None, :] + 1.0))
+    th = np.where(
+        has_prev[:, None],
+        np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
+        T * limits.tilt_change_max_rad,
+    )
+    cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
+    score, alt = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)
+    ok = score >= need[:, None]
+    closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
+    pick = np.where(ok.any(-1), np.where(ok, closeness, np.inf).argmin(-1), score.argmax(-1))
+    rows = np.arange(p.shape[0])
+    return cand[rows, pick], score[rows, pick], alt[rows, pick], ~ok.any(-1)

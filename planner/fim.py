@@ -1,0 +1,271 @@
+"""Fisher information of the source position (paper eqs. 8-12), A/D costs and gradients (eqs. 6, 13).
+
+Notation (mission ENU frame, metres, radians): drone j at p_j, source p0, r = p0 - p_j,
+d = |r|, ρ = sqrt(r_x² + r_y²). For drone j with ranging role κ_j and bearing role β_j:
+
+.. math::
+    J = \\sum_j \\kappa_j A_{r,j}\\,\\mathbf a_j\\mathbf a_j^T
+        + \\beta_j p_j \\frac{1}{\\sigma_{b,0}^2}\\big(\\nabla\\phi_j\\nabla\\phi_j^T
+        + \\nabla\\theta_j\\nabla\\theta_j^T\\big)
+
+    A_{r,j} = \\frac{1}{\\sigma_{r,j}^2} + \\frac{\\gamma^2}{2 d_j^2},\\qquad
+    \\sigma_{r,j}^2 = \\sigma_{r,0}^2 d_j^{\\gamma}
+
+    \\nabla\\phi = \\frac{[-r_y, r_x, 0]}{\\rho^2},\\qquad
+    \\nabla\\theta = \\frac{[-r_x r_z, -r_y r_z, \\rho^2]}{d^2\\rho}
+
+which is eq. 10-12 written in Cartesian form (G_az = ∇φ∇φᵀ, G_el = ∇θ∇θᵀ). The second term
+of A_r is the information carried by the distance-dependent variance,
+∇σ²∇σ²ᵀ/(2σ⁴) = γ²/(2d²)·aaᵀ; see docs/paper-notes.md for the comparison with the printed
+eq. 12.
+
+Costs (eq. 6): A-optimality C = tr(J⁻¹), D-optimality C = −ln det J, with analytic gradients
+with respect to the position of one drone (its own, for the control law of eq. 14).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planner.geometry import RHO_FLOOR_M
+from planner.params import Channel, Criterion
+
+FloatArray = NDArray[np.float64]
+
+#: Reciprocal condition number (λ_min/λ_max) below which J is reported singular.
+SINGULAR_RCOND: float = 1e-12
+#: Reciprocal condition number below which J is reported ill-conditioned (still inverted).
+ILL_CONDITIONED_RCOND: float = 1e-8
+
+
+class FimStatus(IntEnum):
+    """Health of a Fisher information matrix."""
+
+    OK = 0
+    ILL_CONDITIONED = 1  #: inverted, but the cost may be inaccurate
+    SINGULAR = 2  #: not invertible: cost +inf (A) or +inf (D), gradient zero
+
+
+def _term_vectors(r: FloatArray, los: NDArray[np.bool_], channel: Channel) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Vectors and scalars of the FIM terms for relative vectors r = p0 - p_j, shape (..., 3).
+
+    Returns ``(V, rho2, d2, d, s0sq, r)`` where V (..., 3, 3) stacks the rows
+    r (ranging direction times d), b = [-r_y, r_x, 0] (∇φ·ρ²) and
+    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ).
+    """
+    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+    rho2 = np.maximum(rx * rx + ry * ry, RHO_FLOOR_M**2)
+    d2 = rho2 + rz * rz
+    d = np.sqrt(d2)
+    s0sq = np.where(los, channel.sigma_r0_los**2, channel.sigma_r0_nlos**2)
+    V = np.empty(r.shape[:-1] + (3, 3))
+    V[..., 0, :] = r
+    V[..., 1, 0] = -ry
+    V[..., 1, 1] = rx
+    V[..., 1, 2] = 0.0
+    V[..., 2, 0] = -rx * rz
+    V[..., 2, 1] = -ry * rz
+    V[..., 2, 2] = rho2
+    return V, rho2, d2, d, s0sq, r
+
+
+def fisher_information(
+    source: ArrayLike,
+    positions: ArrayLike,
+    ranging: ArrayLike,
+    bearing: ArrayLike,
+    los: ArrayLike,
+    channel: Channel,
+) -> FloatArray:
+    """Fisher information matrix J(p0; q) of the source position (paper eqs. 10-12).
+
+    Args:
+        source: source position p0 (true or estimated), shape (..., 3), m, ENU.
+        positions: drone positions q = [p_j], shape (..., N, 3), m, ENU.
+        ranging: κ_j, boolean (..., N): the drone measures range.
+        bearing: β_j, boolean (..., N): the drone measures azimuth and elevation.
+        los: p_j, boolean (..., N): the link is line of sight. An NLOS bearing carries no
+            information; an NLOS range uses σ_sh/γ of NLOS.
+        channel: RSS channel (γ, σ_sh/γ LOS and NLOS, σ_b).
+
+    Returns:
+        J, shape (..., 3, 3), units 1/m².
+    """
+    r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
+    los_b = np.asarray(los, dtype=bool)
+    V, rho2, d2, d, s0sq, _ = _term_vectors(r, los_b, channel)
+    gamma = channel.gamma
+    w = np.empty(V.shape[:-1])
+    # Ranging: A_r a aᵀ = (A_r / d²) r rᵀ.
+    w[..., 0] = np.asarray(ranging, dtype=bool) * (d ** (-gamma) / s0sq + gamma * gamma / (2.0 * d2)) / d2
+    # Bearing (LOS only): ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²).
+    w_b = (np.asarray(bearing, dtype=bool) & los_b) / (channel.sigma_bearing_rad**2 * rho2)
+    w[..., 1] = w_b / rho2
+    w[..., 2] = w_b / (d2 * d2)
+    Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
+    return np.swapaxes(Vs, -1, -2) @ Vs
+
+
+@dataclass(frozen=True)
+class FimInverse:
+    """Inverse, determinant and health of a batch of FIMs.
+
+    Attributes:
+        inverse: J⁻¹, shape (..., 3, 3), m²; zeros where singular.
+        logdet: ln det J, shape (...); -inf where singular.
+        status: :class:`FimStatus` codes, int8 (...).
+    """
+
+    inverse: FloatArray
+    logdet: FloatArray
+    status: NDArray[np.int8]
+
+
+def invert_fim(fim: ArrayLike) -> FimInverse:
+    """Invert symmetric 3x3 FIMs with an explicit health check (no silent NaN or inf).
+
+    The matrix is reported singular when λ_min ≤ 1e-12 λ_max (or λ_max ≤ 0 or non-finite),
+    ill-conditioned below 1e-8.
+    """
+    J = np.asarray(fim, dtype=float)
+    finite = np.isfinite(J).all(axis=(-2, -1))
+    if not finite.all():
+        J = np.where(finite[..., None, None], J, 0.0)
+    eig = np.linalg.eigvalsh(J)
+    lmin, lmax = eig[..., 0], eig[..., -1]
+    ok_max = lmax > 0.0
+    rcond = np.divide(lmin, lmax, out=np.zeros_like(lmax), where=ok_max)
+    singular = (~finite) | (~ok_max) | (rcond <= SINGULAR_RCOND)
+    status = np.where(singular, FimStatus.SINGULAR, np.where(rcond <= ILL_CONDITIONED_RCOND, FimStatus.ILL_CONDITIONED, FimStatus.OK)).astype(np.int8)
+    any_singular = bool(singular.any())
+    if any_singular:
+        J = np.where(singular[..., None, None], np.eye(3), J)
+        eig = np.where(singular[..., None], 1.0, eig)
+    inv = np.linalg.inv(J)
+    logdet = np.log(eig).sum(axis=-1)
+    if any_singular:
+        inv = np.where(singular[..., None, None], 0.0, inv)
+        logdet = np.where(singular, -np.inf, logdet)
+    return FimInverse(inverse=inv, logdet=logdet, status=status)
+
+
+def cost(fim: ArrayLike, criterion: Criterion) -> tuple[FloatArray, NDArray[np.int8]]:
+    """A- or D-optimality cost of eq. 6 and the FIM health.
+
+    Returns ``(C, status)``: C = tr(J⁻¹) (m²) for ``"A"``, −ln det J for ``"D"``; where J is
+    singular C is ``+inf`` and ``status`` says :attr:`FimStatus.SINGULAR`.
+    """
+    inv = invert_fim(fim)
+    singular = inv.status == FimStatus.SINGULAR
+    if criterion == "A":
+        value = np.trace(inv.inverse, axis1=-2, axis2=-1)
+    elif criterion == "D":
+        value = -inv.logdet
+    else:
+        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
+    if singular.any():
+        value = np.where(singular, np.inf, value)
+    return value, inv.status
+
+
+@dataclass(frozen=True)
+class CostGradient:
+    """Cost of eq. 6 at one drone's view and its gradient w.r.t. that drone's own position.
+
+    Attributes:
+        value: C (m² for A, dimensionless for D), shape (...); +inf where singular.
+        gradient: ∇_{p_i} C, shape (..., 3) (m for A, 1/m for D), ENU; zeros where singular.
+        status: :class:`FimStatus` codes, int8 (...).
+    """
+
+    value: FloatArray
+    gradient: FloatArray
+    status: NDArray[np.int8]
+
+
+def cost_gradient(
+    fim: ArrayLike,
+    source: ArrayLike,
+    own_position: ArrayLike,
+    own_ranging: ArrayLike,
+    own_bearing: ArrayLike,
+    own_los: ArrayLike,
+    channel: Channel,
+    criterion: Criterion,
+) -> CostGradient:
+    """Cost C(q_i) of eq. 6 and its analytic gradient w.r.t. drone i's own position (eq. 14).
+
+    Only drone i's own term of J depends on p_i, so with M = ∂C/∂J (−J⁻² for A, −J⁻¹ for D)
+    and r = p0 − p_i, ∇_{p_i} C = −∂C/∂r with
+
+    .. math::
+        \\partial_{r}\\,\\mathrm{tr}(M J_r) = \\frac{h'(d)}{d}(r^T M r)\\,r + 2h(d) M r,
+        \\quad J_r = h(d)\\,r r^T,\\ h = \\frac{d^{-\\gamma}}{\\sigma_{r,0}^2 d^2} + \\frac{\\gamma^2}{2 d^4}
+
+    and the analogous expressions for the azimuth (b bᵀ/ρ⁴) and elevation (v vᵀ/(d⁴ρ²)) terms.
+
+    Args:
+        fim: J of drone i's view (including its own term), shape (..., 3, 3).
+        source: the source position J was evaluated at (drone i's estimate), (..., 3), m, ENU.
+        own_position: p_i, (..., 3), m, ENU.
+        own_ranging, own_bearing, own_los: drone i's κ_i, β_i and p_i, boolean (...).
+        channel: RSS channel. criterion: ``"A"`` or ``"D"``.
+    """
+    inv = invert_fim(fim)
+    singular = inv.status == FimStatus.SINGULAR
+    Jinv = inv.inverse
+    if criterion == "A":
+        value = np.trace(Jinv, axis1=-2, axis2=-1)
+        M = -Jinv @ Jinv
+    elif criterion == "D":
+        value = -inv.logdet
+        M = -Jinv
+    else:
+        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
+    r = np.asarray(source, dtype=float) - np.asarray(own_position, dtype=float)
+    los_b = np.asarray(own_los, dtype=bool)
+    V, rho2, d2, d, s0sq, _ = _term_vectors(r, los_b, channel)
+    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+    gamma = channel.gamma
+    MV = V @ M  # rows: M r, M b, M v (M symmetric)
+    q = (V * MV).sum(-1)  # rᵀMr, bᵀMb, vᵀMv
+    Mr, Mb, Mv = MV[..., 0, :], MV[..., 1, :], MV[..., 2, :]
+    # Ranging term J_r = h r rᵀ, h = d^-γ/(σ_r0² d²) + γ²/(2 d⁴).
+    h = d ** (-gamma) / (s0sq * d2) + gamma * gamma / (2.0 * d2 * d2)
+    dh = (-gamma - 2.0) * d ** (-gamma - 3.0) / s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+    g_r = (dh / d * q[..., 0])[..., None] * r + 2.0 * h[..., None] * Mr
+    # Azimuth term w b bᵀ with w = 1/(σ_b² ρ⁴); ∂b/∂r = R, Rᵀx = [x_y, -x_x, 0].
+    sb2 = channel.sigma_bearing_rad**2
+    w_az = 1.0 / (sb2 * rho2 * rho2)
+    horiz = r.copy()
+    horiz[..., 2] = 0.0
+    RtMb = np.empty_like(r)
+    RtMb[..., 0] = Mb[..., 1]
+    RtMb[..., 1] = -Mb[..., 0]
+    RtMb[..., 2] = 0.0
+    g_az = 2.0 * w_az[..., None] * RtMb - (4.0 * w_az * q[..., 1] / rho2)[..., None] * horiz
+    # Elevation term c² v vᵀ/σ_b² with c = 1/(d² ρ); ∂v/∂r = [[-r_z,0,-r_x],[0,-r_z,-r_y],[2r_x,2r_y,0]].
+    c2 = 1.0 / (d2 * d2 * rho2)
+    VtMv = np.empty_like(r)
+    VtMv[..., 0] = -rz * Mv[..., 0] + 2.0 * rx * Mv[..., 2]
+    VtMv[..., 1] = -rz * Mv[..., 1] + 2.0 * ry * Mv[..., 2]
+    VtMv[..., 2] = -rx * Mv[..., 0] - ry * Mv[..., 1]
+    grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
+    g_el = (2.0 * c2[..., None] * VtMv + q[..., 2, None] * grad_c2) / sb2
+    use_r = np.asarray(own_ranging, dtype=bool)[..., None]
+    use_b = (np.asarray(own_bearing, dtype=bool) & los_b)[..., None]
+    gradient = -(use_r * g_r + use_b * (g_az + g_el))
+    if singular.any():
+        gradient = np.where(singular[..., None], 0.0, gradient)
+        value = np.where(singular, np.inf, value)
+    return CostGradient(value=value, gradient=gradient, status=inv.status)
+
+
+def position_error_bound(fim: ArrayLike) -> tuple[FloatArray, NDArray[np.int8]]:
+    """PEB = sqrt(tr J⁻¹) (eq. 18, one drone's view), metres; ``+inf`` where J is singular."""
+    value, status = cost(fim, "A")
+    return np.sqrt(value), status

@@ -1,0 +1,156 @@
+"""Geometry in the mission ENU frame: ranges and angles, line of sight, distance to obstacles.
+
+Frame: ENU, metres (x east, y north, z up), about the mission origin. Angles in radians.
+Obstacles are axis-aligned boxes (the paper's parallelepipeds) given by their lower and upper
+corners, ``boxes_min`` and ``boxes_max`` of shape (B, 3); B may be 0.
+
+Every function broadcasts over leading dimensions (trials, drones, ...).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Horizontal distances below this are treated as this (m): the azimuth is undefined
+#: straight above or below the source.
+RHO_FLOOR_M: float = 1e-9
+
+
+def ranges_angles(source: ArrayLike, positions: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Distance, azimuth and elevation from each drone to the source (paper Fig. 1, eq. 3).
+
+    .. math::
+        \\mathbf r = \\mathbf p_0 - \\mathbf p_j,\\quad d = \\lVert \\mathbf r\\rVert,\\quad
+        \\phi = \\operatorname{atan2}(r_y, r_x),\\quad
+        \\theta = \\operatorname{atan2}(r_z, \\sqrt{r_x^2 + r_y^2})
+
+    Args:
+        source: source position p0, shape (..., 3), metres, mission ENU frame.
+        positions: drone positions p_j, shape (..., N, 3), metres, mission ENU frame.
+
+    Returns:
+        ``(d, phi, theta)``, each of shape (..., N): distance (m), azimuth (rad, from east
+        towards north, in (-π, π]) and elevation (rad, in [-π/2, π/2]) of the source seen from
+        each drone.
+    """
+    r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
+    rho = np.hypot(r[..., 0], r[..., 1])
+    d = np.sqrt(rho * rho + r[..., 2] ** 2)
+    return d, np.arctan2(r[..., 1], r[..., 0]), np.arctan2(r[..., 2], rho)
+
+
+def line_of_sight(positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> BoolArray:
+    """Whether the segment drone → source crosses no obstacle (slab test).
+
+    A link is NLOS when the closed segment from the drone to the source meets the interior
+    or the surface of any box (paper: the indicator p_j of eq. 3 is 1 in LOS).
+
+    Args:
+        positions: drone positions, shape (..., N, 3), metres, ENU.
+        source: source position, shape (..., 3), metres, ENU.
+        boxes_min, boxes_max: box corners, shape (B, 3), metres, ENU.
+
+    Returns:
+        Boolean array of shape (..., N), True where the link is line of sight.
+    """
+    p = np.asarray(positions, dtype=float)
+    s = np.asarray(source, dtype=float)
+    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
+    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    if bmin.shape[0] == 0:
+        return np.ones(p.shape[:-1], dtype=bool)
+    direction = (s[..., None, :] - p)[..., None, :]  # (..., N, 1, 3)
+    origin = p[..., None, :]  # (..., N, 1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / direction
+        t1 = (bmin - origin) * inv  # (..., N, B, 3)
+        t2 = (bmax - origin) * inv
+    parallel = direction == 0.0
+    inside_slab = (origin >= bmin) & (origin <= bmax)
+    lo = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
+    hi = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
+    t_enter = np.maximum(lo.max(axis=-1), 0.0)
+    t_exit = np.minimum(hi.min(axis=-1), 1.0)
+    blocked = t_enter <= t_exit
+    return ~blocked.any(axis=-1)
+
+
+def _box_distances(p: FloatArray, bmin: FloatArray, bmax: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-box signed distances (..., B), outside offsets p - clip(p) (..., B, 3) and face gaps."""
+    q = p[..., None, :]
+    offset = q - np.minimum(np.maximum(q, bmin), bmax)
+    outside = np.sqrt((offset * offset).sum(-1))
+    gaps = np.minimum(q - bmin, bmax - q)  # > 0 inside, per axis
+    depth = gaps.min(-1)
+    return np.where(outside > 0.0, outside, -np.maximum(depth, 0.0)), offset, gaps
+
+
+def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> FloatArray:
+    """Signed distance from each point to the nearest obstacle surface (negative inside).
+
+    Used by the obstacle constraint g3 = d_O - d_O* (paper eq. 17).
+
+    Args:
+        points: shape (..., 3), metres, ENU.
+        boxes_min, boxes_max: shape (B, 3), metres, ENU.
+
+    Returns:
+        Shape (...): metres; ``+inf`` when there is no obstacle.
+    """
+    p = np.asarray(points, dtype=float)
+    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
+    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    if bmin.shape[0] == 0:
+        return np.full(p.shape[:-1], np.inf)
+    return _box_distances(p, bmin, bmax)[0].min(-1)
+
+
+def distance_to_boxes_with_gradient(
+    points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """Signed distance to the nearest box and its gradient with respect to the point.
+
+    Outside a box the distance is ``|p - clip(p, min, max)|`` and its gradient the unit vector
+    from the closest surface point to p; inside, it is minus the distance to the nearest face
+    and the gradient is that face's outward normal.
+
+    Args:
+        points: shape (..., 3), metres, ENU.
+        boxes_min, boxes_max: shape (B, 3), metres, ENU.
+
+    Returns:
+        ``(distance, gradient)`` with shapes (...) and (..., 3). With no obstacle: ``+inf`` and
+        zeros.
+    """
+    p = np.asarray(points, dtype=float)
+    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
+    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    if bmin.shape[0] == 0:
+        return np.full(p.shape[:-1], np.inf), np.zeros(p.shape)
+    sd, offset, gaps = _box_distances(p, bmin, bmax)
+    batch = p.shape[:-1]
+    flat = int(np.prod(batch, dtype=int))
+    nb = bmin.shape[0]
+    nearest = sd.reshape(flat, nb).argmin(-1)
+    rows = np.arange(flat)
+    d = sd.reshape(flat, nb)[rows, nearest]
+    off = offset.reshape(flat, nb, 3)[rows, nearest]
+    gap = gaps.reshape(flat, nb, 3)[rows, nearest]
+    # Inside: outward normal of the nearest face (sign: nearer to max -> +, to min -> -).
+    axis = gap.argmin(-1)
+    pf = p.reshape(flat, 3)
+    lower = (pf - bmin[nearest])[rows, axis] < (bmax[nearest] - pf)[rows, axis]
+    grad = np.zeros((flat, 3))
+    grad[rows, axis] = np.where(lower, -1.0, 1.0)
+    out = d > 0.0
+    grad[out] = off[out] / d[out, None]
+    return d.reshape(batch), grad.reshape(batch + (3,))
+
+
+def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> BoolArray:
+    """Whether each point lies inside (or on) any box. Shape (...)."""
+    return distance_to_boxes(points, boxes_min, boxes_max) <= 0.0
