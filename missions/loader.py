@@ -108,7 +108,8 @@ def loads_mission(
     try:
         return Mission.model_validate(data, context=context)
     except ValidationError as exc:
-        problems = [_describe(err, node, override_paths) for err in exc.errors(include_url=False)]
+        errors = _merge_typos(exc.errors(include_url=False))
+        problems = [_describe(err, node, override_paths) for err in errors]
         raise MissionError(file, problems) from None
 
 
@@ -170,10 +171,7 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
         _check_nodes(node, file)
         data = loader.construct_document(node)
     except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        what = " ".join(s for s in (exc.context, exc.problem) if s)
-        raise MissionError(file, [f"{where}invalid YAML: {what}"]) from None
+        raise MissionError(file, [_describe_yaml_error(exc)]) from None
     except yaml.YAMLError as exc:
         raise MissionError(file, [f"invalid YAML: {exc}"]) from None
     except RecursionError:
@@ -187,6 +185,26 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
              f"at the top level, found {_kind(data)}"],
         )
     return node, data
+
+
+def _describe_yaml_error(exc: yaml.MarkedYAMLError) -> str:
+    """``line L, column C: invalid YAML: expected ..., found ...`` from a PyYAML error."""
+    mark = exc.problem_mark or exc.context_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    problem = (exc.problem or "").strip()
+    context = f" ({exc.context.strip()})" if exc.context else ""
+    if isinstance(exc, yaml.constructor.ConstructorError) and "tag" in problem:
+        tag = problem.rsplit(" ", 1)[-1]
+        return f"{where}invalid YAML: expected plain data (no language-specific tags), found the tag {tag}"
+    for but in (", but got ", " but got ", ", but found ", " but found "):
+        if problem.startswith("expected") and but in problem:
+            head, tail = problem.split(but, 1)
+            return f"{where}invalid YAML{context}: {head}, found {tail}"
+    if exc.context and exc.context.startswith("expected") and problem.startswith("but found "):
+        return f"{where}invalid YAML: {exc.context.strip()}, found {problem[len('but found '):]}"
+    if problem.startswith("found "):
+        problem = problem[len("found "):]
+    return f"{where}invalid YAML{context}: expected valid YAML syntax, found {problem}"
 
 
 def _check_nodes(root: yaml.Node, file: str) -> None:
@@ -344,6 +362,19 @@ def _expected_from_msg(msg: str) -> str:
                 rest = "a number " + rest
             return rest.replace("a valid tuple", "a list").replace("a valid dictionary", "a mapping")
     return msg[:1].lower() + msg[1:]
+
+
+def _merge_typos(errors: Sequence[Any]) -> list[Any]:
+    """Drop a "missing key" error when an unknown key beside it is a typo of that key: the
+    user wrote one wrong key, so report one problem (the unknown key, with the suggestion)."""
+    typos: set[tuple[Any, ...]] = set()
+    for err in errors:
+        if err["type"] == "extra_forbidden":
+            parent = tuple(err["loc"][:-1])
+            valid = _model_fields_at(list(parent)) or []
+            for close in difflib.get_close_matches(str(err["loc"][-1]), valid, n=1, cutoff=0.6):
+                typos.add(parent + (close,))
+    return [e for e in errors if not (e["type"] == "missing" and tuple(e["loc"]) in typos)]
 
 
 def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[tuple[str | int, ...]]) -> str:

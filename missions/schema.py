@@ -546,7 +546,7 @@ def mission_json_schema() -> dict[str, Any]:
 
 
 def _fmt(v: NDArray[np.float64]) -> str:
-    return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
+    return "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
 
 
 # --- the mission ---------------------------------------------------------------------------
@@ -624,7 +624,7 @@ class Mission(_Section):
         names = [b.name for b in self.obstacles]
         for j, name in enumerate(names):
             if name in names[:j]:
-                raise fail(f"obstacles[{j}].name", "a name not used by another obstacle", name)
+                raise fail(f"obstacles[{j}].name", "a name not used by another obstacle", repr(name))
 
         for i in range(n):
             z = starts[i, 2]
