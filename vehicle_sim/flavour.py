@@ -1,0 +1,153 @@
+"""Autopilot flavours: flight modes and identity of ArduPilot copter and PX4.
+
+A mode is identified by its HEARTBEAT ``custom_mode``: ArduPilot copter mode numbers
+(GUIDED = 4, ...) or PX4's ``main_mode << 16 | sub_mode << 24``. Each mode maps to one
+internal *behaviour*:
+
+``hold``    hold position (no RC in a simulator: STABILIZE, ALT_HOLD, LOITER, POSHOLD, BRAKE,
+            PX4 POSCTL, AUTO.LOITER, ...);
+``guided``  follow external setpoints (ArduPilot GUIDED, PX4 OFFBOARD);
+``takeoff`` climb to the take-off altitude (PX4 AUTO.TAKEOFF);
+``land``    descend and disarm on touchdown; ``rtl`` climb, return home, land;
+``mission`` fly the stored mission (refused: the mission is always empty).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+Behaviour = Literal["hold", "guided", "takeoff", "land", "rtl", "mission"]
+
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One flight mode.
+
+    Attributes:
+        custom_mode: the HEARTBEAT custom_mode value.
+        name: the name ground stations show (pymavlink's mode maps).
+        behaviour: the internal behaviour, see the module doc.
+        armable: arming is allowed in this mode.
+    """
+
+    custom_mode: int
+    name: str
+    behaviour: Behaviour
+    armable: bool
+
+
+def px4_custom_mode(main: int, sub: int = 0) -> int:
+    """PX4 custom_mode from main and sub mode (``main << 16 | sub << 24``)."""
+    return (main << 16) | (sub << 24)
+
+
+ARDUPILOT_MODES: tuple[Mode, ...] = (
+    Mode(0, "STABILIZE", "hold", True),
+    Mode(2, "ALT_HOLD", "hold", True),
+    Mode(3, "AUTO", "mission", False),
+    Mode(4, "GUIDED", "guided", True),
+    Mode(5, "LOITER", "hold", True),
+    Mode(6, "RTL", "rtl", False),
+    Mode(9, "LAND", "land", False),
+    Mode(16, "POSHOLD", "hold", True),
+    Mode(17, "BRAKE", "hold", False),
+)
+
+PX4_MODES: tuple[Mode, ...] = (
+    Mode(px4_custom_mode(1), "MANUAL", "hold", True),
+    Mode(px4_custom_mode(2), "ALTCTL", "hold", True),
+    Mode(px4_custom_mode(3), "POSCTL", "hold", True),
+    Mode(px4_custom_mode(7), "STABILIZED", "hold", True),
+    Mode(px4_custom_mode(4, 2), "TAKEOFF", "takeoff", True),
+    Mode(px4_custom_mode(4, 3), "LOITER", "hold", True),
+    Mode(px4_custom_mode(4, 4), "MISSION", "mission", False),
+    Mode(px4_custom_mode(4, 5), "RTL", "rtl", False),
+    Mode(px4_custom_mode(4, 6), "LAND", "land", False),
+    Mode(px4_custom_mode(6), "OFFBOARD", "guided", True),
+)
+
+
+@dataclass(frozen=True)
+class FlavourInfo:
+    """Identity and modes of one autopilot flavour.
+
+    Attributes:
+        autopilot: HEARTBEAT autopilot (MAV_AUTOPILOT_*).
+        modes: the supported modes.
+        boot_mode, air_boot_mode, hold_mode, guided_mode, takeoff_mode, land_mode, rtl_mode:
+            custom_mode values used by the mode logic.
+        flight_sw_version: AUTOPILOT_VERSION flight_sw_version (major.minor.patch, official).
+        param_bytewise: PARAM_VALUE integer encoding (PX4 bytewise, ArduPilot C cast).
+    """
+
+    autopilot: int
+    modes: tuple[Mode, ...]
+    boot_mode: int
+    air_boot_mode: int
+    hold_mode: int
+    guided_mode: int
+    takeoff_mode: int | None
+    land_mode: int
+    rtl_mode: int
+    flight_sw_version: int
+    param_bytewise: bool
+
+    def mode(self, custom_mode: int) -> Mode | None:
+        """The mode with this custom_mode, or None."""
+        for m in self.modes:
+            if m.custom_mode == custom_mode:
+                return m
+        return None
+
+    def mode_by_name(self, name: str) -> Mode | None:
+        """The mode with this (case-insensitive) name, or None."""
+        for m in self.modes:
+            if m.name == name.upper():
+                return m
+        return None
+
+
+def _version(major: int, minor: int, patch: int) -> int:
+    return (major << 24) | (minor << 16) | (patch << 8) | 255  # FIRMWARE_VERSION_TYPE_OFFICIAL
+
+
+ARDUPILOT = FlavourInfo(
+    autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
+    modes=ARDUPILOT_MODES,
+    boot_mode=0,
+    air_boot_mode=4,
+    hold_mode=5,
+    guided_mode=4,
+    takeoff_mode=None,
+    land_mode=9,
+    rtl_mode=6,
+    flight_sw_version=_version(4, 5, 7),
+    param_bytewise=False,
+)
+
+PX4 = FlavourInfo(
+    autopilot=MAV_AUTOPILOT_PX4,
+    modes=PX4_MODES,
+    boot_mode=px4_custom_mode(3),
+    air_boot_mode=px4_custom_mode(4, 3),
+    hold_mode=px4_custom_mode(4, 3),
+    guided_mode=px4_custom_mode(6),
+    takeoff_mode=px4_custom_mode(4, 2),
+    land_mode=px4_custom_mode(4, 6),
+    rtl_mode=px4_custom_mode(4, 5),
+    flight_sw_version=_version(1, 15, 4),
+    param_bytewise=True,
+)
+
+
+def flavour_info(flavour: str) -> FlavourInfo:
+    """The :class:`FlavourInfo` of ``"ardupilot"`` or ``"px4"``."""
+    if flavour == "ardupilot":
+        return ARDUPILOT
+    if flavour == "px4":
+        return PX4
+    raise ValueError(f"unknown flavour {flavour!r}: expected 'ardupilot' or 'px4'")

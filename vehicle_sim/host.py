@@ -1,0 +1,141 @@
+"""The loop that drives one or many simulated vehicles in one process.
+
+One thread serves every vehicle of the process: it waits with ``select()`` on every MAVLink
+socket (and on the lockstep clock's wake-up pipe) until input arrives or the next deadline, so
+an idle vehicle costs a handful of wake-ups per second while the physics still runs on its
+fixed grid (:meth:`SimVehicle.advance_to` integrates every missed physics step).
+
+* Real time: at each wake-up every vehicle is advanced to the clock's sim time.
+* Lockstep: input is answered between ticks (at the current sim time); each tick advances
+  every vehicle to the tick's ``t_s`` and reports its position (GLOBAL_POSITION_INT and
+  LOCAL_POSITION_NED stamped with the tick time).
+* HEARTBEAT: 1 Hz of *wall* time in both modes (link liveness for ground stations), sent
+  only by a loop that is running and only for healthy vehicles.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+from vehicle_sim.clock import LockstepClock, RealTimeClock
+from vehicle_sim.config import VehicleConfig
+from vehicle_sim.link import MavlinkLink, open_transport, read_signing_key
+from vehicle_sim.vehicle import SimVehicle
+
+log = logging.getLogger(__name__)
+
+MAX_SLEEP_S = 0.1
+HEARTBEAT_PERIOD_S = 1.0
+
+
+def build_vehicle(config: VehicleConfig, connection: str, wall: Callable[[], float] = time.time) -> SimVehicle:
+    """Open the MAVLink connection ``connection`` and build the vehicle ``config`` behind it.
+
+    Raises:
+        UsageError: bad connection string, port in use, unreadable signing key or tlog.
+    """
+    key = read_signing_key(config.signing_key_path) if config.signing_key_path else None
+    transport = open_transport(connection)
+    try:
+        link = MavlinkLink(transport, config.sysid, 1, tlog_path=config.tlog_path, signing_key=key)
+    except Exception:
+        transport.close()
+        raise
+    return SimVehicle(config, link, wall=wall)
+
+
+class VehicleHost:
+    """Run ``vehicles`` on ``clock`` until :meth:`stop`.
+
+    Args:
+        vehicles: the vehicles (distinct links).
+        clock: :class:`RealTimeClock` or :class:`LockstepClock`.
+        wall: monotonic wall clock (s).
+    """
+
+    def __init__(
+        self,
+        vehicles: Sequence[SimVehicle],
+        clock: RealTimeClock | LockstepClock,
+        wall: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.vehicles = list(vehicles)
+        self.clock = clock
+        self.wall = wall
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.iterations = 0
+
+    def stop(self) -> None:
+        """Ask the loop to end (thread safe); it returns within ~0.1 s."""
+        self._stop.set()
+
+    def _advance(self, vehicle: SimVehicle, t_s: float, report: bool) -> None:
+        if not vehicle.healthy:
+            vehicle.poll()
+            return
+        try:
+            vehicle.advance_to(t_s, report_position=report)
+        except Exception:  # noqa: BLE001 - one broken vehicle must not stop the others
+            vehicle.healthy = False
+            log.exception("sysid %d: vehicle failed; heartbeats stop", vehicle.sysid)
+
+    def run(self) -> None:
+        """The loop (blocks until :meth:`stop`)."""
+        next_hb = self.wall()
+        lockstep = isinstance(self.clock, LockstepClock)
+        while not self._stop.is_set():
+            self.iterations += 1
+            now = self.wall()
+            if now >= next_hb:
+                for v in self.vehicles:
+                    v.heartbeat()
+                    v.link.flush()
+                next_hb = next_hb + HEARTBEAT_PERIOD_S if now - next_hb < HEARTBEAT_PERIOD_S else now + HEARTBEAT_PERIOD_S
+            if isinstance(self.clock, LockstepClock):
+                for tick in self.clock.pop_all():
+                    for v in self.vehicles:
+                        self._advance(v, tick.t_s, True)
+                for v in self.vehicles:
+                    if v.poll():
+                        v.emit_due()
+                wake = min(next_hb, now + MAX_SLEEP_S)
+            else:
+                t = self.clock.now_s()
+                for v in self.vehicles:
+                    self._advance(v, t, False)
+                next_sim = min((v.next_due_s() for v in self.vehicles), default=math.inf)
+                wake = min(self.clock.wall_at(next_sim), next_hb, now + MAX_SLEEP_S)
+            fds: list[int] = [fd for v in self.vehicles for fd in v.link.filenos()]
+            if lockstep:
+                fds.append(self.clock.fileno())  # type: ignore[union-attr]
+            timeout = max(0.0, wake - self.wall())
+            try:
+                select.select(fds, [], [], timeout)
+            except (OSError, ValueError):
+                self._stop.wait(min(timeout, 0.01))
+        for v in self.vehicles:
+            v.link.flush()
+
+    def start(self) -> threading.Thread:
+        """Run the loop in a daemon thread (tests, embedding); returns the thread."""
+        self._thread = threading.Thread(target=self.run, name="vehicle-host", daemon=True)
+        self._thread.start()
+        return self._thread
+
+    def join(self, timeout_s: float = 5.0) -> None:
+        """Stop and wait for the loop thread started by :meth:`start`."""
+        self.stop()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def close(self) -> None:
+        """Stop and close every link."""
+        self.join()
+        for v in self.vehicles:
+            v.link.close()
