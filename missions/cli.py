@@ -17,6 +17,7 @@ from planner.errors import FimnavError
 
 #: Subcommand modules, in the order ``fimnav --help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
+    "missions.cmd_vehicle",
     "missions.cmd_check",
 )
 

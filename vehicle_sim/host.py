@@ -22,9 +22,10 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 
-from vehicle_sim.clock import LockstepClock, RealTimeClock
+from vehicle_sim.clock import LockstepClock, RealTimeClock, Tick
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.link import MavlinkLink, open_transport, read_signing_key
+from vehicle_sim.payload import Payload
 from vehicle_sim.vehicle import SimVehicle
 
 log = logging.getLogger(__name__)
@@ -33,7 +34,12 @@ MAX_SLEEP_S = 0.1
 HEARTBEAT_PERIOD_S = 1.0
 
 
-def build_vehicle(config: VehicleConfig, connection: str, wall: Callable[[], float] = time.time) -> SimVehicle:
+def build_vehicle(
+    config: VehicleConfig,
+    connection: str,
+    wall: Callable[[], float] = time.time,
+    payload: Payload | None = None,
+) -> SimVehicle:
     """Open the MAVLink connection ``connection`` and build the vehicle ``config`` behind it.
 
     Raises:
@@ -46,7 +52,7 @@ def build_vehicle(config: VehicleConfig, connection: str, wall: Callable[[], flo
     except Exception:
         transport.close()
         raise
-    return SimVehicle(config, link, wall=wall)
+    return SimVehicle(config, link, wall=wall, payload=payload)
 
 
 class VehicleHost:
@@ -56,6 +62,9 @@ class VehicleHost:
         vehicles: the vehicles (distinct links).
         clock: :class:`RealTimeClock` or :class:`LockstepClock`.
         wall: monotonic wall clock (s).
+        on_tick: called as ``on_tick(vehicle, tick)`` after each lockstep advance (e.g. to
+            take and publish the payload measurement of ``tick.step``); its exceptions are
+            logged, never raised.
     """
 
     def __init__(
@@ -63,7 +72,9 @@ class VehicleHost:
         vehicles: Sequence[SimVehicle],
         clock: RealTimeClock | LockstepClock,
         wall: Callable[[], float] = time.monotonic,
+        on_tick: Callable[[SimVehicle, Tick], None] | None = None,
     ) -> None:
+        self.on_tick = on_tick
         self.vehicles = list(vehicles)
         self.clock = clock
         self.wall = wall
@@ -101,6 +112,11 @@ class VehicleHost:
                 for tick in self.clock.pop_all():
                     for v in self.vehicles:
                         self._advance(v, tick.t_s, True)
+                        if self.on_tick is not None:
+                            try:
+                                self.on_tick(v, tick)
+                            except Exception:  # noqa: BLE001 - a hook must not stop the loop
+                                log.exception("sysid %d: on_tick hook failed", v.sysid)
                 for v in self.vehicles:
                     if v.poll():
                         v.emit_due()

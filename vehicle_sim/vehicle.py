@@ -29,6 +29,7 @@ from vehicle_sim.dynamics import Command, FloatArray, PointMass
 from vehicle_sim.flavour import FlavourInfo, Mode, flavour_info
 from vehicle_sim.geo import LocalFrame
 from vehicle_sim.link import MavlinkLink
+from vehicle_sim.payload import Measurement, Payload
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +92,18 @@ class SimVehicle:
         config: the vehicle configuration.
         link: the MAVLink endpoint (sockets, parser, encoder, .tlog).
         wall: wall clock (s) used only for STATUSTEXT rate limiting and SYSTEM_TIME.
+        payload: the simulated RSS payload (:meth:`measure`), or None.
     """
 
-    def __init__(self, config: VehicleConfig, link: MavlinkLink, wall: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        config: VehicleConfig,
+        link: MavlinkLink,
+        wall: Callable[[], float] = time.time,
+        payload: Payload | None = None,
+    ) -> None:
         self.config = config
+        self.payload = payload
         self.link = link
         self.m = link.mavlink
         self.wall = wall
@@ -1361,6 +1370,19 @@ class SimVehicle:
     def msg_protocol_version(self) -> Any:
         """PROTOCOL_VERSION: MAVLink 2 (200), minimum 100."""
         return self.m.MAVLink_protocol_version_message(200, 100, 200, [0] * 8, [0] * 8)
+
+    # ------------------------------------------------------------------ payload
+
+    def measure(self, step: int) -> Measurement:
+        """The simulated RSS payload's measurement for step ``step``, taken at the *true*
+        position and the current sim time.
+
+        Raises:
+            ValueError: no payload configured, or the step was already measured.
+        """
+        if self.payload is None:
+            raise ValueError(f"sysid {self.sysid}: no payload configured")
+        return self.payload.measure(self.position, step, self.t)
 
     # ------------------------------------------------------------------ inspection
 

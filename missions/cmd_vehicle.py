@@ -1,0 +1,306 @@
+"""``fimnav vehicle``: run one (or several) simulated MAVLink vehicles.
+
+Examples::
+
+    fimnav vehicle --sysid 1 --mavlink tcpin:127.0.0.1:5760
+    fimnav vehicle --mission missions/paper/ranging_los.yaml --sysid 3 --mavlink udpout:127.0.0.1:14550
+    fimnav vehicle --mission M.yaml --count 10 --mavlink udpin:127.0.0.1:14600 --lockstep
+
+With ``--count N`` the process hosts N vehicles, system ids I..I+N-1 on ports
+PORT, PORT+stride, ... (``--mavlink`` given once), or one ``--mavlink`` per vehicle.
+Once every socket is open the command prints one JSON line
+``{"event": "ready", "vehicles": [{"sysid": 1, "mavlink": "udpin:127.0.0.1:PORT"}], ...}``
+to stdout (the actual ports when PORT 0 was asked), then runs until SIGINT/SIGTERM or
+``--duration``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from planner.errors import UsageError
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``vehicle`` subcommand to the ``fimnav`` parser."""
+    p = subparsers.add_parser(
+        "vehicle",
+        help="run simulated MAVLink vehicles (ArduPilot copter or PX4 flavour)",
+        description="Run one or several simulated MAVLink vehicles that ground stations accept.",
+    )
+    p.add_argument("--sysid", type=int, default=1, help="MAVLink system id of the (first) vehicle (default 1)")
+    p.add_argument(
+        "--mavlink",
+        action="append",
+        default=[],
+        metavar="CONN",
+        help="connection: udpin:|udpout:|tcpin:|tcp:HOST:PORT (repeat once per vehicle; "
+        "default tcpin:127.0.0.1:5760+10*(sysid-1), as SITL)",
+    )
+    p.add_argument("--count", type=int, default=1, help="number of vehicles hosted by this process (default 1)")
+    p.add_argument("--port-stride", type=int, default=1, help="port increment between vehicles (default 1)")
+    p.add_argument("--mission", metavar="MISSION.yaml", help="take origin, start, fence, world and seed from a mission")
+    p.add_argument("--flavour", choices=("ardupilot", "px4"), help="autopilot flavour (default ardupilot)")
+    p.add_argument("--profile", choices=("ideal", "pointmass"), help="dynamics (default: mission's, else pointmass)")
+    p.add_argument("--start", metavar="X,Y,Z", help="start position, ENU m (default 0,0,0 or the mission's)")
+    p.add_argument("--spacing", type=float, default=2.0, help="east spacing of extra vehicles without a mission (m)")
+    p.add_argument("--airborne", action="store_true", help="boot armed and hovering at the start position")
+    p.add_argument("--origin", metavar="LAT,LON,ALT", help="mission frame origin (deg, deg, m AMSL)")
+    p.add_argument("--speed-max", type=float, help="maximum horizontal speed (m/s, default 10)")
+    p.add_argument("--accel-max", type=float, help="maximum acceleration (m/s^2, default 5)")
+    p.add_argument("--guided-timeout", type=float, default=3.0, help="GUIDED velocity timeout (s, default 3)")
+    p.add_argument("--physics-hz", type=float, default=50.0, help="physics rate (Hz, default 50)")
+    p.add_argument("--lag", type=float, default=0.0, help="first-order velocity lag (s, pointmass)")
+    p.add_argument("--wind", metavar="WX,WY,WZ", help="constant wind, ENU m/s (pointmass)")
+    p.add_argument("--noise", type=float, default=0.0, help="reported position noise std (m)")
+    p.add_argument("--seed", type=int, help="sensor-noise seed (default: the mission's, else 0)")
+    p.add_argument("--fence-z", metavar="ZMIN,ZMAX", help="fence altitude box (ENU m)")
+    p.add_argument("--fence-box", metavar="XMIN,XMAX,YMIN,YMAX", help="fence horizontal box (ENU m)")
+    p.add_argument("--fence-radius", type=float, help="fence radius about home (m)")
+    p.add_argument("--fence-action", choices=("clamp", "reject"), default="clamp", help="outside targets (default clamp)")
+    p.add_argument("--no-fence", action="store_true", help="disable the geofence")
+    p.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file (32 bytes or 64 hex digits)")
+    p.add_argument("--tlog", metavar="PATH", help="write a .tlog; '{sysid}' in PATH is replaced per vehicle")
+    clock = p.add_mutually_exclusive_group()
+    clock.add_argument("--speedup", type=float, default=1.0, help="real-time speed-up factor (default 1)")
+    clock.add_argument("--lockstep", action="store_true", help="advance only on zenoh clock ticks")
+    p.add_argument("--mission-id", help="mission id of the zenoh tick key (default: the mission's)")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="zenoh listen endpoint")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="zenoh endpoint to connect")
+    p.add_argument("--duration", type=float, help="stop after this many wall seconds")
+    p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.set_defaults(func=run_vehicle)
+
+
+def _floats(text: str | None, n: int, option: str) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        values = tuple(float(x) for x in parts)
+    except ValueError:
+        raise UsageError(f"{option}: expected {n} comma-separated numbers, found {text!r}") from None
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{option}: expected {n} comma-separated finite numbers, found {text!r}")
+    return values
+
+
+def _connection_for(args: argparse.Namespace, i: int, sysid: int) -> str:
+    from vehicle_sim.link import parse_connection
+
+    if len(args.mavlink) == args.count:
+        conn = args.mavlink[i]
+        parse_connection(conn)
+        return str(conn)
+    if len(args.mavlink) > 1:
+        raise UsageError(f"--mavlink: give it once or {args.count} times (--count), found {len(args.mavlink)}")
+    if not args.mavlink:
+        return f"tcpin:127.0.0.1:{5760 + 10 * (sysid - 1)}"
+    kind, host, port = parse_connection(args.mavlink[0])
+    if port == 0:
+        return f"{kind}:{host}:0"
+    port += i * args.port_stride
+    if port > 65535:
+        raise UsageError(f"--mavlink: port {port} of vehicle {i + 1} is above 65535")
+    return f"{kind}:{host}:{port}"
+
+
+def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[Any, Any]]:
+    """(VehicleConfig, Payload | None) of every hosted vehicle from the options (and mission).
+
+    Drone ``i`` (0-based) of the mission has system id ``i + 1``.
+    """
+    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
+    from vehicle_sim.payload import Payload, PayloadWorld, roles_to_flags
+
+    if args.count < 1:
+        raise UsageError(f"--count: expected >= 1, found {args.count}")
+    if not 1 <= args.sysid <= 255 or args.sysid + args.count - 1 > 255:
+        raise UsageError(f"--sysid/--count: system ids must lie in 1..255, found {args.sysid}..{args.sysid + args.count - 1}")
+    for name in ("speedup", "physics_hz", "guided_timeout"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {value}")
+    start = _floats(args.start, 3, "--start")
+    wind = _floats(args.wind, 3, "--wind") or (0.0, 0.0, 0.0)
+    fence_z = _floats(args.fence_z, 2, "--fence-z")
+    fence_box = _floats(args.fence_box, 4, "--fence-box")
+    origin_v = _floats(args.origin, 3, "--origin")
+    try:
+        if origin_v is not None:
+            origin = Origin(*origin_v)
+        elif mission is not None:
+            origin = Origin(mission.origin.lat_deg, mission.origin.lon_deg, mission.origin.alt_m)
+        else:
+            origin = Origin()
+        limits = VehicleLimits()
+        if args.speed_max is not None:
+            limits = VehicleLimits(speed_max_h_mps=args.speed_max, accel_max_mps2=limits.accel_max_mps2)
+        if args.accel_max is not None:
+            limits = VehicleLimits(speed_max_h_mps=limits.speed_max_h_mps, accel_max_mps2=args.accel_max)
+        fence_kw: dict[str, Any] = {}
+        if mission is not None:
+            c, f = mission.constraints, mission.fence
+            fence_kw = dict(z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m,
+                            y_min_m=f.y_min_m, y_max_m=f.y_max_m)
+        if fence_z is not None:
+            fence_kw.update(z_min_m=fence_z[0], z_max_m=fence_z[1])
+        if fence_box is not None:
+            fence_kw.update(x_min_m=fence_box[0], x_max_m=fence_box[1], y_min_m=fence_box[2], y_max_m=fence_box[3])
+        if args.fence_radius is not None:
+            fence_kw.update(radius_m=args.fence_radius)
+        fence = Geofence(**fence_kw, enabled=not args.no_fence, action=args.fence_action)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+    out: list[tuple[Any, Any]] = []
+    world = None
+    starts = None
+    if mission is not None:
+        n = mission.drones.count
+        last = args.sysid + args.count - 1
+        if last > n:
+            raise UsageError(f"--sysid/--count: the mission has {n} drones (system ids 1..{n}), asked up to {last}")
+        starts = mission.drones.start_positions_m()
+        mins, maxs = mission.obstacle_bounds()
+        world = PayloadWorld(
+            source_position_m=tuple(float(v) for v in mission.source.position_m),  # type: ignore[arg-type]
+            source_velocity_mps=tuple(float(v) for v in mission.source.velocity_mps),  # type: ignore[arg-type]
+            boxes_min_m=tuple(tuple(float(v) for v in row) for row in mins),  # type: ignore[misc]
+            boxes_max_m=tuple(tuple(float(v) for v in row) for row in maxs),  # type: ignore[misc]
+            channel=mission.channel.to_planner(),
+            seed=int(mission.seed),
+        )
+    for i in range(args.count):
+        sysid = args.sysid + i
+        drone = sysid - 1
+        flavour = args.flavour
+        profile = args.profile
+        key = args.signing_key
+        payload = None
+        if mission is not None and starts is not None and world is not None:
+            pos = tuple(float(v) for v in starts[drone]) if start is None else start
+            resolved = mission.vehicles.for_drone(drone)
+            flavour = flavour or resolved.flavour
+            profile = profile or resolved.profile
+            if key is None and resolved.signing_key_file is not None:
+                key = str(resolved.signing_key_file)
+            ranging, bearing = roles_to_flags(mission.drones.roles[drone])
+            payload = Payload(world, drone, sysid=sysid, ranging=ranging, bearing=bearing)
+            seed = int(mission.seed) if args.seed is None else args.seed
+        else:
+            base = start or (0.0, 0.0, 0.0)
+            pos = (base[0] + i * args.spacing, base[1], base[2])
+            seed = 0 if args.seed is None else args.seed
+        tlog = args.tlog.replace("{sysid}", str(sysid)) if args.tlog else None
+        if tlog is not None and args.count > 1 and "{sysid}" not in args.tlog:
+            raise UsageError("--tlog: with --count > 1 the path must contain '{sysid}'")
+        try:
+            cfg = VehicleConfig(
+                sysid=sysid,
+                flavour=flavour or "ardupilot",
+                start_enu_m=pos,  # type: ignore[arg-type]
+                airborne=args.airborne,
+                ground_z_m=0.0,
+                origin=origin,
+                limits=limits,
+                geofence=fence,
+                guided_timeout_s=args.guided_timeout,
+                physics_hz=args.physics_hz,
+                profile=profile or "pointmass",
+                lag_s=args.lag,
+                wind_enu_mps=wind,  # type: ignore[arg-type]
+                position_noise_m=args.noise,
+                seed=seed,
+                signing_key_path=key,
+                tlog_path=tlog,
+            )
+        except ValueError as exc:
+            raise UsageError(f"vehicle {sysid}: {exc}") from None
+        out.append((cfg, payload))
+    return out
+
+
+def run_vehicle(args: argparse.Namespace) -> int:
+    """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    mission = None
+    if args.mission:
+        from missions.loader import load_mission
+
+        mission = load_mission(args.mission)
+    configs = build_configs(args, mission)
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise UsageError(f"--duration: expected a positive number of seconds, found {args.duration}")
+
+    from vehicle_sim.clock import LockstepClock, RealTimeClock, ZenohTickSource, tick_key
+    from vehicle_sim.host import VehicleHost, build_vehicle
+
+    vehicles = []
+    source = None
+    try:
+        for i, (cfg, payload) in enumerate(configs):
+            vehicles.append(build_vehicle(cfg, _connection_for(args, i, cfg.sysid), payload=payload))
+        clock: Any
+        zenoh_info: dict[str, Any] = {}
+        if args.lockstep:
+            mission_id = args.mission_id or (mission.id if mission is not None else None)
+            if not mission_id:
+                raise UsageError("--lockstep needs --mission or --mission-id (the tick key is fimnav/<id>/clock/tick)")
+            clock = LockstepClock()
+            listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
+            try:
+                source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
+            except Exception as exc:  # zenoh raises its own error type for bad endpoints
+                raise UsageError(f"zenoh: cannot open the session ({exc})") from None
+            zenoh_info = {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
+        else:
+            clock = RealTimeClock(args.speedup)
+        host = VehicleHost(vehicles, clock)
+        ready = {
+            "event": "ready",
+            "vehicles": [{"sysid": v.sysid, "mavlink": v.link.transport.address} for v in vehicles],
+            "clock": "lockstep" if args.lockstep else f"realtime x{args.speedup:g}",
+            **zenoh_info,
+        }
+        print(json.dumps(ready), flush=True)
+
+        def _term(_sig: int, _frame: Any) -> None:
+            host.stop()
+
+        old = signal.signal(signal.SIGTERM, _term)
+        try:
+            timer = threading.Timer(args.duration, host.stop) if args.duration is not None else None
+            if timer is not None:
+                timer.daemon = True
+                timer.start()
+            host.run()
+            if timer is not None:
+                timer.cancel()
+        finally:
+            signal.signal(signal.SIGTERM, old)
+    finally:
+        if source is not None:
+            source.close()
+        for v in vehicles:
+            v.link.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m missions.cmd_vehicle`` entry (same as ``fimnav vehicle``)."""
+    from missions.cli import main as cli_main
+
+    return cli_main(["vehicle", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
