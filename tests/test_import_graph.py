@@ -1,0 +1,83 @@
+"""The planner's math core imports neither zenoh, pymavlink, comms, vehicle_sim nor missions.
+
+Two independent checks: (1) in a fresh interpreter, importing ``planner`` and every core module
+leaves none of the forbidden packages in ``sys.modules``; (2) an AST scan of every core
+module's import statements (including imports inside functions) finds none of them, and finds
+only the standard library, numpy, scipy and planner itself.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PLANNER = ROOT / "planner"
+FORBIDDEN = ("zenoh", "pymavlink", "comms", "vehicle_sim", "missions")
+ALLOWED_THIRD_PARTY = ("numpy", "scipy")
+
+
+def core_modules() -> list[str]:
+    """Every planner/*.py except the node edge (node*, cli*)."""
+    names = []
+    for path in sorted(PLANNER.glob("*.py")):
+        stem = path.stem
+        if stem.startswith(("node", "cli")):
+            continue
+        names.append("planner" if stem == "__init__" else f"planner.{stem}")
+    return names
+
+
+def test_core_module_list_is_not_empty():
+    mods = core_modules()
+    for expected in ("planner", "planner.geometry", "planner.fim", "planner.control", "planner.network"):
+        assert expected in mods
+
+
+def test_importing_the_core_loads_no_io_package():
+    code = (
+        "import importlib, json, sys\n"
+        f"for m in {core_modules()!r}: importlib.import_module(m)\n"
+        f"bad = sorted(k for k in sys.modules if k.split('.')[0] in {FORBIDDEN!r})\n"
+        "print(json.dumps(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    loaded = json.loads(out.stdout.strip().splitlines()[-1])
+    assert loaded == [], f"the math core pulled in {loaded}"
+
+
+def _imported_roots(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    roots: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            roots.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", "")) in ("import_module", "__import__"):
+            if node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
+                roots.add(node.args[0].value.split(".")[0])
+    return roots
+
+
+@pytest.mark.parametrize("module", core_modules())
+def test_core_module_imports_only_stdlib_numpy_scipy(module):
+    path = PLANNER / ("__init__.py" if module == "planner" else module.split(".", 1)[1] + ".py")
+    roots = _imported_roots(path)
+    assert not roots & set(FORBIDDEN), f"{path.name} imports {sorted(roots & set(FORBIDDEN))}"
+    stdlib = set(sys.stdlib_module_names) | {"__future__"}
+    other = roots - stdlib - set(ALLOWED_THIRD_PARTY) - {"planner"}
+    assert not other, f"{path.name} imports third-party {sorted(other)} (core: numpy and scipy only)"
+
+
+def test_ast_scan_detects_a_forbidden_import(tmp_path):
+    """The scanner itself can fail: it sees imports inside functions and importlib calls."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    import zenoh\n    from comms.keys import x\n    importlib.import_module('pymavlink.mavutil')\n")
+    assert _imported_roots(bad) >= {"zenoh", "comms", "pymavlink"}
