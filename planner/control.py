@@ -104,18 +104,22 @@ def _subset(c: _Clearances, idx: tuple[NDArray[np.intp], ...]) -> _Clearances:
     return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required)
 
 
-def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatArray, boxes_max: FloatArray, limits: Limits) -> tuple[FloatArray, BoolArray]:
-    """Worst clearance margin (m) of candidate end positions (..., C, 3); and altitude binding."""
+def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatArray, boxes_max: FloatArray, limits: Limits) -> FloatArray:
+    """Clearance margins (m) of candidate end positions (..., C, 3), per family (..., C, 4).
+
+    Families in :data:`FAMILIES` order: nearest peer, source, nearest obstacle, altitude box
+    (with the height still climbed while the tilt swings back, :func:`_tilt_buffer`).
+    """
+    out = np.empty(cand.shape[:-1] + (4,))
     diff = cand[..., :, None, :] - c.peers[..., None, :, :]
     dist = np.sqrt((diff * diff).sum(-1))
-    worst = (dist - c.peer_required[..., None, :]).min(-1)
+    out[..., UAV] = (dist - c.peer_required[..., None, :]).min(-1, initial=np.inf)
     ds = cand - c.source[..., None, :]
-    worst = np.minimum(worst, np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None])
-    if boxes_min.shape[0]:
-        worst = np.minimum(worst, distance_to_boxes(cand, boxes_min, boxes_max) - c.obstacle_required)
+    out[..., SOURCE] = np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None]
+    out[..., OBSTACLE] = distance_to_boxes(cand, boxes_min, boxes_max) - c.obstacle_required
     z = cand[..., 2]
-    alt = np.minimum(limits.z_max_m - z - _tilt_buffer(tilt, limits), z - limits.z_min_m - _tilt_buffer(-tilt, limits))
-    return np.minimum(worst, alt), alt < 0.0
+    out[..., ALTITUDE] = np.minimum(limits.z_max_m - z - _tilt_buffer(tilt, limits), z - limits.z_min_m - _tilt_buffer(-tilt, limits))
+    return out
 
 
 def control_step(
@@ -195,32 +199,47 @@ def control_step(
     g_s = dist_s - keepout
     sd, n_o = distance_to_boxes_with_gradient(p, bmin, bmax)
     g_o = sd - limits.d_obstacle_m
-    G = np.concatenate([g_u, g_s[..., None], g_o[..., None]], axis=-1)
-    normals = np.concatenate([n_u, n_s[..., None, :], n_o[..., None, :]], axis=-2)
+    # Altitude box as two more constraints (safe rule only; the paper clamps z afterwards).
+    n_alt = 2 if safe else 0
+    G = np.concatenate([g_u, g_s[..., None], g_o[..., None]] + ([limits.z_max_m - p[..., 2:3], p[..., 2:3] - limits.z_min_m] if safe else []), axis=-1)
+    parts = [n_u, n_s[..., None, :], n_o[..., None, :]]
+    if safe:
+        up = np.zeros(batch + (2, 3))
+        up[..., 0, 2] = -1.0
+        up[..., 1, 2] = 1.0
+        parts.append(up)
+    normals = np.concatenate(parts, axis=-2)
+    fam = slice(None, G.shape[-1] - n_alt)  # the uav, source and obstacle columns
     if safe:
         gt = G.copy()
-        gt[..., :-2] -= smax * (2.0 + age) + 2.0 * tb
-        gt[..., -2:] -= 2.0 * smax + tb
+        gt[..., :-2 - n_alt] -= smax * (2.0 + age) + 2.0 * tb
+        gt[..., -2 - n_alt:] -= 2.0 * smax + tb
     else:
         gt = G
     active_all = gt < 0.0
 
     # 2. Projection onto the active constraints (at most the three most violated).
     k = min(3, G.shape[-1])
-    if active_all.any():
-        sel = np.argsort(gt, axis=-1)[..., :k]
-        g_sel = np.take_along_axis(gt, sel, -1)
+    any_active = active_all.any(-1)
+    P_sub = None
+    correction = np.zeros_like(p)
+    if any_active.any():
+        sub = np.nonzero(any_active)
+        gt_s = gt[sub]
+        sel = np.argsort(gt_s, axis=-1)[..., :k]
+        g_sel = np.take_along_axis(gt_s, sel, -1)
         on = g_sel < 0.0
-        Nm = np.swapaxes(np.take_along_axis(normals, sel[..., None], -2), -1, -2) * on[..., None, :]  # (..., 3, k)
-        pinv = np.linalg.pinv(Nm)  # (..., k, 3) = (NᵀN)⁻¹Nᵀ
-        P = np.eye(3) - Nm @ pinv
-        correction = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
-    else:
-        P = None
-        correction = np.zeros_like(p)
+        Nm = np.swapaxes(np.take_along_axis(normals[sub], sel[..., None], -2), -1, -2) * on[..., None, :]  # (n, 3, k)
+        pinv = np.linalg.pinv(Nm)  # (n, k, 3) = (NᵀN)⁻¹Nᵀ for independent normals
+        P_sub = np.eye(3) - Nm @ pinv
+        correction[sub] = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
 
     def project(v: FloatArray) -> FloatArray:
-        return v if P is None else np.einsum("...ij,...j->...i", P, v)
+        if P_sub is None:
+            return v
+        out = v.copy()
+        out[sub] = np.einsum("...ij,...j->...i", P_sub, v[sub])
+        return out
 
     singular = np.asarray(status) == int(FimStatus.SINGULAR)
     pg = project(grad)
@@ -253,9 +272,12 @@ def control_step(
     u = _cartesian(s, psi, theta)
 
     active = np.zeros(batch + (4,), dtype=bool)
-    active[..., UAV] = active_all[..., :-2].any(-1)
-    active[..., SOURCE] = active_all[..., -2]
-    active[..., OBSTACLE] = active_all[..., -1]
+    fam_active = active_all[..., fam]
+    active[..., UAV] = fam_active[..., :-2].any(-1)
+    active[..., SOURCE] = fam_active[..., -2]
+    active[..., OBSTACLE] = fam_active[..., -1]
+    if safe:
+        active[..., ALTITUDE] = active_all[..., -2:].any(-1)
     filtered = np.zeros(batch, dtype=bool)
     infeasible = np.zeros(batch, dtype=bool)
 
@@ -275,35 +297,35 @@ def control_step(
             source_required=keepout + tb,
             obstacle_required=limits.d_obstacle_m + 0.5 * smax + tb,
         )
-        # Worst margin now, from the constraint values already computed.
-        now = np.minimum(
-            (G[..., :-2] - (clear.peer_required - limits.d_uav_m)).min(-1, initial=np.inf),
-            np.minimum(g_s - tb, g_o - (clear.obstacle_required - limits.d_obstacle_m)),
-        )
+        # Margins now, per family, from the constraint values already computed. A step may not
+        # make a family's margin negative, nor more negative than it already is.
+        now = np.empty(batch + (4,))
+        now[..., UAV] = (G[..., : -2 - n_alt] - (clear.peer_required - limits.d_uav_m)).min(-1, initial=np.inf)
+        now[..., SOURCE] = g_s - tb
+        now[..., OBSTACLE] = g_o - (clear.obstacle_required - limits.d_obstacle_m)
+        now[..., ALTITUDE] = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
         need = np.minimum(now, 0.0)
         # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
         # s_max of a clearance need their step scored; the altitude box is checked for all.
         z_next = p[..., 2] + u[..., 2]
         alt = np.minimum(limits.z_max_m - z_next - _tilt_buffer(theta, limits), z_next - limits.z_min_m - _tilt_buffer(-theta, limits))
-        alt_now = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
-        need = np.minimum(need, np.minimum(alt_now, 0.0))
-        bad = alt < need
-        active[..., ALTITUDE] = alt < 0.0
-        near = now - smax < need
+        bad = alt < need[..., ALTITUDE]
+        near = (now[..., :ALTITUDE] - smax < need[..., :ALTITUDE]).any(-1)
         if near.any():
             idx = np.nonzero(near)
-            score, _ = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(clear, idx), bmin, bmax, limits)
-            bad[idx] |= score[..., 0] < need[idx]
+            score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(clear, idx), bmin, bmax, limits)
+            bad[idx] |= (score[..., 0, :] < need[idx]).any(-1)
+        active[..., ALTITUDE] |= alt < 0.0
         if bad.any():
             idx = np.nonzero(bad)
-            u_b, score_b, alt_b, inf_b = _envelope_search(
-                p[idx], u[idx], prev[idx], has_prev[idx], theta[idx], need[idx], _subset(clear, idx), bmin, bmax, limits
+            u_b, margins_b, inf_b = _envelope_search(
+                p[idx], u[idx], prev[idx], has_prev[idx], need[idx], _subset(clear, idx), bmin, bmax, limits
             )
             u = u.copy()
             u[idx] = u_b
             filtered[idx] = True
             infeasible[idx] = inf_b
-            active[idx + (ALTITUDE,)] = alt_b
+            active[idx] |= margins_b < 0.0
     return StepResult(
         next_position=p + u,
         displacement=u,
@@ -319,14 +341,20 @@ def _envelope_search(
     u: FloatArray,
     prev: FloatArray,
     has_prev: BoolArray,
-    theta: FloatArray,
     need: FloatArray,
     clear: _Clearances,
     bmin: FloatArray,
     bmax: FloatArray,
     limits: Limits,
-) -> tuple[FloatArray, BoolArray, BoolArray, BoolArray]:
-    """Best step of the kinematic envelope for the flat batch ``p`` (n, 3)."""
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Best step of the kinematic envelope for the flat batch ``p`` (n, 3).
+
+    Candidates: 9 headings × 5 tilts across the allowed turn (a full circle of headings before
+    the first step) × {v_min, v_max}·Δt. Among those whose every family margin is at least
+    ``need`` (n, 4), the one closest to the desired step ``u``; if none, among those that keep
+    the static clearances (source, obstacle, altitude) the one with the best peer clearance;
+    if none, the one with the best static clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
+    """
     _, prev_psi, prev_theta = _spherical(prev)
     fr_h = np.linspace(-1.0, 1.0, 9)
     fr_t = np.linspace(-1.0, 1.0, 5)
@@ -340,9 +368,17 @@ def _envelope_search(
         T * limits.tilt_change_max_rad,
     )
     cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
-    score, alt = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)
-    ok = score >= need[:, None]
+    margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
+    slack = margins - need[:, None, :]
+    ok = (slack >= 0.0).all(-1)
+    # Without a fully safe step, the static clearances (source, obstacle, altitude: known
+    # exactly) come first, then the peers' (known with the age of their data).
+    static = slack[..., SOURCE:].min(-1)
+    ok_static = static >= 0.0
     closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
-    pick = np.where(ok.any(-1), np.where(ok, closeness, np.inf).argmin(-1), score.argmax(-1))
+    pick_ok = np.where(ok, closeness, np.inf).argmin(-1)
+    pick_static = np.where(ok_static, slack[..., UAV], -np.inf).argmax(-1)
+    pick_any = static.argmax(-1)
+    pick = np.where(ok.any(-1), pick_ok, np.where(ok_static.any(-1), pick_static, pick_any))
     rows = np.arange(p.shape[0])
-    return cand[rows, pick], score[rows, pick], alt[rows, pick], ~ok.any(-1)
+    return cand[rows, pick], margins[rows, pick], ~ok.any(-1)

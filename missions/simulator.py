@@ -1,0 +1,326 @@
+"""In-process Monte Carlo simulator: M trials × K steps of an N-drone mission, vectorised.
+
+Every drone of every trial runs the same chain as a planner process (DESIGN.md, "one step of
+one planner"): its own measurement (eq. 3, noise from its own seeded stream), its delayed view
+of the peers (hop latency and memory buffer, :mod:`planner.network`), its own source estimate
+(:mod:`planner.estimator`), its own control step (:func:`planner.control.control_step`). The
+arrays carry the trial and drone axes together, so one numpy call serves all M·N drones.
+
+Step k of a trial, for every drone i (all drones in parallel):
+
+1. record: true position p_i^(k), LOS of its link, measurement from p_i^(k) (eq. 3);
+2. hop counts on the disk graph of the current positions; memory buffer update (ℓ = k − h + 1);
+3. the records new to drone i feed its estimator; p̂_0,i^(k) and its information;
+4. J(p̂_0,i; q_i^(k)) over the records it holds, cost gradient (eq. 6, 13), control step (eq. 14);
+5. PEB (eq. 18) at the true source with the positions known to drone i, estimate error, and
+   the margin of every constraint with the true positions.
+
+The noise of drone i in trial m comes from ``planner.randomness.measurement_rng(seed, m, i)``,
+five uniforms per step, the same stream a vehicle payload process draws from, so a distributed
+run of trial 0 sees the same measurements as trial 0 here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from missions.schema import Mission
+from planner import estimator as est
+from planner.control import ALTITUDE, OBSTACLE, SOURCE, UAV, control_step
+from planner.fim import FimStatus, cost_gradient, fisher_information, position_error_bound
+from planner.geometry import distance_to_boxes, line_of_sight
+from planner.network import hop_counts, update_saved_steps
+from planner.observation import observe_from_uniforms
+from planner.params import Criterion, Limits
+from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_DRAWS, MEASUREMENT_STREAM, presampled_uniforms
+
+FloatArray = NDArray[np.float64]
+
+#: Constraint families of the safety accounting, in summary order.
+SAFETY_FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
+
+#: Standard deviations of the source estimate added to d_S* (the estimate is not the source).
+SOURCE_SIGMA_FACTOR: float = 3.0
+
+#: Tolerance of the kinematic accounting (floating point of the polar round trip), m and rad.
+KINEMATIC_TOL: float = 1e-9
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to run: a mission with its per-run overrides."""
+
+    mission: Mission
+    criterion: Criterion
+    trials: int
+    steps: int
+
+    @property
+    def label(self) -> str:
+        """``<mission id> (A)``: the name of the run in tables and legends."""
+        return f"{self.mission.id} ({self.criterion})"
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Records of a Monte Carlo run. Step axis first; k = 0 is the start.
+
+    Attributes:
+        spec: what was run.
+        positions_m: true positions, (K+1, M, N, 3), m, ENU.
+        estimates_m: each drone's source estimate at step k, (K, M, N, 3).
+        estimate_error_m: |p̂_0,i − p0|, (K, M, N), m.
+        observable: estimator says observable, (K, M, N) bool.
+        peb_m: PEB of eq. 18 per drone view, (K, M, N), m; +inf where J is singular.
+        source_m: true source position per step, (K+1, 3).
+        margins_m: per family, the worst margin of each drone at each step, (K, M, N): distance
+            minus its safety distance for uav/source/obstacle, distance to the altitude box for
+            altitude, and for speed and turn_rate the slack to the limit (m and rad).
+        active: counts of steps where each control constraint family was active (uav, source,
+            obstacle, altitude), summed over drones and trials, (K, 4).
+        singular_fallback: (K, M, N) bool, the drone used the singular-FIM fallback.
+        filtered: (K, M, N) bool, the safety filter replaced the step.
+        record_ages: age k − ℓ of every record drone i held of peer j, (K, M, N, N); −1 if none.
+        runtime_s: wall time of the run (s).
+    """
+
+    spec: RunSpec
+    positions_m: FloatArray
+    estimates_m: FloatArray
+    estimate_error_m: FloatArray
+    observable: NDArray[np.bool_]
+    peb_m: FloatArray
+    source_m: FloatArray
+    margins_m: dict[str, FloatArray]
+    active: NDArray[np.int64]
+    singular_fallback: NDArray[np.bool_]
+    filtered: NDArray[np.bool_]
+    record_ages: NDArray[np.int16]
+    runtime_s: float
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def violations(self) -> dict[str, int]:
+        """Number of (step, trial, drone) with a negative margin, per safety family."""
+        return {name: int((m < 0.0).sum()) for name, m in self.margins_m.items()}
+
+    def peb_stats(self) -> dict[str, FloatArray]:
+        """Per step: mean PEB over drones and trials (eq. 18, singular views excluded), its 10th
+        and 90th percentiles (singular views count as +inf), and the singular fraction."""
+        peb = self.peb_m.reshape(self.peb_m.shape[0], -1)
+        finite = np.isfinite(peb)
+        count = finite.sum(-1)
+        mean = np.divide(np.where(finite, peb, 0.0).sum(-1), count, out=np.full(peb.shape[0], np.nan), where=count > 0)
+        return {
+            "mean": mean,
+            "p10": np.percentile(peb, 10, axis=-1, method="nearest"),
+            "p90": np.percentile(peb, 90, axis=-1, method="nearest"),
+            "singular_fraction": 1.0 - count / peb.shape[1],
+        }
+
+
+def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
+    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N)."""
+    m_idx = np.arange(saved.shape[0])[:, None, None]
+    j_idx = np.arange(saved.shape[2])[None, None, :]
+    return history[np.maximum(saved, 0), m_idx, j_idx]
+
+
+def simulate(
+    spec: RunSpec,
+    progress: Callable[[int], None] | None = None,
+    estimator_config: est.EstimatorConfig | None = None,
+    oracle_estimate: bool = False,
+) -> SimulationResult:
+    """Run ``spec.trials`` trials of ``spec.steps`` steps of a mission in this process.
+
+    Args:
+        spec: the mission and run overrides (criterion, trials, steps).
+        progress: called with the number of steps just completed (for a progress bar).
+        estimator_config: estimator tuning; default: static source, all measurements; a moving
+            source gets a forgetting factor.
+        oracle_estimate: plan with the true source instead of each drone's estimate (the
+            paper's assumption that the estimate is given); the estimator still runs and its
+            error is still recorded.
+
+    Returns:
+        The :class:`SimulationResult`.
+    """
+    t0 = time.perf_counter()
+    mission = spec.mission
+    M, K = spec.trials, spec.steps
+    N = mission.drones.count
+    limits: Limits = mission.limits()
+    channel = mission.channel.to_planner()
+    bmin, bmax = mission.obstacle_bounds()
+    ranging = mission.drones.ranging_mask()
+    bearing = mission.drones.bearing_mask()
+    comms = mission.comms
+    dt = mission.dt_s
+    if estimator_config is None:
+        estimator_config = est.EstimatorConfig(forgetting=1.0 if mission.source.is_static else 0.97)
+    xi = mission.controller.xi
+    perturb = mission.controller.random_perturbation_rad
+
+    meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
+    ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
+
+    pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
+    prev_step = np.zeros((M, N, 3))
+    positions = np.empty((K + 1, M, N, 3))
+    positions[0] = pos
+    rec_range = np.full((K, M, N), np.nan)
+    rec_az = np.full((K, M, N), np.nan)
+    rec_el = np.full((K, M, N), np.nan)
+    rec_los = np.zeros((K, M, N), dtype=bool)
+    saved = np.full((M, N, N), -1, dtype=np.int64)
+    used = np.full((M, N, N), -1, dtype=np.int64)
+    state = est.initial_state((M, N), estimator_config)
+    eye = np.eye(N, dtype=bool)
+    rng_view = np.broadcast_to(ranging, (M, N, N))
+    brg_view = np.broadcast_to(bearing, (M, N, N))
+
+    estimates = np.empty((K, M, N, 3))
+    est_err = np.empty((K, M, N))
+    observable = np.empty((K, M, N), dtype=bool)
+    peb = np.empty((K, M, N))
+    sources = np.array([mission.source.position_at(k * dt) for k in range(K + 1)])
+    margins = {name: np.empty((K, M, N)) for name in SAFETY_FAMILIES}
+    active_counts = np.zeros((K, 4), dtype=np.int64)
+    fallback = np.empty((K, M, N), dtype=bool)
+    filtered = np.empty((K, M, N), dtype=bool)
+    ages = np.empty((K, M, N, N), dtype=np.int16)
+
+    for k in range(K):
+        src = sources[k]
+        # 1. Own record: position, LOS and measurement at step k.
+        los = line_of_sight(pos, src, bmin, bmax)
+        obs = observe_from_uniforms(src, pos, ranging, bearing, los, channel, meas_u[k])
+        rec_range[k], rec_az[k], rec_el[k], rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
+
+        # 2. Delayed view (hop latency, memory buffer).
+        hops = hop_counts(pos, comms.d_hop_m, max_hops=comms.h_max + 1)
+        saved = update_saved_steps(saved, hops, k, comms.h_max)
+        have = saved >= 0
+        ages[k] = np.where(have, k - saved, -1)
+        view_pos = _gather(positions, saved)  # (M, N, N, 3)
+        view_los = _gather(rec_los, saved)
+
+        # 3. Estimator: records new to each drone.
+        new = saved > used
+        used = saved
+        nan = np.nan
+        meas = est.Measurements(
+            positions_m=np.where(new[..., None], view_pos, nan),
+            range_m=np.where(new, _gather(rec_range, saved), nan),
+            azimuth_rad=np.where(new, _gather(rec_az, saved), nan),
+            elevation_rad=np.where(new, _gather(rec_el, saved), nan),
+            los=view_los & new,
+        )
+        state = est.update(state, meas, channel, estimator_config)
+        p_hat = state.estimate_m
+        estimates[k] = p_hat
+        est_err[k] = np.linalg.norm(p_hat - src, axis=-1)
+        if oracle_estimate:
+            p_hat = np.broadcast_to(src, p_hat.shape)
+        observable[k] = state.observable
+
+        # 4. FIM at the estimate over the view, cost gradient, control step.
+        view_rng = rng_view & have
+        view_brg = brg_view & have
+        J = fisher_information(p_hat, view_pos, view_rng, view_brg, view_los, channel)
+        cg = cost_gradient(J, p_hat, pos, ranging, bearing, los, channel, spec.criterion)
+        if oracle_estimate:
+            status = cg.status
+            keepout = np.full((M, N), limits.d_source_m)
+        else:
+            status = np.where(state.observable, cg.status, np.int8(FimStatus.SINGULAR))
+            info_eig = np.linalg.eigvalsh(state.information)[..., 0]
+            sigma = np.where(info_eig > 0.0, 1.0 / np.sqrt(np.maximum(info_eig, 1e-300)), np.inf)
+            keepout = np.where(state.observable, limits.d_source_m + SOURCE_SIGMA_FACTOR * sigma, -np.inf)
+        step = control_step(
+            pos, prev_step, cg.gradient, status, view_pos, have & ~eye & collision_relevant(hops, comms.d_hop_m, limits),
+            np.where(have, k - saved, 0),
+            p_hat, keepout, bmin, bmax, limits, ctrl_u[k], xi=xi, perturbation_rad=perturb,
+        )
+        fallback[k] = step.singular
+        filtered[k] = step.filtered
+        active_counts[k] = step.active.reshape(-1, 4).sum(0)
+
+        # 5. Accuracy at the true source with the positions known to each drone (eq. 18).
+        J_true = fisher_information(src, view_pos, view_rng, view_brg, view_los, channel)
+        peb[k] = position_error_bound(J_true)[0]
+
+        # Move, then account for the safety of the new positions (true source, true peers).
+        nxt = step.next_position
+        u = step.displacement
+        src_next = sources[k + 1]
+        diff = nxt[:, :, None, :] - nxt[:, None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        dist[:, eye] = np.inf
+        margins["uav"][k] = dist.min(-1) - limits.d_uav_m
+        margins["source"][k] = np.linalg.norm(nxt - src_next, axis=-1) - limits.d_source_m
+        margins["obstacle"][k] = distance_to_boxes(nxt, bmin, bmax) - limits.d_obstacle_m
+        margins["altitude"][k] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
+        speed = np.linalg.norm(u, axis=-1)
+        margins["speed"][k] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + KINEMATIC_TOL
+        margins["turn_rate"][k] = _turn_margin(prev_step, u, limits) + KINEMATIC_TOL
+
+        prev_step = u
+        pos = nxt
+        positions[k + 1] = pos
+        if progress is not None:
+            progress(1)
+
+    return SimulationResult(
+        spec=spec,
+        positions_m=positions,
+        estimates_m=estimates,
+        estimate_error_m=est_err,
+        observable=observable,
+        peb_m=peb,
+        source_m=sources,
+        margins_m=margins,
+        active=active_counts,
+        singular_fallback=fallback,
+        filtered=filtered,
+        record_ages=ages,
+        runtime_s=time.perf_counter() - t0,
+    )
+
+
+def collision_relevant(hops: NDArray[np.int64], d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
+    """Which peers drone i must keep clear of this step, (..., N, N) bool.
+
+    A peer that is not a direct neighbour (h_ij ≠ 1) is farther than d_hop right now, so it
+    cannot come within d_U* during the next step when d_hop ≥ d_U* + 3 v_max Δt + 2 turn
+    buffers; its (stale) position is then ignored by the anti-collision constraint. With a
+    smaller radius every known peer counts, with its age (see control_step).
+    """
+    reach = limits.d_uav_m + 3.0 * limits.step_max_m + 2.0 * limits.turn_buffer_m
+    if d_hop_m >= reach:
+        return hops == 1
+    return np.ones(hops.shape, dtype=bool)
+
+
+def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits) -> FloatArray:
+    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step."""
+    has_prev = np.linalg.norm(prev, axis=-1) > 0.0
+    psi0, psi1 = np.arctan2(prev[..., 1], prev[..., 0]), np.arctan2(u[..., 1], u[..., 0])
+    th0 = np.arctan2(prev[..., 2], np.hypot(prev[..., 0], prev[..., 1]))
+    th1 = np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
+    dpsi = np.abs((psi1 - psi0 + np.pi) % (2.0 * np.pi) - np.pi)
+    # The heading of a vertical step is undefined: no heading limit applies across it.
+    vertical = (np.hypot(prev[..., 0], prev[..., 1]) < 1e-9) | (np.hypot(u[..., 0], u[..., 1]) < 1e-9)
+    dpsi = np.where(vertical, 0.0, dpsi)
+    slack = np.minimum(limits.heading_change_max_rad - dpsi, limits.tilt_change_max_rad - np.abs(th1 - th0))
+    return np.where(has_prev, slack, np.inf)
+
+
+def control_families() -> dict[str, int]:
+    """Column index of each control constraint family in :attr:`SimulationResult.active`."""
+    return {"uav": UAV, "source": SOURCE, "obstacle": OBSTACLE, "altitude": ALTITUDE}
