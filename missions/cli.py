@@ -19,6 +19,7 @@ from planner.errors import FimnavError
 COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_vehicle",
     "missions.cmd_check",
+    "missions.cmd_montecarlo",
 )
 
 

@@ -290,6 +290,7 @@ def simulate(
         filtered=filtered,
         record_ages=ages,
         runtime_s=time.perf_counter() - t0,
+        extra={"oracle_estimate": float(oracle_estimate)},
     )
 
 

@@ -1,0 +1,104 @@
+"""``fimnav montecarlo``: the in-process Monte Carlo study of one or several missions."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from planner.errors import UsageError
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``montecarlo`` subcommand."""
+    p = subparsers.add_parser(
+        "montecarlo",
+        help="run M trials x K steps of missions in this process, write CSV, JSON and figures",
+        description=(
+            "Run missions in the in-process simulator (every drone with its own delayed view, "
+            "estimator and control step) and write a results directory. Several missions and/or "
+            "--criterion both put every run in the same figures (comparison)."
+        ),
+    )
+    p.add_argument("missions", nargs="+", metavar="MISSION.yaml", help="mission file(s)")
+    p.add_argument("--trials", type=int, help="Monte Carlo trials M (default: the mission's)")
+    p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
+    p.add_argument("--criterion", choices=("A", "D", "both"), help="design criterion (default: the mission's)")
+    p.add_argument("--activation", choices=("safe", "paper", "both"), help="constraint activation rule (default: the mission's)")
+    p.add_argument("--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate")
+    p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes, one run each (default 1)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
+    p.set_defaults(func=run)
+
+
+def _positive(name: str, value: int | None) -> None:
+    if value is not None and value < 1:
+        raise UsageError(f"--{name}: expected a positive integer, found {value}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load every mission, run every (mission, criterion, activation), write the results."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    from missions.loader import load_mission, parse_overrides
+    from missions.results import write_results
+    from missions.simulator import RunSpec
+
+    _positive("trials", args.trials)
+    _positive("steps", args.steps)
+    _positive("jobs", args.jobs)
+    overrides = parse_overrides(args.overrides)
+    specs: list[RunSpec] = []
+    for path in args.missions:
+        activations = ("safe", "paper") if args.activation == "both" else (args.activation,)
+        for activation in activations:
+            ov = dict(overrides)
+            if activation is not None:
+                ov["constraints.activation"] = activation
+            mission = load_mission(path, ov)
+            criteria = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
+            for crit in criteria:
+                m = mission.model_copy(update={"criterion": crit})
+                specs.append(RunSpec(m, crit, args.trials or m.trials, args.steps or m.steps))
+    out = args.out or Path("results") / time.strftime("montecarlo-%Y%m%d-%H%M%S")
+    total = sum(s.steps for s in specs)
+    t0 = time.perf_counter()
+    results = []
+    with tqdm(total=total, unit="step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
+        if args.jobs == 1 or len(specs) == 1:
+            for spec in specs:
+                bar.set_postfix_str(spec.label)
+                results.append(_simulate(spec, args.oracle_estimate, bar.update))
+        else:
+            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+                futures = [pool.submit(_simulate, s, args.oracle_estimate, None) for s in specs]
+                for spec, fut in zip(specs, futures):
+                    results.append(fut.result())
+                    bar.update(spec.steps)
+    summaries = write_results(results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures)
+    wall = time.perf_counter() - t0
+    print(f"{'run':<34} {'PEB0 [m]':>9} {'PEB_K [m]':>10} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}")
+    for s in summaries:
+        nviol = sum(s["violations"].values())
+        print(
+            f"{s['run']:<34} {_f(s['initial_peb_mean_m']):>9} {_f(s['final_peb_mean_m']):>10} "
+            f"{_f(s['final_estimate_error_median_m']):>10} {nviol:>11} {s['runtime_s']:>9.1f}"
+        )
+    print(f"results: {out}  (wall {wall:.1f} s)")
+    return 0
+
+
+def _f(x: float | None) -> str:
+    return "singular" if x is None else f"{x:.3g}"
+
+
+def _simulate(spec: Any, oracle: bool, progress: Any) -> Any:
+    from missions.simulator import simulate
+
+    return simulate(spec, progress=progress, oracle_estimate=oracle)

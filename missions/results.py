@@ -1,0 +1,236 @@
+"""Results directories: CSV curves and trajectories, summary JSON, and the paper's figures.
+
+Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
+
+    OUT/
+      summary.json              every run's summary (list), plus the command and versions
+      figures/peb.png           mean PEB vs step, every run: A solid, D dashed, log scale (Fig. 3)
+      figures/estimate_error.png
+      figures/trajectories_<run>.png   3-D trajectories, obstacles, source, start/end (Fig. 2)
+      runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
+      runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
+      runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
+      runs/<run>/summary.json   final PEB, estimate error, violations per constraint, run time
+
+``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
+was used).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from missions.loader import mission_to_yaml
+from missions.simulator import SAFETY_FAMILIES, SimulationResult
+
+
+def run_name(result: SimulationResult) -> str:
+    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
+    spec = result.spec
+    suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
+    return f"{spec.mission.id}_{spec.criterion}{suffix}"
+
+
+def summarize(result: SimulationResult) -> dict[str, Any]:
+    """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time."""
+    spec = result.spec
+    stats = result.peb_stats()
+    final_err = result.estimate_error_m[-1]
+    m = spec.mission
+    drone_steps = spec.trials * spec.steps * m.drones.count
+    return {
+        "run": run_name(result),
+        "mission_id": m.id,
+        "criterion": spec.criterion,
+        "activation": m.constraints.activation,
+        "trials": spec.trials,
+        "steps": spec.steps,
+        "drones": m.drones.count,
+        "seed": m.seed,
+        "oracle_estimate": bool(result.extra.get("oracle_estimate", 0.0)),
+        "final_peb_mean_m": _num(stats["mean"][-1]),
+        "final_peb_p10_m": _num(stats["p10"][-1]),
+        "final_peb_p90_m": _num(stats["p90"][-1]),
+        "final_singular_fraction": _num(stats["singular_fraction"][-1]),
+        "initial_peb_mean_m": _num(stats["mean"][0]),
+        "final_estimate_error_mean_m": _num(final_err.mean()),
+        "final_estimate_error_median_m": _num(np.median(final_err)),
+        "violations": result.violations(),
+        "violation_families": list(SAFETY_FAMILIES),
+        "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
+        "singular_fallback_steps": int(result.singular_fallback.sum()),
+        "safety_filter_steps": int(result.filtered.sum()),
+        "runtime_s": round(result.runtime_s, 3),
+        "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
+    }
+
+
+def _num(x: float) -> float | None:
+    """JSON has no inf/NaN: None stands for 'undefined' (e.g. every view singular)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def write_run(result: SimulationResult, out: Path) -> dict[str, Any]:
+    """Write ``runs/<run>/`` for one run; return its summary."""
+    run_dir = out / "runs" / run_name(result)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "mission.yaml").write_text(mission_to_yaml(result.spec.mission))
+    stats = result.peb_stats()
+    err = result.estimate_error_m.reshape(result.estimate_error_m.shape[0], -1)
+    with (run_dir / "peb.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["step", "peb_mean_m", "peb_p10_m", "peb_p90_m", "singular_fraction", "estimate_error_mean_m", "estimate_error_median_m"])
+        for k in range(len(stats["mean"])):
+            w.writerow([k, _fmt(stats["mean"][k]), _fmt(stats["p10"][k]), _fmt(stats["p90"][k]), _fmt(stats["singular_fraction"][k]), _fmt(err[k].mean()), _fmt(np.median(err[k]))])
+    roles = result.spec.mission.drones.roles
+    with (run_dir / "trajectories.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "step", "drone", "role", "x_m", "y_m", "z_m", "estimate_x_m", "estimate_y_m", "estimate_z_m", "peb_m"])
+        pos, est, peb = result.positions_m[:, 0], result.estimates_m[:, 0], result.peb_m[:, 0]
+        K = est.shape[0]
+        for k in range(K + 1):
+            for i in range(pos.shape[1]):
+                e = est[min(k, K - 1), i]
+                w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
+    summary = summarize(result)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _fmt(x: float) -> str:
+    return f"{float(x):.6g}"
+
+
+def write_results(results: Sequence[SimulationResult], out: Path, command: Sequence[str] = (), figures: bool = True) -> list[dict[str, Any]]:
+    """Write the whole results directory for one or several runs; return the summaries."""
+    out.mkdir(parents=True, exist_ok=True)
+    summaries = [write_run(r, out) for r in results]
+    doc = {
+        "command": list(command),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "runs": summaries,
+    }
+    (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+    if figures:
+        plot_peb(results, out / "figures" / "peb.png")
+        plot_estimate_error(results, out / "figures" / "estimate_error.png")
+        for r in results:
+            plot_trajectories(r, out / "figures" / f"trajectories_{run_name(r)}.png")
+    return summaries
+
+
+def _pyplot():  # noqa: ANN202 - matplotlib is imported lazily, headless
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _style(results: Sequence[SimulationResult]) -> list[tuple[str, str, str]]:
+    """(label, colour, linestyle) per run: one colour per mission, A solid, D dashed."""
+    ids = list(dict.fromkeys(r.spec.mission.id for r in results))
+    cmap = _pyplot().get_cmap("tab10")
+    out = []
+    for r in results:
+        colour = cmap(ids.index(r.spec.mission.id) % 10)
+        ls = "-" if r.spec.criterion == "A" else "--"
+        if r.spec.mission.constraints.activation == "paper":
+            ls = ":" if r.spec.criterion == "A" else "-."
+        out.append((run_name(r), colour, ls))
+    return out
+
+
+def plot_peb(results: Sequence[SimulationResult], path: Path) -> None:
+    """Mean PEB (eq. 18) vs step, every run, log scale: the paper's Fig. 3."""
+    plt = _pyplot()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    for r, (label, colour, ls) in zip(results, _style(results)):
+        stats = r.peb_stats()
+        steps = np.arange(len(stats["mean"]))
+        ax.plot(steps, stats["mean"], ls, color=colour, label=label, lw=1.6)
+        if len(results) <= 4:
+            lo = np.where(np.isfinite(stats["p10"]), stats["p10"], np.nan)
+            hi = np.where(np.isfinite(stats["p90"]), stats["p90"], np.nan)
+            ax.fill_between(steps, lo, hi, color=colour, alpha=0.12, lw=0)
+    ax.set_yscale("log")
+    ax.set_xlabel("step k")
+    ax.set_ylabel(r"$\overline{\mathrm{PEB}}^{(k)}$ [m]")
+    ax.set_title("Position error bound (A solid, D dashed)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_estimate_error(results: Sequence[SimulationResult], path: Path) -> None:
+    """Mean estimate error |p̂0 − p0| vs step, every run, log scale."""
+    plt = _pyplot()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    for r, (label, colour, ls) in zip(results, _style(results)):
+        err = r.estimate_error_m.reshape(r.estimate_error_m.shape[0], -1)
+        ax.plot(np.median(err, axis=-1), ls, color=colour, label=label, lw=1.6)
+    ax.set_yscale("log")
+    ax.set_xlabel("step k")
+    ax.set_ylabel("median estimate error [m]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_trajectories(result: SimulationResult, path: Path, trial: int = 0) -> None:
+    """3-D trajectories of one trial with obstacles, source, start and end: the paper's Fig. 2."""
+    plt = _pyplot()
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m = result.spec.mission
+    pos = result.positions_m[:, trial]
+    fig = plt.figure(figsize=(7.5, 6.5))
+    ax = fig.add_subplot(projection="3d")
+    colours = {"ranging": "tab:red", "bearing": "tab:purple", "joint": "tab:green"}
+    for box in m.obstacles:
+        lo, hi = np.asarray(box.min_m), np.asarray(box.max_m)
+        ax.add_collection3d(Poly3DCollection(_box_faces(lo, hi), facecolor="0.6", edgecolor="0.35", alpha=0.35))
+    for i, role in enumerate(m.drones.roles):
+        c = colours[role]
+        ax.plot(pos[:, i, 0], pos[:, i, 1], pos[:, i, 2], "--", color=c, lw=0.9)
+        ax.scatter(*pos[0, i], marker="s", color=c, s=18)
+        ax.scatter(*pos[-1, i], marker="s", color=c, s=30, edgecolor="k")
+    src = result.source_m
+    ax.plot(src[:, 0], src[:, 1], src[:, 2], "-", color="tab:blue", lw=1.0)
+    ax.scatter(*src[-1], marker="^", color="tab:blue", s=60, label="source")
+    for role, c in colours.items():
+        if role in m.drones.roles:
+            ax.plot([], [], "s--", color=c, label=role)
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+    ax.set_zlabel("z up [m]")
+    ax.set_title(f"{run_name(result)}: trial {trial}, steps 0..{pos.shape[0] - 1}")
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[list[np.ndarray]]:
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]])
+    idx = [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [0, 3, 7, 4]]
+    return [[v[j] for j in face] for face in idx]
