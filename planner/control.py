@@ -179,7 +179,9 @@ def control_step(
     q = np.asarray(peers, dtype=float)
     mask = np.asarray(peer_mask, dtype=bool)
     age = np.asarray(peer_age_steps, dtype=float)
-    src = np.asarray(source_estimate, dtype=float)
+    # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
+    # per drone (without this, a (3,) estimate with batched drones raised in _subset).
+    src = np.broadcast_to(np.asarray(source_estimate, dtype=float), p.shape)
     keepout = np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1])
     bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
     bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
