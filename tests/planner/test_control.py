@@ -1,0 +1,376 @@
+"""Control law (eqs. 7, 14-17): kinematic limits, descent, projection, singular fallback, and
+closed-loop safety.
+
+References are geometric, not the implementation's formulas: speeds, heading and tilt changes
+are measured from the displacement with atan2; the projection property is "no component into
+an active constraint"; safety is checked by simulating a few drones pushed into each other,
+into an obstacle, towards the source and out of the altitude box, and measuring every distance
+at every step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from planner import FimStatus, Limits, control_step, distance_to_boxes, hop_counts, update_saved_steps
+from planner.network import NEVER
+
+LIM = Limits()  # the paper's case study: d_U*=1, d_S*=50, d_O*=5, 0.5-1 m/step, 50°, z in [2, 25]
+NO_BOX = np.zeros((0, 3))
+FAR_SOURCE = np.array([0.0, 1e5, 10.0])
+
+
+def heading(u: np.ndarray) -> float:
+    return math.atan2(u[1], u[0])
+
+
+def tilt(u: np.ndarray) -> float:
+    return math.atan2(u[2], math.hypot(u[0], u[1]))
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def unit(az: float, el: float) -> np.ndarray:
+    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def one_step(
+    p,
+    prev,
+    grad,
+    *,
+    status=FimStatus.OK,
+    peers=None,
+    age=None,
+    source=FAR_SOURCE,
+    keepout=None,
+    boxes=(NO_BOX, NO_BOX),
+    limits=LIM,
+    uniforms=(0.5, 0.5),
+    xi=None,
+    perturbation_rad=math.radians(20.0),
+):
+    peers = np.zeros((0, 3)) if peers is None else np.asarray(peers, dtype=float)
+    n = peers.shape[0]
+    age = np.zeros(n) if age is None else np.asarray(age, dtype=float)
+    keepout = limits.d_source_m if keepout is None else keepout
+    return control_step(
+        np.asarray(p, dtype=float), np.asarray(prev, dtype=float), np.asarray(grad, dtype=float), int(status),
+        peers, np.ones(n, bool), age, np.asarray(source, dtype=float), keepout, boxes[0], boxes[1], limits,
+        np.asarray(uniforms, dtype=float), xi=xi, perturbation_rad=perturbation_rad,
+    )
+
+
+def assert_kinematics(u, prev, limits, eps=1e-9):
+    s = float(np.linalg.norm(u))
+    assert limits.step_min_m - eps <= s <= limits.step_max_m + eps, s
+    if np.linalg.norm(prev) > 0:
+        assert abs(tilt(u) - tilt(prev)) <= limits.tilt_change_max_rad + eps
+        if math.hypot(u[0], u[1]) > 1e-6 * s and math.hypot(prev[0], prev[1]) > 1e-6 * np.linalg.norm(prev):
+            assert abs(wrap(heading(u) - heading(prev))) <= limits.heading_change_max_rad + eps
+
+
+limits_st = st.builds(
+    Limits,
+    step_min_m=st.floats(0.1, 0.8),
+    step_max_m=st.floats(0.8, 3.0),
+    heading_change_max_rad=st.floats(math.radians(10), math.radians(90)),
+    tilt_change_max_rad=st.floats(math.radians(10), math.radians(90)),
+    activation=st.sampled_from(["safe", "paper"]),
+)
+
+
+# ---------------------------------------------------------------- limits on random inputs
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), limits=limits_st, n_peers=st.integers(0, 5), with_prev=st.booleans(), singular=st.booleans())
+def test_step_respects_kinematic_limits_and_altitude_box(seed, limits, n_peers, with_prev, singular):
+    rng = np.random.default_rng(seed)
+    p = np.array([*rng.uniform(-30, 30, 2), rng.uniform(limits.z_min_m, limits.z_max_m)])
+    prev = unit(rng.uniform(-math.pi, math.pi), rng.uniform(-1.3, 1.3)) * rng.uniform(limits.step_min_m, limits.step_max_m)
+    prev = prev if with_prev else np.zeros(3)
+    grad = rng.normal(size=3) * 10 ** rng.uniform(-6, 3)
+    peers = p + rng.uniform(-15, 15, (n_peers, 3))
+    src = p + rng.uniform(-80, 80, 3)
+    bmin = rng.uniform(-40, 30, (2, 3))
+    boxes = (bmin, bmin + rng.uniform(2, 12, (2, 3)))
+    r = one_step(
+        p, prev, grad * (not singular), status=FimStatus.SINGULAR if singular else FimStatus.OK, peers=peers,
+        age=rng.integers(0, 3, n_peers), source=src, boxes=boxes, limits=limits, uniforms=rng.random(2),
+    )
+    u = r.displacement
+    assert np.isfinite(u).all() and np.isfinite(r.next_position).all()
+    np.testing.assert_allclose(r.next_position, p + u, atol=1e-12)
+    assert bool(r.singular) is singular
+    z = r.next_position[2]
+    if limits.activation == "paper":
+        # The paper clamps z to its box, which may shorten the step: only the box is guaranteed.
+        assert limits.z_min_m - 1e-9 <= z <= limits.z_max_m + 1e-9
+        assert np.linalg.norm(u) <= limits.step_max_m + 1e-9
+    else:
+        assert_kinematics(u, prev, limits)
+        if not r.infeasible:
+            assert limits.z_min_m - 1e-9 <= z <= limits.z_max_m + 1e-9
+
+
+# ---------------------------------------------------------------- descent without constraints
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), activation=st.sampled_from(["safe", "paper"]), with_prev=st.booleans())
+def test_unconstrained_step_is_normalised_steepest_descent(seed, activation, with_prev):
+    rng = np.random.default_rng(seed)
+    limits = replace(LIM, activation=activation)
+    p = np.array([0.0, 0.0, 13.0])
+    g_dir = unit(rng.uniform(-math.pi, math.pi), rng.uniform(-1.2, 1.2))
+    grad = g_dir * 10 ** rng.uniform(-8, 4)
+    prev = np.zeros(3)
+    if with_prev:  # a previous direction close enough to -g that no turn limit binds
+        d_az, d_el = rng.uniform(-0.8, 0.8) * limits.heading_change_max_rad, rng.uniform(-0.8, 0.8) * limits.tilt_change_max_rad
+        assume(abs(tilt(-g_dir) + d_el) < 1.45)
+        prev = unit(heading(-g_dir) + d_az, tilt(-g_dir) + d_el) * 0.7
+    r = one_step(p, prev, grad, limits=limits)
+    u = r.displacement
+    assert not r.active.any() and not r.filtered and not r.singular
+    assert float(grad @ u) < 0.0  # a descent direction
+    # At top speed, along -∇C (normalised ξ).
+    np.testing.assert_allclose(u, -limits.step_max_m * g_dir, atol=1e-9)
+
+
+def test_given_xi_scales_the_gradient_and_speed_is_clamped():
+    p, g = np.array([0.0, 0.0, 13.0]), np.array([3.0, -4.0, 0.0])  # |g| = 5
+    np.testing.assert_allclose(one_step(p, np.zeros(3), g, xi=0.15).displacement, -0.15 * g, atol=1e-12)
+    np.testing.assert_allclose(one_step(p, np.zeros(3), g, xi=0.01).displacement, -LIM.step_min_m * g / 5, atol=1e-12)
+    np.testing.assert_allclose(one_step(p, np.zeros(3), g, xi=10.0).displacement, -LIM.step_max_m * g / 5, atol=1e-12)
+
+
+def test_turn_rate_limit_turns_as_far_as_allowed_towards_the_descent():
+    p = np.array([0.0, 0.0, 13.0])
+    prev = np.array([1.0, 0.0, 0.0])
+    grad = np.array([0.0, -1.0, 0.0])  # wants to go north: a 90° turn
+    r = one_step(p, prev, grad)
+    assert heading(r.displacement) == pytest.approx(LIM.heading_change_max_rad, abs=1e-9)
+    assert float(grad @ r.displacement) < 0.0
+    grad_up = np.array([-1.0, 0.0, -1.0]) / math.sqrt(2)  # wants to climb at 45° while flying east: allowed
+    assert tilt(one_step(p, prev, grad_up).displacement) == pytest.approx(math.pi / 4, abs=1e-9)
+    grad_vertical = np.array([0.0, 0.0, -1.0])  # straight up: a 90° tilt change, limited to 50°
+    assert tilt(one_step(p, prev, grad_vertical).displacement) == pytest.approx(LIM.tilt_change_max_rad, abs=1e-9)
+
+
+# ---------------------------------------------------------------- projection onto active constraints
+
+
+def _constraint_cases(rng):
+    """(name, kwargs for one_step, p, outward unit normal of the active constraint)."""
+    p = np.array([0.0, 0.0, 12.0])
+    n_peer = unit(rng.uniform(-math.pi, math.pi), rng.uniform(-0.5, 0.5))
+    n_src = unit(rng.uniform(-math.pi, math.pi), rng.uniform(-0.3, 0.3))
+    box_min, box_max = np.array([[3.0, -10.0, 0.0]]), np.array([[13.0, 10.0, 30.0]])
+    return [
+        ("uav", dict(peers=[p - 0.8 * n_peer]), n_peer),  # 0.8 m < d_U* = 1 m: violated
+        ("source", dict(source=p - 45.0 * n_src, keepout=50.0), n_src),  # 45 m < d_S* = 50 m
+        ("obstacle", dict(boxes=(box_min, box_max)), np.array([-1.0, 0.0, 0.0])),  # 3 m < d_O* = 5 m
+    ]
+
+
+@pytest.mark.parametrize("activation", ["paper", "safe"])
+def test_active_constraint_gets_no_component_into_it(rng, activation):
+    limits = replace(LIM, activation=activation)
+    family = {"uav": 0, "source": 1, "obstacle": 2}
+    for _ in range(40):
+        for name, kw, n in _constraint_cases(rng):
+            p = np.array([0.0, 0.0, 12.0])
+            grad = n * rng.uniform(0.2, 5.0) + rng.normal(size=3)  # pushes into the constraint
+            grad[2] *= 0.2
+            r = one_step(p, np.zeros(3), grad, limits=limits, **kw)
+            u = r.displacement
+            assert r.active[family[name]], name
+            assert float(u @ n) >= -1e-9, (name, u @ n)
+            if activation == "paper":
+                # Eq. 14: the tangential part of u is along -P∇C, P = I - n nᵀ.
+                pg = grad - (grad @ n) * n
+                tangential = u - (u @ n) * n
+                assert np.linalg.norm(np.cross(tangential, pg)) <= 1e-9 * np.linalg.norm(pg) * max(np.linalg.norm(tangential), 1.0)
+                assert float(tangential @ pg) <= 0.0
+
+
+def test_paper_rule_ignores_a_constraint_until_it_is_violated():
+    p = np.array([0.0, 0.0, 12.0])
+    grad = np.array([-1.0, 0.0, 0.0])  # descent: east, towards the box 5.5 m away
+    boxes = (np.array([[5.5, -10.0, 0.0]]), np.array([[15.0, 10.0, 30.0]]))
+    paper = one_step(p, np.zeros(3), grad, boxes=boxes, limits=replace(LIM, activation="paper"))
+    assert not paper.active.any()
+    np.testing.assert_allclose(paper.displacement, [1.0, 0.0, 0.0], atol=1e-12)
+    safe = one_step(p, np.zeros(3), grad, boxes=boxes)
+    assert safe.active[2]
+    assert distance_to_boxes(safe.next_position, *boxes) >= LIM.d_obstacle_m
+
+
+# ---------------------------------------------------------------- singular fallback
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), activation=st.sampled_from(["safe", "paper"]))
+def test_singular_keeps_previous_direction_within_perturbation(seed, activation):
+    rng = np.random.default_rng(seed)
+    limits = replace(LIM, activation=activation)
+    pert = math.radians(rng.uniform(1.0, 40.0))
+    prev = unit(rng.uniform(-math.pi, math.pi), rng.uniform(-0.6, 0.6)) * rng.uniform(0.5, 1.0)
+    p = np.array([0.0, 0.0, 13.0])
+    with np.errstate(all="raise"):
+        r = one_step(p, prev, np.zeros(3), status=FimStatus.SINGULAR, limits=limits, uniforms=rng.random(2), perturbation_rad=pert)
+    u = r.displacement
+    assert r.singular and np.isfinite(u).all()
+    assert abs(wrap(heading(u) - heading(prev))) <= min(pert, limits.heading_change_max_rad) + 1e-9
+    assert abs(tilt(u) - tilt(prev)) <= min(pert, limits.tilt_change_max_rad) + 1e-9
+    assert limits.step_min_m - 1e-9 <= np.linalg.norm(u) <= limits.step_max_m + 1e-9
+
+
+def test_singular_first_step_and_perturbations_differ():
+    p = np.array([0.0, 0.0, 13.0])
+    a = one_step(p, np.zeros(3), np.zeros(3), status=FimStatus.SINGULAR, uniforms=(0.1, 0.9))
+    b = one_step(p, np.zeros(3), np.zeros(3), status=FimStatus.SINGULAR, uniforms=(0.6, 0.2))
+    for r in (a, b):
+        assert np.isfinite(r.displacement).all() and np.linalg.norm(r.displacement) == pytest.approx(1.0)
+    assert not np.allclose(a.displacement, b.displacement)
+    prev = np.array([0.0, 1.0, 0.0])
+    c = one_step(p, prev, np.zeros(3), status=FimStatus.SINGULAR, uniforms=(0.5, 0.5))  # zero jitter
+    np.testing.assert_allclose(c.displacement, prev, atol=1e-12)
+
+
+def test_batched_step_equals_loop(rng):
+    S, N = 3, 4
+    p = np.concatenate([rng.uniform(-20, 20, (S, N, 2)), rng.uniform(4, 20, (S, N, 1))], -1)
+    prev = rng.normal(size=(S, N, 3)) * 0.5
+    grad = rng.normal(size=(S, N, 3))
+    status = rng.integers(0, 3, (S, N))
+    peers = np.broadcast_to(p[:, None], (S, N, N, 3)).copy()
+    mask = ~np.eye(N, dtype=bool)[None].repeat(S, 0)
+    age = rng.integers(0, 2, (S, N, N)).astype(float)
+    src = np.array([0.0, 60.0, 10.0])
+    boxes = (np.array([[-5.0, 20.0, 0.0]]), np.array([[5.0, 30.0, 20.0]]))
+    uni = rng.random((S, N, 2))
+    r = control_step(p, prev, grad, status, peers, mask, age, src, 50.0, *boxes, LIM, uni)
+    for s in range(S):
+        for i in range(N):
+            one = control_step(p[s, i], prev[s, i], grad[s, i], status[s, i], peers[s, i], mask[s, i], age[s, i], src, 50.0, *boxes, LIM, uni[s, i])
+            np.testing.assert_allclose(r.next_position[s, i], one.next_position, atol=1e-12)
+            np.testing.assert_array_equal(r.active[s, i], one.active)
+
+
+# ---------------------------------------------------------------- closed-loop safety
+
+
+def simulate(scenario: str, activation: str, seeds: int, steps: int, d_hop_m: float | None = None, h_max: int = 2) -> dict[str, float]:
+    """Drones pushed by a constant attractive gradient (unit vector to a target), all stepping at
+    once. Each sees the others' current positions (``d_hop_m=None``) or, through the delayed
+    view of planner.network (disk graph of radius d_hop, h_max hops, memory buffer), their
+    positions of step ℓ = k − h + 1 with age h − 1. Returns the worst margin of every safety
+    distance over all steps and seeds (negative = violated)."""
+    limits = replace(LIM, activation=activation)
+    rng = np.random.default_rng([ord(c) for c in scenario + activation] + [int(d_hop_m or 0)])
+    src = FAR_SOURCE
+    boxes = (NO_BOX, NO_BOX)
+    N = 4
+    centre = np.array([0.0, 0.0, 12.0])
+    ang = np.linspace(0, 2 * np.pi, N, endpoint=False)[None] + rng.uniform(-0.3, 0.3, (seeds, N))
+    ring = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], -1)
+    if scenario == "head-on":  # everyone attracted to the centre of a 12-20 m ring
+        p = centre + ring * rng.uniform(6, 10, (seeds, N, 1))
+        target = np.broadcast_to(centre, p.shape)
+    elif scenario == "obstacle":  # attracted to the centre of a box, from 12-25 m
+        boxes = (np.array([[-4.0, -4.0, 0.0]]), np.array([[4.0, 4.0, 18.0]]))
+        p = centre + ring * rng.uniform(16, 30, (seeds, N, 1)) * [1, 1, 0] + [0, 0, 0]
+        p[..., 2] = rng.uniform(5, 20, (seeds, N))
+        target = np.broadcast_to(np.array([0.0, 0.0, 9.0]), p.shape)
+    elif scenario == "source":  # attracted to the source, from 53-60 m, keep-out 50 m
+        src = np.array([0.0, 0.0, 10.0])
+        p = src + ring * rng.uniform(53, 60, (seeds, N, 1))
+        p[..., 2] = rng.uniform(5, 20, (seeds, N))
+        target = np.broadcast_to(src, p.shape)
+    elif scenario == "altitude":  # half pulled to the sky, half into the ground
+        p = centre + ring * rng.uniform(15, 30, (seeds, N, 1))
+        p[..., 2] = rng.uniform(4, 23, (seeds, N))
+        target = p + np.where(np.arange(N)[:, None] % 2 == 0, [30.0, 0.0, 500.0], [-30.0, 0.0, -500.0])
+    else:
+        raise ValueError(scenario)
+    prev = np.zeros_like(p)
+    trajectory = [p.copy()]
+    saved = np.full((seeds, N, N), NEVER)
+    eye = np.eye(N, dtype=bool)
+    worst = {"uav": np.inf, "source": np.inf, "obstacle": np.inf, "altitude": np.inf}
+
+    def record(q: np.ndarray) -> None:
+        diff = q[:, :, None] - q[:, None]
+        dist = np.sqrt((diff**2).sum(-1)) + np.where(eye, np.inf, 0.0)
+        worst["uav"] = min(worst["uav"], float((dist - limits.d_uav_m).min()))
+        worst["source"] = min(worst["source"], float((np.linalg.norm(q - src, axis=-1) - limits.d_source_m).min()))
+        if boxes[0].shape[0]:
+            worst["obstacle"] = min(worst["obstacle"], float((distance_to_boxes(q, *boxes) - limits.d_obstacle_m).min()))
+        worst["altitude"] = min(worst["altitude"], float(np.minimum(q[..., 2] - limits.z_min_m, limits.z_max_m - q[..., 2]).min()))
+
+    record(p)
+    assert min(worst.values()) > 0.0, f"{scenario}: the initial state must be safe: {worst}"
+    for k in range(steps):
+        if d_hop_m is None:
+            known_step = np.full((seeds, N, N), k)
+        else:
+            saved = update_saved_steps(saved, hop_counts(p, d_hop_m), k, h_max)
+            known_step = saved
+        mask = (known_step >= 0) & ~eye
+        hist = np.stack(trajectory)  # (k + 1, seeds, N, 3)
+        s_idx = np.arange(seeds)[:, None, None]
+        j_idx = np.arange(N)[None, None, :]
+        peers = hist[np.maximum(known_step, 0), s_idx, j_idx]  # (seeds, N, N, 3)
+        age = np.where(mask, k - known_step, 0).astype(float)
+        to_target = p - target  # ∇C of a cost growing away from the target
+        grad = to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
+        r = control_step(p, prev, grad, np.zeros((seeds, N), np.int8), peers, mask, age, src, limits.d_source_m, *boxes, limits, rng.random((seeds, N, 2)))
+        assert np.isfinite(r.next_position).all()
+        prev, p = r.displacement, r.next_position
+        trajectory.append(p.copy())
+        record(p)
+    return worst
+
+
+SCENARIOS = ["head-on", "obstacle", "source", "altitude"]
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_safe_rule_never_violates_a_safety_distance(scenario):
+    worst = simulate(scenario, "safe", seeds=25, steps=60)
+    assert min(worst.values()) >= -1e-9, worst
+
+
+@pytest.mark.parametrize("scenario", ["head-on", "obstacle"])
+def test_safe_rule_with_the_delayed_view(scenario):
+    """Peers known through the multi-hop delayed view: close peers are current, farther ones
+    are one step old, unreachable ones the last saved record."""
+    worst = simulate(scenario, "safe", seeds=25, steps=60, d_hop_m=4.0, h_max=2)
+    assert min(worst.values()) >= -1e-9, worst
+
+
+def test_paper_rule_does_violate_safety_distances():
+    """The reason for the safe default: activating a constraint only once it is violated (eqs.
+    15-17) lets drones cross the safety distances between two steps."""
+    violated = {s: {k: v for k, v in simulate(s, "paper", seeds=25, steps=60).items() if v < 0} for s in SCENARIOS}
+    assert violated["head-on"].get("uav", 0.0) < 0.0, violated
+    assert violated["obstacle"].get("obstacle", 0.0) < 0.0, violated
+    assert violated["source"].get("source", 0.0) < 0.0, violated
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_safe_rule_soak(scenario):
+    for d_hop in (None, 3.0, 8.0):
+        worst = simulate(scenario, "safe", seeds=200, steps=150, d_hop_m=d_hop)
+        assert min(worst.values()) >= -1e-9, (d_hop, worst)
