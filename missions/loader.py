@@ -174,6 +174,11 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
         raise MissionError(file, [_describe_yaml_error(exc)]) from None
     except yaml.YAMLError as exc:
         raise MissionError(file, [f"invalid YAML: {exc}"]) from None
+    except MissionError:
+        raise
+    except (ValueError, OverflowError, TypeError) as exc:  # e.g. an integer of > 4300 digits
+        reason = str(exc).split(";")[0]
+        raise MissionError(file, [f"expected YAML values that can be read, found one that cannot: {reason}"[:300]]) from None
     except RecursionError:
         raise MissionError(file, ["expected a mission, found YAML nested too deeply"]) from None
     finally:
@@ -392,6 +397,10 @@ def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[
             text = f"unknown key, did you mean {close[0]!r}? expected one of {', '.join(valid)}; found {key!r}"
         else:
             text = f"unknown key; expected one of {', '.join(valid)}; found {key!r}"
+    elif kind == "invalid_key":
+        key = loc.pop() if loc else None
+        valid = _model_fields_at(loc) or []
+        text = f"unknown key; expected text keys (one of {', '.join(valid)}); found {_kind(key)}"
     elif kind == "missing":
         parent_fields = _model_fields_at(loc[:-1])
         if parent_fields is not None:

@@ -62,6 +62,7 @@ ROLES: tuple[str, ...] = ("ranging", "bearing", "joint")
 Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]  # YAML !!binary (bytes) is not text
 
 
 def fail(path: str, expected: str, found: object) -> PydanticCustomError:
@@ -123,7 +124,7 @@ def _check_connection(value: str) -> str:
     return value
 
 
-MavlinkConnection = Annotated[str, AfterValidator(_check_connection)]
+MavlinkConnection = Annotated[str, Strict(), AfterValidator(_check_connection)]
 
 
 class _Section(BaseModel):
@@ -290,7 +291,7 @@ class Source(_Section):
 class Box(_Section):
     """An obstacle: axis-aligned parallelepiped [min_m, max_m] (the paper's set O)."""
 
-    name: str = Field(..., min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$", description="Obstacle name.")
+    name: Str = Field(..., min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$", description="Obstacle name.")
     min_m: Vec3 = Field(..., description="Lower corner [x, y, z] (m, ENU).")
     max_m: Vec3 = Field(..., description="Upper corner [x, y, z] (m, ENU).")
 
@@ -450,7 +451,7 @@ class ZenohTls(_Section):
 class ZenohAuth(_Section):
     """Zenoh user/password authentication; the password is read from a file, never the mission."""
 
-    user: str = Field(..., min_length=1, description="User name.")
+    user: Str = Field(..., min_length=1, description="User name.")
     password_file: FilePath = Field(..., description="File holding the password (relative to the mission file).")
 
 
@@ -458,8 +459,8 @@ class ZenohSpec(_Section):
     """Zenoh session configuration. Default: peer mode on loopback only, no multicast scouting."""
 
     mode: Literal["peer", "client", "router"] = "peer"
-    listen: tuple[str, ...] = Field(("tcp/127.0.0.1:0",), description="Endpoints to listen on.")
-    connect: tuple[str, ...] = Field((), description="Endpoints to connect to.")
+    listen: tuple[Str, ...] = Field(("tcp/127.0.0.1:0",), description="Endpoints to listen on.")
+    connect: tuple[Str, ...] = Field((), description="Endpoints to connect to.")
     multicast_scouting: Bool = False
     tls: ZenohTls | None = None
     auth: ZenohAuth | None = None
@@ -559,14 +560,14 @@ class Mission(_Section):
     """
 
     schema_version: Literal[1] = Field(1, description="Version of the mission format.")
-    id: str = Field(
+    id: Str = Field(
         ...,
         min_length=1,
         max_length=64,
         pattern=r"^[A-Za-z0-9_-]+$",
         description="Mission id, used in Zenoh key expressions fimnav/<id>/...",
     )
-    description: str = ""
+    description: Str = Field("", description="Free text shown by fimnav check.")
     seed: Int = Field(0, ge=0, le=2**64 - 1, description="Root seed of every random draw.")
     dt_s: Float = Field(1.0, gt=0.0, le=3600.0, description="Step length Δt (s).")
     steps: Int = Field(550, ge=1, le=10_000_000, description="Number of steps K.")

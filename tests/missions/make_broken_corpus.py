@@ -143,6 +143,18 @@ case("alias_bomb", "a billion-laughs alias expansion", "", "at most 200000 YAML 
      "g: [*f, *f, *f, *f, *f, *f, *f, *f, *f, *f]\n")
 case("python_tag", "an unsafe YAML tag", "line 5, column", "no language-specific tags", "python/object", "id: !!python/object/apply:os.system ['echo pwned']\n" + BASE[len("id: broken_case\n"):])
 
+case("huge_integer", "an integer too long to read", "", "YAML values that can be read", "4300 digits",
+     sub("seed: 3", "seed: " + "9" * 5000))
+case("binary_id", "a !!binary (bytes) mission id", "id", "a valid string", "b'x'", sub("id: broken_case", "id: !!binary eA=="))
+case("integer_key", "a number used as a key", "constraints", "text keys", "3 (an integer)",
+     sub("  z_max_m: 25.0\n", "  z_max_m: 25.0\n  3: x\n"))
+case("deep_nesting", "lists nested 5000 deep", "", "a mission", "nested too deeply",
+     sub("trials: 2\n", "trials: 2\ndescription: " + "[" * 5000 + "]" * 5000 + "\n"))
+case("recursive_alias", "a list that contains itself", "", "at most 200000 YAML nodes", "found more",
+     sub("trials: 2\n", "trials: 2\ndescription: &loop [*loop]\n"))
+case("infinite_value", "an infinite speed", "constraints.speed_max_mps", "a finite number", "inf",
+     sub("  speed_max_mps: 1.0", "  speed_max_mps: .inf"))
+
 out = Path(__file__).resolve().parent / "broken"
 for name, (what, path, expected, found, text) in C.items():
     header = (f"# Broken mission: {what}.\n# expect-path: {path}\n# expect-expected: {expected}\n"

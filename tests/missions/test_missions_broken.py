@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,14 @@ def run_check(target: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.fixture(scope="module")
+def corpus_runs() -> dict[str, subprocess.CompletedProcess[str]]:
+    """Run ``fimnav check`` on every corpus file, two subprocesses at a time."""
+    rels = [str(c.relative_to(REPO)) for c in CASES]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(zip(rels, pool.map(run_check, rels)))
+
+
 def assert_one_clear_error(proc: subprocess.CompletedProcess[str], file_label: str) -> str:
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
     assert "Traceback" not in proc.stderr
@@ -61,11 +70,13 @@ def test_corpus_is_large_enough() -> None:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.stem for c in CASES])
-def test_broken_mission_is_refused_with_one_clear_message(case: Path) -> None:
+def test_broken_mission_is_refused_with_one_clear_message(
+    case: Path, corpus_runs: dict[str, subprocess.CompletedProcess[str]]
+) -> None:
     expect = _expectations(case)
     assert set(expect) == {"path", "expected", "found"}, f"{case.name}: incomplete # expect-* header"
     rel = str(case.relative_to(REPO))
-    message = assert_one_clear_error(run_check(rel), rel)
+    message = assert_one_clear_error(corpus_runs[rel], rel)
     body = message.split(rel, 1)[1]
     if expect["path"]:
         assert f" {expect['path']}" in body, (expect["path"], message)
@@ -76,9 +87,9 @@ def test_broken_mission_is_refused_with_one_clear_message(case: Path) -> None:
     assert expect["found"] in after_expected, (expect["found"], message)
 
 
-def test_typo_suggests_the_nearest_key() -> None:
+def test_typo_suggests_the_nearest_key(corpus_runs: dict[str, subprocess.CompletedProcess[str]]) -> None:
     rel = str((BROKEN / "typo_nested_key.yaml").relative_to(REPO))
-    message = assert_one_clear_error(run_check(rel), rel)
+    message = assert_one_clear_error(corpus_runs[rel], rel)
     assert "did you mean 'activation'?" in message
 
 
