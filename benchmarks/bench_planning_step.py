@@ -1,0 +1,249 @@
+"""Benchmark: one drone's planning step, fimnav's projected gradient vs scipy SLSQP (issue 2).
+
+One planning step of drone i (the hot path of every planner process and of the simulator):
+
+1. ``fisher_information`` over drone i's view (N drones, mixed roles, LOS flags from the
+   records) at the source estimate (eqs. 10-12);
+2. ``cost_gradient``: A-optimality cost tr J⁻¹ and its gradient w.r.t. p_i (eqs. 6, 13);
+3. ``control_step``: activation, projection (eq. 14), speed / turn-rate limits, altitude box
+   and the safety filter (default ``activation="safe"``).
+
+Baseline, in the same run: the same one-step problem (problem 7 restricted to drone i's next
+position) solved by ``scipy.optimize.minimize(method="SLSQP")``: minimise the A cost of J with
+drone i moved to p_i + u, over u, subject to v_min·Δt ≤ |u| ≤ v_max·Δt, heading change ≤ φ_max,
+tilt change ≤ θ_max, z_min ≤ z ≤ z_max, distance ≥ d_U* to every peer, ≥ d_S* to the source
+estimate and ≥ d_O* to every obstacle. SLSQP gets the analytic cost gradient of
+planner.fim.cost_gradient and analytic constraint Jacobians, and starts from the previous step
+(a feasible point). Both are given the same J of the other drones.
+
+Scene: the paper's case study as fimnav's mission files set it (missions/paper/*.yaml):
+source at (0, 0, 2) m, three buildings, the first ten drones on the paper's ellipse centred at
+(0, 150, 8) m; for N = 100 and 1000 the others are spread over a 400 m × 200 m area behind
+them. Roles cycle ranging / bearing / joint as in the paper's heterogeneous case.
+
+Usage:
+    python benchmarks/bench_planning_step.py            # N = 10, 100, 1000
+    python benchmarks/bench_planning_step.py --sizes 10 --repeats 5000
+
+The machine is shared (2 cores) and noisy: the script reports medians over many repeats
+(and the interquartile range), never means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from planner import Channel, FimStatus, Limits, control_step, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
+from planner.geometry import distance_to_boxes_with_gradient
+
+SOURCE = np.array([0.0, 0.0, 2.0])
+BOXES_MIN = np.array([[-45.0, 85.0, 0.0], [6.0, 55.0, 0.0], [-30.0, 20.0, 0.0]])
+BOXES_MAX = np.array([[-6.0, 105.0, 30.0], [40.0, 75.0, 30.0], [-10.0, 40.0, 30.0]])
+CHANNEL = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=math.radians(10.0))
+LIMITS = Limits()  # paper: d_U*=1, d_S*=50, d_O*=5 m, 0.5-1 m/step, 50°/step, z in [2, 25] m
+
+
+@dataclass
+class Scene:
+    positions: np.ndarray  # (N, 3)
+    ranging: np.ndarray
+    bearing: np.ndarray
+    los: np.ndarray
+    prev: np.ndarray  # drone 0's previous step (3,)
+
+
+def make_scene(n: int, seed: int = 0) -> Scene:
+    rng = np.random.default_rng(seed)
+    k = np.arange(min(n, 10))
+    ang = 2.0 * np.pi * k / 10
+    pos = [np.stack([20.0 * np.cos(ang), np.full(k.shape, 150.0), 8.0 + 5.0 * np.sin(ang)], -1)]
+    have = pos[0]
+    while sum(len(p) for p in pos) < n:
+        cand = np.array([rng.uniform(-200, 200), rng.uniform(110, 310), rng.uniform(4.0, 23.0)])
+        allp = np.concatenate(pos)
+        if np.min(np.linalg.norm(allp - cand, axis=1)) > 3.0 and distance_to_boxes(cand, BOXES_MIN, BOXES_MAX) > 10.0:
+            pos.append(cand[None])
+    positions = np.concatenate(pos)[:n]
+    del have
+    role = np.arange(n) % 3  # 0 ranging, 1 bearing, 2 joint
+    ranging = role != 1
+    bearing = role != 0
+    los = line_of_sight(positions, SOURCE, BOXES_MIN, BOXES_MAX)
+    prev = np.array([0.0, -1.0, 0.0])  # flying south, towards the source
+    return Scene(positions, ranging, bearing, los, prev)
+
+
+def planning_step(scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarray, uni: np.ndarray):
+    """fimnav: FIM over the view, cost and gradient, control step (drone 0)."""
+    J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
+    cg = cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A")
+    return control_step(
+        scene.positions[0], scene.prev, cg.gradient, cg.status, scene.positions, mask, age, src,
+        LIMITS.d_source_m, BOXES_MIN, BOXES_MAX, LIMITS, uni,
+    )
+
+
+def slsqp_step(scene: Scene, src: np.ndarray) -> tuple[np.ndarray, bool, int]:
+    """The same one-step problem solved by SLSQP; returns (u, success, iterations)."""
+    p = scene.positions[0]
+    peers = scene.positions[1:]
+    J_others = fisher_information(src, peers, scene.ranging[1:], scene.bearing[1:], scene.los[1:], CHANNEL)
+    r0, b0, l0 = scene.ranging[0:1], scene.bearing[0:1], scene.los[0:1]
+    lim = LIMITS
+    prev = scene.prev
+    prev_h = prev[:2]
+    prev_tilt = math.atan2(prev[2], math.hypot(prev[0], prev[1]))
+    cos_h = math.cos(lim.heading_change_max_rad)
+
+    def fim(u: np.ndarray) -> np.ndarray:
+        return J_others + fisher_information(src, (p + u)[None], r0, b0, l0, CHANNEL)
+
+    def fun(u: np.ndarray) -> tuple[float, np.ndarray]:
+        cg = cost_gradient(fim(u), src, p + u, r0[0], b0[0], l0[0], CHANNEL, "A")
+        if cg.status == FimStatus.SINGULAR:
+            return 1e30, np.zeros(3)
+        return float(cg.value), cg.gradient
+
+    def cons(u: np.ndarray) -> np.ndarray:
+        q = p + u
+        s2 = u @ u
+        uh = u[:2]
+        nh = math.hypot(*uh)
+        tilt = math.atan2(u[2], nh)
+        d_peer = np.sqrt(((q - peers) ** 2).sum(-1))
+        return np.concatenate([
+            [lim.step_max_m**2 - s2, s2 - lim.step_min_m**2,
+             uh @ prev_h - cos_h * nh * math.hypot(*prev_h),
+             lim.tilt_change_max_rad - (tilt - prev_tilt), lim.tilt_change_max_rad + (tilt - prev_tilt),
+             lim.z_max_m - q[2], q[2] - lim.z_min_m,
+             np.linalg.norm(q - src) - lim.d_source_m,
+             float(distance_to_boxes(q, BOXES_MIN, BOXES_MAX)) - lim.d_obstacle_m],
+            d_peer - lim.d_uav_m,
+        ])
+
+    def cons_jac(u: np.ndarray) -> np.ndarray:
+        q = p + u
+        uh = u[:2]
+        nh = max(math.hypot(*uh), 1e-12)
+        s2 = u @ u
+        # d tilt / du for tilt = atan2(u_z, |u_h|)
+        dtilt = np.array([-u[2] * u[0] / nh, -u[2] * u[1] / nh, nh]) / max(s2, 1e-24)
+        dh = np.array([prev_h[0] - cos_h * math.hypot(*prev_h) * u[0] / nh, prev_h[1] - cos_h * math.hypot(*prev_h) * u[1] / nh, 0.0])
+        ds = (q - src) / np.linalg.norm(q - src)
+        _, dob = distance_to_boxes_with_gradient(q, BOXES_MIN, BOXES_MAX)
+        diff = q - peers
+        dpe = diff / np.sqrt((diff**2).sum(-1))[:, None]
+        ez = np.array([0.0, 0.0, 1.0])
+        return np.vstack([-2 * u, 2 * u, dh, -dtilt, dtilt, -ez, ez, ds, dob, dpe])
+
+    res = minimize(fun, prev.copy(), jac=True, method="SLSQP", constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}], options={"maxiter": 100, "ftol": 1e-12})
+    return res.x, bool(res.success), int(res.nit)
+
+
+def a_cost_after(scene: Scene, src: np.ndarray, u: np.ndarray) -> float:
+    q = scene.positions.copy()
+    q[0] = q[0] + u
+    return float(cost(fisher_information(src, q, scene.ranging, scene.bearing, scene.los, CHANNEL), "A")[0])
+
+
+def plain_violation(scene: Scene, src: np.ndarray, u: np.ndarray) -> float:
+    """Largest violation (m) of the plain safety distances and altitude box by p_0 + u (≤ 0 ok)."""
+    q = scene.positions[0] + u
+    lim = LIMITS
+    v = [
+        lim.d_uav_m - np.min(np.linalg.norm(scene.positions[1:] - q, axis=1)),
+        lim.d_source_m - np.linalg.norm(q - src),
+        lim.d_obstacle_m - float(distance_to_boxes(q, BOXES_MIN, BOXES_MAX)),
+        lim.z_min_m - q[2],
+        q[2] - lim.z_max_m,
+        np.linalg.norm(u) - lim.step_max_m,
+        lim.step_min_m - np.linalg.norm(u),
+    ]
+    return float(max(v))
+
+
+def timeit(fn: Callable[[], object], repeats: int, warmup: int = 20) -> tuple[float, float, float]:
+    """Median and quartiles of the wall time of fn() in seconds."""
+    for _ in range(warmup):
+        fn()
+    t = np.empty(repeats)
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        for k in range(repeats):
+            t0 = time.perf_counter_ns()
+            fn()
+            t[k] = time.perf_counter_ns() - t0
+    finally:
+        if gc_was:
+            gc.enable()
+    q1, med, q3 = np.percentile(t, [25, 50, 75]) * 1e-9
+    return med, q1, q3
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
+    ap.add_argument("--repeats", type=int, default=3000, help="repeats of the fimnav step (SLSQP: /20, at least 30)")
+    args = ap.parse_args(argv)
+
+    # The source estimate is off the truth (as in flight): 3 m east, 2 m north, 1 m up.
+    src = SOURCE + np.array([3.0, 2.0, 1.0])
+    rows = []
+    for n in args.sizes:
+        scene = make_scene(n)
+        mask = np.ones(n, bool)
+        mask[0] = False
+        age = np.zeros(n)
+        uni = np.array([0.3, 0.7])
+        ours = planning_step(scene, src, mask, age, uni)
+        t_ours = timeit(lambda: planning_step(scene, src, mask, age, uni), args.repeats)
+        t_fim = timeit(lambda: fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL), args.repeats)
+        J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
+        t_grad = timeit(lambda: cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A"), args.repeats)
+        t_los = timeit(lambda: line_of_sight(scene.positions, src, BOXES_MIN, BOXES_MAX), args.repeats)
+        u_slsqp, ok, nit = slsqp_step(scene, src)
+        t_slsqp = timeit(lambda: slsqp_step(scene, src), max(30, args.repeats // 20), warmup=3)
+        c0 = a_cost_after(scene, src, np.zeros(3))
+        c_ours = a_cost_after(scene, src, ours.displacement)
+        c_slsqp = a_cost_after(scene, src, u_slsqp)
+        rows.append(dict(
+            n=n, ours=t_ours, fim=t_fim, grad=t_grad, los=t_los, slsqp=t_slsqp, ok=ok, nit=nit,
+            c0=c0, c_ours=c_ours, c_slsqp=c_slsqp,
+            v_ours=plain_violation(scene, src, ours.displacement), v_slsqp=plain_violation(scene, src, u_slsqp),
+            active=ours.active, filtered=bool(ours.filtered),
+        ))
+
+    us = 1e6
+    print("One drone's planning step (A-optimality), medians [interquartile range]; shared 2-core machine, noisy.")
+    print(f"{'N':>5} | {'fimnav step µs':>20} | {'(FIM µs':>7} {'grad µs':>8} {'LOS µs)':>8} | {'SLSQP µs':>22} | {'ratio':>7} | {'SLSQP it':>8}")
+    for r in rows:
+        m, a, b = (x * us for x in r["ours"])
+        sm, sa, sb = (x * us for x in r["slsqp"])
+        print(
+            f"{r['n']:>5} | {m:8.1f} [{a:6.1f}-{b:6.1f}] | {r['fim'][0] * us:7.1f} {r['grad'][0] * us:8.1f} {r['los'][0] * us:8.1f} | "
+            f"{sm:9.0f} [{sa:5.0f}-{sb:5.0f}] | {sm / m:6.0f}× | {r['nit']:>4} {'ok' if r['ok'] else 'FAIL'}"
+        )
+    print()
+    print("Cost tr(J⁻¹) [m²] after the step (lower is better); largest violation of the plain constraints (m, ≤ 0 = none)")
+    print(f"{'N':>5} | {'before':>12} | {'fimnav':>12} | {'SLSQP':>12} | {'(fimnav−SLSQP)/(before−SLSQP)':>30} | {'viol. fimnav':>12} | {'viol. SLSQP':>11} | fimnav active (uav,src,obs,alt) / filtered")
+    for r in rows:
+        gain = r["c0"] - r["c_slsqp"]
+        rel = (r["c_ours"] - r["c_slsqp"]) / gain if gain != 0 else float("nan")
+        print(
+            f"{r['n']:>5} | {r['c0']:12.6e} | {r['c_ours']:12.6e} | {r['c_slsqp']:12.6e} | {rel:30.2e} | "
+            f"{r['v_ours']:12.3f} | {r['v_slsqp']:11.3f} | {tuple(int(x) for x in r['active'])} / {r['filtered']}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
