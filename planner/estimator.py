@@ -61,7 +61,7 @@ Method, per call of :func:`update` and per batch element:
    Huber), unless more than ``gate_max_fraction`` of the element's new components would be.
 4. Forgetting λ ∈ (0, 1]: every stored contribution (Λ, η, PL equations, window weights)
    is multiplied by λ per call, for a moving source.
-5. Observability: initialised and λ_min/λ_max of the information ≥ ``min_rcond``.
+5. Observability: initialised and det J/(tr J/3)³ ≥ ``min_rcond`` (J the information).
 
 Per-call cost is O(batch × (window_rows + M)), independent of the number of calls. No NaN is
 returned: the estimate is finite everywhere (the origin, or the last value, until the element
@@ -146,9 +146,17 @@ class EstimatorConfig:
         gate_max_fraction: if more than this fraction of an element's components would be
             gated, the gate is not applied to that element for this call.
         iterations: Levenberg-Marquardt iterations per call.
+        init_iterations: iterations in a call where some element is initialised (from the
+            pseudo-linear solution, which may be far from the ML one).
+        recheck_every: every this many calls, the estimate is checked against the global
+            squared-range pseudo-linear solution of all ranges so far (0 disables); see
+            :func:`update`, step 6.
+        recheck_threshold: PL cost drop (≈ χ² units) that the PL solution must achieve over
+            the current estimate before the estimate is moved there.
         lm_damping: initial LM damping, relative to the diagonal of the scoring matrix.
         nlos_bearing_weight: weight of bearings flagged NLOS (0: they carry no information).
-        min_rcond: observability threshold on λ_min/λ_max of the information matrix.
+        min_rcond: observability threshold on det J/(tr J/3)³ of the information matrix J
+            (a lower bound of 27 λ_min/λ_max; 1 for isotropic information).
         pl_rcond: rank threshold of the (Jacobi-scaled) pseudo-linear normal equations.
         init_distance_m: distance used to weight a bearing's PL equations when no range is
             known for it and the element has no estimate yet (m).
@@ -160,12 +168,15 @@ class EstimatorConfig:
             takes: ``"below"`` (lower z, source under the swarm) or ``"above"``.
     """
 
-    window_rows: int = 10
+    window_rows: int = 0
     forgetting: float = 1.0
     huber_k: float = 1.345
     gate_sigma: float | None = 5.0
     gate_max_fraction: float = 0.5
-    iterations: int = 3
+    iterations: int = 1
+    init_iterations: int = 10
+    recheck_every: int = 5
+    recheck_threshold: float = 25.0
     lm_damping: float = 1e-3
     nlos_bearing_weight: float = 0.0
     min_rcond: float = 1e-9
@@ -177,11 +188,15 @@ class EstimatorConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.window_rows, int) and self.window_rows >= 0):
             raise ValueError(f"EstimatorConfig.window_rows: expected an integer >= 0, found {self.window_rows!r}")
-        if not (isinstance(self.iterations, int) and self.iterations >= 1):
-            raise ValueError(f"EstimatorConfig.iterations: expected an integer >= 1, found {self.iterations!r}")
+        if not (isinstance(self.recheck_every, int) and self.recheck_every >= 0):
+            raise ValueError(f"EstimatorConfig.recheck_every: expected an integer >= 0, found {self.recheck_every!r}")
+        for name in ("iterations", "init_iterations"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"EstimatorConfig.{name}: expected an integer >= 1, found {value!r}")
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError(f"EstimatorConfig.forgetting: expected a value in (0, 1], found {self.forgetting!r}")
-        positive = ("huber_k", "lm_damping", "min_rcond", "pl_rcond", "init_distance_m")
+        positive = ("huber_k", "lm_damping", "min_rcond", "pl_rcond", "init_distance_m", "recheck_threshold")
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
@@ -212,16 +227,21 @@ class EstimatorState:
         information: Fisher information of all records used, evaluated at the estimate with
             the robust weights, shape (..., 3, 3), m⁻²; zero where not initialised.
         observable: (...,) bool, True where the source is locally identifiable (initialised
-            and λ_min/λ_max(information) ≥ ``min_rcond``).
+            and det J/(tr J/3)³ ≥ ``min_rcond``, J = ``information``).
         initialised: (...,) bool, True once the pseudo-linear system was solvable.
-        prior_information: Λ, information of the marginalised records, (..., 3, 3), m⁻².
+        prior_information: Λ, curvature of the marginalised records' cost, (..., 3, 3), m⁻²
+            (their Fisher information in ML mode; in GLS mode without the variance term).
+        prior_fisher: Fisher information of the marginalised records, (..., 3, 3), m⁻².
         prior_vector: η, so that their cost is ½xᵀΛx − ηᵀx, shape (..., 3), m⁻¹.
         pl_matrix, pl_vector: pseudo-linear normal equations of every record, (..., 4, 4), (..., 4).
         pl_dropped_matrix, pl_dropped_vector: the same for records that left the window before
             initialisation (they become the prior, R marginalised out, at initialisation).
+        pl_range_matrix, pl_range_vector: squared-range PL equations of every range so far,
+            weighted at the estimate of their call (the global re-check).
         window: the raw records kept, a :class:`Measurements` of shape (..., window_rows).
         window_weight: their forgetting weights λ^age, (..., window_rows).
         measurement_count: scalar components (range, azimuth, elevation) used so far, (...,).
+        calls: number of :func:`update` calls so far.
     """
 
     estimate_m: FloatArray
@@ -229,14 +249,18 @@ class EstimatorState:
     observable: BoolArray
     initialised: BoolArray
     prior_information: FloatArray
+    prior_fisher: FloatArray
     prior_vector: FloatArray
     pl_matrix: FloatArray
     pl_vector: FloatArray
     pl_dropped_matrix: FloatArray
     pl_dropped_vector: FloatArray
+    pl_range_matrix: FloatArray
+    pl_range_vector: FloatArray
     window: Measurements
     window_weight: FloatArray
     measurement_count: NDArray[np.int64]
+    calls: int = 0
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -262,11 +286,14 @@ def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | N
         observable=np.zeros(b, dtype=bool),
         initialised=np.zeros(b, dtype=bool),
         prior_information=np.zeros(b + (3, 3)),
+        prior_fisher=np.zeros(b + (3, 3)),
         prior_vector=np.zeros(b + (3,)),
         pl_matrix=np.zeros(b + (4, 4)),
         pl_vector=np.zeros(b + (4,)),
         pl_dropped_matrix=np.zeros(b + (4, 4)),
         pl_dropped_vector=np.zeros(b + (4,)),
+        pl_range_matrix=np.zeros(b + (4, 4)),
+        pl_range_vector=np.zeros(b + (4,)),
         window=empty_measurements(b, config.window_rows),
         window_weight=np.zeros(b + (config.window_rows,)),
         measurement_count=np.zeros(b, dtype=np.int64),
@@ -308,149 +335,268 @@ def _inv3_spd(a: FloatArray) -> tuple[FloatArray, BoolArray]:
     return _adj3(a) / safe[..., None, None], ok
 
 
-def _eig_extremes3(a: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Smallest and largest eigenvalues of symmetric 3x3 matrices (closed form, Smith 1961)."""
-    p1 = a[..., 0, 1] ** 2 + a[..., 0, 2] ** 2 + a[..., 1, 2] ** 2
-    q = (a[..., 0, 0] + a[..., 1, 1] + a[..., 2, 2]) / 3.0
-    p2 = (a[..., 0, 0] - q) ** 2 + (a[..., 1, 1] - q) ** 2 + (a[..., 2, 2] - q) ** 2 + 2.0 * p1
-    p = np.sqrt(p2 / 6.0)
-    safe_p = np.where(p > 0.0, p, 1.0)
-    b = (a - q[..., None, None] * np.eye(3)) / safe_p[..., None, None]
-    r = np.clip(_det3(b) / 2.0, -1.0, 1.0)
-    phi = np.arccos(r) / 3.0
-    big = np.where(p > 0.0, q + 2.0 * p * np.cos(phi), q)
-    small = np.where(p > 0.0, q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0), q)
-    return small, big
+def _normalised_det(a: FloatArray) -> FloatArray:
+    """det(A)/(tr(A)/3)³ of symmetric PSD 3x3 matrices (0 where tr A = 0).
+
+    It lies in [0, 1], equals 1 for A ∝ I, and bounds the conditioning from below:
+    det/(tr/3)³ ≤ 27 λ_min λ_mid λ_max/λ_max³ ≤ 27 λ_min/λ_max.
+    """
+    tr = np.einsum("...ii->...", a) / 3.0
+    safe = np.where(tr > 0.0, tr, 1.0)
+    return np.where(tr > 0.0, _det3(a) / safe**3, 0.0)
 
 
 # --------------------------------------------------------------------------- measurement model
 
 
-def _model(x: FloatArray, p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Predicted (d, φ, θ) and their gradients w.r.t. the source.
-
-    Args:
-        x: source (..., 3), m. p: drone positions (..., K, 3), m (finite).
-
-    Returns:
-        ``h`` (..., K, 3) [m, rad, rad], ``grad`` (..., K, 3, 3) with grad[..., c, :] = ∇_x h_c,
-        and ``d`` (..., K) in m (floored).
-    """
-    r = x[..., None, :] - p
-    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
-    rho2 = np.maximum(rx * rx + ry * ry, _RHO2_FLOOR_M2)
-    rho = np.sqrt(rho2)
-    d2 = rho2 + rz * rz
-    d = np.maximum(np.sqrt(d2), _D_FLOOR_M)
-    h = np.stack((d, np.arctan2(ry, rx), np.arctan2(rz, rho)), axis=-1)
-    grad = np.empty(r.shape[:-1] + (3, 3))
-    grad[..., 0, :] = r / d[..., None]
-    grad[..., 1, 0] = -ry / rho2
-    grad[..., 1, 1] = rx / rho2
-    grad[..., 1, 2] = 0.0
-    f = rz / (d * d * rho)
-    grad[..., 2, 0] = -rx * f
-    grad[..., 2, 1] = -ry * f
-    grad[..., 2, 2] = rho / (d * d)
-    return h, grad, d
-
-
 def _wrap(angle: FloatArray) -> FloatArray:
-    """Wrap to [-π, π)."""
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+    """Wrap an angle difference to [-π, π] (radians)."""
+    return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))
 
 
 @dataclass(frozen=True)
 class _Rows:
-    """Finite-filled rows with per-component weights (internal)."""
+    """Records in component-major layout, NaN replaced by 0 and weight 0 (internal).
 
-    p: FloatArray  # (..., K, 3)
-    z: FloatArray  # (..., K, 3): range, azimuth, elevation
-    a: FloatArray  # (..., K, 3): weights (0 = unused)
-    s0sq: FloatArray  # (..., K): σ_r0² of the row's link
+    Every array has shape (..., K): drone position (px, py, pz) in m; measured range, azimuth,
+    elevation (zr, za, ze); component weights (ar, aa, ae) (0 = unused); σ_r0 of the link (m).
+    """
+
+    px: FloatArray
+    py: FloatArray
+    pz: FloatArray
+    zr: FloatArray
+    za: FloatArray
+    ze: FloatArray
+    ar: FloatArray
+    aa: FloatArray
+    ae: FloatArray
+    s0: FloatArray
+
+    def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> "_Rows":
+        return _Rows(self.px, self.py, self.pz, self.zr, self.za, self.ze, ar, aa, ae, self.s0)
+
+    def sliced(self, sl: slice) -> "_Rows":
+        return _Rows(*(getattr(self, f)[..., sl] for f in self.__dataclass_fields__))
+
+    def subset(self, mask: BoolArray) -> "_Rows":
+        return _Rows(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
 
 
 def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: EstimatorConfig) -> _Rows:
+    """Component-major rows with weights: ranges ``row_weight``; bearings ``row_weight`` in LOS
+    and ``row_weight·nlos_bearing_weight`` when flagged NLOS; 0 where a value is absent."""
     p = meas.positions_m
-    row_ok = np.all(np.isfinite(p), axis=-1)
-    z = np.stack((meas.range_m, meas.azimuth_rad, meas.elevation_rad), axis=-1)
-    ok = np.isfinite(z) & row_ok[..., None]
+    px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+    row_ok = np.isfinite(px) & np.isfinite(py) & np.isfinite(pz)
     los = meas.los
-    bearing_w = np.where(los, 1.0, config.nlos_bearing_weight)
-    a = np.stack((np.ones_like(bearing_w), bearing_w, bearing_w), axis=-1) * row_weight[..., None]
-    a = np.where(ok, a, 0.0)
+    wb = row_weight * np.where(los, 1.0, config.nlos_bearing_weight)
+    out = []
+    for arr in (px, py, pz):
+        out.append(np.where(row_ok, arr, 0.0))
+    weights = []
+    for z, w in ((meas.range_m, row_weight), (meas.azimuth_rad, wb), (meas.elevation_rad, wb)):
+        ok = row_ok & np.isfinite(z)
+        out.append(np.where(ok, z, 0.0))
+        weights.append(np.where(ok, w, 0.0))
     s0 = np.where(los, channel.sigma_r0_los, channel.sigma_r0_nlos)
-    return _Rows(np.where(row_ok[..., None], p, 0.0), np.where(ok, z, 0.0), a, s0 * s0)
+    return _Rows(*out, *weights, s0)
 
 
-def _residuals(
-    x: FloatArray, rows: _Rows, channel: Channel, d_var: FloatArray | None = None
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Normalised residuals e = (z − h)/σ (..., K, 3), 1/σ (..., K, 3), σ_r² (..., K), the
-    floored distance (..., K) and ∇h (..., K, 3, 3). ``d_var`` (..., K), if given, is the
-    distance at which σ_r² is evaluated (GLS: frozen within an iteration)."""
-    h, grad, d = _model(x, rows.p)
-    dv = np.maximum(d if d_var is None else d_var, _VAR_D_FLOOR_M)
-    var_r = rows.s0sq * dv**channel.gamma
-    res = rows.z - h
-    res[..., 1] = _wrap(res[..., 1])
-    inv_sd = np.empty_like(res)
-    inv_sd[..., 0] = 1.0 / np.sqrt(var_r)
-    inv_sd[..., 1:] = 1.0 / channel.sigma_bearing_rad
-    return res * inv_sd, inv_sd, var_r, dv, grad
+@dataclass(frozen=True)
+class _Eval:
+    """Robust cost of the rows at one source position and the per-row factors from which its
+    gradient and scoring matrix are summed (internal; arrays (..., K))."""
+
+    cost: FloatArray  # (...,) summed over rows
+    rx: FloatArray
+    ry: FloatArray
+    rz: FloatArray
+    rho2: FloatArray
+    # gradient factors: g = Σ [gA r + gB v + gC w], v = (−r_y, r_x, 0), w = (−r_x r_z, −r_y r_z, ρ²)
+    gA: FloatArray
+    gB: FloatArray
+    gC: FloatArray
+    # scoring factors: H = Σ [hA r rᵀ + hB v vᵀ + hC w wᵀ]; Fisher adds hF r rᵀ
+    hA: FloatArray
+    hB: FloatArray
+    hC: FloatArray
+    hF: FloatArray
+    d: FloatArray
+    # component weights actually used (after the innovation gate)
+    ar: FloatArray
+    aa: FloatArray
+    ae: FloatArray
 
 
-def _huber(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Huber loss ρ_k(e), the mask |e| ≤ k, and |e|."""
-    ae = np.abs(e)
-    inside = ae <= k
-    rho = np.where(inside, 0.5 * e * e, k * ae - 0.5 * k * k)
-    return rho, inside, ae
+@dataclass(frozen=True)
+class _Gate:
+    """Innovation gate (internal): a bound on the variance of the previous estimate along any
+    direction (tr Σ, m², shape (...,)), where to apply it (...,), the threshold in σ, and the
+    largest gated fraction allowed per element."""
+
+    var_bound_m2: FloatArray
+    use: BoolArray
+    sigma: float
+    max_fraction: float
 
 
-def _robust_cost(x: FloatArray, rows: _Rows, channel: Channel, k: float, d_var: FloatArray | None) -> FloatArray:
-    """Robust cost per component (..., K, 3): a·ρ_k(e), plus a·½ ln σ_r² for ranges in ML mode
-    (``d_var`` None); in GLS mode σ_r² is evaluated at ``d_var`` and the log term is constant."""
-    e, _, var_r, _, _ = _residuals(x, rows, channel, d_var)
-    rho, _, _ = _huber(e, k)
-    cost = rows.a * rho
-    if d_var is None:
-        cost[..., 0] += rows.a[..., 0] * 0.5 * np.log(var_r)
-    return cost
+def _evaluate(
+    x: FloatArray,
+    rows: _Rows,
+    channel: Channel,
+    k: float,
+    ml: bool,
+    d_var: FloatArray | None = None,
+    gate: _Gate | None = None,
+    cost_only: bool = False,
+) -> _Eval | FloatArray:
+    """Robust negative log-likelihood of the rows at source ``x`` (..., 3) and its terms.
 
-
-def _terms(
-    x: FloatArray, rows: _Rows, channel: Channel, k: float, ml: bool
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Robust cost per component and its Fisher-scoring terms at ``x``.
-
-    Returns ``cost`` (..., K, 3); ``gcoef``, ``icoef`` (..., K, 3) such that the gradient of
-    the cost is Σ gcoef ∇h and its scoring matrix Σ icoef ∇h∇hᵀ; ``fcoef`` (..., K, 3), the
-    same for the robust-weighted Fisher information; ``grad`` = ∇h (..., K, 3, 3); and the
-    distances (..., K). With IRLS weight w = ψ(e)/e and e = (z − h)/σ:
+    Per component, with e = (z − h)/σ, Huber loss ρ_k, ψ_k = clip(e, ±k), w = min(1, k/|e|):
 
     .. math::
-        \nabla C_i = -a w e \nabla h/\sigma + [\text{ML, range}]\,a\tfrac{\gamma}{2d}(1 - w e^2)\nabla d,
-        \qquad
+        C = \sum_i a_i\big[\rho_k(e_i) + [\text{ML, range}]\tfrac12\ln\sigma_{r,i}^2\big],\qquad
+        \nabla C_i = -a\,\psi_k(e)\,\nabla h/\sigma
+            + [\text{ML, range}]\,a\tfrac{\gamma}{2d}(1 - w e^2)\nabla d,
+
         I_i = a\,\nabla h\nabla h^T\big(w/\sigma^2 + [\text{range}]\,\gamma^2/(2d^2)\big)
 
-    the last term being ∇σ²∇σ²ᵀ/(2σ⁴) of the range-dependent variance (eq. 12's A_d); in GLS
-    mode (``ml`` False) the scoring matrix omits it and the gradient has no variance term.
+    with ∇d = r/d, ∇φ = (−r_y, r_x, 0)/ρ², ∇θ = (−r_x r_z, −r_y r_z, ρ²)/(d²ρ), ρ the
+    horizontal distance, σ_r = σ_r0 d^{γ/2} (eq. 5), σ_b constant. The γ²/(2d²) term is
+    ∇σ²∇σ²ᵀ/(2σ⁴) (eq. 12's A_d): it enters the scoring matrix in ML mode and the reported
+    Fisher information always. In GLS mode σ_r is evaluated at ``d_var`` if given.
+
+    ``gate``: components whose innovation exceeds ``gate.sigma`` standard deviations of
+    σ² + tr(Σ)‖∇h‖² (a bound on σ² + ∇hᵀΣ∇h) get weight 0, where ``gate.use`` and at most
+    ``gate.max_fraction`` of the element's components are gated. ``cost_only``: return the
+    summed cost (...,) only.
     """
-    e, inv_sd, var_r, dv, grad = _residuals(x, rows, channel)
-    rho, inside, ae = _huber(e, k)
-    cost = rows.a * rho
-    w = np.where(inside, 1.0, k / np.maximum(ae, 1e-300))
-    gcoef = -rows.a * w * e * inv_sd
-    icoef = rows.a * w * inv_sd * inv_sd
-    gd = channel.gamma / (2.0 * dv)
-    fcoef = icoef.copy()
-    fcoef[..., 0] += rows.a[..., 0] * 2.0 * gd * gd
+    rx = x[..., 0, None] - rows.px
+    ry = x[..., 1, None] - rows.py
+    rz = x[..., 2, None] - rows.pz
+    rho2 = rx * rx
+    rho2 += ry * ry
+    np.maximum(rho2, _RHO2_FLOOR_M2, out=rho2)
+    rho = np.sqrt(rho2)
+    d2 = rz * rz
+    d2 += rho2
+    d = np.sqrt(d2)
+    gamma = channel.gamma
+    dv = d if d_var is None else d_var
+    sr = rows.s0 * (dv if gamma == 2.0 else dv ** (0.5 * gamma))
+    inv_sr = 1.0 / sr
+    inv_sb = 1.0 / channel.sigma_bearing_rad
+    er = rows.zr - d
+    er *= inv_sr
+    ea = _wrap(rows.za - np.arctan2(ry, rx))
+    ea *= inv_sb
+    ee = rows.ze - np.arctan2(rz, rho)
+    ee *= inv_sb
+    ar, aa, ae = rows.ar, rows.aa, rows.ae
+    if gate is not None:
+        g2 = gate.sigma * gate.sigma
+        tv = gate.var_bound_m2[..., None]
+        tb = tv * (inv_sb * inv_sb)
+        out_r = (er * er > g2 * (1.0 + tv * inv_sr * inv_sr)) & (ar > 0.0)
+        out_a = (ea * ea > g2 * (1.0 + tb / rho2)) & (aa > 0.0)
+        out_e = (ee * ee > g2 * (1.0 + tb / d2)) & (ae > 0.0)
+        n_out = out_r.sum(axis=-1) + out_a.sum(axis=-1) + out_e.sum(axis=-1)
+        n_all = (ar > 0.0).sum(axis=-1) + (aa > 0.0).sum(axis=-1) + (ae > 0.0).sum(axis=-1)
+        apply = (gate.use & (n_out <= gate.max_fraction * n_all))[..., None]
+        if np.any(apply):
+            ar = np.where(out_r & apply, 0.0, ar)
+            aa = np.where(out_a & apply, 0.0, aa)
+            ae = np.where(out_e & apply, 0.0, ae)
+    # Huber: m = min(|e|, k); ρ = m(|e| − m/2); ψ = clip(e, −k, k); w = m/|e| = k/max(|e|, k).
+    abr, aba, abe = np.abs(er), np.abs(ea), np.abs(ee)
+    mr, ma, me = np.minimum(abr, k), np.minimum(aba, k), np.minimum(abe, k)
+    cr = ar * mr * (abr - 0.5 * mr)
     if ml:
-        cost[..., 0] += rows.a[..., 0] * 0.5 * np.log(var_r)
-        gcoef[..., 0] += rows.a[..., 0] * gd * (1.0 - w[..., 0] * e[..., 0] ** 2)
-        icoef = fcoef
-    return cost, gcoef, icoef, fcoef, grad, dv
+        cr += ar * np.log(sr)
+    cost = np.einsum("...k,...k->...", aa * ma, aba - 0.5 * ma)
+    cost += np.einsum("...k,...k->...", ae * me, abe - 0.5 * me)
+    cost += cr.sum(axis=-1)
+    if cost_only:
+        return cost
+    inv_d2 = 1.0 / d2
+    inv_rho2 = 1.0 / rho2
+    sb2inv = inv_sb * inv_sb
+    wr = ar * inv_sr
+    ir = wr * inv_sr * (k / np.maximum(abr, k))
+    ia = aa * sb2inv * (k / np.maximum(aba, k))
+    ie = ae * sb2inv * (k / np.maximum(abe, k))
+    gr = np.maximum(np.minimum(er, k), -k)
+    gr *= wr
+    gr = -gr
+    ga = np.maximum(np.minimum(ea, k), -k)
+    ga *= aa * -inv_sb
+    ge = np.maximum(np.minimum(ee, k), -k)
+    ge *= ae * -inv_sb
+    gd = (0.5 * gamma) / dv
+    extra = ar * (2.0 * gd * gd)
+    if ml:
+        gr += ar * gd * (1.0 - (k / np.maximum(abr, k)) * er * er)
+        ir += extra
+        extra = np.zeros_like(extra)
+    inv_d = np.sqrt(inv_d2)
+    inv_rho = np.sqrt(inv_rho2)
+    return _Eval(
+        cost=cost,
+        rx=rx,
+        ry=ry,
+        rz=rz,
+        rho2=rho2,
+        gA=gr * inv_d,
+        gB=ga * inv_rho2,
+        gC=ge * (inv_d2 * inv_rho),
+        hA=ir * inv_d2,
+        hB=ia * (inv_rho2 * inv_rho2),
+        hC=ie * (inv_d2 * inv_d2 * inv_rho2),
+        hF=extra * inv_d2,
+        d=d,
+        ar=ar,
+        aa=aa,
+        ae=ae,
+    )
+
+
+def _sum(a: FloatArray, b: FloatArray) -> FloatArray:
+    return np.einsum("...k,...k->...", a, b)
+
+
+def _accumulate(ev: _Eval, sl: slice | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gradient (..., 3), scoring matrix and Fisher information (..., 3, 3), summed over the
+    rows (``sl`` of them).
+
+    With v = (−r_y, r_x, 0) and w = (−r_x r_z, −r_y r_z, ρ²): g = Σ gA r + gB v + gC w,
+    H = Σ hA r rᵀ + hB v vᵀ + hC w wᵀ, F = H + Σ hF r rᵀ; written entry by entry to avoid
+    (..., K, 3, 3) temporaries.
+    """
+    if sl is None:
+        sl = slice(None)
+    rx, ry, rz, rho2 = ev.rx[..., sl], ev.ry[..., sl], ev.rz[..., sl], ev.rho2[..., sl]
+    gA, gB, gC = ev.gA[..., sl], ev.gB[..., sl], ev.gC[..., sl]
+    hA, hB, hC, hF = ev.hA[..., sl], ev.hB[..., sl], ev.hC[..., sl], ev.hF[..., sl]
+    t = gA - gC * rz
+    g = np.stack((_sum(rx, t) - _sum(gB, ry), _sum(ry, t) + _sum(gB, rx), _sum(gA, rz) + _sum(gC, rho2)), axis=-1)
+    rzz = rz * rz
+    hCrzz = hC * rzz
+    q1 = hA + hCrzz
+    q2 = hA - hC * rho2
+    rxx, ryy, rxy = rx * rx, ry * ry, rx * ry
+    rxz, ryz = rx * rz, ry * rz
+    hxx = _sum(rxx, q1) + _sum(ryy, hB)
+    hyy = _sum(ryy, q1) + _sum(rxx, hB)
+    hxy = _sum(rxy, q1 - hB)
+    hzz = _sum(rzz, hA) + _sum(rho2 * rho2, hC)
+    hxz = _sum(rxz, q2)
+    hyz = _sum(ryz, q2)
+    H = np.stack((hxx, hxy, hxz, hxy, hyy, hyz, hxz, hyz, hzz), axis=-1).reshape(hxx.shape + (3, 3))
+    fxx, fyy, fzz = _sum(rxx, hF), _sum(ryy, hF), _sum(rzz, hF)
+    fxy, fxz, fyz = _sum(rxy, hF), _sum(rxz, hF), _sum(ryz, hF)
+    F = H + np.stack((fxx, fxy, fxz, fxy, fyy, fyz, fxz, fyz, fzz), axis=-1).reshape(hxx.shape + (3, 3))
+    return g, H, F
 
 
 def _prior_cost(x: FloatArray, lam: FloatArray, eta: FloatArray) -> FloatArray:
@@ -458,79 +604,115 @@ def _prior_cost(x: FloatArray, lam: FloatArray, eta: FloatArray) -> FloatArray:
     return 0.5 * np.einsum("...i,...ij,...j->...", x, lam, x) - np.einsum("...i,...i->...", eta, x)
 
 
-def _assemble(gcoef: FloatArray, icoef: FloatArray, grad: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Gradient (..., 3) and scoring matrix (..., 3, 3) summed over rows and components."""
-    shape = grad.shape[:-3]
-    g2 = grad.reshape(shape + (-1, 3))
-    g = np.einsum("...n,...ni->...i", gcoef.reshape(shape + (-1,)), g2)
-    weighted = g2 * icoef.reshape(shape + (-1, 1))
-    info = np.matmul(np.swapaxes(weighted, -1, -2), g2)
-    return g, info
-
-
 # --------------------------------------------------------------------------- pseudo-linear part
 
 
 def _pl_rows(rows: _Rows, scale_d: FloatArray, channel: Channel) -> tuple[FloatArray, FloatArray]:
-    """Pseudo-linear normal-equation contributions of each row: A (..., K, 4, 4), b (..., K, 4).
+    """Pseudo-linear normal equations of the rows (..., K), summed: A (..., 4, 4), b (..., 4).
 
-    Unknown θ = (x0, y0, z0, R = ‖p0‖²). Equations (weight ω, all linear in θ):
+    Unknown θ = (x0, y0, z0, R = ‖p0‖²). Equations cᵀθ = β with weight ω, all linear in θ:
 
-    * azimuth: (sin φ̂, −cos φ̂, 0)·(p0 − p) = 0, ω = a/(σ_b² (d_w cos θ̂)²);
+    * azimuth: (sin φ̂, −cos φ̂, 0)·(p0 − p) = 0, ω = a/(σ_b² (D cos θ̂)²);
     * elevation (with an azimuth): (−sin θ̂ cos φ̂, −sin θ̂ sin φ̂, cos θ̂)·(p0 − p) = 0,
-      ω = a/(σ_b² d_w²);
-    * range with a usable bearing: uᵀ(p0 − p) = d̂, ω = a/σ_r²(d̂);
-    * range alone: 2pᵀp0 − R = ‖p‖² − d̂², ω = a/(4 d̂² σ_r²(d̂)).
+      ω = a/(σ_b² D²);
+    * range with a usable bearing u(φ̂, θ̂): uᵀ(p0 − p) = d̂, ω = a/σ_r²(D);
+    * range alone: 2pᵀp0 − R = ‖p‖² − d̂² + σ_r²(D), ω = a/(4 D² σ_r²(D)) (the σ_r² term
+      removes the bias E[d̂²] = d² + σ_r²; without it, 39 % ranging noise biases R).
 
-    d_w is the measured range if any, else ``scale_d`` (..., K).
+    D = ``scale_d`` (..., K) is the distance used in the weights (see :func:`update`); it never
+    depends on the row's own noisy range.
     """
-    p, z, a = rows.p, rows.z, rows.a
-    has_r = a[..., 0] > 0.0
-    has_az = a[..., 1] > 0.0
-    has_el = (a[..., 2] > 0.0) & has_az
-    has_b = has_az & has_el
-    dhat = np.maximum(np.abs(z[..., 0]), 1.0)
-    d_w = np.where(has_r, dhat, scale_d)
-    sb2 = channel.sigma_bearing_rad**2
-    var_r = rows.s0sq * dhat**channel.gamma
-    cphi, sphi = np.cos(z[..., 1]), np.sin(z[..., 1])
-    cth, sth = np.cos(z[..., 2]), np.sin(z[..., 2])
-    zero = np.zeros_like(cphi)
-    one = np.ones_like(cphi)
-    pp = np.einsum("...i,...i->...", p, p)
-    # Equation coefficient rows c (..., K, 4 eqs, 4), rhs beta (..., K, 4 eqs), weight (..., K, 4 eqs).
-    c_az = np.stack((sphi, -cphi, zero, zero), axis=-1)
-    c_el = np.stack((-sth * cphi, -sth * sphi, cth, zero), axis=-1)
-    c_ru = np.stack((cth * cphi, cth * sphi, sth, zero), axis=-1)
-    c_rr = np.concatenate((2.0 * p, -one[..., None]), axis=-1)
-    c = np.stack((c_az, c_el, c_ru, c_rr), axis=-2)
-    p4 = np.concatenate((p, zero[..., None]), axis=-1)
-    beta = np.einsum("...ej,...j->...e", c, p4)
-    beta[..., 2] += z[..., 0]
-    beta[..., 3] = pp - z[..., 0] ** 2
-    rho_w = np.maximum(d_w * np.abs(cth), 1e-3 * d_w)
-    w_az = np.where(has_az, a[..., 1] / (sb2 * rho_w**2), 0.0)
-    w_el = np.where(has_el, a[..., 2] / (sb2 * d_w**2), 0.0)
-    w_ru = np.where(has_r & has_b, a[..., 0] / var_r, 0.0)
-    w_rr = np.where(has_r & ~has_b, a[..., 0] / (4.0 * dhat**2 * var_r), 0.0)
-    omega = np.stack((w_az, w_el, w_ru, w_rr), axis=-1)
-    wc = c * omega[..., None]
-    A = np.matmul(np.swapaxes(wc, -1, -2), c)
-    b = np.einsum("...ej,...e->...j", wc, beta)
+    px, py, pz = rows.px, rows.py, rows.pz
+    has_r = rows.ar > 0.0
+    has_az = rows.aa > 0.0
+    has_b = has_az & (rows.ae > 0.0)
+    inv_sb2 = 1.0 / channel.sigma_bearing_rad**2
+    D = scale_d
+    var_r = rows.s0 * rows.s0 * (D * D if channel.gamma == 2.0 else D**channel.gamma)
+    cphi, sphi = np.cos(rows.za), np.sin(rows.za)
+    cth, sth = np.cos(rows.ze), np.sin(rows.ze)
+    zero = np.zeros_like(px)
+    rho_w2 = np.maximum(D * D * cth * cth, 1e-6 * D * D)
+    w_az = np.where(has_az, rows.aa * inv_sb2 / rho_w2, 0.0)
+    w_el = np.where(has_b, rows.ae * inv_sb2 / (D * D), 0.0)
+    w_ru = np.where(has_r & has_b, rows.ar / var_r, 0.0)
+    w_rr = np.where(has_r & ~has_b, rows.ar / (4.0 * D * D * var_r), 0.0)
+    # Equations stacked along the last axis: (..., 4K).
+    ux, uy = cth * cphi, cth * sphi
+    c0 = np.concatenate((sphi, -sth * cphi, ux, 2.0 * px), axis=-1)
+    c1 = np.concatenate((-cphi, -sth * sphi, uy, 2.0 * py), axis=-1)
+    c2 = np.concatenate((zero, cth, sth, 2.0 * pz), axis=-1)
+    c3 = np.concatenate((zero, zero, zero, zero - 1.0), axis=-1)
+    b_az = sphi * px - cphi * py
+    b_el = cth * pz - sth * (cphi * px + sphi * py)
+    b_ru = ux * px + uy * py + sth * pz + rows.zr
+    # E[d̂²] = d² + σ_r²(d): subtract σ_r²(D) so the squared-range equation is unbiased.
+    b_rr = px * px + py * py + pz * pz - rows.zr * rows.zr + var_r
+    beta = np.concatenate((b_az, b_el, b_ru, b_rr), axis=-1)
+    om = np.concatenate((w_az, w_el, w_ru, w_rr), axis=-1)
+    cs = (c0, c1, c2, c3)
+    wc = [om * c for c in cs]
+    A = np.empty(px.shape[:-1] + (4, 4))
+    for i in range(4):
+        for j in range(i, 4):
+            A[..., i, j] = A[..., j, i] = _sum(wc[i], cs[j])
+    b = np.stack([_sum(wc[i], beta) for i in range(4)], axis=-1)
     return A, b
+
+
+def _pl_range_rows(rows: _Rows, scale_d: FloatArray, gamma: float) -> tuple[FloatArray, FloatArray]:
+    """Squared-range pseudo-linear equations of every range in ``rows`` (with or without a
+    bearing), summed: A (..., 4, 4), b (..., 4); 2pᵀp0 − R = ‖p‖² − d̂² + σ_r²(D),
+    ω = a/(4D²σ_r²(D)).
+    No trigonometry: cheap enough to accumulate at every call for the global re-check."""
+    px, py, pz = rows.px, rows.py, rows.pz
+    D2 = scale_d * scale_d
+    var_r = rows.s0 * rows.s0 * (D2 if gamma == 2.0 else scale_d**gamma)
+    om = rows.ar / (4.0 * D2 * var_r)
+    cs = (2.0 * px, 2.0 * py, 2.0 * pz)
+    beta = px * px + py * py + pz * pz - rows.zr * rows.zr + var_r  # E[d̂²] = d² + σ_r²
+    wc = [om * c for c in cs]
+    A = np.empty(px.shape[:-1] + (4, 4))
+    for i in range(3):
+        for j in range(i, 3):
+            A[..., i, j] = A[..., j, i] = _sum(wc[i], cs[j])
+        A[..., i, 3] = A[..., 3, i] = -wc[i].sum(axis=-1)
+    A[..., 3, 3] = om.sum(axis=-1)
+    b = np.stack((_sum(wc[0], beta), _sum(wc[1], beta), _sum(wc[2], beta), -_sum(om, beta)), axis=-1)
+    return A, b
+
+
+def _pl_cost(A: FloatArray, b: FloatArray, x: FloatArray) -> FloatArray:
+    """Pseudo-linear cost θᵀAθ − 2bᵀθ at θ = (x, ‖x‖²) (up to a constant), (...,)."""
+    theta = np.concatenate((x, np.einsum("...i,...i->...", x, x)[..., None]), axis=-1)
+    return np.einsum("...i,...ij,...j->...", theta, A, theta) - 2.0 * np.einsum("...i,...i->...", b, theta)
+
+
+def _distance_scale(rows: _Rows, config: EstimatorConfig) -> FloatArray:
+    """Distance scale D (..., K) of the PL weights: the median measured range of the element's
+    rows, or ``config.init_distance_m`` where it has none (m)."""
+    z = np.where(rows.ar > 0.0, np.abs(rows.zr), np.nan)
+    has = np.any(rows.ar > 0.0, axis=-1)
+    med = np.nanmedian(np.where(has[..., None], z, 1.0), axis=-1)
+    scale = np.where(has, np.maximum(med, 1.0), config.init_distance_m)
+    return np.broadcast_to(scale[..., None], rows.zr.shape)
 
 
 def _pl_solve(A: FloatArray, b: FloatArray, config: EstimatorConfig) -> tuple[FloatArray, BoolArray]:
     """Solve the pseudo-linear normal equations (n, 4, 4), (n, 4) -> p0 (n, 3), ok (n,).
 
-    Full rank: the weighted LS solution. Rank 3 with the null direction involving R (ranges
-    from coplanar positions): the two points of the null line that satisfy R = ‖p0‖², the one
-    chosen by ``config.mirror`` (Cheung et al. 2004, constrained LS, degenerate case).
-    Without range-only equations R is decoupled (R = 0) and the 3x3 block is solved.
+    Without range-only equations R is decoupled and the 3x3 block is solved (ok if full rank).
+    With them, the candidates are the weighted LS solution θ_LS (if full rank) and the two
+    points of the line θ_LS + t v along the weakest direction v that satisfy R = ‖p0‖²
+    (Cheung et al. 2004, constrained LS; for ranges from coplanar positions v is the null
+    direction and the two points are mirror images). The candidate of lowest constrained PL
+    cost θᵀAθ − 2bᵀθ, θ = (p0, ‖p0‖²), is returned; near-ties between the two roots are
+    broken by ``config.mirror``.
     """
     n = A.shape[0]
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    A0, b0 = A, b
     A = A.copy()
     b = b.copy()
     diag = np.einsum("...ii->...i", A)
@@ -552,26 +734,33 @@ def _pl_solve(A: FloatArray, b: FloatArray, config: EstimatorConfig) -> tuple[Fl
     ys = np.einsum("nij,nj,nkj,nk->ni", V, inv_ev, V, bs)
     theta = ys * s
     x = theta[:, :3].copy()
-    ok = rank == 4
-    # Degenerate by one direction with an R component: apply R = ‖p0‖².
+    full = rank == 4
+    cost_ls = np.where(full, _pl_cost(A0, b0, x), np.inf)
+    # Constrained roots along the weakest direction (its R component must be significant).
     v = V[:, :, 0] * s
-    mirror = (rank == 3) & has_R & (np.abs(V[:, 3, 0]) > 1e-6)
-    if np.any(mirror):
-        vp, vr = v[:, :3], v[:, 3]
-        qa = np.einsum("ni,ni->n", vp, vp)
-        qb = 2.0 * np.einsum("ni,ni->n", x, vp) - vr
-        qc = np.einsum("ni,ni->n", x, x) - theta[:, 3]
-        disc = qb * qb - 4.0 * qa * qc
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        safe_qa = np.where(qa > 1e-300, qa, 1.0)
-        t1 = (-qb - sq) / (2.0 * safe_qa)
-        t2 = (-qb + sq) / (2.0 * safe_qa)
-        z1 = x[:, 2] + t1 * vp[:, 2]
-        z2 = x[:, 2] + t2 * vp[:, 2]
-        pick_first = (z1 <= z2) if config.mirror == "below" else (z1 >= z2)
-        t = np.where(pick_first, t1, t2)
-        x = np.where(mirror[:, None], x + t[:, None] * vp, x)
-        ok = ok | (mirror & (qa > 1e-300))
+    along = has_R & (rank >= 3) & (np.abs(V[:, 3, 0]) > 1e-6)
+    vp, vr = v[:, :3], v[:, 3]
+    qa = np.einsum("ni,ni->n", vp, vp)
+    qb = 2.0 * np.einsum("ni,ni->n", x, vp) - vr
+    qc = np.einsum("ni,ni->n", x, x) - theta[:, 3]
+    disc = qb * qb - 4.0 * qa * qc
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    safe_qa = np.where(qa > 1e-300, qa, 1.0)
+    along &= qa > 1e-300
+    x1 = x + ((-qb - sq) / (2.0 * safe_qa))[:, None] * vp
+    x2 = x + ((-qb + sq) / (2.0 * safe_qa))[:, None] * vp
+    c1 = np.where(along, _pl_cost(A0, b0, x1), np.inf)
+    c2 = np.where(along, _pl_cost(A0, b0, x2), np.inf)
+    finite = np.isfinite(c1) & np.isfinite(c2)
+    c1f, c2f = np.where(finite, c1, 0.0), np.where(finite, c2, 0.0)
+    tie = finite & (np.abs(c1f - c2f) <= 1e-9 * (np.abs(c1f) + 1.0))
+    prefer1 = (x1[:, 2] <= x2[:, 2]) if config.mirror == "below" else (x1[:, 2] >= x2[:, 2])
+    first = np.where(tie, prefer1, c1 < c2)
+    x_root = np.where(first[:, None], x1, x2)
+    c_root = np.where(first, c1, c2)
+    use_root = along & (c_root < cost_ls)
+    x = np.where(use_root[:, None], x_root, x)
+    ok = (full & has_R) | use_root | (no_r & (rank == 4))
     ok &= np.all(np.isfinite(x), axis=1)
     return np.where(ok[:, None], x, 0.0), ok
 
@@ -629,10 +818,6 @@ def _take(m: Measurements, idx: NDArray[np.intp]) -> Measurements:
     )
 
 
-def _slice_rows(rows: _Rows, sl: slice) -> _Rows:
-    return _Rows(rows.p[..., sl, :], rows.z[..., sl, :], rows.a[..., sl, :], rows.s0sq[..., sl])
-
-
 def update(
     state: EstimatorState,
     measurements: Measurements,
@@ -665,126 +850,182 @@ def update(
 
     # Forgetting, then all rows: window first (oldest), new last.
     prior_info = state.prior_information * lam
+    prior_fisher = state.prior_fisher * lam
     prior_vec = state.prior_vector * lam
     pl_A = state.pl_matrix * lam
     pl_b = state.pl_vector * lam
     dr_A = state.pl_dropped_matrix * lam
     dr_b = state.pl_dropped_vector * lam
     new_row_ok = np.all(np.isfinite(new.positions_m), axis=-1)
-    allm = _concat(state.window, new)
-    weight = np.concatenate((state.window_weight * lam, np.where(new_row_ok, 1.0, 0.0)), axis=-1)
-    if W > 0 and M > 0:
-        # Keep the most recent valid rows at the end (stable: order by validity, then age).
-        valid = np.concatenate((np.isfinite(state.window.positions_m[..., 0]), new_row_ok), axis=-1)
-        order = np.argsort(valid, axis=-1, kind="stable")
-        allm = _take(allm, order)
-        weight = np.take_along_axis(weight, order, axis=-1)
+    if W > 0:
+        allm = _concat(state.window, new)
+        weight = np.concatenate((state.window_weight * lam, np.where(new_row_ok, 1.0, 0.0)), axis=-1)
+        if M > 0:
+            # Keep the most recent valid rows at the end (stable: by validity, then by age).
+            valid = np.concatenate((np.isfinite(state.window.positions_m[..., 0]), new_row_ok), axis=-1)
+            order = np.argsort(valid, axis=-1, kind="stable")
+            allm = _take(allm, order)
+            weight = np.take_along_axis(weight, order, axis=-1)
+    else:
+        allm, weight = new, np.where(new_row_ok, 1.0, 0.0)
     rows = _rows(allm, weight, channel, config)
     K = W + M
-    n_leave = K - W  # = M: the oldest rows leave the window after this call
+    n_leave = K - W  # = M: the oldest M rows leave the window after this call
+    new_rows = rows.sliced(slice(K - M, K)) if W == 0 else _rows(new, np.where(new_row_ok, 1.0, 0.0), channel, config)
 
     x_prev = state.estimate_m
-    initialised = state.initialised.copy()
-    # Pseudo-linear equations of the new records, weighted with the previous estimate's distances.
-    new_rows = _rows(new, np.where(new_row_ok, 1.0, 0.0), channel, config)
-    scale_new = np.where(
-        initialised[..., None],
-        np.linalg.norm(x_prev[..., None, :] - new_rows.p, axis=-1),
-        config.init_distance_m,
-    )
-    A_new, b_new = _pl_rows(new_rows, np.maximum(scale_new, 1.0), channel)
-    pl_A = pl_A + A_new.sum(axis=-3)
-    pl_b = pl_b + b_new.sum(axis=-2)
-
-    # Initialise the elements whose PL system became solvable.
-    x = x_prev.copy()
+    initialised = state.initialised
+    x = x_prev
     todo = ~initialised
-    if np.any(todo):
+    n_iter = config.iterations
+    if M > 0 and np.any(todo):
+        # Pseudo-linear equations of the new records (only needed until initialisation).
+        sub = new_rows.subset(todo)
+        A_new, b_new = _pl_rows(sub, _distance_scale(sub, config), channel)
+        pl_A = pl_A.copy()
+        pl_b = pl_b.copy()
+        pl_A[todo] += A_new
+        pl_b[todo] += b_new
         x_init, ok = _pl_solve(pl_A[todo], pl_b[todo], config)
-        idx = np.flatnonzero(todo)
-        xf = x.reshape(-1, 3)
-        xf[idx[ok]] = x_init[ok]
-        x = xf.reshape(x.shape)
-        just = np.zeros(int(np.prod(bshape, dtype=np.int64)), dtype=bool)
-        just[idx[ok]] = True
-        just = just.reshape(bshape)
+        just = np.zeros(bshape, dtype=bool)
+        just[todo] = ok
+        x = x.copy()
+        x[just] = x_init[ok]
         # Records dropped before initialisation become the prior (R marginalised out).
         lam_d, eta_d = _schur_prior(dr_A, dr_b)
         prior_info = np.where(just[..., None, None], lam_d, prior_info)
+        prior_fisher = np.where(just[..., None, None], lam_d, prior_fisher)
         prior_vec = np.where(just[..., None], eta_d, prior_vec)
         initialised = initialised | just
+        if np.any(just):
+            n_iter = max(n_iter, config.init_iterations)
+    # Global re-check (every recheck_every calls): the squared-range PL solution of all past
+    # ranges against the current estimate; move there when the PL cost drops by more than the
+    # threshold AND the new records prefer it.
+    pr_A = state.pl_range_matrix * lam
+    pr_b = state.pl_range_vector * lam
+    recheck = state.initialised & (np.einsum("...ii->...", pr_A) > 0.0)
+    if config.recheck_every > 0 and M > 0 and (state.calls + 1) % config.recheck_every == 0 and np.any(recheck):
+        x_pl, ok = _pl_solve(pr_A[recheck], pr_b[recheck], config)
+        cand = x_prev.copy()
+        cand[recheck] = np.where(ok[:, None], x_pl, x_prev[recheck])
+        drop = _pl_cost(pr_A, pr_b, x_prev) - _pl_cost(pr_A, pr_b, cand)
+        fresh = new_rows.with_weights(
+            np.where(initialised[..., None], new_rows.ar, 0.0),
+            np.where(initialised[..., None], new_rows.aa, 0.0),
+            np.where(initialised[..., None], new_rows.ae, 0.0),
+        )
+        # The fresh records judge with the full likelihood (½ ln σ_r² included): comparing
+        # distant candidates with σ_r evaluated at each would favour the farther one.
+        c_prev = _evaluate(x_prev, fresh, channel, config.huber_k, True, cost_only=True)
+        c_cand = _evaluate(cand, fresh, channel, config.huber_k, True, cost_only=True)
+        move = recheck & (drop > config.recheck_threshold) & (c_cand < c_prev)
+        if np.any(move):
+            # The prior linearised in the other basin is replaced by the PL summary of the
+            # ranges (R marginalised out); the past bearings' information is dropped.
+            lam_r, eta_r = _schur_prior(pr_A, pr_b)
+            x = np.where(move[..., None], cand, x)
+            prior_info = np.where(move[..., None, None], lam_r, prior_info)
+            prior_fisher = np.where(move[..., None, None], lam_r, prior_fisher)
+            prior_vec = np.where(move[..., None], eta_r, prior_vec)
+            n_iter = max(n_iter, config.init_iterations)
+    # Squared-range PL equations of the new records, weighted at the current estimate.
+    if M > 0:
+        rx = x[..., 0, None] - new_rows.px
+        ry = x[..., 1, None] - new_rows.py
+        rz = x[..., 2, None] - new_rows.pz
+        d_est = np.sqrt(rx * rx + ry * ry + rz * rz)
+        scale = np.maximum(d_est, 1.0)
+        if not np.all(initialised):
+            scale = scale.copy()
+            scale[~initialised] = _distance_scale(new_rows.subset(~initialised), config)
+        A_r, b_r = _pl_range_rows(new_rows, scale, channel.gamma)
+        pr_A = pr_A + A_r
+        pr_b = pr_b + b_r
 
     active = initialised
-    a_active = np.where(active[..., None, None], rows.a, 0.0)
+    if not np.all(active):
+        act = active[..., None]
+        rows = rows.with_weights(np.where(act, rows.ar, 0.0), np.where(act, rows.aa, 0.0), np.where(act, rows.ae, 0.0))
 
-    # Innovation gate against the previous state.
-    if config.gate_sigma is not None and K > 0 and np.any(state.observable):
-        cov, inv_ok = _inv3_spd(state.information)
-        use = state.observable & inv_ok
-        h0, grad0, d0 = _model(x_prev, rows.p)
-        var = np.empty_like(h0)
-        var[..., 0] = rows.s0sq * np.maximum(d0, _VAR_D_FLOOR_M) ** channel.gamma
-        var[..., 1:] = channel.sigma_bearing_rad**2
-        pred = np.einsum("...kci,...ij,...kcj->...kc", grad0, cov, grad0)
-        innov = rows.z - h0
-        innov[..., 1] = _wrap(innov[..., 1])
-        gated = (innov * innov > config.gate_sigma**2 * (var + np.maximum(pred, 0.0))) & (a_active > 0.0)
-        n_valid = np.maximum((a_active > 0.0).sum(axis=(-1, -2)), 1)
-        frac = gated.sum(axis=(-1, -2)) / n_valid
-        apply = use & (frac <= config.gate_max_fraction)
-        a_active = np.where(gated & apply[..., None, None], 0.0, a_active)
-    rows = _Rows(rows.p, rows.z, a_active, rows.s0sq)
+    # Innovation gate against the previous state, applied in the first evaluation.
+    gate = None
+    if config.gate_sigma is not None and np.any(state.observable):
+        J = state.information
+        det = _det3(J)
+        # tr(J⁻¹) = tr(adj J)/det J ≥ the variance of the estimate along any direction.
+        tr_adj = (
+            J[..., 1, 1] * J[..., 2, 2] - J[..., 1, 2] ** 2
+            + J[..., 0, 0] * J[..., 2, 2] - J[..., 0, 2] ** 2
+            + J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] ** 2
+        )
+        use = state.observable & state.initialised & (det > 0.0)
+        var_bound = np.where(use, tr_adj / np.where(use, det, 1.0), 0.0)
+        gate = _Gate(var_bound, use, config.gate_sigma, config.gate_max_fraction)
 
     # Levenberg-Marquardt (Fisher scoring) iterations, all elements at once.
     k = config.huber_k
-    mu = np.full(bshape, config.lm_damping)
-
-    n_iter = config.iterations if np.any(active) else 0
     ml = config.range_cost == "ml"
-    it = 0
-    while True:
-        cost_rows, gcoef, icoef, fcoef, grad, dist = _terms(x, rows, channel, k, ml)
-        g, H = _assemble(gcoef, icoef, grad)
+    mu = np.full(bshape, config.lm_damping)
+    n_iter = n_iter if (np.any(active) and K > 0) else 0
+    ev = _evaluate(x, rows, channel, k, ml, gate=gate)
+    assert isinstance(ev, _Eval)
+    rows = rows.with_weights(ev.ar, ev.aa, ev.ae)
+    x_lin = x
+    for it in range(n_iter):
+        if it > 0:
+            ev = _evaluate(x, rows, channel, k, ml)
+            assert isinstance(ev, _Eval)
+        x_lin = x
+        g, H, F = _accumulate(ev)
         g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
         H = H + prior_info
-        if it == n_iter:
-            break
-        it += 1
-        cost = cost_rows.sum(axis=(-1, -2)) + _prior_cost(x, prior_info, prior_vec)
+        cost = ev.cost + _prior_cost(x, prior_info, prior_vec)
         dH = np.einsum("...ii->...i", H)
         tr = dH.sum(axis=-1)
         Hd = H + (mu[..., None] * dH + 1e-12 * tr[..., None] + 1e-300)[..., None] * np.eye(3)
         Hinv, ok = _inv3_spd(Hd)
         step = -np.einsum("...ij,...j->...i", Hinv, g)
         cand = x + np.where((ok & active)[..., None], step, 0.0)
-        c_rows = _robust_cost(cand, rows, channel, k, None if ml else dist)
-        c_new = c_rows.sum(axis=(-1, -2)) + _prior_cost(cand, prior_info, prior_vec)
+        c_new = _evaluate(cand, rows, channel, k, ml, d_var=None if ml else ev.d, cost_only=True)
+        c_new = c_new + _prior_cost(cand, prior_info, prior_vec)
         accept = np.isfinite(c_new) & (c_new <= cost) & active
         x = np.where(accept[..., None], cand, x)
         mu = np.where(accept, mu / 3.0, mu * 4.0)
-    fisher = _assemble(gcoef, fcoef, grad)[1] + prior_info if not ml else H
 
-    # Marginalise the rows leaving the window (the oldest n_leave), linearised at x.
+    if n_iter == 0:
+        g, H, F = _accumulate(ev)
+        g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
+        H = H + prior_info
+    # Information of everything used, linearised at x_lin (the last iterate evaluated).
+    fisher = F + prior_fisher
+    # Marginalise the rows leaving the window (the oldest n_leave), linearised at x_lin:
+    # their cost ≈ ½ xᵀH_l x − (H_l x_lin − g_l)ᵀx + const.
     if n_leave > 0:
-        gl, Hl = _assemble(gcoef[..., :n_leave, :], icoef[..., :n_leave, :], grad[..., :n_leave, :, :])
-        add_info = Hl
-        add_vec = np.einsum("...ij,...j->...i", Hl, x) - gl
-        prior_info = np.where(active[..., None, None], prior_info + add_info, prior_info)
+        if n_leave == K:
+            gl = g - (np.einsum("...ij,...j->...i", prior_info, x_lin) - prior_vec)
+            Hl = H - prior_info
+            Fl = F
+        else:
+            gl, Hl, Fl = _accumulate(ev, slice(0, n_leave))
+        add_vec = np.einsum("...ij,...j->...i", Hl, x_lin) - gl
+        prior_fisher = np.where(active[..., None, None], prior_fisher + Fl, prior_fisher)
+        prior_info = np.where(active[..., None, None], prior_info + Hl, prior_info)
         prior_vec = np.where(active[..., None], prior_vec + add_vec, prior_vec)
-        # Before initialisation the leaving rows are kept only as PL equations.
-        leave_rows = _slice_rows(_rows(allm, weight, channel, config), slice(0, n_leave))
-        if np.any(~active):
-            scale_l = np.full(leave_rows.a.shape[:-1], config.init_distance_m)
-            A_l, b_l = _pl_rows(leave_rows, scale_l, channel)
-            dr_A = dr_A + np.where(~active[..., None, None], A_l.sum(axis=-3), 0.0)
-            dr_b = dr_b + np.where(~active[..., None], b_l.sum(axis=-2), 0.0)
+        if W > 0 and np.any(~active):
+            # Before initialisation the leaving rows are kept as PL equations only.
+            leave = _rows(allm, weight, channel, config).sliced(slice(0, n_leave)).subset(~active)
+            A_l, b_l = _pl_rows(leave, _distance_scale(leave, config), channel)
+            dr_A = dr_A.copy()
+            dr_b = dr_b.copy()
+            dr_A[~active] += A_l
+            dr_b[~active] += b_l
 
     fisher = 0.5 * (fisher + np.swapaxes(fisher, -1, -2))
     finite = np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(fisher), axis=(-1, -2))
     x = np.where(finite[..., None], x, x_prev)
     info = np.where((active & finite)[..., None, None], fisher, 0.0)
-    lo, hi = _eig_extremes3(info)
-    observable = active & finite & (hi > 0.0) & (lo >= config.min_rcond * hi)
+    observable = active & finite & (_normalised_det(info) >= config.min_rcond)
 
     if W > 0:
         window = Measurements(
@@ -797,19 +1038,24 @@ def update(
         window_weight = weight[..., K - W :]
     else:
         window, window_weight = state.window, state.window_weight
-    count = state.measurement_count + (new_rows.a > 0.0).sum(axis=(-1, -2))
+    used = (new_rows.ar > 0.0).sum(axis=-1) + (new_rows.aa > 0.0).sum(axis=-1) + (new_rows.ae > 0.0).sum(axis=-1)
+    count = state.measurement_count + used
     return EstimatorState(
         estimate_m=x,
         information=info,
         observable=observable,
         initialised=initialised,
         prior_information=prior_info,
+        prior_fisher=prior_fisher,
         prior_vector=prior_vec,
         pl_matrix=pl_A,
         pl_vector=pl_b,
         pl_dropped_matrix=dr_A,
         pl_dropped_vector=dr_b,
+        pl_range_matrix=pr_A,
+        pl_range_vector=pr_b,
         window=window,
         window_weight=window_weight,
         measurement_count=count,
+        calls=state.calls + 1,
     )

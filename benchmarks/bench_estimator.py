@@ -1,0 +1,80 @@
+"""Benchmark of one :func:`planner.estimator.update` call (not a test).
+
+Prints the median wall time of one update for the Monte Carlo shape, batch (trials, drones) =
+(100, 10) with 10 new records per element, and for one planner (batch ``()``, 10 records), in
+the steady state (every element initialised, gate active, warm start) and for the first call
+(pseudo-linear initialisation). Also prints the same for a few configurations.
+
+    python benchmarks/bench_estimator.py [--repeat 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from planner.estimator import EstimatorConfig, EstimatorState, Measurements, initial_state, update
+from planner.params import Channel
+
+
+def _records(rng: np.random.Generator, batch: tuple[int, ...], m: int, source: np.ndarray, channel: Channel) -> Measurements:
+    """Joint range/bearing records from drones 50-200 m around the source, LOS, noisy."""
+    shape = batch + (m,)
+    az = rng.uniform(-np.pi, np.pi, shape)
+    rad = rng.uniform(50.0, 200.0, shape)
+    pos = np.stack((source[0] + rad * np.cos(az), source[1] + rad * np.sin(az), rng.uniform(2.0, 25.0, shape)), axis=-1)
+    r = source - pos
+    d = np.linalg.norm(r, axis=-1)
+    sb = channel.sigma_bearing_rad
+    return Measurements(
+        positions_m=pos,
+        range_m=d + rng.normal(size=shape) * channel.sigma_r0_los * d ** (channel.gamma / 2),
+        azimuth_rad=np.arctan2(r[..., 1], r[..., 0]) + sb * rng.normal(size=shape),
+        elevation_rad=np.arctan2(r[..., 2], np.hypot(r[..., 0], r[..., 1])) + sb * rng.normal(size=shape),
+        los=np.ones(shape, dtype=bool),
+    )
+
+
+def _median_ms(state: EstimatorState, meas: Sequence[Measurements], channel: Channel, config: EstimatorConfig, repeat: int) -> float:
+    times = []
+    for i in range(repeat):
+        m = meas[i % len(meas)]
+        t0 = time.perf_counter()
+        update(state, m, channel, config)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=50, help="timed calls per case (default 50)")
+    args = parser.parse_args(argv)
+    channel = Channel()
+    rng = np.random.default_rng(np.random.SeedSequence(2026))
+    source = np.array([20.0, -10.0, 0.0])
+    configs = {
+        "default": EstimatorConfig(),
+        "iterations=1": EstimatorConfig(iterations=1),
+        "window_rows=10": EstimatorConfig(window_rows=10),
+        "no gate": EstimatorConfig(gate_sigma=None),
+    }
+    print(f"numpy {np.__version__}; median of {args.repeat} calls; 10 new records per element")
+    for batch in ((100, 10), ()):
+        meas = [_records(rng, batch, 10, source, channel) for _ in range(8)]
+        for name, config in configs.items():
+            first = initial_state(batch, config)
+            warm = first
+            for m in meas[:6]:
+                warm = update(warm, m, channel, config)
+            t_first = _median_ms(first, meas, channel, config, max(args.repeat // 5, 3))
+            t_warm = _median_ms(warm, meas, channel, config, args.repeat)
+            print(f"batch {str(batch):9s} {name:15s} steady {t_warm:8.3f} ms   first call {t_first:8.3f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
