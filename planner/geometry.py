@@ -131,24 +131,31 @@ def distance_to_boxes_with_gradient(
     bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
     if bmin.shape[0] == 0:
         return np.full(p.shape[:-1], np.inf), np.zeros(p.shape)
-    sd, offset, gaps = _box_distances(p, bmin, bmax)
-    batch = p.shape[:-1]
-    flat = int(np.prod(batch, dtype=int))
-    nb = bmin.shape[0]
-    nearest = sd.reshape(flat, nb).argmin(-1)
-    rows = np.arange(flat)
-    d = sd.reshape(flat, nb)[rows, nearest]
-    off = offset.reshape(flat, nb, 3)[rows, nearest]
-    gap = gaps.reshape(flat, nb, 3)[rows, nearest]
-    # Inside: outward normal of the nearest face (sign: nearer to max -> +, to min -> -).
-    axis = gap.argmin(-1)
-    pf = p.reshape(flat, 3)
-    lower = (pf - bmin[nearest])[rows, axis] < (bmax[nearest] - pf)[rows, axis]
-    grad = np.zeros((flat, 3))
-    grad[rows, axis] = np.where(lower, -1.0, 1.0)
+    q = p[..., None, :]
+    offset = q - np.minimum(np.maximum(q, bmin), bmax)
+    outside = np.sqrt((offset * offset).sum(-1))
+    if (outside > 0.0).all():  # the usual case, outside every box: unit vector from the surface
+        nearest = outside.argmin(-1)[..., None]
+        d = np.take_along_axis(outside, nearest, -1)[..., 0]
+        return d, np.take_along_axis(offset, nearest[..., None], -2)[..., 0, :] / d[..., None]
+    below = q - bmin
+    above = bmax - q
+    gaps = np.minimum(below, above)  # > 0 inside, per axis
+    sd = np.where(outside > 0.0, outside, -np.maximum(gaps.min(-1), 0.0))  # per box, as _box_distances
+    nearest = sd.argmin(-1)[..., None]  # (..., 1)
+    d = np.take_along_axis(sd, nearest, -1)[..., 0]
+    off = np.take_along_axis(offset, nearest[..., None], -2)[..., 0, :]
     out = d > 0.0
-    grad[out] = off[out] / d[out, None]
-    return d.reshape(batch), grad.reshape(batch + (3,))
+    # Inside: outward normal of the nearest face (sign: nearer to max -> +, to min -> -).
+    gap = np.take_along_axis(gaps, nearest[..., None], -2)[..., 0, :]
+    axis = gap.argmin(-1)[..., None]
+    lower = np.take_along_axis(np.take_along_axis(below, nearest[..., None], -2)[..., 0, :], axis, -1) < np.take_along_axis(
+        np.take_along_axis(above, nearest[..., None], -2)[..., 0, :], axis, -1
+    )
+    grad = np.zeros(p.shape)
+    np.put_along_axis(grad, axis, np.where(lower, -1.0, 1.0), -1)
+    grad = np.where(out[..., None], off / np.where(out, d, 1.0)[..., None], grad)
+    return d, grad
 
 
 def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> BoolArray:
