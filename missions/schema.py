@@ -260,8 +260,10 @@ class Drones(_Section):
         """Start positions p_i^(0), shape (count, 3), metres ENU, drone 1 first (a new array)."""
         if self.start.positions_m is not None:
             return np.array(self.start.positions_m, dtype=float).reshape(self.count, 3)
-        assert self.start.ellipse is not None  # guaranteed by Start._exactly_one
-        return self.start.ellipse.positions_m(self.count)
+        ellipse = self.start.ellipse
+        if ellipse is None:  # pragma: no cover - excluded by Start._exactly_one
+            raise RuntimeError("Start has neither positions_m nor ellipse")
+        return ellipse.positions_m(self.count)
 
     def ranging_mask(self) -> NDArray[np.bool_]:
         """κ_j of eq. (10): True where drone j measures range ('ranging' or 'joint'), shape (count,)."""
@@ -664,7 +666,7 @@ class Mission(_Section):
             mins, maxs = self.obstacle_bounds()
             sd = _box_signed_distance(starts, mins, maxs)
             for i, b in zip(*np.nonzero(sd <= 0.0)):
-                raise fail(where(int(i)), f"a start outside every obstacle", f"{who(int(i))} inside obstacle {names[b]!r}")
+                raise fail(where(int(i)), "a start outside every obstacle", f"{who(int(i))} inside obstacle {names[b]!r}")
             for i, b in zip(*np.nonzero(sd < c.d_obstacle_m)):
                 raise fail(
                     where(int(i)),
