@@ -50,6 +50,10 @@ class FimStatus(IntEnum):
     SINGULAR = 2  #: not invertible: cost +inf (A) or +inf (D), gradient zero
 
 
+# Plain-int codes for the hot paths: comparing arrays with IntEnum members costs microseconds.
+_OK, _ILL, _SINGULAR = int(FimStatus.OK), int(FimStatus.ILL_CONDITIONED), int(FimStatus.SINGULAR)
+
+
 def _term_vectors(r: FloatArray, los: NDArray[np.bool_], channel: Channel) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Vectors and scalars of the FIM terms for relative vectors r = p0 - p_j, shape (..., 3).
 
@@ -140,7 +144,7 @@ def invert_fim(fim: ArrayLike) -> FimInverse:
     ok_max = lmax > 0.0
     rcond = np.divide(lmin, lmax, out=np.zeros_like(lmax), where=ok_max)
     singular = (~finite) | (~ok_max) | (rcond <= SINGULAR_RCOND)
-    status = np.where(singular, FimStatus.SINGULAR, np.where(rcond <= ILL_CONDITIONED_RCOND, FimStatus.ILL_CONDITIONED, FimStatus.OK)).astype(np.int8)
+    status = np.where(singular, _SINGULAR, np.where(rcond <= ILL_CONDITIONED_RCOND, _ILL, _OK)).astype(np.int8)
     any_singular = bool(singular.any())
     if any_singular:
         J = np.where(singular[..., None, None], np.eye(3), J)
@@ -160,7 +164,7 @@ def cost(fim: ArrayLike, criterion: Criterion) -> tuple[FloatArray, NDArray[np.i
     singular C is ``+inf`` and ``status`` says :attr:`FimStatus.SINGULAR`.
     """
     inv = invert_fim(fim)
-    singular = inv.status == FimStatus.SINGULAR
+    singular = inv.status == _SINGULAR
     if criterion == "A":
         value = np.trace(inv.inverse, axis1=-2, axis2=-1)
     elif criterion == "D":
@@ -216,7 +220,7 @@ def cost_gradient(
         channel: RSS channel. criterion: ``"A"`` or ``"D"``.
     """
     inv = invert_fim(fim)
-    singular = inv.status == FimStatus.SINGULAR
+    singular = inv.status == _SINGULAR
     Jinv = inv.inverse
     if criterion == "A":
         value = np.trace(Jinv, axis1=-2, axis2=-1)
