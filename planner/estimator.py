@@ -451,7 +451,7 @@ def _evaluate(
     gate: _Gate | None = None,
     cost_only: bool = False,
 ) -> _Eval | FloatArray:
-    """Robust negative log-likelihood of the rows at source ``x`` (..., 3) and its terms.
+    r"""Robust negative log-likelihood of the rows at source ``x`` (..., 3) and its terms.
 
     Per component, with e = (z − h)/σ, Huber loss ρ_k, ψ_k = clip(e, ±k), w = min(1, k/|e|):
 
@@ -744,7 +744,9 @@ def _pl_solve(A: FloatArray, b: FloatArray, config: EstimatorConfig) -> tuple[Fl
     qb = 2.0 * np.einsum("ni,ni->n", x, vp) - vr
     qc = np.einsum("ni,ni->n", x, x) - theta[:, 3]
     disc = qb * qb - 4.0 * qa * qc
-    sq = np.sqrt(np.maximum(disc, 0.0))
+    # No real root (noise, or the bias correction): use |disc|, two points symmetric about
+    # the vertex, rather than the vertex itself (for coplanar drones, a saddle on their plane).
+    sq = np.sqrt(np.abs(disc))
     safe_qa = np.where(qa > 1e-300, qa, 1.0)
     along &= qa > 1e-300
     x1 = x + ((-qb - sq) / (2.0 * safe_qa))[:, None] * vp
