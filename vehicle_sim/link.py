@@ -43,6 +43,35 @@ def mavlink_module() -> Any:
     return ardupilotmega
 
 
+#: PROTOCOL_VERSION (id 300) is not generated in pymavlink 2.4.x dialects: encoded here.
+PROTOCOL_VERSION_ID = 300
+PROTOCOL_VERSION_CRC_EXTRA = 217
+
+
+def protocol_version_message(
+    version: int = 200, min_version: int = 100, max_version: int = 200, spec_hash: bytes = bytes(8), lib_hash: bytes = bytes(8)
+) -> Any:
+    """A pymavlink-packable PROTOCOL_VERSION message (id 300, CRC extra 217; payload
+    ``<HHH8s8s``: version, min_version, max_version, spec_version_hash, library_version_hash)."""
+    m = mavlink_module()
+    payload = struct.pack("<HHH8s8s", version, min_version, max_version, spec_hash, lib_hash)
+
+    class _ProtocolVersion(m.MAVLink_message):  # type: ignore[name-defined, misc]
+        id = PROTOCOL_VERSION_ID
+        msgname = "PROTOCOL_VERSION"
+        crc_extra = PROTOCOL_VERSION_CRC_EXTRA
+
+        def __init__(self) -> None:
+            super().__init__(PROTOCOL_VERSION_ID, "PROTOCOL_VERSION")
+            self._fieldnames = ["version", "min_version", "max_version"]
+            self.version, self.min_version, self.max_version = version, min_version, max_version
+
+        def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes:
+            return bytes(self._pack(mav, PROTOCOL_VERSION_CRC_EXTRA, payload, force_mavlink1=force_mavlink1))
+
+    return _ProtocolVersion()
+
+
 def parse_connection(conn: str) -> tuple[str, str, int]:
     """Split a pymavlink connection string into (kind, host, port).
 
@@ -73,6 +102,8 @@ class Transport:
     """Base of the socket transports. ``read`` returns (peer key, bytes) chunks."""
 
     kind = ""
+    #: Peers that appeared since the owner last reset this counter.
+    new_peers = 0
 
     def filenos(self) -> list[int]:
         """Sockets worth waiting on with select()."""
@@ -136,6 +167,7 @@ class UdpTransport(Transport):
                 break
             if self.kind == "udpin" and addr not in self.clients:
                 self.clients.append(addr)
+                self.new_peers += 1
             out.append((addr, data))
         return out
 
@@ -194,6 +226,7 @@ class TcpInTransport(Transport):
             conn.setblocking(False)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self.clients[conn.fileno()] = conn
+            self.new_peers += 1
 
     def read(self) -> list[tuple[object, bytes]]:
         self._accept()
@@ -267,6 +300,7 @@ class TcpOutTransport(Transport):
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.sock = sock
+        self.new_peers += 1
 
     def filenos(self) -> list[int]:
         return [] if self.sock is None else [self.sock.fileno()]

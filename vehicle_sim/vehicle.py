@@ -28,7 +28,7 @@ from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, FloatArray, PointMass
 from vehicle_sim.flavour import FlavourInfo, Mode, flavour_info
 from vehicle_sim.geo import LocalFrame
-from vehicle_sim.link import MavlinkLink
+from vehicle_sim.link import PROTOCOL_VERSION_ID, MavlinkLink, protocol_version_message
 from vehicle_sim.payload import Measurement, Payload
 
 log = logging.getLogger(__name__)
@@ -201,13 +201,14 @@ class SimVehicle:
         self.link.send(self.m.MAVLink_statustext_message(severity, text[:50].encode("utf-8")))
 
     def _ack(self, msg: Any, command: int, result: int, text: str | None = None, severity: int = 4) -> int:
-        if text:
-            self.statustext(severity, text)
+        """COMMAND_ACK to the sender, then the STATUSTEXT reason if any."""
         self.link.send(
             self.m.MAVLink_command_ack_message(
                 command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
             )
         )
+        if text:
+            self.statustext(severity, text)
         return result
 
     # ------------------------------------------------------------------ fence
@@ -413,6 +414,9 @@ class SimVehicle:
     def poll(self) -> int:
         """Drain and handle pending MAVLink input; return the number of messages handled."""
         msgs = self.link.receive()
+        if self.link.transport.new_peers:
+            self.link.transport.new_peers = 0
+            self.heartbeat()  # greet a new ground station at once
         for msg in msgs:
             self.handle(msg)
         return len(msgs)
@@ -659,7 +663,7 @@ class SimVehicle:
         mid = int(p[0])
         builders: dict[int, Callable[[], Any]] = {
             m.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.msg_autopilot_version,
-            m.MAVLINK_MSG_ID_PROTOCOL_VERSION: self.msg_protocol_version,
+            PROTOCOL_VERSION_ID: self.msg_protocol_version,
             m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: self.msg_gps_global_origin,
             m.MAVLINK_MSG_ID_HEARTBEAT: self.msg_heartbeat,
         }
@@ -934,7 +938,7 @@ class SimVehicle:
 
     def _on_mission_request_list(self, msg: Any) -> None:
         self.link.send(
-            self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type, 0)
+            self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type)
         )
 
     def _on_mission_request_int(self, msg: Any) -> None:
@@ -1369,7 +1373,7 @@ class SimVehicle:
 
     def msg_protocol_version(self) -> Any:
         """PROTOCOL_VERSION: MAVLink 2 (200), minimum 100."""
-        return self.m.MAVLink_protocol_version_message(200, 100, 200, [0] * 8, [0] * 8)
+        return protocol_version_message(200, 100, 200)
 
     # ------------------------------------------------------------------ payload
 
