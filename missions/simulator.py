@@ -232,8 +232,11 @@ def simulate(
         # 4. FIM at the estimate over the view, cost gradient, control step.
         view_rng = rng_view & have
         view_brg = brg_view & have
-        J = fisher_information(p_hat, view_pos, view_rng, view_brg, view_los, channel)
-        cg = cost_gradient(J, p_hat, pos, ranging, bearing, los, channel, spec.criterion)
+        # Planning FIM: drone i's own term as if its link were LOS (the information it can
+        # regain by moving); otherwise a bearing drone in a shadow has a zero gradient.
+        plan_los = view_los | eye
+        J = fisher_information(p_hat, view_pos, view_rng, view_brg, plan_los, channel)
+        cg = cost_gradient(J, p_hat, pos, ranging, bearing, np.ones((M, N), dtype=bool), channel, spec.criterion)
         if oracle_estimate:
             status = cg.status
             keepout = np.full((M, N), limits.d_source_m)
@@ -241,7 +244,7 @@ def simulate(
             status = np.where(state.observable, cg.status, np.int8(FimStatus.SINGULAR))
             info_eig = np.linalg.eigvalsh(state.information)[..., 0]
             sigma = np.where(info_eig > 0.0, 1.0 / np.sqrt(np.maximum(info_eig, 1e-300)), np.inf)
-            keepout = np.where(state.observable, limits.d_source_m + SOURCE_SIGMA_FACTOR * sigma, -np.inf)
+            keepout = np.where(state.observable, source_keepout_m(limits, sigma), -np.inf)
         step = control_step(
             pos, prev_step, cg.gradient, status, view_pos, have & ~eye & collision_relevant(hops, comms.d_hop_m, limits),
             np.where(have, k - saved, 0),
@@ -292,6 +295,17 @@ def simulate(
         runtime_s=time.perf_counter() - t0,
         extra={"oracle_estimate": float(oracle_estimate)},
     )
+
+
+def source_keepout_m(limits: Limits, sigma_m: FloatArray) -> FloatArray:
+    """Keep-out radius around the source estimate (m): d_S* + min(3σ, d_S*).
+
+    σ is the largest standard deviation of the estimate (1/sqrt of the smallest eigenvalue of
+    the estimator's information). The inflation covers the estimate's error; its cap keeps an
+    uncertain swarm from fleeing the estimate (fleeing lengthens the ranges, which grows σ:
+    a runaway seen without the cap).
+    """
+    return limits.d_source_m + np.minimum(SOURCE_SIGMA_FACTOR * sigma_m, limits.d_source_m)
 
 
 def collision_relevant(hops: NDArray[np.int64], d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:

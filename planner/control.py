@@ -354,8 +354,8 @@ def _envelope_search(
     Candidates: 9 headings × 5 tilts across the allowed turn (a full circle of headings before
     the first step) × {v_min, v_max}·Δt. Among those whose every family margin is at least
     ``need`` (n, 4), the one closest to the desired step ``u``; if none, among those that keep
-    the static clearances (source, obstacle, altitude) the one with the best peer clearance;
-    if none, the one with the best static clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
+    the exactly known clearances (obstacles, altitude) the one with the best peer and source
+    clearance; if none, the one with the best obstacle and altitude clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
     """
     _, prev_psi, prev_theta = _spherical(prev)
     fr_h = np.linspace(-1.0, 1.0, 9)
@@ -373,13 +373,13 @@ def _envelope_search(
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
     slack = margins - need[:, None, :]
     ok = (slack >= 0.0).all(-1)
-    # Without a fully safe step, the static clearances (source, obstacle, altitude: known
-    # exactly) come first, then the peers' (known with the age of their data).
-    static = slack[..., SOURCE:].min(-1)
+    # Without a fully safe step, the clearances known exactly (obstacles, altitude box) come
+    # first, then those known through estimates (peers' data, the source estimate).
+    static = slack[..., OBSTACLE:].min(-1)
     ok_static = static >= 0.0
     closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
     pick_ok = np.where(ok, closeness, np.inf).argmin(-1)
-    pick_static = np.where(ok_static, slack[..., UAV], -np.inf).argmax(-1)
+    pick_static = np.where(ok_static, slack[..., :OBSTACLE].min(-1), -np.inf).argmax(-1)
     pick_any = static.argmax(-1)
     pick = np.where(ok.any(-1), pick_ok, np.where(ok_static.any(-1), pick_static, pick_any))
     rows = np.arange(p.shape[0])
