@@ -1042,16 +1042,20 @@ def update(
     ml = config.range_cost == "ml"
     mu = np.full(bshape, config.lm_damping)
     n_iter = n_iter if (np.any(active) and K > 0) else 0
-    # Loss schedule: Huber from a fresh start (PL initialisation or re-check move) for the
-    # first half of the iterations, then Tukey's biweight (if config.loss == "tukey").
+    # Loss schedule (config.loss == "tukey"): Tukey's biweight for settled elements; after a
+    # PL initialisation, Huber for the first half of the iterations, then Tukey; for a
+    # suspect or moved element, Huber for the whole call (Tukey's cost is flat far from the
+    # data, Huber's still points back to it).
     tukey = config.loss == "tukey"
     c = config.tukey_c
 
     def redescend(it: int) -> bool | BoolArray:
         if not tukey:
             return False
-        if not np.any(fresh_start) or 2 * it >= n_iter:
+        if not np.any(fresh_start):
             return True
+        if 2 * it >= n_iter:
+            return ~(fresh_start & state.initialised)
         return ~fresh_start
 
     ev = _evaluate(x, rows, channel, k, ml, gate=gate, redescend=redescend(0), tukey_c=c, suspect_sigma=config.suspect_sigma)
@@ -1073,7 +1077,14 @@ def update(
         Hd = H + (mu[..., None] * dH + 1e-12 * tr[..., None] + 1e-300)[..., None] * np.eye(3)
         Hinv, ok = _inv3_spd(Hd)
         step = -np.einsum("...ij,...j->...i", Hinv, g)
-        cand = x + np.where((ok & active)[..., None], step, 0.0)
+        # Trust region: a step at most half the mean distance to the records (angles are
+        # linear only for steps small against the range; far from the data the robust cost
+        # is nearly flat and an unbounded step could run away).
+        n_w = np.maximum(ev.n_used.sum(axis=-1), 1)
+        reach = 0.5 * np.einsum("...k,...k->...", ev.d, (ev.ar > 0.0) | (ev.aa > 0.0) | (ev.ae > 0.0)) / n_w
+        norm = np.sqrt(np.einsum("...i,...i->...", step, step))
+        shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
+        cand = x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0)
         c_new = _evaluate(cand, rows, channel, k, ml, d_var=None if ml else ev.d, cost_only=True, redescend=rd, tukey_c=c)
         c_new = c_new + _prior_cost(cand, prior_info, prior_vec)
         accept = np.isfinite(c_new) & (c_new <= cost) & active
