@@ -354,8 +354,10 @@ def _envelope_search(
     Candidates: 9 headings × 5 tilts across the allowed turn (a full circle of headings before
     the first step) × {v_min, v_max}·Δt. Among those whose every family margin is at least
     ``need`` (n, 4), the one closest to the desired step ``u``; if none, among those that keep
-    the exactly known clearances (obstacles, altitude) the one with the best peer and source
-    clearance; if none, the one with the best obstacle and altitude clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
+    the physical clearances (without the recursive-feasibility buffers) the one that restores
+    the buffers best; if none, among those that keep the exactly known clearances (obstacles,
+    altitude) the one with the best peer and source clearance; if none, the one with the best
+    obstacle and altitude clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
     """
     _, prev_psi, prev_theta = _spherical(prev)
     fr_h = np.linspace(-1.0, 1.0, 9)
@@ -373,14 +375,30 @@ def _envelope_search(
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
     slack = margins - need[:, None, :]
     ok = (slack >= 0.0).all(-1)
-    # Without a fully safe step, the clearances known exactly (obstacles, altitude box) come
-    # first, then those known through estimates (peers' data, the source estimate).
-    static = slack[..., OBSTACLE:].min(-1)
+    # Physical margins: the same clearances without the recursive-feasibility buffers (turn
+    # away, segment interior, tilt swing back); a step that keeps them is safe now.
+    tb = limits.turn_buffer_m
+    buffers = np.array([2.0 * tb, tb, 0.5 * limits.step_max_m + tb, 0.0])
+    physical = margins + buffers
+    z = p[:, None, 2] + cand[..., 2]
+    physical[..., ALTITUDE] = np.minimum(limits.z_max_m - z, z - limits.z_min_m)
+    now_physical = np.minimum(need + buffers, 0.0)
+    now_physical[:, ALTITUDE] = need[:, ALTITUDE]
+    ok_physical = (physical >= now_physical[:, None, :]).all(-1)
+    worst_buffered = slack.min(-1)
+    # Without even a physically safe step, the clearances known exactly (obstacles, altitude
+    # box) come first, then those known through estimates (peers' data, source estimate).
+    phys_slack = physical - now_physical[:, None, :]
+    static = phys_slack[..., OBSTACLE:].min(-1)
     ok_static = static >= 0.0
     closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
     pick_ok = np.where(ok, closeness, np.inf).argmin(-1)
-    pick_static = np.where(ok_static, slack[..., :OBSTACLE].min(-1), -np.inf).argmax(-1)
+    pick_physical = np.where(ok_physical, worst_buffered, -np.inf).argmax(-1)
+    pick_static = np.where(ok_static, phys_slack[..., :OBSTACLE].min(-1), -np.inf).argmax(-1)
     pick_any = static.argmax(-1)
-    pick = np.where(ok.any(-1), pick_ok, np.where(ok_static.any(-1), pick_static, pick_any))
+    pick = np.where(
+        ok.any(-1), pick_ok,
+        np.where(ok_physical.any(-1), pick_physical, np.where(ok_static.any(-1), pick_static, pick_any)),
+    )
     rows = np.arange(p.shape[0])
     return cand[rows, pick], margins[rows, pick], ~ok.any(-1)
