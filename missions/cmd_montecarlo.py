@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
             mission = load_mission(path, ov)
             criteria = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
             for crit in criteria:
-                m = mission.model_copy(update={"criterion": crit})
+                m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
                 specs.append(RunSpec(m, crit, args.trials or m.trials, args.steps or m.steps))
     out = args.out or Path("results") / time.strftime("montecarlo-%Y%m%d-%H%M%S")
     total = sum(s.steps for s in specs)
