@@ -146,7 +146,9 @@ class EstimatorConfig:
             ``tukey_c``; default) or ``"huber"``. From a fresh start (the PL initialisation, a
             re-check move) the first half of the iterations always use Huber (convex).
         tukey_c: Tukey threshold on |e| (4.685: 95 % efficiency under Gaussian noise).
-        gate_sigma: innovation gate in standard deviations (None disables it).
+        gate_sigma: innovation gate in standard deviations (None disables it; with the Tukey
+            loss it is redundant: a gated component, |e| > gate_sigma ≥ tukey_c, has no
+            influence anyway; useful with ``loss="huber"``, e.g. 5).
         gate_max_fraction: if more than this fraction of an element's components would be
             gated, the gate is not applied to that element for this call.
         iterations: Levenberg-Marquardt iterations per call.
@@ -184,7 +186,7 @@ class EstimatorConfig:
     huber_k: float = 1.345
     loss: Literal["huber", "tukey"] = "tukey"
     tukey_c: float = 4.685
-    gate_sigma: float | None = 5.0
+    gate_sigma: float | None = None
     gate_max_fraction: float = 0.5
     iterations: int = 1
     init_iterations: int = 10
@@ -415,7 +417,7 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     and ``row_weight·nlos_bearing_weight`` when flagged NLOS; 0 where a value is absent."""
     p = meas.positions_m
     px, py, pz = p[..., 0], p[..., 1], p[..., 2]
-    row_ok = np.isfinite(px) & np.isfinite(py) & np.isfinite(pz)
+    row_ok = np.isfinite(px + py + pz)  # NaN/inf in any coordinate
     los = meas.los
     wb = row_weight * np.where(los, 1.0, config.nlos_bearing_weight)
     out = []
@@ -454,10 +456,10 @@ class _Eval:
     ar: FloatArray
     aa: FloatArray
     ae: FloatArray
-    # per element and component type (range, azimuth, elevation), (..., 3): components used,
-    # and those with |e| beyond ``suspect_sigma``
-    n_used: NDArray[np.int64]
-    n_big: NDArray[np.int64]
+    # per element and component type (range, azimuth, elevation), (..., 3): weighted count of
+    # the components used, and of those with |e| beyond ``suspect_sigma``
+    n_used: FloatArray
+    n_big: FloatArray
 
 
 @dataclass(frozen=True)
@@ -570,13 +572,11 @@ def _evaluate(
         gr += ar * gd * (1.0 - pr_ * er)
         ir += extra
         extra = np.zeros_like(extra)
+    # Weighted counts (weights are 0 or λ^age ≤ 1): used components and those beyond the
+    # suspect threshold, per type.
     c2 = suspect_sigma * suspect_sigma
-    ur, ua, ue = ar > 0.0, aa > 0.0, ae > 0.0
-    n_used = np.stack((ur.sum(axis=-1), ua.sum(axis=-1), ue.sum(axis=-1)), axis=-1)
-    n_big = np.stack(
-        ((ur & (er * er > c2)).sum(axis=-1), (ua & (ea * ea > c2)).sum(axis=-1), (ue & (ee * ee > c2)).sum(axis=-1)),
-        axis=-1,
-    )
+    n_used = np.stack((ar.sum(axis=-1), aa.sum(axis=-1), ae.sum(axis=-1)), axis=-1)
+    n_big = np.stack((_sum(ar, er * er > c2), _sum(aa, ea * ea > c2), _sum(ae, ee * ee > c2)), axis=-1)
     inv_d = np.sqrt(inv_d2)
     inv_rho = np.sqrt(inv_rho2)
     return _Eval(
@@ -927,7 +927,7 @@ def update(
     pl_b = state.pl_vector * lam
     dr_A = state.pl_dropped_matrix * lam
     dr_b = state.pl_dropped_vector * lam
-    new_row_ok = np.all(np.isfinite(new.positions_m), axis=-1)
+    new_row_ok = np.isfinite(new.positions_m.sum(axis=-1))  # NaN/inf in any coordinate
     if W > 0:
         allm = _concat(state.window, new)
         weight = np.concatenate((state.window_weight * lam, np.where(new_row_ok, 1.0, 0.0)), axis=-1)
@@ -1080,8 +1080,8 @@ def update(
         # Trust region: a step at most half the mean distance to the records (angles are
         # linear only for steps small against the range; far from the data the robust cost
         # is nearly flat and an unbounded step could run away).
-        n_w = np.maximum(ev.n_used.sum(axis=-1), 1)
-        reach = 0.5 * np.einsum("...k,...k->...", ev.d, (ev.ar > 0.0) | (ev.aa > 0.0) | (ev.ae > 0.0)) / n_w
+        n_w = np.maximum(ev.n_used.sum(axis=-1), 1e-300)
+        reach = 0.5 * np.einsum("...k,...k->...", ev.d, ev.ar + ev.aa + ev.ae) / n_w
         norm = np.sqrt(np.einsum("...i,...i->...", step, step))
         shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
         cand = x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0)
@@ -1097,7 +1097,7 @@ def update(
         H = H + prior_info
     # Information of everything used, linearised at x_lin (the last iterate evaluated).
     fisher = F + prior_fisher
-    suspect = active & np.any((ev.n_used >= 3) & (ev.n_big > config.suspect_fraction * ev.n_used), axis=-1)
+    suspect = active & np.any((ev.n_used >= 2.5) & (ev.n_big > config.suspect_fraction * ev.n_used), axis=-1)
     # Marginalise the rows leaving the window (the oldest n_leave), linearised at x_lin:
     # their cost ≈ ½ xᵀH_l x − (H_l x_lin − g_l)ᵀx + const.
     if n_leave > 0:
