@@ -25,6 +25,7 @@ with respect to the position of one drone (its own, for the control law of eq. 1
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -218,7 +219,14 @@ def cost_gradient(
         own_position: p_i, (..., 3), m, ENU.
         own_ranging, own_bearing, own_los: drone i's κ_i, β_i and p_i, boolean (...).
         channel: RSS channel. criterion: ``"A"`` or ``"D"``.
+
+    One drone (``fim`` (3, 3), ``own_position`` (3,)) takes a scalar fast path with the same
+    value, status and (to round-off) gradient; see :func:`_cost_gradient_one`.
     """
+    if np.shape(own_position) == (3,) and np.shape(source) == (3,) and np.shape(fim) == (3, 3) and criterion in ("A", "D"):
+        fast = _cost_gradient_one(fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion)
+        if fast is not None:
+            return fast
     inv = invert_fim(fim)
     singular = inv.status == _SINGULAR
     Jinv = inv.inverse
@@ -267,6 +275,82 @@ def cost_gradient(
         gradient = np.where(singular[..., None], 0.0, gradient)
         value = np.where(singular, np.inf, value)
     return CostGradient(value=value, gradient=gradient, status=inv.status)
+
+
+def _cost_gradient_one(
+    fim: ArrayLike,
+    source: ArrayLike,
+    own_position: ArrayLike,
+    own_ranging: ArrayLike,
+    own_bearing: ArrayLike,
+    own_los: ArrayLike,
+    channel: Channel,
+    criterion: Criterion,
+) -> CostGradient | None:
+    """:func:`cost_gradient` for one drone and one 3x3 J, in Python floats (the planner node's
+    hot path: ~3x faster than the batched code on 0-d arrays).
+
+    Same health test, inverse, value and status as :func:`invert_fim`; the gradient is the same
+    expression as the batched code, term by term (agrees to round-off; tested in
+    ``tests/planner/test_costs.py``). Returns None when J is singular or not finite (the
+    batched code handles those).
+    """
+    J = np.asarray(fim, dtype=float)
+    if not np.isfinite(J).all():
+        return None
+    eig = np.linalg.eigvalsh(J)
+    lmin, lmax = float(eig[0]), float(eig[-1])
+    if not lmax > 0.0:
+        return None
+    rcond = lmin / lmax
+    if rcond <= SINGULAR_RCOND:
+        return None
+    status = np.array(_ILL if rcond <= ILL_CONDITIONED_RCOND else _OK, dtype=np.int8)
+    Jinv = np.linalg.inv(J)
+    if criterion == "A":
+        value = np.trace(Jinv, axis1=-2, axis2=-1)
+        M = -Jinv @ Jinv
+    else:
+        value = -np.log(eig).sum(axis=-1)
+        M = -Jinv
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = M.tolist()
+    s = np.asarray(source, dtype=float)
+    o = np.asarray(own_position, dtype=float)
+    rx, ry, rz = float(s[0] - o[0]), float(s[1] - o[1]), float(s[2] - o[2])
+    rho2 = max(rx * rx + ry * ry, RHO_FLOOR_M**2)
+    d2 = rho2 + rz * rz
+    d = math.sqrt(d2)
+    los = bool(own_los)
+    gx = gy = gz = 0.0
+    if bool(own_ranging):
+        # Ranging term J_r = h r rᵀ (see cost_gradient).
+        gamma = channel.gamma
+        s0sq = channel.sigma_r0_los**2 if los else channel.sigma_r0_nlos**2
+        mrx, mry, mrz = m00 * rx + m01 * ry + m02 * rz, m10 * rx + m11 * ry + m12 * rz, m20 * rx + m21 * ry + m22 * rz
+        q_r = rx * mrx + ry * mry + rz * mrz
+        h = d ** (-gamma) / (s0sq * d2) + gamma * gamma / (2.0 * d2 * d2)
+        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) / s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+        c = dh / d * q_r
+        gx, gy, gz = c * rx + 2.0 * h * mrx, c * ry + 2.0 * h * mry, c * rz + 2.0 * h * mrz
+    if bool(own_bearing) and los:
+        sb2 = channel.sigma_bearing_rad**2
+        # Azimuth term w b bᵀ, b = [-r_y, r_x, 0], w = 1/(σ_b² ρ⁴).
+        bx, by = -ry, rx
+        mbx, mby = m00 * bx + m01 * by, m10 * bx + m11 * by
+        q_b = bx * mbx + by * mby
+        w_az = 1.0 / (sb2 * rho2 * rho2)
+        k_az = 4.0 * w_az * q_b / rho2
+        gx += 2.0 * w_az * mby - k_az * rx
+        gy += -2.0 * w_az * mbx - k_az * ry
+        # Elevation term c² v vᵀ/σ_b², v = [-r_x r_z, -r_y r_z, ρ²], c = 1/(d² ρ).
+        vx, vy, vz = -rx * rz, -ry * rz, rho2
+        mvx, mvy, mvz = m00 * vx + m01 * vy + m02 * vz, m10 * vx + m11 * vy + m12 * vz, m20 * vx + m21 * vy + m22 * vz
+        q_v = vx * mvx + vy * mvy + vz * mvz
+        c2 = 1.0 / (d2 * d2 * rho2)
+        gx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
+        gy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
+        gz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
+    return CostGradient(value=value, gradient=np.array([-gx, -gy, -gz]), status=status)
 
 
 def position_error_bound(fim: ArrayLike) -> tuple[FloatArray, NDArray[np.int8]]:

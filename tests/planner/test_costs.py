@@ -144,6 +144,35 @@ def test_cost_gradient_batched_equals_loop(rng):
             np.testing.assert_allclose(cg.gradient[t], one.gradient, rtol=1e-12, atol=1e-300)
 
 
+def test_single_drone_path_equals_batched_path(rng):
+    """cost_gradient on one (3, 3) J takes a scalar fast path; it must agree with the batched code
+    (value and status exactly, gradient to round-off), ill-conditioned J included."""
+    ch = Channel(gamma=2.6)
+    seen = set()
+    for k in range(300):
+        n = int(rng.integers(1, 7))
+        src = rng.uniform(-100, 100, 3)
+        pos = random_positions(rng, n, src)
+        rr, bb, los = rng.random(n) < 0.6, rng.random(n) < 0.6, rng.random(n) < 0.7
+        if k % 10 == 0:  # ranging drones almost on a line through the source: ill-conditioned
+            n = 4
+            u = np.array([1.0, 0.0, 0.0])
+            eps = 10 ** rng.uniform(-5.5, -4.5)
+            pos = src + np.array([-50 * u, 80 * u, -120 * u + [0.0, 120 * eps, 0.0], 60 * u + [0.0, 0.0, 60 * eps]])
+            rr, bb, los = np.ones(4, bool), np.zeros(4, bool), np.ones(4, bool)
+        J = fisher_information(src, pos, rr, bb, los, ch)
+        i = int(rng.integers(0, n))
+        for crit in "AD":
+            one = cost_gradient(J, src, pos[i], rr[i], bb[i], los[i], ch, crit)
+            many = cost_gradient(J[None], src[None], pos[i][None], rr[i : i + 1], bb[i : i + 1], los[i : i + 1], ch, crit)
+            assert one.status == many.status[0]
+            seen.add(int(one.status))
+            assert one.value == many.value[0] or (np.isinf(one.value) and np.isinf(many.value[0]))
+            scale = np.abs(many.gradient[0]).max()
+            assert np.abs(one.gradient - many.gradient[0]).max() <= 1e-12 * scale, (one.gradient, many.gradient[0])
+    assert seen == {FimStatus.OK, FimStatus.ILL_CONDITIONED, FimStatus.SINGULAR}
+
+
 # ---------------------------------------------------------------- singular and ill-conditioned J
 
 
