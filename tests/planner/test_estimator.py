@@ -261,6 +261,40 @@ def test_rmse_with_20_percent_bearing_outliers_within_3_peb(kind: str, flagged: 
     assert rmse < 3.0 * bound, f"RMSE {rmse:.2f} m, PEB {bound:.2f} m, ratio {rmse / bound:.2f}"
 
 
+@pytest.mark.parametrize("kind", ["joint", "bearing"])
+def test_huber_with_innovation_gate_also_handles_mislabelled_outliers(kind: str, rng: np.random.Generator) -> None:
+    config = EstimatorConfig(loss="huber", gate_sigma=5.0)
+    rmse, bound = _monte_carlo(
+        rng, kind, np.array([20.0, -10.0, 0.0]), steps=5, n=10, z_m=(2.0, 40.0), outlier_fraction=0.2, flagged=False, config=config
+    )
+    assert rmse < 3.0 * bound, f"RMSE {rmse:.2f} m, PEB {bound:.2f} m, ratio {rmse / bound:.2f}"
+
+
+@pytest.mark.parametrize("kind", ["ranging", "mixed"])
+def test_full_likelihood_range_cost_within_1_5_peb(kind: str, rng: np.random.Generator) -> None:
+    config = EstimatorConfig(range_cost="ml")
+    rmse, bound = _monte_carlo(rng, kind, np.array([20.0, -10.0, 30.0]), steps=5, n=10, z_m=(0.0, 60.0), config=config)
+    assert rmse < 1.5 * bound, f"RMSE {rmse:.2f} m, PEB {bound:.2f} m, ratio {rmse / bound:.2f}"
+
+
+def test_suspect_element_leaves_a_wrong_estimate(rng: np.random.Generator) -> None:
+    """A first call consistent with a wrong point A, then clean bearings to B: the records are
+    beyond Tukey's threshold at A, so without the suspect restart the estimate stays near A."""
+    a_m, b_m = np.array([60.0, 40.0, 0.0]), np.zeros(3)
+    errors = {}
+    for fraction in (0.35, 1.0):
+        config = EstimatorConfig(suspect_fraction=fraction)
+        gen = np.random.default_rng(5)
+        first = records(a_m, ring(gen, a_m, 10, (60.0, 150.0), (2.0, 40.0)), *roles("bearing", 10), np.ones(10, bool))
+        state = update(initial_state((), config), first, CHANNEL, config)
+        for _ in range(10):
+            meas = records(b_m, ring(gen, b_m, 10, (60.0, 150.0), (2.0, 40.0)), *roles("bearing", 10), np.ones(10, bool))
+            state = update(state, meas, CHANNEL, config)
+        errors[fraction] = float(np.linalg.norm(state.estimate_m - b_m))
+    assert errors[0.35] < 0.5
+    assert errors[1.0] > 5.0
+
+
 def test_sequential_estimate_converges_as_records_accumulate(rng: np.random.Generator) -> None:
     source = np.array([20.0, -10.0, 5.0])
     ranging, bearing = roles("mixed", 10)
@@ -432,6 +466,10 @@ def test_shape_errors_name_the_field() -> None:
         {"nlos_bearing_weight": 2.0},
         {"mirror": "sideways"},
         {"range_cost": "other"},
+        {"loss": "l1"},
+        {"suspect_fraction": 0.0},
+        {"recheck_every": -1},
+        {"init_iterations": 0},
     ],
 )
 def test_config_rejects_bad_values(kwargs: dict[str, object]) -> None:
