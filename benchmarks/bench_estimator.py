@@ -52,20 +52,24 @@ def _median_ms(state: EstimatorState, meas: Sequence[Measurements], channel: Cha
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=50, help="timed calls per case (default 50)")
+    parser.add_argument("--skip-large-window", action="store_true", help="skip window_rows=50 for batch (100, 10)")
     args = parser.parse_args(argv)
     channel = Channel()
     rng = np.random.default_rng(np.random.SeedSequence(2026))
     source = np.array([20.0, -10.0, 0.0])
     configs = {
         "default": EstimatorConfig(),
-        "iterations=1": EstimatorConfig(iterations=1),
+        "iterations=2": EstimatorConfig(iterations=2),
         "window_rows=10": EstimatorConfig(window_rows=10),
-        "no gate": EstimatorConfig(gate_sigma=None),
+        "window_rows=50": EstimatorConfig(window_rows=50),
+        "huber+gate": EstimatorConfig(loss="huber", gate_sigma=5.0),
     }
     print(f"numpy {np.__version__}; median of {args.repeat} calls; 10 new records per element")
     for batch in ((100, 10), ()):
         meas = [_records(rng, batch, 10, source, channel) for _ in range(8)]
         for name, config in configs.items():
+            if batch and args.skip_large_window and config.window_rows >= 50:
+                continue
             first = initial_state(batch, config)
             warm = first
             for m in meas[:6]:

@@ -556,8 +556,10 @@ def _evaluate(
     cost += cr.sum(axis=-1)
     if cost_only:
         return cost
-    inv_d2 = 1.0 / d2
-    inv_rho2 = 1.0 / rho2
+    inv_d = 1.0 / d
+    inv_rho = 1.0 / rho
+    inv_d2 = inv_d * inv_d
+    inv_rho2 = inv_rho * inv_rho
     sb2inv = inv_sb * inv_sb
     wr = ar * inv_sr
     ir = wr * inv_sr * wr_
@@ -577,8 +579,6 @@ def _evaluate(
     c2 = suspect_sigma * suspect_sigma
     n_used = np.stack((ar.sum(axis=-1), aa.sum(axis=-1), ae.sum(axis=-1)), axis=-1)
     n_big = np.stack((_sum(ar, er * er > c2), _sum(aa, ea * ea > c2), _sum(ae, ee * ee > c2)), axis=-1)
-    inv_d = np.sqrt(inv_d2)
-    inv_rho = np.sqrt(inv_rho2)
     return _Eval(
         cost=cost,
         rx=rx,
