@@ -135,9 +135,12 @@ def distance_to_boxes_with_gradient(
     offset = q - np.minimum(np.maximum(q, bmin), bmax)
     outside = np.sqrt((offset * offset).sum(-1))
     if (outside > 0.0).all():  # the usual case, outside every box: unit vector from the surface
-        nearest = outside.argmin(-1)[..., None]
-        d = np.take_along_axis(outside, nearest, -1)[..., 0]
-        return d, np.take_along_axis(offset, nearest[..., None], -2)[..., 0, :] / d[..., None]
+        batch = outside.shape[:-1]
+        nb = outside.shape[-1]
+        nearest = outside.reshape(-1, nb).argmin(-1)
+        off = offset.reshape(-1, nb, 3)[np.arange(nearest.shape[0]), nearest].reshape(batch + (3,))
+        d = outside.min(-1)
+        return d, off / d[..., None]
     below = q - bmin
     above = bmax - q
     gaps = np.minimum(below, above)  # > 0 inside, per axis
