@@ -1,4 +1,4 @@
-"""Robust, recursive, batched maximum-likelihood estimator of the source position.
+r"""Robust, recursive, batched maximum-likelihood estimator of the source position.
 
 The paper (Guerra, Dardari, Djurić) takes the source estimate p̂0 as given (sec. II-B,
 footnote 2); fimnav computes it here from the ranging and bearing estimates of eq. (3), each
@@ -12,53 +12,54 @@ Public API
     ``elevation_rad`` (..., M); ``los`` (..., M) bool. NaN marks an absent value; a row whose
     position is NaN is no measurement, so batch elements may carry different counts.
 ``EstimatorConfig``
-    Frozen tuning: raw window, forgetting, Huber threshold, innovation gate, iterations, ...
+    Frozen tuning: raw window, forgetting, robust loss, iterations, safeguards, ...
 ``EstimatorState``
     Frozen state: ``estimate_m`` (..., 3), ``information`` (..., 3, 3) (Fisher information of
     everything used, at the estimate, robust weights applied), ``observable`` (...,) bool,
     ``initialised`` (...,) bool, plus the internal accumulators.
 ``initial_state(batch_shape, config) -> EstimatorState``
 ``update(state, measurements, channel, config) -> EstimatorState``  (pure)
+``empty_measurements(batch_shape, rows) -> Measurements``  (all NaN)
 
 Measurement model (paper eqs. 3-5), drone at p, source at p0, r = p0 - p:
 
 .. math::
-    d = \\lVert r\\rVert,\\quad \\phi = \\operatorname{atan2}(r_y, r_x),\\quad
-    \\theta = \\operatorname{atan2}(r_z, \\sqrt{r_x^2+r_y^2})
+    d = \lVert r\rVert,\quad \phi = \operatorname{atan2}(r_y, r_x),\quad
+    \theta = \operatorname{atan2}(r_z, \sqrt{r_x^2+r_y^2})
 
-    \\hat d = d + n_r,\\ n_r\\sim\\mathcal N(0, \\sigma_{r,0}^2 d^{\\gamma}),\\qquad
-    \\hat\\phi = \\phi + n_b,\\ \\hat\\theta = \\theta + n_b,\\ n_b\\sim\\mathcal N(0,\\sigma_b^2)
-    \\text{ (LOS)}
+    \hat d = d + n_r,\ n_r\sim\mathcal N(0, \sigma_{r,0}^2 d^{\gamma}),\qquad
+    \hat\phi = \phi + n_b,\ \hat\theta = \theta + n_b,\ n_b\sim\mathcal N(0,\sigma_b^2)
+    \text{ (LOS)}
 
 with σ_r0 = (ln10/10)(σ_sh/γ) for the link's LOS or NLOS ratio; an NLOS bearing is the
 outlier ω of eq. (3) and is given weight ``config.nlos_bearing_weight`` (0 by default).
 
-Method, per call of :func:`update` and per batch element:
+Method, per call of :func:`update` and per batch element (vectorised over both):
 
-1. Closed-form pseudo-linear (PL) normal equations of every new record are accumulated
-   exactly (they are linear in θ = (p0, R = ‖p0‖²)): bearing rows
-   (Lingren & Gong 1978; 3-D form of Doğançay, IEEE TSP 63(1), 2015) project p0 − p onto
-   the two directions orthogonal to the measured unit vector u; a range with a usable
-   bearing gives uᵀ(p0 − p) = d̂; a range alone gives the squared-range equation
-   2pᵀp0 − R = ‖p‖² − d̂² with the auxiliary unknown R (unconstrained LS of Cheung, So,
-   Ma & Chan, IEEE TSP 52(4), 2004), with the constraint R = ‖p0‖² applied when R is the
-   only degenerate direction (coplanar drones: mirror ambiguity, resolved by
-   ``config.mirror``). An element is initialised by this PL solution.
-2. Robust ML refinement (Levenberg-Marquardt, Fisher scoring) of
+1. Closed-form initialisation: pseudo-linear (PL) normal equations, linear in
+   θ = (p0, R = ‖p0‖²), accumulated exactly until the element is initialised. Bearings
+   project p0 − p onto the two directions orthogonal to the measured unit vector u
+   (Lingren & Gong, IEEE T-AES 14(4), 1978; 3-D form of Doğançay, IEEE TSP 63(1), 2015); a
+   range with a usable bearing gives uᵀ(p0 − p) = d̂; a range alone gives the squared-range
+   equation 2pᵀp0 − R = ‖p‖² − d̂² + σ_r² (unconstrained LS of Cheung, So, Ma & Chan, IEEE
+   TSP 52(4), 2004, bias E[d̂²] = d² + σ_r² removed), with the constraint R = ‖p0‖² applied
+   along the weakest direction (coplanar drones: mirror ambiguity, ``config.mirror``).
+2. Robust ML refinement, Levenberg-Marquardt with Fisher scoring, warm-started, of
 
    .. math::
-       C(p_0) = \\tfrac12 p_0^T\\Lambda p_0 - \\eta^T p_0
-       + \\sum_i a_i\\big[\\rho_k(e_i) + \\tfrac12 \\ln\\sigma_i^2(p_0)\\,[i\\text{ range}]\\big],
-       \\qquad e_i = (z_i - h_i(p_0))/\\sigma_i(p_0)
+       C(p_0) = \tfrac12 p_0^T\Lambda p_0 - \eta^T p_0 + \sum_i a_i\,\rho(e_i),
+       \qquad e_i = (z_i - h_i(p_0))/\sigma_i
 
-   over a bounded window of the latest ``window_rows`` raw records plus the new ones,
-   warm-started at the previous estimate; ρ_k is Huber's loss, (Λ, η) the information-form
-   summary of the records that left the window (each marginalised, linearised at the
-   estimate of the step it left). The Fisher scoring matrix includes the range-dependent
-   variance term, a_r ∇d∇dᵀ (w/σ_r² + γ²/(2d²)) (the paper's A_d of eq. 12 when w = 1).
-3. Innovation gate: with an observable previous state, a component whose innovation exceeds
-   ``gate_sigma`` standard deviations of σ² + ∇hᵀΛ⁻¹∇h is excluded (redescending beyond
-   Huber), unless more than ``gate_max_fraction`` of the element's new components would be.
+   over the latest ``window_rows`` raw records plus the new ones; (Λ, η) is the
+   information-form summary of the records that left the window (each marginalised,
+   linearised at the last iterate of the call it left). σ_r² = σ_r0² d^γ at the iterate
+   ("gls") or with ½ ln σ_r² in the cost ("ml"); the reported Fisher information includes
+   ∇σ²∇σ²ᵀ/(2σ⁴) = γ²/(2d²)∇d∇dᵀ (eq. 12's A_d). ρ: Huber from a fresh start, then Tukey's
+   biweight (no influence beyond ``tukey_c``σ); steps capped at half the mean range.
+3. Safeguards against a frozen wrong linearisation: *suspect* elements (too many records far
+   from the estimate) get a deflated prior and Huber iterations; every ``recheck_every``
+   calls the squared-range PL solution of all past ranges replaces the estimate when it is
+   much better on the PL cost and on the new records. Optional innovation gate.
 4. Forgetting λ ∈ (0, 1]: every stored contribution (Λ, η, PL equations, window weights)
    is multiplied by λ per call, for a moving source.
 5. Observability: initialised and det J/(tr J/3)³ ≥ ``min_rcond`` (J the information).
