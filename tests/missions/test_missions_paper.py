@@ -182,10 +182,14 @@ def _scenario() -> tuple[Mission, np.ndarray, np.ndarray, np.ndarray, np.ndarray
 
 def test_scenario_starts_keep_clear_of_buildings() -> None:
     m, starts, _src, mins, maxs = _scenario()
-    margin = 10.0
-    for p in starts:
-        for lo, hi in zip(mins, maxs):
-            assert _point_box_distance(p, lo, hi) >= m.constraints.d_obstacle_m + margin
+    d = np.array([[_point_box_distance(p, lo, hi) for lo, hi in zip(mins, maxs)] for p in starts])
+    assert np.all(d >= m.constraints.d_obstacle_m + 25.0)
+    # closed form: B1 (x -40..-10, y up to 115, z 0..30) is the nearest building of every start,
+    # 35 m north of its face, plus the x offset for the starts east of x = -10
+    x = starts[:, 0]
+    np.testing.assert_allclose(d.min(axis=1), np.hypot(np.maximum(0.0, x + 10.0), 35.0), atol=1e-9)
+    np.testing.assert_array_equal(d.argmin(axis=1), 0)
+    assert d.min() == pytest.approx(35.0)
 
 
 def test_scenario_buildings_are_taller_than_the_altitude_box() -> None:
@@ -193,35 +197,91 @@ def test_scenario_buildings_are_taller_than_the_altitude_box() -> None:
     assert np.all(maxs[:, 2] > m.constraints.z_max_m) and np.all(mins[:, 2] <= 0.0)
 
 
+def _blocked_by(p: np.ndarray, src: np.ndarray, mins: np.ndarray, maxs: np.ndarray) -> list[int]:
+    return [b for b, (lo, hi) in enumerate(zip(mins, maxs)) if _segment_blocked(p, src, lo, hi)]
+
+
 def test_scenario_start_links_mix_los_and_nlos() -> None:
     _m, starts, src, mins, maxs = _scenario()
-    blocked = np.array([any(_segment_blocked(p, src, lo, hi) for lo, hi in zip(mins, maxs)) for p in starts])
-    # documented in docs/case-study-scenario.md: drones 1, 2, 5, 6, 7, 10 NLOS; 3, 4, 8, 9 LOS
-    np.testing.assert_array_equal(np.flatnonzero(blocked) + 1, [1, 2, 5, 6, 7, 10])
-    assert blocked.any() and (~blocked).any()
+    by = [_blocked_by(p, src, mins, maxs) for p in starts]
+    # documented in docs/case-study-scenario.md: drone 1 NLOS through B2, drones 5, 6, 7
+    # through B1; 2, 3, 4, 8, 9, 10 LOS
+    assert by == [[1], [], [], [], [0], [0], [0], [], [], []]
 
 
-def test_scenario_nlos_on_the_way_and_on_the_keep_out_circle() -> None:
-    """Half-way points and points on the d_S* circle also see mixed LOS/NLOS."""
-    m, starts, src, mins, maxs = _scenario()
+def _sector_blocked_at_y120(x: float) -> bool:
+    """Closed form at y = 120 m: shadow edges are the lines from the source through B1's corner
+    (-10, 115), B2's corners (10, 90) and (35, 70); west of B1 B3's sector continues the shadow."""
+    return x <= 120.0 * -10.0 / 115.0 or 120.0 * 10.0 / 90.0 <= x <= 120.0 * 35.0 / 70.0
+
+
+def test_scenario_nlos_on_the_way() -> None:
+    """Points between the formation and the circle see mixed LOS/NLOS; the lane between B1 and
+    B2 is LOS, the outer routes around them are shadowed down to a closed-form y."""
+    m, _starts, src, mins, maxs = _scenario()
     def blocked(p: np.ndarray) -> bool:
-        return any(_segment_blocked(p, src, lo, hi) for lo, hi in zip(mins, maxs))
-    # straight south at 10 m altitude, x = -20 .. 20 m, y = 120 m: some links blocked by B1/B2
-    row = [blocked(np.array([x, 120.0, 10.0])) for x in np.linspace(-20, 20, 9)]
+        return bool(_blocked_by(p, src, mins, maxs))
+    xs = np.arange(-62.5, 70.0, 5.0)  # avoids the shadow edges by >= 0.8 m
+    row = [blocked(np.array([x, 120.0, 10.0])) for x in xs]
+    assert row == [_sector_blocked_at_y120(x) for x in xs]
     assert any(row) and not all(row)
-    # on the keep-out circle (radius 55 m, z = 10 m): B3 shadows the north-west sector
-    ring = [blocked(src + np.array([55 * math.cos(a), 55 * math.sin(a), 8.0])) for a in np.radians(np.arange(0, 360, 5))]
-    assert any(ring) and not all(ring)
-    nw = blocked(src + np.array([-55 * math.cos(math.radians(45)), 55 * math.sin(math.radians(45)), 8.0]))
-    assert nw
+    # B1 ends at x = -10, B2 starts at x = 10: a 20 m gap
+    assert mins[1, 0] - maxs[0, 0] == pytest.approx(20.0)
+    ys = np.arange(1.25, 150.0, 2.5)  # never on a shadow edge (y = 30, 80)
+    d_o = m.constraints.d_obstacle_m
+    # central lane x = 0, down to the keep-out circle: LOS all the way, clear of every building
+    lane = [np.array([0.0, y, 10.0]) for y in ys if y > 50.0]
+    assert not any(blocked(p) for p in lane)
+    assert all(min(_point_box_distance(p, lo, hi) for lo, hi in zip(mins, maxs)) >= d_o for p in lane)
+    # east route x = 40 (d_O* off B2's east face): NLOS by B2 while y > 40 * 70 / 35 = 80
+    east = [blocked(np.array([40.0, y, 10.0])) for y in ys]
+    assert east == [bool(y > 80.0) for y in ys]
+    # west route x = -45 (d_O* off B1's west face): NLOS (B1, then B3) while y > 45 * 12 / 18 = 30
+    west = [blocked(np.array([-45.0, y, 10.0])) for y in ys]
+    assert west == [bool(y > 30.0) for y in ys]
+
+
+@pytest.mark.parametrize("radius", [50.0, 55.0])
+@pytest.mark.parametrize("z", [2.0, 10.0, 25.0])
+def test_scenario_b3_shadows_a_north_west_arc(radius: float, z: float) -> None:
+    """On the keep-out circle only B3 blocks, over azimuths atan2(24, -8) .. atan2(12, -18)
+    (108.4 .. 146.3 deg seen from the source), at every flight altitude."""
+    _m, _starts, src, mins, maxs = _scenario()
+    lo_az, hi_az = math.degrees(math.atan2(24.0, -8.0)), math.degrees(math.atan2(12.0, -18.0))
+    assert (lo_az, hi_az) == (pytest.approx(108.43, abs=0.01), pytest.approx(146.31, abs=0.01))
+    for az in np.arange(0.0, 360.0, 1.0):  # integer degrees: >= 0.3 deg from both edges
+        a = math.radians(az)
+        p = np.array([src[0] + radius * math.cos(a), src[1] + radius * math.sin(a), z])
+        assert _blocked_by(p, src, mins, maxs) == ([2] if lo_az < az < hi_az else []), az
 
 
 def test_scenario_source_distance_and_b3_inside_keep_out() -> None:
     m, starts, src, mins, maxs = _scenario()
     assert np.all(np.linalg.norm(starts - src, axis=1) > 145.0)
-    # B3's nearest point is 22.4 m from the source: inside the 50 m keep-out disc, it never blocks
-    # a drone's path but shadows links from the north-west.
-    assert _point_box_distance(src, mins[2], maxs[2]) == pytest.approx(math.hypot(10.0, 20.0) - 0.0, abs=0.01)
+    d_s, d_o = m.constraints.d_source_m, m.constraints.d_obstacle_m
+    # B3's nearest point (-8, 12) is 14.4 m from the source, its farthest corner (-18, 24) 30 m
+    # horizontally: even at the safe rule's activation distance (d_O* + 0.5 v_max dt + turn
+    # buffer + 2 v_max dt, 7.8 m) it stays > 10 m inside the keep-out disc, so it never blocks
+    # a path or narrows the circle.
+    limits = m.limits()
+    activation = d_o + 2.5 * limits.step_max_m + limits.turn_buffer_m
+    assert activation == pytest.approx(7.82, abs=0.01)
+    assert _point_box_distance(src, mins[2], maxs[2]) == pytest.approx(math.hypot(8.0, 12.0), abs=1e-9)
+    corners = np.array([[x, y] for x in (mins[2, 0], maxs[2, 0]) for y in (mins[2, 1], maxs[2, 1])])
+    far = np.linalg.norm(corners - src[:2], axis=1).max()
+    assert far == pytest.approx(30.0) and far + activation < d_s - 10.0
+    # B2 (nearest corner (10, 70)) and B1 (nearest corner (-10, 95)) stay well outside the circle
+    assert _point_box_distance(src, mins[1], maxs[1]) == pytest.approx(math.hypot(10.0, 70.0), abs=1e-9)
+    assert _point_box_distance(src, mins[0], maxs[0]) == pytest.approx(math.hypot(10.0, 95.0), abs=1e-9)
+    assert math.hypot(10.0, 70.0) - d_s > 20.0
+
+
+def test_scenario_dynamic_source_path_clear_of_buildings() -> None:
+    m = load_mission(PAPER / "dynamic_source.yaml")
+    mins, maxs = m.obstacle_bounds()
+    path = [m.source.position_at(t) for t in np.linspace(0.0, m.steps * m.dt_s, 111)]
+    d = min(_point_box_distance(p, lo, hi) for p in path for lo, hi in zip(mins, maxs))
+    assert d == pytest.approx(math.hypot(8.0, 12.0), abs=1e-9)  # at t = 0, to B3's corner (-8, 12)
 
 
 def test_scenario_against_planner_geometry() -> None:
@@ -230,6 +290,15 @@ def test_scenario_against_planner_geometry() -> None:
         pytest.skip("planner.geometry has no line_of_sight/distance_to_boxes yet")
     m, starts, src, mins, maxs = _scenario()
     los = np.asarray(geometry.line_of_sight(starts, src, mins, maxs))
-    np.testing.assert_array_equal(np.flatnonzero(~los) + 1, [1, 2, 5, 6, 7, 10])
+    np.testing.assert_array_equal(np.flatnonzero(~los) + 1, [1, 5, 6, 7])
     d = np.asarray(geometry.distance_to_boxes(starts, mins, maxs))
-    assert d.shape == (10,) and np.all(d >= m.constraints.d_obstacle_m + 10.0)
+    assert d.shape == (10,) and np.all(d >= m.constraints.d_obstacle_m + 25.0)
+    np.testing.assert_allclose(d, np.hypot(np.maximum(0.0, starts[:, 0] + 10.0), 35.0), atol=1e-9)
+    # the shadow arc of B3 on the circle and the y = 120 m row agree with the sampling reference
+    az = np.radians(np.arange(0.0, 360.0, 1.0))
+    ring = np.stack([50.0 * np.cos(az), 50.0 * np.sin(az), np.full_like(az, 8.0)], axis=-1) + src
+    ring_ref = [bool(_blocked_by(p, src, mins, maxs)) for p in ring]
+    np.testing.assert_array_equal(~np.asarray(geometry.line_of_sight(ring, src, mins, maxs)), ring_ref)
+    xs = np.arange(-62.5, 70.0, 5.0)
+    row = np.stack([xs, np.full_like(xs, 120.0), np.full_like(xs, 10.0)], axis=-1)
+    np.testing.assert_array_equal(~np.asarray(geometry.line_of_sight(row, src, mins, maxs)), [_sector_blocked_at_y120(x) for x in xs])
