@@ -371,10 +371,10 @@ def test_paper_rule_does_violate_safety_distances():
 SOAK_HEAD_ON_XFAIL = pytest.mark.xfail(
     strict=False,
     reason=(
-        "known limitation of the safety filter (found by this soak, 1 seed in 200): once two drones are "
-        "inside their activation clearance, need = min(now, 0) only forbids getting closer to the peer's "
-        "*known* position, not to where the peer moves, so a 4-drone squeeze can ratchet a pair below d_U* "
-        "(min 0.62 m). See the verification report / docs/paper-notes.md."
+        "known limitation of the safety filter found by this soak: in a 4-drone head-on squeeze the filter can "
+        "leave two drones below d_U* (with full knowledge until control 015e608: 0.62 m, 1 seed in 200; since then "
+        "with the delayed view d_hop = 3 m, h_max = 2: 0.26 m, steps flagged filtered/infeasible with age-0 data "
+        "of each other). See docs/paper-notes.md, 'Constraint activation'."
     ),
 )
 
