@@ -339,9 +339,10 @@ class SimVehicle:
             self.phase = ""
             self.landed_state = self.m.MAV_LANDED_STATE_IN_AIR
             self.statustext(6, "Takeoff complete")
-            if beh == "takeoff":
+            if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
                 self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
-                self._hold_here()
+                target = self.pm.command.position
+                self._command(Command("hold", position=None if target is None else target.copy()))
         elif self.phase == "land" and self.flying and float(p[2]) <= self.config.ground_z_m + 1e-6:
             self._touchdown()
         elif self.phase == "rtl_climb":
@@ -363,7 +364,7 @@ class SimVehicle:
                         self._command(Command("position", position=target, fence=self._motion_fence()))
                     self.guided_kind = "position"
                     self.statustext(4, "Guided: velocity timeout, holding")
-            elif age > self.offboard_loss_s:
+            elif self.t - (self.setpoint_times[-1] if self.setpoint_times else -math.inf) > self.offboard_loss_s:
                 self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
                 self.guided_kind = ""
                 self._hold_here()

@@ -45,6 +45,14 @@ def wait_msg(conn: Any, mtype: str | list[str], cond: Callable[[Any], bool] = la
             return m
 
 
+def drain(conn: Any) -> None:
+    """Read and drop everything queued on the client's socket (at 20x speed-up a client that
+    does not read for a while overflows its UDP receive buffer and the kernel drops frames,
+    among them the ACK a test then waits for)."""
+    while conn.recv_match(blocking=False) is not None:
+        pass
+
+
 def wait_until(pred: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
     """Poll ``pred`` until true (deadline ``timeout`` s); cheap sleeps between polls."""
     deadline = time.monotonic() + timeout
@@ -76,6 +84,7 @@ class Rig:
         c = self.clients[index]
         p = list(params) + [0.0] * (7 - len(params))
         ts = self.vehicles[index].sysid if target_system is None else target_system
+        drain(c)
         if use_int:
             c.mav.command_int_send(ts, 1, frame, cmd, 0, 0, p[0], p[1], p[2], p[3], int(p[4]), int(p[5]), p[6])
         else:

@@ -387,6 +387,9 @@ def test_geofence_clamps_and_rejects(make_rig):
     # reject action
     rig2 = make_rig(VehicleConfig(sysid=2, geofence=Geofence(z_max_m=10.0, radius_m=15.0, action="reject"), profile="ideal"))
     rig2.fly_up(5.0)
+    from conftest import wait_until
+
+    wait_until(lambda: rig2.vehicle.position[2] == 5.0, 5, "take-off altitude")
     here = rig2.vehicle.position.copy()
     rig2.clients[0].mav.set_position_target_local_ned_send(0, 2, 1, R.MAV_FRAME_LOCAL_NED, 0b110111111000, 30, 0, -5, 0, 0, 0, 0, 0, 0, 0, 0)
     wait_msg(rig2.clients[0], "STATUSTEXT", lambda m: "refused" in m.text)
