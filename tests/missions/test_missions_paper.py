@@ -261,11 +261,11 @@ def test_scenario_source_distance_and_b3_inside_keep_out() -> None:
     d_s, d_o = m.constraints.d_source_m, m.constraints.d_obstacle_m
     # B3's nearest point (-8, 12) is 14.4 m from the source, its farthest corner (-18, 24) 30 m
     # horizontally: even at the safe rule's activation distance (d_O* + 0.5 v_max dt + turn
-    # buffer + 2 v_max dt, 7.8 m) it stays > 10 m inside the keep-out disc, so it never blocks
-    # a path or narrows the circle.
+    # buffer + 2 v_max dt, about 8 m) it stays > 10 m inside the keep-out disc, so it never
+    # blocks a path or narrows the circle.
     limits = m.limits()
     activation = d_o + 2.5 * limits.step_max_m + limits.turn_buffer_m
-    assert activation == pytest.approx(7.82, abs=0.01)
+    assert 7.5 <= activation <= 9.0
     assert _point_box_distance(src, mins[2], maxs[2]) == pytest.approx(math.hypot(8.0, 12.0), abs=1e-9)
     corners = np.array([[x, y] for x in (mins[2, 0], maxs[2, 0]) for y in (mins[2, 1], maxs[2, 1])])
     far = np.linalg.norm(corners - src[:2], axis=1).max()
