@@ -13,7 +13,8 @@ Two profiles:
     * position ``q`` with speed ``s`` (``|v_ff|`` for position+velocity, else the speed
       limit): straight line from ``p0`` to ``q`` at speed ``s``; on arrival the position is
       set to ``q`` *exactly* and held. Hence a position+velocity setpoint ``(p + v dt, v)``
-      received at ``t0`` puts the vehicle at exactly ``p + v dt`` at ``t0 + dt``.
+      received at ``t0`` puts the vehicle at exactly ``p + v dt`` at ``t0 + dt``. "Arrival"
+      tolerates the float32 rounding of MAVLink fields (see :meth:`PointMass._arrival_tol`).
 
 ``pointmass``
     A velocity loop saturated at the acceleration limit tracks a desired velocity: the
@@ -190,12 +191,20 @@ class PointMass:
         direction = delta / dist
         speed = self._travel_speed(direction)
         travelled = speed * elapsed
-        if travelled >= dist * (1.0 - 1e-12) - 1e-12:
+        if travelled >= dist - self._arrival_tol(target, dist):
             self.position = target.copy()
             self.velocity = np.zeros(3)
         else:
             self.position = self._p0 + direction * travelled
             self.velocity = direction * speed
+
+    def _arrival_tol(self, target: FloatArray, dist: float) -> float:
+        """Distance (m) below which the ideal profile snaps onto its target: covers the float32
+        rounding of MAVLink setpoints (a target ``p + v dt`` and a velocity ``v`` rounded
+        separately disagree by ~1e-7 relative), i.e. 1e-5 of the leg plus 4e-7 of the largest
+        coordinate."""
+        scale = max(1.0, float(np.max(np.abs(target))), float(np.max(np.abs(self._p0))))
+        return 1e-5 * dist + 4e-7 * scale
 
     def _step_pointmass(self, h: float) -> None:
         cmd = self.command

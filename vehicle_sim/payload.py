@@ -80,8 +80,9 @@ class Measurement:
         t_s: sim time of the measurement (s).
         position_enu_m: true position where it was taken, (x, y, z) ENU m.
         range_m: ranging estimate d̂ (m) or None (no ranging sensor).
-        azimuth_rad, elevation_rad: bearing estimate (rad, ENU: azimuth from east towards
-            north, elevation above the horizontal) or None (no bearing sensor).
+        azimuth_rad, elevation_rad: bearing estimate of the source seen from the drone (rad,
+            ENU: azimuth from east towards north, elevation above the horizontal) or None
+            (no bearing sensor).
         los: whether the link was line of sight.
     """
 

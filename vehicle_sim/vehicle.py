@@ -1067,13 +1067,14 @@ class SimVehicle:
         z_max_get = lambda: self.fence.z_max_m - home_z()  # noqa: E731
         z_min_get = lambda: self.fence.z_min_m - home_z()  # noqa: E731
         P = _Param
-        common = [
-            P("FENCE_ENABLE", True, lambda: float(self.fence.enabled), fence_enable),
-            P("FIMNAV_FENCE_XMIN", False, box("x_min_m"), read_only),
-            P("FIMNAV_FENCE_XMAX", False, box("x_max_m"), read_only),
-            P("FIMNAV_FENCE_YMIN", False, box("y_min_m"), read_only),
-            P("FIMNAV_FENCE_YMAX", False, box("y_max_m"), read_only),
-        ]
+        common = [P("FENCE_ENABLE", True, lambda: float(self.fence.enabled), fence_enable)]
+        if self.fence.has_box:  # the mission's horizontal box (read-only, ENU m)
+            common += [
+                P("FIMNAV_FENCE_XMIN", False, box("x_min_m"), read_only),
+                P("FIMNAV_FENCE_XMAX", False, box("x_max_m"), read_only),
+                P("FIMNAV_FENCE_YMIN", False, box("y_min_m"), read_only),
+                P("FIMNAV_FENCE_YMAX", False, box("y_max_m"), read_only),
+            ]
         if self.config.flavour == "px4":
             specific = [
                 P("MAV_SYS_ID", True, lambda: self.sysid_param, sysid_set),

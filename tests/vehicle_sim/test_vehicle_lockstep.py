@@ -1,0 +1,112 @@
+"""Lockstep clock: in-process ticks over real UDP MAVLink, and ticks from real Zenoh on loopback."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from vehicle_sim.clock import LockstepClock, Tick, ZenohTickSource, encode_tick, parse_tick, tick_key, zenoh_config
+from vehicle_sim.config import Origin, VehicleConfig
+from vehicle_sim.geo import LocalFrame
+
+from conftest import mavlink as R, wait_msg, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
+    """A planner-like client: read the step-k position, send (p + v dt, v), tick k+1; the
+    ideal vehicle reports exactly the (float32) target, stamped (k+1) dt."""
+    cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(5.0, 150.0, 8.0), origin=Origin(45, 7, 100))
+    rig = make_rig(cfg, lockstep=True)
+    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    c = rig.client
+    frame = LocalFrame(cfg.origin)
+    rng = np.random.default_rng(11)
+    dt = 1.0
+    clock.push(Tick(0, 0.0))
+    m = wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 0)
+    for k in range(20):
+        p_ned = np.array([m.x, m.y, m.z], dtype=float)
+        v_ned = rng.normal(size=3)
+        v_ned *= rng.uniform(0.5, 1.0) / np.linalg.norm(v_ned)
+        target = p_ned + v_ned * dt
+        c.mav.set_position_target_local_ned_send(0, 1, 1, R.MAV_FRAME_LOCAL_NED, 0b110111000000,
+                                                 *target, *v_ned, 0, 0, 0, 0, 0)
+        clock.push(Tick(k + 1, (k + 1) * dt))
+        m = wait_msg(c, "LOCAL_POSITION_NED", lambda m, k=k: m.time_boot_ms == (k + 1) * 1000)
+        np.testing.assert_array_equal([m.x, m.y, m.z], target.astype(np.float32).astype(float))
+        n, e, d = target.astype(np.float32).astype(float)
+        np.testing.assert_array_equal(rig.vehicle.position, [e, n, -d])
+    # between ticks nothing moves
+    t = rig.vehicle.t
+    assert rig.command(R.MAV_CMD_REQUEST_MESSAGE, R.MAVLINK_MSG_ID_HOME_POSITION) == 0
+    assert rig.vehicle.t == t
+    # an out-of-order tick is dropped
+    assert not clock.push(Tick(3, 3.0))
+    del frame
+
+
+@pytest.mark.parametrize(
+    "payload, fragment",
+    [
+        (b"{not json", "JSON object"),
+        (b"[1, 2]", "JSON object"),
+        (b'{"step": -1, "t_s": 1.0}', "tick.step"),
+        (b'{"step": 1.5, "t_s": 1.0}', "tick.step"),
+        (b'{"step": 1, "t_s": "x"}', "tick.t_s"),
+        (b'{"step": 1, "t_s": NaN}', "tick.t_s"),
+        (b'{"step": 1, "t_s": 1.0, "extra": 0}', "unknown keys"),
+        (b"\xff\xfe", "JSON"),
+    ],
+)
+def test_parse_tick_rejects_bad_payloads(payload, fragment):
+    with pytest.raises(ValueError, match=fragment):
+        parse_tick(payload)
+
+
+def test_tick_round_trip():
+    assert parse_tick(encode_tick(Tick(7, 3.5))) == Tick(7, 3.5)
+    assert json.loads(encode_tick(Tick(1, 0.25))) == {"step": 1, "t_s": 0.25}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_zenoh_ticks_drive_the_vehicle_and_bad_ticks_are_dropped(make_rig, caplog):
+    import zenoh
+
+    cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(0.0, 0.0, 5.0))
+    rig = make_rig(cfg, lockstep=True)
+    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    port = _free_port()
+    source = ZenohTickSource("m42", clock, listen=[f"tcp/127.0.0.1:{port}"])
+    pub_session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        pub = pub_session.declare_publisher(tick_key("m42"))
+        # discovery takes a moment: repeat tick 1 until it lands (duplicates are dropped)
+        deadline = time.monotonic() + 10
+        while rig.vehicle.t < 1.0:
+            pub.put(encode_tick(Tick(1, 1.0)))
+            assert time.monotonic() < deadline, "no zenoh tick arrived"
+            time.sleep(0.05)
+        c = rig.client
+        wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 1000)
+        with caplog.at_level("WARNING", logger="vehicle_sim.clock"):
+            pub.put(b'{"step": "two", "t_s": 2.0}')
+            pub.put(b"garbage")
+            pub.put(encode_tick(Tick(2, 2.5)))
+            wait_until(lambda: rig.vehicle.t == 2.5, 5, "tick 2")
+        assert "dropped bad tick" in caplog.text and "tick.step" in caplog.text
+        assert clock.last == Tick(2, 2.5)
+        wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 2500)
+    finally:
+        pub_session.close()
+        source.close()
