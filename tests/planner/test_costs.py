@@ -82,7 +82,7 @@ def test_unknown_criterion_is_an_error():
 # ---------------------------------------------------------------- gradients vs finite differences
 
 
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=300, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),
     roles=st.lists(st.sampled_from("rbj"), min_size=3, max_size=7),

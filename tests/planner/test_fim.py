@@ -104,7 +104,7 @@ channels = st.builds(
 )
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=300, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),
     roles=st.lists(st.sampled_from("rbj"), min_size=1, max_size=7),

@@ -74,7 +74,7 @@ def brute_force_los(p: np.ndarray, s: np.ndarray, bmin: np.ndarray, bmax: np.nda
     return bool(inside_any(pts, bmin, bmax).any()), float(outside_distance(pts, bmin, bmax).min())
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), nboxes=st.integers(0, 4), n=st.integers(1, 6))
 def test_line_of_sight_vs_dense_sampling(seed, nboxes, n):
     rng = np.random.default_rng(seed)
@@ -201,7 +201,7 @@ def test_distance_to_boxes_no_obstacle_and_batched(rng):
     np.testing.assert_allclose(d[2, 3], distance_to_boxes(pts[2, 3], bmin, bmax))
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), nboxes=st.integers(1, 3))
 def test_distance_gradient_vs_finite_differences(seed, nboxes):
     rng = np.random.default_rng(seed)

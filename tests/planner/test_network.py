@@ -21,7 +21,7 @@ def reference_hops(p: np.ndarray, d_hop: float) -> np.ndarray:
     return np.where(np.isinf(dist), UNREACHABLE, dist).astype(np.int64)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 25), d_hop=st.floats(5.0, 60.0), batch=st.integers(1, 3))
 def test_hop_counts_vs_scipy_shortest_path(seed, n, d_hop, batch):
     rng = np.random.default_rng(seed)
