@@ -39,6 +39,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from planner.estimator import EstimatorConfig
 from planner.params import Channel, Limits
 
 #: Version of the mission format written by :func:`missions.loader.mission_to_yaml`.
@@ -274,11 +275,42 @@ class Drones(_Section):
         return np.array([r in ("bearing", "joint") for r in self.roles], dtype=bool)
 
 
+class SearchBox(_Section):
+    """Where the source can be (prior knowledge of the operator): the estimator keeps its
+    estimate inside this box. Absent: the fence horizontally, any height."""
+
+    min_m: Vec3 = Field(..., description="Lower corner [x, y, z] (m, ENU).")
+    max_m: Vec3 = Field(..., description="Upper corner [x, y, z] (m, ENU).")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> SearchBox:
+        for axis, (lo, hi) in enumerate(zip(self.min_m, self.max_m)):
+            if not lo < hi:
+                raise fail(f"max_m[{axis}]", f"max_m[{axis}] > min_m[{axis}] = {lo:g} ({'xyz'[axis]} axis)", hi)
+        return self
+
+
 class Source(_Section):
     """The radio source p_0: initial position and constant velocity (zero = static source)."""
 
     position_m: Vec3 = Field(..., description="Source position p_0 at t = 0 (m, ENU).")
     velocity_mps: Vec3 = Field((0.0, 0.0, 0.0), description="Constant source velocity (m/s, ENU).")
+    search_box: SearchBox | None = Field(
+        None, description="Region the source is known to lie in (the estimator's bounds); absent: fence, any height."
+    )
+
+    @model_validator(mode="after")
+    def _inside_search_box(self) -> Source:
+        box = self.search_box
+        if box is not None:
+            for axis, v in enumerate(self.position_m):
+                if not box.min_m[axis] <= v <= box.max_m[axis]:
+                    raise fail(
+                        f"search_box.min_m[{axis}]",
+                        f"a search box that contains the source position ({'xyz'[axis]} = {v:g} m)",
+                        f"[{box.min_m[axis]:g}, {box.max_m[axis]:g}]",
+                    )
+        return self
 
     def position_at(self, t_s: float) -> NDArray[np.float64]:
         """Source position p_0(t) = p_0 + v t at time ``t_s`` seconds, shape (3,), metres ENU."""
@@ -600,6 +632,19 @@ class Mission(_Section):
     def limits(self) -> Limits:
         """``constraints.to_planner(dt_s)``."""
         return self.constraints.to_planner(self.dt_s)
+
+    def estimator_config(self) -> EstimatorConfig:
+        """The source estimator's settings for this mission: the search box (or the fence and
+        any height) as bounds; a forgetting factor of 0.97 per step for a moving source."""
+        box = self.source.search_box
+        if box is not None:
+            lo, hi = tuple(box.min_m), tuple(box.max_m)
+        else:
+            f = self.fence
+            lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
+        return EstimatorConfig(
+            forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi
+        )
 
     def obstacle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Obstacle corners (mins, maxs), each shape (B, 3), metres ENU; B may be 0."""

@@ -31,8 +31,9 @@ from numpy.typing import NDArray
 
 from missions.schema import Mission
 from planner import estimator as est
-from planner.control import ALTITUDE, OBSTACLE, SOURCE, UAV, control_step
-from planner.fim import FimStatus, cost_gradient, fisher_information, position_error_bound
+from planner.agent import plan
+from planner.control import ALTITUDE, OBSTACLE, SOURCE, UAV
+from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
 from planner.observation import observe_from_uniforms
@@ -43,9 +44,6 @@ FloatArray = NDArray[np.float64]
 
 #: Constraint families of the safety accounting, in summary order.
 SAFETY_FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
-
-#: Standard deviations of the source estimate added to d_S* (the estimate is not the source).
-SOURCE_SIGMA_FACTOR: float = 3.0
 
 #: Tolerance of the kinematic accounting (floating point of the polar round trip), m and rad.
 KINEMATIC_TOL: float = 1e-9
@@ -162,7 +160,7 @@ def simulate(
     comms = mission.comms
     dt = mission.dt_s
     if estimator_config is None:
-        estimator_config = est.EstimatorConfig(forgetting=1.0 if mission.source.is_static else 0.97)
+        estimator_config = mission.estimator_config()
     xi = mission.controller.xi
     perturb = mission.controller.random_perturbation_rad
 
@@ -181,6 +179,7 @@ def simulate(
     used = np.full((M, N, N), -1, dtype=np.int64)
     state = est.initial_state((M, N), estimator_config)
     eye = np.eye(N, dtype=bool)
+    eye_b = np.broadcast_to(eye, (M, N, N))
     rng_view = np.broadcast_to(ranging, (M, N, N))
     brg_view = np.broadcast_to(bearing, (M, N, N))
 
@@ -222,34 +221,20 @@ def simulate(
             los=view_los & new,
         )
         state = est.update(state, meas, channel, estimator_config)
-        p_hat = state.estimate_m
-        estimates[k] = p_hat
-        est_err[k] = np.linalg.norm(p_hat - src, axis=-1)
-        if oracle_estimate:
-            p_hat = np.broadcast_to(src, p_hat.shape)
+        estimates[k] = state.estimate_m
+        est_err[k] = np.linalg.norm(state.estimate_m - src, axis=-1)
         observable[k] = state.observable
 
-        # 4. FIM at the estimate over the view, cost gradient, control step.
+        # 4. Planning step from the view (shared with the planner node).
         view_rng = rng_view & have
         view_brg = brg_view & have
-        # Planning FIM: drone i's own term as if its link were LOS (the information it can
-        # regain by moving); otherwise a bearing drone in a shadow has a zero gradient.
-        plan_los = view_los | eye
-        J = fisher_information(p_hat, view_pos, view_rng, view_brg, plan_los, channel)
-        cg = cost_gradient(J, p_hat, pos, ranging, bearing, np.ones((M, N), dtype=bool), channel, spec.criterion)
-        if oracle_estimate:
-            status = cg.status
-            keepout = np.full((M, N), limits.d_source_m)
-        else:
-            status = np.where(state.observable, cg.status, np.int8(FimStatus.SINGULAR))
-            info_eig = np.linalg.eigvalsh(state.information)[..., 0]
-            sigma = np.where(info_eig > 0.0, 1.0 / np.sqrt(np.maximum(info_eig, 1e-300)), np.inf)
-            keepout = np.where(state.observable, source_keepout_m(limits, sigma), -np.inf)
-        step = control_step(
-            pos, prev_step, cg.gradient, status, view_pos, have & ~eye & collision_relevant(hops, comms.d_hop_m, limits),
-            np.where(have, k - saved, 0),
-            p_hat, keepout, bmin, bmax, limits, ctrl_u[k], xi=xi, perturbation_rad=perturb,
+        planned = plan(
+            pos, prev_step, eye_b, view_pos, have, view_los, np.where(have, k - saved, 0), hops,
+            ranging, bearing, state.estimate_m, state.information, state.observable, channel, limits,
+            spec.criterion, bmin, bmax, comms.d_hop_m, ctrl_u[k], xi=xi, perturbation_rad=perturb,
+            oracle_source=src if oracle_estimate else None,
         )
+        step = planned.step
         fallback[k] = step.singular
         filtered[k] = step.filtered
         active_counts[k] = step.active.reshape(-1, 4).sum(0)
@@ -295,31 +280,6 @@ def simulate(
         runtime_s=time.perf_counter() - t0,
         extra={"oracle_estimate": float(oracle_estimate)},
     )
-
-
-def source_keepout_m(limits: Limits, sigma_m: FloatArray) -> FloatArray:
-    """Keep-out radius around the source estimate (m): d_S* + min(3σ, d_S*).
-
-    σ is the largest standard deviation of the estimate (1/sqrt of the smallest eigenvalue of
-    the estimator's information). The inflation covers the estimate's error; its cap keeps an
-    uncertain swarm from fleeing the estimate (fleeing lengthens the ranges, which grows σ:
-    a runaway seen without the cap).
-    """
-    return limits.d_source_m + np.minimum(SOURCE_SIGMA_FACTOR * sigma_m, limits.d_source_m)
-
-
-def collision_relevant(hops: NDArray[np.int64], d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
-    """Which peers drone i must keep clear of this step, (..., N, N) bool.
-
-    A peer that is not a direct neighbour (h_ij ≠ 1) is farther than d_hop right now, so it
-    cannot come within d_U* during the next step when d_hop ≥ d_U* + 3 v_max Δt + 2 turn
-    buffers; its (stale) position is then ignored by the anti-collision constraint. With a
-    smaller radius every known peer counts, with its age (see control_step).
-    """
-    reach = limits.d_uav_m + 3.0 * limits.step_max_m + 2.0 * limits.turn_buffer_m
-    if d_hop_m >= reach:
-        return hops == 1
-    return np.ones(hops.shape, dtype=bool)
 
 
 def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits) -> FloatArray:

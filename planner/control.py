@@ -353,11 +353,10 @@ def _envelope_search(
 
     Candidates: 9 headings × 5 tilts across the allowed turn (a full circle of headings before
     the first step) × {v_min, v_max}·Δt. Among those whose every family margin is at least
-    ``need`` (n, 4), the one closest to the desired step ``u``; if none, among those that keep
-    the physical clearances (without the recursive-feasibility buffers) the one that restores
-    the buffers best; if none, among those that keep the exactly known clearances (obstacles,
-    altitude) the one with the best peer and source clearance; if none, the one with the best
-    obstacle and altitude clearance. Returns the step (n, 3), its margins (n, 4) and infeasibility.
+    ``need`` (n, 4), the one closest to the desired step ``u``. Without one, constraints are
+    relaxed in order of how little is known of them: first the source keep-out (it follows
+    the estimate), then the peers' clearance (their data age), and only then the
+    recursive-feasibility buffers of the exactly known obstacles and altitude box. Returns the step (n, 3), its margins (n, 4) and infeasibility.
     """
     _, prev_psi, prev_theta = _spherical(prev)
     fr_h = np.linspace(-1.0, 1.0, 9)
@@ -374,31 +373,29 @@ def _envelope_search(
     cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
     slack = margins - need[:, None, :]
-    ok = (slack >= 0.0).all(-1)
-    # Physical margins: the same clearances without the recursive-feasibility buffers (turn
-    # away, segment interior, tilt swing back); a step that keeps them is safe now.
-    tb = limits.turn_buffer_m
-    buffers = np.array([2.0 * tb, tb, 0.5 * limits.step_max_m + tb, 0.0])
-    physical = margins + buffers
+    # Physical margins of the exactly known clearances: without the recursive-feasibility
+    # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
-    physical[..., ALTITUDE] = np.minimum(limits.z_max_m - z, z - limits.z_min_m)
-    now_physical = np.minimum(need + buffers, 0.0)
-    now_physical[:, ALTITUDE] = need[:, ALTITUDE]
-    ok_physical = (physical >= now_physical[:, None, :]).all(-1)
-    worst_buffered = slack.min(-1)
-    # Without even a physically safe step, the clearances known exactly (obstacles, altitude
-    # box) come first, then those known through estimates (peers' data, source estimate).
-    phys_slack = physical - now_physical[:, None, :]
-    static = phys_slack[..., OBSTACLE:].min(-1)
-    ok_static = static >= 0.0
+    phys_obstacle = slack[..., OBSTACLE] + 0.5 * limits.step_max_m + limits.turn_buffer_m
+    phys_altitude = np.minimum(limits.z_max_m - z, z - limits.z_min_m) - np.minimum(need[:, None, ALTITUDE], 0.0)
+    exact = np.minimum(slack[..., OBSTACLE], slack[..., ALTITUDE])
+    exact_phys = np.minimum(np.minimum(phys_obstacle, 0.5 * limits.step_max_m + limits.turn_buffer_m), phys_altitude)
     closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
-    pick_ok = np.where(ok, closeness, np.inf).argmin(-1)
-    pick_physical = np.where(ok_physical, worst_buffered, -np.inf).argmax(-1)
-    pick_static = np.where(ok_static, phys_slack[..., :OBSTACLE].min(-1), -np.inf).argmax(-1)
-    pick_any = static.argmax(-1)
-    pick = np.where(
-        ok.any(-1), pick_ok,
-        np.where(ok_physical.any(-1), pick_physical, np.where(ok_static.any(-1), pick_static, pick_any)),
-    )
+    # Tiers, most demanding first; within a tier the pick is the closest to the desired step
+    # (tier 1) or the one that best restores what the tier gave up.
+    tiers = [
+        ((slack >= 0.0).all(-1), -closeness),  # 1. every clearance with its buffers
+        ((exact >= 0.0) & (slack[..., UAV] >= 0.0), slack[..., SOURCE]),  # 2. source keep-out relaxed
+        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 3. peers relaxed too
+        # 4. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
+        #    allowances leave real room); the altitude keeps its tilt buffer, which is the
+        #    climb that cannot be avoided next step.
+        ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
+        (exact_phys >= 0.0, exact),  # 5. every buffer relaxed
+    ]
+    pick = exact_phys.argmax(-1)  # 6. least bad for obstacles and altitude
+    for ok, score in reversed(tiers):
+        pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
+    infeasible = ~tiers[0][0].any(-1)
     rows = np.arange(p.shape[0])
-    return cand[rows, pick], margins[rows, pick], ~ok.any(-1)
+    return cand[rows, pick], margins[rows, pick], infeasible

@@ -203,6 +203,11 @@ class EstimatorConfig:
     init_distance_m: float = 100.0
     mirror: Literal["below", "above"] = "below"
     range_cost: Literal["gls", "ml"] = "gls"
+    #: Search region of the source (m, ENU): every estimate is projected into this box
+    #: (projected Levenberg-Marquardt). Unbounded by default; a mission's ``source.search_box``
+    #: sets it (e.g. z in [0, 30] m: an emitter between the ground and the rooftops).
+    bounds_min_m: tuple[float, float, float] = (-math.inf, -math.inf, -math.inf)
+    bounds_max_m: tuple[float, float, float] = (math.inf, math.inf, math.inf)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window_rows, int) and self.window_rows >= 0):
@@ -238,8 +243,17 @@ class EstimatorConfig:
             )
         if self.range_cost not in ("gls", "ml"):
             raise ValueError(f"EstimatorConfig.range_cost: expected 'gls' or 'ml', found {self.range_cost!r}")
+        lo, hi = np.asarray(self.bounds_min_m, dtype=float), np.asarray(self.bounds_max_m, dtype=float)
+        if lo.shape != (3,) or hi.shape != (3,) or np.isnan(lo).any() or np.isnan(hi).any() or (lo >= hi).any():
+            raise ValueError(
+                f"EstimatorConfig.bounds: expected three (min, max) pairs with min < max, found {self.bounds_min_m!r} and {self.bounds_max_m!r}"
+            )
         if self.mirror not in ("below", "above"):
             raise ValueError(f"EstimatorConfig.mirror: expected 'below' or 'above', found {self.mirror!r}")
+
+    def clip(self, x: FloatArray) -> FloatArray:
+        """Project estimates (..., 3) into the search box."""
+        return np.minimum(np.maximum(x, self.bounds_min_m), self.bounds_max_m)
 
 
 @dataclass(frozen=True)
@@ -963,7 +977,7 @@ def update(
         just = np.zeros(bshape, dtype=bool)
         just[todo] = ok
         x = x.copy()
-        x[just] = x_init[ok]
+        x[just] = config.clip(x_init[ok])
         # Records dropped before initialisation become the prior (R marginalised out).
         lam_d, eta_d = _schur_prior(dr_A, dr_b)
         prior_info = np.where(just[..., None, None], lam_d, prior_info)
@@ -982,7 +996,7 @@ def update(
     if config.recheck_every > 0 and M > 0 and (state.calls + 1) % config.recheck_every == 0 and np.any(recheck):
         x_pl, ok = _pl_solve(pr_A[recheck], pr_b[recheck], config)
         cand = x_prev.copy()
-        cand[recheck] = np.where(ok[:, None], x_pl, x_prev[recheck])
+        cand[recheck] = config.clip(np.where(ok[:, None], x_pl, x_prev[recheck]))
         drop = _pl_cost(pr_A, pr_b, x_prev) - _pl_cost(pr_A, pr_b, cand)
         fresh = new_rows.with_weights(
             np.where(initialised[..., None], new_rows.ar, 0.0),
@@ -1085,7 +1099,7 @@ def update(
         reach = 0.5 * np.einsum("...k,...k->...", ev.d, ev.ar + ev.aa + ev.ae) / n_w
         norm = np.sqrt(np.einsum("...i,...i->...", step, step))
         shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
-        cand = x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0)
+        cand = config.clip(x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0))
         c_new = _evaluate(cand, rows, channel, k, ml, d_var=None if ml else ev.d, cost_only=True, redescend=rd, tukey_c=c)
         c_new = c_new + _prior_cost(cand, prior_info, prior_vec)
         accept = np.isfinite(c_new) & (c_new <= cost) & active

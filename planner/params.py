@@ -95,11 +95,12 @@ class Limits:
 
     @cached_property
     def turn_buffer_m(self) -> float:
-        """Worst approach (m) of a drone turning away from a head-on course at minimum speed.
+        """Worst approach (m) of a drone turning away from a head-on course.
 
-        s_min Σ_k max(0, cos(k α)) with α = min(φ_max, θ_max): the distance a drone still
-        closes on a surface while its heading swings away at the maximum turn rate. Used by
-        the safety filter of :func:`planner.control.control_step`.
+        s_max Σ_k max(0, cos(k α)) with α = min(φ_max, θ_max): the distance a drone still
+        closes on a surface (or a peer) while its heading swings away at the maximum turn
+        rate, at full speed (the safety filter keeps the step closest to the desired one,
+        which is usually at v_max). Used by :func:`planner.control.control_step`.
         """
         alpha = min(self.heading_change_max_rad, self.tilt_change_max_rad)
         total = 0.0
@@ -107,4 +108,4 @@ class Limits:
         while alpha > 0.0 and k * alpha < 0.5 * math.pi:
             total += math.cos(k * alpha)
             k += 1
-        return self.step_min_m * total
+        return self.step_max_m * total

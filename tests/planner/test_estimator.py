@@ -22,6 +22,8 @@ from planner.estimator import (
     initial_state,
     update,
 )
+from planner import estimator as est
+from planner.observation import observe
 from planner.params import Channel
 
 CHANNEL = Channel()
@@ -476,3 +478,27 @@ def test_config_rejects_bad_values(kwargs: dict[str, object]) -> None:
     name = next(iter(kwargs))
     with pytest.raises(ValueError, match=name):
         EstimatorConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_search_box_bounds_the_estimate_and_rejects_bad_boxes() -> None:
+    """A flat swarm of ranging drones hardly sees the source's height; with a search box
+    z in [0, 30] m the estimate stays inside it and is closer to the truth than without."""
+    ch = Channel()
+    src = np.array([0.0, 0.0, 2.0])
+    pos = np.random.default_rng(99).uniform([-60.0, 90.0, 3.0], [60.0, 160.0, 20.0], (10, 3))
+    free = est.EstimatorConfig()
+    boxed = est.EstimatorConfig(bounds_min_m=(-1e3, -1e3, 0.0), bounds_max_m=(1e3, 1e3, 30.0))
+    errs = {"free": [], "boxed": []}
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        states = {"free": est.initial_state((), free), "boxed": est.initial_state((), boxed)}
+        for _ in range(20):
+            o = observe(src, pos, np.ones(10, bool), np.zeros(10, bool), np.zeros((0, 3)), np.zeros((0, 3)), ch, rng)
+            m = est.Measurements(pos, o.range_m, o.azimuth_rad, o.elevation_rad, o.los)
+            states = {k: est.update(s, m, ch, free if k == "free" else boxed) for k, s in states.items()}
+        assert 0.0 <= states["boxed"].estimate_m[2] <= 30.0
+        for k in errs:
+            errs[k].append(np.linalg.norm(states[k].estimate_m - src))
+    assert np.median(errs["boxed"]) < np.median(errs["free"])
+    with pytest.raises(ValueError, match="bounds"):
+        est.EstimatorConfig(bounds_min_m=(0.0, 0.0, 5.0), bounds_max_m=(1.0, 1.0, 5.0))

@@ -1,0 +1,122 @@
+"""The in-process simulator against the paper's findings (reduced trials and steps), against
+independent references (hop counts from scipy, per-trial runs) and for determinism.
+
+Full-size figures (100 trials x 550 steps) are in docs/case-study.md.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import shortest_path
+
+from missions.simulator import RunSpec, simulate
+from tests.simulator.conftest import paper_mission
+
+
+def _tail_median(values: np.ndarray, n: int = 30) -> float:
+    return float(np.median(values[-n:]))
+
+
+def test_same_seed_same_records() -> None:
+    m = paper_mission("heterogeneous")
+    a = simulate(RunSpec(m, "A", 2, 40))
+    b = simulate(RunSpec(m, "A", 2, 40))
+    np.testing.assert_array_equal(a.positions_m, b.positions_m)
+    np.testing.assert_array_equal(a.estimates_m, b.estimates_m)
+    np.testing.assert_array_equal(a.peb_m, b.peb_m)
+    for name in a.margins_m:
+        np.testing.assert_array_equal(a.margins_m[name], b.margins_m[name])
+
+
+def test_other_seed_other_noise() -> None:
+    a = simulate(RunSpec(paper_mission("heterogeneous"), "A", 1, 20))
+    b = simulate(RunSpec(paper_mission("heterogeneous", seed=7), "A", 1, 20))
+    assert not np.array_equal(a.estimates_m, b.estimates_m)
+
+
+def test_trial_does_not_depend_on_batch_size() -> None:
+    """Trial m draws from its own streams: trial 0 alone equals trial 0 of a batch of 3."""
+    m = paper_mission("ranging_nlos")
+    one = simulate(RunSpec(m, "D", 1, 30))
+    three = simulate(RunSpec(m, "D", 3, 30))
+    np.testing.assert_allclose(one.positions_m[:, 0], three.positions_m[:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(one.estimates_m[:, 0], three.estimates_m[:, 0], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["ranging_los", "joint", "heterogeneous"])
+def test_peb_decreases(reduced_run, name: str) -> None:
+    """Paper Fig. 3: the mean PEB falls over the steps (here to below half its start)."""
+    stats = reduced_run(name, "A", 3, 300).peb_stats()
+    start = stats["mean"][0]
+    end = _tail_median(stats["mean"])
+    assert np.isfinite(start) and np.isfinite(end)
+    assert end < 0.5 * start, f"{name}: PEB {start:.1f} m at k=0, {end:.1f} m at the end"
+
+
+def test_heterogeneous_close_to_joint(reduced_run) -> None:
+    """Paper Sec. V: a heterogeneous swarm performs close to a joint one.
+
+    Six of its ten drones sense bearings (ten in the joint swarm): at k = 0, same positions,
+    its PEB is already 1.21x the joint swarm's. The paper's "within 25 %" is not reproduced:
+    over the second half of a full run the median ratio is 1.33 with each drone's own
+    estimate (1.08 with the true source), see docs/case-study.md. This reduced test guards
+    the 40 % bound against regressions."""
+    het = reduced_run("heterogeneous", "A", 3, 300).peb_stats()["mean"]
+    joint = reduced_run("joint", "A", 3, 300).peb_stats()["mean"]
+    ratio = float(np.median(het[150:] / joint[150:]))
+    assert ratio <= 1.40, f"heterogeneous / joint PEB {ratio:.2f}"
+    assert het[0] / joint[0] == pytest.approx(1.21, abs=0.02)
+
+
+def test_a_optimality_beats_d_with_obstacles(reduced_run) -> None:
+    """Paper Sec. V: in NLOS (buildings), A-optimality gives a PEB no higher than D for most of
+    the steps (ranging swarm; for bearing, joint and heterogeneous swarms the two criteria end
+    within a few per cent of each other, docs/case-study.md)."""
+    a = reduced_run("ranging_nlos", "A", 3, 300).peb_stats()["mean"]
+    d = reduced_run("ranging_nlos", "D", 3, 300).peb_stats()["mean"]
+    assert np.mean(a <= d) > 0.5, f"A <= D on {np.mean(a <= d):.0%} of the steps"
+
+
+def test_bearing_only_survives_singular_fim(reduced_run) -> None:
+    """Bearing-only with buildings: J becomes singular (every bearing NLOS) and the drones keep
+    moving (random-perturbation fallback), with no NaN anywhere."""
+    r = reduced_run("bearing", "A", 3, 300)
+    stats = r.peb_stats()
+    assert stats["singular_fraction"].max() > 0.0, "expected singular FIMs in the bearing-only case"
+    assert r.singular_fallback.any()
+    assert np.isfinite(r.positions_m).all() and np.isfinite(r.estimates_m).all()
+    speed = np.linalg.norm(np.diff(r.positions_m, axis=0), axis=-1)
+    limits = r.spec.mission.limits()
+    assert speed.min() >= limits.step_min_m - 1e-9
+    # While singular, the drones still move at least v_min per step.
+    moving = speed[r.singular_fallback]
+    assert moving.size and moving.min() >= limits.step_min_m - 1e-9
+
+
+@pytest.mark.parametrize("name", ["ranging_nlos", "joint", "heterogeneous", "bearing", "dynamic_source"])
+def test_safe_rule_has_no_violation(reduced_run, name: str) -> None:
+    """The default constraint rule keeps every safety distance and limit (true positions)."""
+    r = reduced_run(name, "A", 3, 300)
+    assert r.spec.mission.constraints.activation == "safe"
+    assert r.violations() == {k: 0 for k in r.margins_m}, r.violations()
+
+
+def test_record_ages_follow_hop_counts() -> None:
+    """With a small d_hop, drone i holds peer j's record of step max(saved, k − h_ij + 1) when
+    h_ij <= h_max (hop counts recomputed here with scipy), else keeps the record it saved."""
+    m = paper_mission("ranging_los", **{"comms.d_hop_m": 12.0, "comms.h_max": 3})
+    r = simulate(RunSpec(m, "A", 1, 25))
+    saved_prev = np.full((10, 10), -1)
+    late = False
+    for k in range(25):
+        p = r.positions_m[k, 0]
+        adj = np.linalg.norm(p[:, None] - p[None], axis=-1) <= 12.0
+        hops = shortest_path(adj.astype(float), unweighted=True, directed=False)
+        ell = np.where(hops <= 3, k - np.maximum(hops, 1) + 1, -1).astype(int)  # own record: step k
+        saved = np.maximum(saved_prev, ell)
+        expected_age = np.where(saved >= 0, k - saved, -1)
+        np.testing.assert_array_equal(r.record_ages[k, 0], expected_age)
+        late |= bool((expected_age > 0).any())
+        saved_prev = saved
+    assert late, "the geometry should make some records late"
