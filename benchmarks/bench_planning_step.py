@@ -16,8 +16,8 @@ estimate and ≥ d_O* to every obstacle. SLSQP gets the analytic cost gradient o
 planner.fim.cost_gradient and analytic constraint Jacobians, and starts from the previous step
 (a feasible point). Both are given the same J of the other drones.
 
-Scene: the paper's case study as fimnav's mission files set it (missions/paper/*.yaml):
-source at (0, 0, 2) m, three buildings, the first ten drones on the paper's ellipse centred at
+Scene: the paper's case study as fimnav's mission files set it (source and buildings read
+from missions/paper/heterogeneous.yaml), the first ten drones on the paper's ellipse centred at
 (0, 150, 8) m; for N = 100 and 1000 the others are spread over a 400 m × 200 m area behind
 them. Roles cycle ranging / bearing / joint as in the paper's heterogeneous case.
 
@@ -36,17 +36,21 @@ import gc
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize
 
+from missions.loader import load_mission
 from planner import Channel, FimStatus, Limits, control_step, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
 from planner.geometry import distance_to_boxes_with_gradient
 
-SOURCE = np.array([0.0, 0.0, 2.0])
-BOXES_MIN = np.array([[-45.0, 85.0, 0.0], [6.0, 55.0, 0.0], [-30.0, 20.0, 0.0]])
-BOXES_MAX = np.array([[-6.0, 105.0, 30.0], [40.0, 75.0, 30.0], [-10.0, 40.0, 30.0]])
+MISSION_FILE = Path(__file__).resolve().parents[1] / "missions" / "paper" / "heterogeneous.yaml"
+_MISSION = load_mission(MISSION_FILE)
+SOURCE = np.array(_MISSION.source.position_m, dtype=float)
+BOXES_MIN = np.array([o.min_m for o in _MISSION.obstacles], dtype=float).reshape(-1, 3)
+BOXES_MAX = np.array([o.max_m for o in _MISSION.obstacles], dtype=float).reshape(-1, 3)
 CHANNEL = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=math.radians(10.0))
 LIMITS = Limits()  # paper: d_U*=1, d_S*=50, d_O*=5 m, 0.5-1 m/step, 50°/step, z in [2, 25] m
 
@@ -83,8 +87,9 @@ def make_scene(n: int, seed: int = 0, near_building: bool = False) -> Scene:
     prev = np.array([0.0, -1.0, 0.0])  # flying south, towards the source
     if near_building:
         positions = positions.copy()
-        positions[0] = [0.0, 107.0, 8.0]  # 6.3 m from B1 (x ≤ -6, y ≤ 105)
-        positions[1] = [-2.0, 104.8, 8.0]  # a peer 3 m away, between it and the building
+        b1_max = BOXES_MAX[0]  # drone 0 6 m east and 2 m north of B1's north-east edge
+        positions[0] = [b1_max[0] + 6.0, b1_max[1] + 2.0, 8.0]
+        positions[1] = [b1_max[0] + 4.0, b1_max[1] - 0.2, 8.0]  # a peer 3 m away, towards the building
         los = line_of_sight(positions, SOURCE, BOXES_MIN, BOXES_MAX)
         prev = np.array([-0.6, -0.8, 0.0])
     return Scene(positions, ranging, bearing, los, prev)
