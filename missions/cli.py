@@ -20,6 +20,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_vehicle",
     "missions.cmd_check",
     "missions.cmd_montecarlo",
+    "missions.cmd_plan",
+    "missions.cmd_launch",
 )
 
 

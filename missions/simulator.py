@@ -188,7 +188,6 @@ def simulate(
     observable = np.empty((K, M, N), dtype=bool)
     peb = np.empty((K, M, N))
     sources = np.array([mission.source.position_at(k * dt) for k in range(K + 1)])
-    margins = {name: np.empty((K, M, N)) for name in SAFETY_FAMILIES}
     active_counts = np.zeros((K, 4), dtype=np.int64)
     fallback = np.empty((K, M, N), dtype=bool)
     filtered = np.empty((K, M, N), dtype=bool)
@@ -243,27 +242,14 @@ def simulate(
         J_true = fisher_information(src, view_pos, view_rng, view_brg, view_los, channel)
         peb[k] = position_error_bound(J_true)[0]
 
-        # Move, then account for the safety of the new positions (true source, true peers).
-        nxt = step.next_position
         u = step.displacement
-        src_next = sources[k + 1]
-        diff = nxt[:, :, None, :] - nxt[:, None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        dist[:, eye] = np.inf
-        margins["uav"][k] = dist.min(-1) - limits.d_uav_m
-        margins["source"][k] = np.linalg.norm(nxt - src_next, axis=-1) - limits.d_source_m
-        margins["obstacle"][k] = distance_to_boxes(nxt, bmin, bmax) - limits.d_obstacle_m
-        margins["altitude"][k] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
-        speed = np.linalg.norm(u, axis=-1)
-        margins["speed"][k] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + KINEMATIC_TOL
-        margins["turn_rate"][k] = _turn_margin(prev_step, u, limits) + KINEMATIC_TOL
-
+        pos = step.next_position
         prev_step = u
-        pos = nxt
         positions[k + 1] = pos
         if progress is not None:
             progress(1)
 
+    margins = safety_margins(positions, sources, limits, bmin, bmax)
     return SimulationResult(
         spec=spec,
         positions_m=positions,
@@ -280,6 +266,43 @@ def simulate(
         runtime_s=time.perf_counter() - t0,
         extra={"oracle_estimate": float(oracle_estimate)},
     )
+
+
+def safety_margins(
+    positions: FloatArray, sources: FloatArray, limits: Limits, boxes_min: FloatArray, boxes_max: FloatArray
+) -> dict[str, FloatArray]:
+    """Margins of every safety constraint after each step, from the true trajectories.
+
+    Args:
+        positions: (K+1, M, N, 3) true positions, m, ENU. sources: (K+1, 3) true source.
+        limits, boxes_min, boxes_max: the mission's.
+
+    Returns:
+        Per family of :data:`SAFETY_FAMILIES`, (K, M, N): the margin of the position after
+        step k (distance minus its safety distance for uav/source/obstacle, distance inside the
+        altitude box) and of step k itself (slack to the speed bounds and to the heading and
+        tilt change limits). Negative is a violation.
+    """
+    K = positions.shape[0] - 1
+    N = positions.shape[2]
+    eye = np.eye(N, dtype=bool)
+    nxt = positions[1:]
+    u = np.diff(positions, axis=0)
+    out = {name: np.empty(nxt.shape[:-1]) for name in SAFETY_FAMILIES}
+    for k in range(K):  # chunked: the pairwise distances of all steps at once would be large
+        p = nxt[k]
+        diff = p[..., :, None, :] - p[..., None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        dist[..., eye] = np.inf
+        out["uav"][k] = dist.min(-1) - limits.d_uav_m
+    out["source"] = np.linalg.norm(nxt - sources[1:, None, None, :], axis=-1) - limits.d_source_m
+    out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
+    out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
+    speed = np.linalg.norm(u, axis=-1)
+    out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + KINEMATIC_TOL
+    prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
+    out["turn_rate"] = _turn_margin(prev, u, limits) + KINEMATIC_TOL
+    return out
 
 
 def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits) -> FloatArray:

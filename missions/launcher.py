@@ -1,0 +1,406 @@
+"""``fimnav launch``: the distributed swarm as separate processes on this machine.
+
+The launcher validates the mission, starts one simulated vehicle (``fimnav vehicle``) and one
+planner (``fimnav plan``) per drone as operating-system processes, runs the lockstep clock,
+shows progress, and writes the results directory. It only starts, watches and records: every
+decision is taken by the planners (DESIGN.md).
+
+Networking is loopback only: the launcher's Zenoh session listens on 127.0.0.1 at a free port
+and every child connects to it (peers then find each other by gossip); each vehicle listens
+for its planner's MAVLink on its own free UDP port on 127.0.0.1.
+
+Every child runs in its own process group; on success, on any failure, on Ctrl-C or SIGTERM
+the launcher stops them all (SIGTERM, then SIGKILL after a grace period): no orphan process,
+no port left bound.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comms import keys
+from comms.messages import MessageError, Observation, Status, decode
+from comms.session import SessionSettings, open_session
+from missions.clock import ClockError, LockstepClock
+from missions.loader import mission_to_yaml
+from missions.results import write_results
+from missions.schema import Mission
+from missions.simulator import RunSpec, SimulationResult, safety_margins
+from planner.errors import FimnavError
+from planner.fim import fisher_information, position_error_bound
+
+log = logging.getLogger("fimnav.launch")
+
+#: Grace period (s) between SIGTERM and SIGKILL when stopping children.
+STOP_GRACE_S: float = 5.0
+
+
+class LaunchError(FimnavError):
+    """The distributed run failed; the message says which part and why."""
+
+
+class Interrupted(FimnavError):
+    """Ctrl-C or SIGTERM: every child was stopped."""
+
+    exit_code = 130
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port on 127.0.0.1 that is free now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Child:
+    """A started child process and its log file."""
+
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+
+    def tail(self, lines: int = 8) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").strip().splitlines()
+        except OSError:
+            return ""
+        return "\n".join("    " + line for line in text[-lines:])
+
+
+@dataclass
+class Collected:
+    """What the launcher heard of the run (records and statuses by step)."""
+
+    records: dict[tuple[int, int], Observation] = field(default_factory=dict)
+    status: dict[tuple[int, int], Status] = field(default_factory=dict)
+    dropped: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class Launcher:
+    """One distributed run of a mission.
+
+    Args:
+        mission: the validated mission (steps and seed already overridden).
+        mission_path: the mission file the children load (the mission as run is written to
+            the results directory and passed to them).
+        out: the results directory.
+        python: the interpreter for the children.
+        progress: called after each step with (step, mean PEB, mean estimate error, alive).
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        out: Path,
+        python: str = sys.executable,
+        progress: Callable[[int, float, float, int], None] | None = None,
+        preflight_timeout_s: float = 120.0,
+        step_timeout_s: float = 30.0,
+    ) -> None:
+        self.mission = mission
+        self.out = out
+        self.python = python
+        self.progress = progress
+        self.preflight_timeout_s = preflight_timeout_s
+        self.step_timeout_s = step_timeout_s
+        self.children: list[Child] = []
+        self.collected = Collected()
+        self._stop = threading.Event()
+
+    # -- processes --------------------------------------------------------------------------
+    def _spawn(self, name: str, args: Sequence[str]) -> Child:
+        log_path = self.out / "logs" / f"{name}.log"
+        fh = log_path.open("wb")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(
+            [self.python, "-m", "missions", *args],
+            stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, env=env,
+        )
+        fh.close()
+        child = Child(name, proc, log_path)
+        self.children.append(child)
+        return child
+
+    def stop_children(self) -> None:
+        """SIGTERM every child's process group, then SIGKILL what is left after the grace."""
+        for c in self.children:
+            if c.proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(c.proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for c in self.children:
+            remaining = max(0.0, deadline - time.monotonic())
+            try:
+                c.proc.wait(remaining)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(c.proc.pid, signal.SIGKILL)
+                c.proc.wait()
+        # Anything left in a group (a grandchild) goes too.
+        for c in self.children:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(c.proc.pid, signal.SIGKILL)
+
+    def _check_children(self) -> None:
+        for c in self.children:
+            code = c.proc.poll()
+            if code is not None and c.name.startswith("vehicle"):
+                raise LaunchError(f"{c.name} exited with status {code} during the mission:\n{c.tail()}")
+            if code not in (None, 0):
+                raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
+
+    def request_stop(self) -> None:
+        """Ask the run to stop (signal handlers call this)."""
+        self._stop.set()
+
+    # -- zenoh collection -------------------------------------------------------------------
+    def _on_record(self, sample: Any) -> None:
+        self._collect(sample, "record")
+
+    def _on_status(self, sample: Any) -> None:
+        self._collect(sample, "status")
+
+    def _collect(self, sample: Any, kind: str) -> None:
+        c = self.collected
+        try:
+            _, msg = decode(bytes(sample.payload.to_bytes()), self.mission.id, self.mission.drones.count)
+        except MessageError:
+            with c.lock:
+                c.dropped += 1
+            return
+        uav = keys.uav_of(str(sample.key_expr))
+        if getattr(msg, "sender", None) != uav:
+            with c.lock:
+                c.dropped += 1
+            return
+        with c.lock:
+            if kind == "record" and isinstance(msg, Observation):
+                c.records.setdefault((msg.step, msg.sender), msg)
+            elif kind == "status" and isinstance(msg, Status):
+                c.status[(msg.step, msg.sender)] = msg
+
+    # -- the run ----------------------------------------------------------------------------
+    def run(self) -> SimulationResult:
+        """Start everything, fly the mission, stop everything; return the run's records."""
+        m = self.mission
+        n = m.drones.count
+        for sub in ("logs", "tlogs"):
+            (self.out / sub).mkdir(parents=True, exist_ok=True)
+        mission_file = self.out / "mission.yaml"
+        mission_file.write_text(mission_to_yaml(m))
+        hub = f"tcp/127.0.0.1:{free_port()}"
+        session = open_session(SessionSettings(listen=(hub,)))
+        t_start = time.perf_counter()
+        try:
+            subs = [
+                session.declare_subscriber(keys.record(m.id), self._on_record),
+                session.declare_subscriber(keys.status(m.id), self._on_status),
+            ]
+            clock = LockstepClock(session, m.id, n, m.dt_s)
+            child_zenoh = SessionSettings(listen=("tcp/127.0.0.1:0",), connect=(hub,))
+            for i in range(1, n + 1):
+                port = free_port(socket.SOCK_DGRAM)
+                self._spawn(
+                    f"vehicle_{i}",
+                    ["vehicle", "--mission", str(mission_file), "--sysid", str(i), "--mavlink", f"udpin:127.0.0.1:{port}",
+                     "--lockstep", "--zenoh-connect", hub, "--tlog", str(self.out / "tlogs" / f"vehicle_{i}.tlog")],
+                )
+                self._spawn(
+                    f"planner_{i}",
+                    ["plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep",
+                     *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
+                     "--step-timeout", str(self.step_timeout_s)],
+                )
+            stop = self._should_stop
+            t0 = clock.preflight(self.preflight_timeout_s, stop)
+            for k in range(m.steps):
+                report = clock.run_step(k, t0, self.step_timeout_s, stop)
+                if self.progress is not None:
+                    peb, err = self._live_stats(k)
+                    self.progress(k, peb, err, len(report.alive))
+            # The planners end the mission (hold, land or RTL) and exit.
+            deadline = time.monotonic() + 30.0
+            for c in self.children:
+                if c.name.startswith("planner"):
+                    try:
+                        c.proc.wait(max(0.0, deadline - time.monotonic()))
+                    except subprocess.TimeoutExpired:
+                        raise LaunchError(f"{c.name} did not finish its end of mission within 30 s:\n{c.tail()}") from None
+            self._check_children()
+        except ClockError as exc:
+            if self._stop.is_set():
+                raise Interrupted("interrupted: every process was stopped") from None
+            self._raise_child_failure()
+            raise LaunchError(str(exc)) from None
+        finally:
+            self.stop_children()
+            for s in locals().get("subs", []):
+                with contextlib.suppress(Exception):
+                    s.undeclare()
+            session.close()
+        return self._result(time.perf_counter() - t_start)
+
+    def _should_stop(self) -> bool:
+        if self._stop.is_set():
+            return True
+        self._check_children()
+        return False
+
+    def _raise_child_failure(self) -> None:
+        for c in self.children:
+            code = c.proc.poll()
+            if code not in (None, 0):
+                raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
+
+    def _live_stats(self, k: int) -> tuple[float, float]:
+        """Mean PEB and mean estimate error over the drones at step k (for the progress bar)."""
+        m = self.mission
+        n = m.drones.count
+        with self.collected.lock:
+            recs = dict(self.collected.records)
+            stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
+        src = m.source.position_at(self._t(k))
+        pebs, errs = [], []
+        for j, st in stat.items():
+            if st is None:
+                continue
+            errs.append(float(np.linalg.norm(np.asarray(st.estimate_m) - src)))
+            pebs.append(self._peb_of_view(st.saved_steps, recs, src))
+        finite = [p for p in pebs if np.isfinite(p)]
+        return (float(np.mean(finite)) if finite else float("inf")), (float(np.mean(errs)) if errs else float("nan"))
+
+    def _t(self, k: int) -> float:
+        return k * self.mission.dt_s
+
+    def _peb_of_view(self, saved: Sequence[int], recs: dict[tuple[int, int], Observation], src: np.ndarray) -> float:
+        m = self.mission
+        n = m.drones.count
+        pos = np.zeros((n, 3))
+        valid = np.zeros(n, dtype=bool)
+        los = np.zeros(n, dtype=bool)
+        for j in range(n):
+            r = recs.get((saved[j], j + 1)) if saved[j] >= 0 else None
+            if r is not None:
+                pos[j], valid[j], los[j] = r.position_m, True, r.los
+        J = fisher_information(src, pos, m.drones.ranging_mask() & valid, m.drones.bearing_mask() & valid, los, m.channel.to_planner())
+        return float(position_error_bound(J)[0])
+
+    def _result(self, runtime_s: float) -> SimulationResult:
+        """The run as a one-trial :class:`SimulationResult` (same accounting as the simulator)."""
+        m = self.mission
+        n, K = m.drones.count, m.steps
+        recs = self.collected.records
+        positions = np.full((K + 1, 1, n, 3), np.nan)
+        estimates = np.full((K, 1, n, 3), np.nan)
+        observable = np.zeros((K, 1, n), dtype=bool)
+        singular = np.zeros((K, 1, n), dtype=bool)
+        ages = np.full((K, 1, n, n), -1, dtype=np.int16)
+        peb = np.full((K, 1, n), np.inf)
+        active = np.zeros((K, 4), dtype=np.int64)
+        sources = np.array([m.source.position_at(self._t(k)) for k in range(K + 1)])
+        for (k, j), r in recs.items():
+            if 0 <= k < K:
+                positions[k, 0, j - 1] = r.position_m
+        for j in range(1, n + 1):
+            nxt = self._final_position(j)
+            if nxt is not None:
+                positions[K, 0, j - 1] = nxt
+        for (k, j), st in self.collected.status.items():
+            if not 0 <= k < K:
+                continue
+            estimates[k, 0, j - 1] = st.estimate_m
+            observable[k, 0, j - 1] = st.observable
+            singular[k, 0, j - 1] = st.singular
+            ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in st.saved_steps]
+            peb[k, 0, j - 1] = self._peb_of_view(st.saved_steps, recs, sources[k])
+            for b in range(4):
+                active[k, b] += (st.active_mask >> b) & 1
+        missing = np.isnan(positions).any(-1)
+        if missing.any():
+            # Steps a drone did not fly (it died): hold its last known position for the record.
+            for k in range(1, K + 1):
+                positions[k] = np.where(np.isnan(positions[k]), positions[k - 1], positions[k])
+        bmin, bmax = m.obstacle_bounds()
+        margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax)
+        err = np.linalg.norm(estimates - sources[:K, None, None, :], axis=-1)
+        return SimulationResult(
+            spec=RunSpec(m, m.criterion, 1, K),
+            positions_m=positions,
+            estimates_m=np.nan_to_num(estimates),
+            estimate_error_m=err,
+            observable=observable,
+            peb_m=peb,
+            source_m=sources,
+            margins_m=margins,
+            active=active,
+            singular_fallback=singular,
+            filtered=np.zeros((K, 1, n), dtype=bool),
+            record_ages=ages,
+            runtime_s=runtime_s,
+            extra={"distributed": 1.0, "dropped_messages": float(self.collected.dropped), "missing_drone_steps": float(missing[:K].sum())},
+        )
+
+    def _final_position(self, uav: int) -> np.ndarray | None:
+        """The last planned position of a planner, from its step log."""
+        path = self.out / "logs" / f"planner_{uav}.jsonl"
+        last = None
+        with contextlib.suppress(OSError):
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    last = line
+        if last is None:
+            return None
+        try:
+            return np.asarray(json.loads(last)["next_position_m"], dtype=float)
+        except (ValueError, KeyError):
+            return None
+
+
+@contextlib.contextmanager
+def stop_on_signals(launcher: Launcher) -> Iterator[None]:
+    """SIGINT and SIGTERM ask the launcher to stop (children are then stopped cleanly)."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
+        launcher.request_stop()
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, int], None] | None = None, **kwargs: Any) -> dict[str, Any]:
+    """Fly ``mission`` distributed and write the results directory; return the summary."""
+    launcher = Launcher(mission, out, progress=progress, **kwargs)
+    with stop_on_signals(launcher):
+        try:
+            result = launcher.run()
+        except KeyboardInterrupt:
+            launcher.stop_children()
+            raise Interrupted("interrupted: every process was stopped") from None
+    summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
+    summary = summaries[0]
+    summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]))
+    (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
+    return summary
