@@ -1,0 +1,106 @@
+"""The simulated vehicles' side of a distributed run: fimnav's Zenoh clock and payload topics.
+
+* Ticks: the lockstep clock publishes :class:`comms.messages.Tick` (``step`` −1 during the
+  pre-flight, then 0..K−1) on ``fimnav/<id>/clock/tick``. The bridge feeds them to the
+  vehicles' :class:`vehicle_sim.clock.LockstepClock` (which wants a strictly increasing tick
+  index: the bridge numbers them itself and remembers each one's mission step).
+* Payload: after the vehicles advanced to a mission tick k, each payload measures at its
+  vehicle's *true* position and the bridge publishes the record
+  (:class:`comms.messages.Observation`, kind MEASUREMENT) on ``fimnav/<id>/measurement/<sysid>``.
+  The source moves with mission time k·Δt (the in-process simulator's clock), not with the
+  vehicle's boot time, which includes the pre-flight. A real RSS payload on a companion
+  computer publishes the same record on the same key (docs/distributed.md).
+* Presence: one liveliness token ``fimnav/<id>/alive/vehicle/<sysid>`` per hosted vehicle.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from comms import keys
+from comms.messages import MessageError, MessageKind, Observation, Tick, decode, encode
+from comms.session import SessionSettings, open_session
+from vehicle_sim.clock import LockstepClock
+from vehicle_sim.clock import Tick as VehicleTick
+
+log = logging.getLogger(__name__)
+
+
+class ZenohBridge:
+    """Connects hosted vehicles to a mission's Zenoh clock and payload topics.
+
+    Args:
+        mission_id: the mission id. count: the mission's N (for validating senders).
+        dt_s: the mission step length (s).
+        clock: the vehicles' lockstep clock to feed.
+        vehicles: the hosted vehicles (``sysid`` and ``payload`` attributes).
+        settings: the Zenoh session settings.
+    """
+
+    def __init__(self, mission_id: str, count: int, dt_s: float, clock: LockstepClock, vehicles: Sequence[Any], settings: SessionSettings) -> None:
+        self.mission_id = mission_id
+        self.count = count
+        self.dt = dt_s
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._mission_step: dict[int, int] = {}
+        self._next_index = 0
+        self.dropped = 0
+        self.seq = 0
+        self.session = open_session(settings)
+        self._sub = self.session.declare_subscriber(keys.tick(mission_id), self._on_tick_sample)
+        self._pubs = {v.sysid: self.session.declare_publisher(keys.measurement(mission_id, v.sysid)) for v in vehicles}
+        self._tokens = [self.session.liveliness().declare_token(keys.alive(mission_id, "vehicle", v.sysid)) for v in vehicles]
+
+    def _on_tick_sample(self, sample: Any) -> None:
+        try:
+            _, msg = decode(bytes(sample.payload.to_bytes()), self.mission_id)
+        except MessageError as exc:
+            self.dropped += 1
+            log.warning("dropped tick: %s", exc)
+            return
+        if not isinstance(msg, Tick):
+            self.dropped += 1
+            log.warning("dropped a %s on the tick key", type(msg).__name__)
+            return
+        with self._lock:
+            last = self.clock.last
+            if last is not None and msg.time_s <= last.t_s:
+                return  # a repeated tick (the clock re-sends for late joiners)
+            index = self._next_index
+            self._next_index += 1
+            self._mission_step[index] = msg.step
+        self.clock.push(VehicleTick(index, msg.time_s))
+
+    def on_tick(self, vehicle: Any, tick: VehicleTick) -> None:
+        """Host hook after ``vehicle`` advanced to ``tick``: publish its payload measurement."""
+        with self._lock:
+            step = self._mission_step.get(tick.step, -1)
+            for old in [i for i in self._mission_step if i < tick.step - 64]:
+                del self._mission_step[old]
+        if step < 0 or vehicle.payload is None:
+            return
+        m = vehicle.payload.measure(vehicle.position, step, step * self.dt)
+        nan = math.nan
+        obs = Observation(
+            sender=vehicle.sysid, step=step, time_s=m.t_s, position_m=m.position_enu_m,
+            ranging=bool(vehicle.payload.ranging[0]), bearing=bool(vehicle.payload.bearing[0]), los=m.los,
+            range_m=nan if m.range_m is None else m.range_m,
+            azimuth_rad=nan if m.azimuth_rad is None else m.azimuth_rad,
+            elevation_rad=nan if m.elevation_rad is None else m.elevation_rad,
+        )
+        self.seq += 1
+        self._pubs[vehicle.sysid].put(encode(obs, self.mission_id, self.seq, MessageKind.MEASUREMENT))
+
+    def close(self) -> None:
+        """Undeclare everything and close the session."""
+        for t in self._tokens:
+            try:
+                t.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        self.session.close()
