@@ -174,6 +174,11 @@ class VehicleLink:
         start = self.telemetry.heartbeat_wall_s
         self.wait_for(lambda: self.telemetry.heartbeat_wall_s > start, timeout_s, "heartbeat")
 
+    def fileno(self) -> int | None:
+        """The file descriptor to select() on for incoming MAVLink, if the transport has one."""
+        fd = getattr(self.conn, "fd", None)
+        return fd if isinstance(fd, int) and fd >= 0 else None
+
     def link_age_s(self) -> float:
         """Seconds since the last autopilot heartbeat."""
         return self.wall() - self.telemetry.heartbeat_wall_s
@@ -190,8 +195,21 @@ class VehicleLink:
             m = self.mavutil.mavlink
             self.mav.heartbeat_send(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
 
-    def command(self, command: int, params: Iterable[float] = (), timeout_s: float = 5.0, what: str = "", retries: int = 3) -> int:
+    def command(
+        self,
+        command: int,
+        params: Iterable[float] = (),
+        timeout_s: float = 15.0,
+        what: str = "",
+        retries: int = 3,
+        done_already: Callable[[], bool] | None = None,
+    ) -> int:
         """Send COMMAND_LONG and wait for its COMMAND_ACK; return the result code.
+
+        A command whose acknowledgement is late is sent again (confirmation field counting
+        up). For a command that is not idempotent, ``done_already`` tells whether an earlier
+        attempt took effect: a refusal on a retry is then a success (e.g. a second take-off
+        refused because the first one is climbing).
 
         Raises :class:`LinkError` if the vehicle refuses it (result other than ACCEPTED or
         IN_PROGRESS), naming the command and the vehicle's STATUSTEXT reason if any.
@@ -211,6 +229,8 @@ class VehicleLink:
             m = self.mavutil.mavlink
             if result in (m.MAV_RESULT_ACCEPTED, m.MAV_RESULT_IN_PROGRESS):
                 return result
+            if attempt > 0 and done_already is not None and done_already():
+                return m.MAV_RESULT_ACCEPTED
             reason = "; ".join(self.statustexts[texts_before:]) or "no reason given"
             name = m.enums["MAV_RESULT"][result].name if result in m.enums["MAV_RESULT"] else str(result)
             raise LinkError(f"vehicle {self.target_system} refused {label}: {name} ({reason})")
@@ -232,19 +252,26 @@ class VehicleLink:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, (custom >> 16) & 0xFF, (custom >> 24) & 0xFF]
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
-        self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}")
+        self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom)
         self.wait_for(lambda: self.telemetry.custom_mode == custom, 5.0, f"heartbeat in mode {name}")
 
     def arm(self) -> None:
         """Arm and wait until the heartbeat says armed."""
         m = self.mavutil.mavlink
-        self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm")
+        self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
         self.wait_for(lambda: self.telemetry.armed, 5.0, "armed heartbeat")
 
     def takeoff(self, altitude_m: float) -> None:
         """MAV_CMD_NAV_TAKEOFF to ``altitude_m`` above home (acknowledged, not awaited)."""
         m = self.mavutil.mavlink
-        self.command(m.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, 0, 0, 0, altitude_m], what=f"takeoff to {altitude_m:g} m")
+        start = self.telemetry.position_enu_m
+        z0 = float(start[2]) if start is not None else 0.0
+
+        def climbing() -> bool:
+            pos = self.telemetry.position_enu_m
+            return pos is not None and float(pos[2]) > z0 + 0.01
+
+        self.command(m.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, 0, 0, 0, altitude_m], what=f"takeoff to {altitude_m:g} m", done_already=climbing)
 
     def send_setpoint(self, position_enu_m: Iterable[float] | None, velocity_enu_mps: Iterable[float] | None) -> None:
         """SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED) with position and/or velocity."""

@@ -9,7 +9,7 @@ Every message starts with a 14-byte header::
     sender   u16   1-based drone id (0 for the clock / launcher)
     seq      u32   per-sender sequence number
 
-followed by a fixed body per kind (little endian, IEEE-754 doubles). A record and a payload
+followed by a fixed body per kind (little endian, IEEE-754 doubles; step is signed: −1 is the pre-flight). A record and a payload
 measurement share one body: step u32, time f64 (s), position 3×f64 (m, mission ENU), role u8
 (bit 0 ranging, bit 1 bearing), flags u8 (bit 0 LOS, bit 1 stale), range f64 (m), azimuth f64,
 elevation f64 (rad); NaN stands for a quantity the role does not measure.
@@ -37,8 +37,8 @@ MAX_COORD_M = 1.0e6
 
 _HEADER = struct.Struct("<2sBBIHI")
 _OBS = struct.Struct("<Id3dBBddd")
-_TICK = struct.Struct("<Id")
-_DONE = struct.Struct("<I")
+_TICK = struct.Struct("<id")
+_DONE = struct.Struct("<i")
 _STATUS_HEAD = struct.Struct("<Id3dBBBH")
 
 
@@ -196,8 +196,10 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
         if flags & ~(LOS_FLAG | STALE_FLAG):
             raise MessageError(f"unknown flag bits {flags:#x}")
         ranging, bearing = bool(role & RANGING_BIT), bool(role & BEARING_BIT)
-        if ranging and not (math.isnan(rng) or (math.isfinite(rng) and 0.0 <= rng <= 2 * MAX_COORD_M)):
-            raise MessageError(f"range {rng!r}: expected a finite distance >= 0 m (or NaN: no measurement)")
+        # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
+        # negative. Any finite value of plausible size is a measurement.
+        if ranging and not (math.isnan(rng) or (math.isfinite(rng) and abs(rng) <= 2 * MAX_COORD_M)):
+            raise MessageError(f"range {rng!r}: expected a finite distance within ±{2 * MAX_COORD_M:g} m (or NaN: no measurement)")
         if not ranging and not math.isnan(rng):
             raise MessageError("range given by a drone without the ranging role")
         if bearing:

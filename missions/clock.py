@@ -24,9 +24,10 @@ from comms import keys
 from comms.messages import Done, MessageError, Tick, decode, encode
 from planner.errors import FimnavError
 
-#: Simulated time per pre-flight tick (s), and wall time between pre-flight ticks (s).
+#: Simulated time per pre-flight tick (s), and wall time between pre-flight ticks (s): the
+#: pre-flight (take-off, flight to the start) runs at 10x real time.
 WARMUP_DT_S: float = 0.1
-WARMUP_PERIOD_S: float = 0.002
+WARMUP_PERIOD_S: float = 0.01
 
 
 class ClockError(FimnavError):
@@ -62,11 +63,12 @@ class LockstepClock:
         self._subs = [
             session.declare_subscriber(keys.done(mission_id), lambda s: self._q.put(("done", str(s.key_expr), bytes(s.payload.to_bytes())))),
             session.liveliness().declare_subscriber(
-                keys.alive(mission_id, "planner"),
+                keys.alive(mission_id),
                 lambda s: self._q.put(("alive" if str(s.kind).endswith("PUT") else "gone", str(s.key_expr), None)),
                 history=True,
             ),
         ]
+        self.vehicles_alive: set[int] = set()
         self.alive: set[int] = set()
         self.ever_alive: set[int] = set()
         self.done: dict[int, set[int]] = {}
@@ -90,7 +92,9 @@ class LockstepClock:
                 else:
                     if isinstance(msg, Done) and msg.sender == uav:
                         self.done.setdefault(msg.step, set()).add(msg.sender)
-            elif uav is not None and 1 <= uav <= self.count:
+            elif uav is not None and 1 <= uav <= self.count and "/alive/vehicle/" in key:
+                (self.vehicles_alive.add if kind == "alive" else self.vehicles_alive.discard)(uav)
+            elif uav is not None and 1 <= uav <= self.count and "/alive/planner/" in key:
                 if kind == "alive":
                     self.alive.add(uav)
                     self.ever_alive.add(uav)
@@ -111,9 +115,18 @@ class LockstepClock:
             return len(done) >= expected
         return bool(self.ever_alive) and self.alive <= done
 
-    def preflight(self, timeout_s: float, should_stop: Callable[[], bool] = lambda: False) -> float:
-        """Warm-up ticks until every one of the N planners is ready; returns t_0."""
+    def preflight(self, timeout_s: float, should_stop: Callable[[], bool] = lambda: False, vehicles: int | None = None) -> float:
+        """Wait until every planner (and ``vehicles`` simulated vehicles) is up, then tick the
+        pre-flight until every one of the N planners holds its start position; returns t_0."""
         deadline = self.wall() + timeout_s
+        want_vehicles = self.count if vehicles is None else vehicles
+        while len(self.ever_alive) < self.count or len(self.vehicles_alive) < want_vehicles:
+            if should_stop():
+                raise ClockError("stopped while the processes started")
+            if self.wall() > deadline:
+                missing = sorted(set(range(1, self.count + 1)) - self.ever_alive)
+                raise ClockError(f"planners {missing} and {want_vehicles - len(self.vehicles_alive)} vehicles did not come up within {timeout_s:g} s")
+            self._drain(0.05)
         next_tick = self.wall()
         while not self._complete(-1, self.count):
             if should_stop():

@@ -245,7 +245,8 @@ def run_vehicle(args: argparse.Namespace) -> int:
     from vehicle_sim.host import VehicleHost, build_vehicle
 
     vehicles = []
-    source = None
+    source: Any = None
+    on_tick = None
     try:
         for i, (cfg, payload) in enumerate(configs):
             vehicles.append(build_vehicle(cfg, _connection_for(args, i, cfg.sysid), payload=payload))
@@ -258,13 +259,22 @@ def run_vehicle(args: argparse.Namespace) -> int:
             clock = LockstepClock()
             listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
             try:
-                source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
+                if mission is not None:
+                    # A mission run: fimnav's clock protocol and the payload topics.
+                    from comms.session import SessionSettings
+                    from vehicle_sim.bridge import ZenohBridge
+
+                    settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
+                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, settings)
+                    on_tick = source.on_tick
+                else:
+                    source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
             except Exception as exc:  # zenoh raises its own error type for bad endpoints
                 raise UsageError(f"zenoh: cannot open the session ({exc})") from None
             zenoh_info = {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
         else:
             clock = RealTimeClock(args.speedup)
-        host = VehicleHost(vehicles, clock)
+        host = VehicleHost(vehicles, clock, on_tick=on_tick)
         ready = {
             "event": "ready",
             "vehicles": [{"sysid": v.sysid, "mavlink": v.link.transport.address} for v in vehicles],

@@ -40,7 +40,7 @@ from missions.clock import ClockError, LockstepClock
 from missions.loader import mission_to_yaml
 from missions.results import write_results
 from missions.schema import Mission
-from missions.simulator import RunSpec, SimulationResult, safety_margins
+from missions.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
 from planner.errors import FimnavError
 from planner.fim import fisher_information, position_error_bound
 
@@ -231,7 +231,8 @@ class Launcher:
             stop = self._should_stop
             t0 = clock.preflight(self.preflight_timeout_s, stop)
             for k in range(m.steps):
-                report = clock.run_step(k, t0, self.step_timeout_s, stop)
+                # The planners' own deadline expires first and names what they waited for.
+                report = clock.run_step(k, t0, self.step_timeout_s + 15.0, stop)
                 if self.progress is not None:
                     peb, err = self._live_stats(k)
                     self.progress(k, peb, err, len(report.alive))
@@ -338,7 +339,7 @@ class Launcher:
             for k in range(1, K + 1):
                 positions[k] = np.where(np.isnan(positions[k]), positions[k - 1], positions[k])
         bmin, bmax = m.obstacle_bounds()
-        margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax)
+        margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax, MAVLINK_KINEMATIC_TOL)
         err = np.linalg.norm(estimates - sources[:K, None, None, :], axis=-1)
         return SimulationResult(
             spec=RunSpec(m, m.criterion, 1, K),

@@ -106,7 +106,7 @@ def write_run(result: SimulationResult, out: Path) -> dict[str, Any]:
 
 
 def _fmt(x: float) -> str:
-    return f"{float(x):.6g}"
+    return f"{float(x):.10g}"
 
 
 def write_results(results: Sequence[SimulationResult], out: Path, command: Sequence[str] = (), figures: bool = True) -> list[dict[str, Any]]:

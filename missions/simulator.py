@@ -47,6 +47,9 @@ SAFETY_FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude", "sp
 
 #: Tolerance of the kinematic accounting (floating point of the polar round trip), m and rad.
 KINEMATIC_TOL: float = 1e-9
+#: The same for positions reported over MAVLink (float32: ~1.5e-5 m at 150 m from the origin;
+#: two positions per step, and a 1 m step turns a position error into an angle error).
+MAVLINK_KINEMATIC_TOL: float = 1e-4
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,7 @@ def simulate(
     progress: Callable[[int], None] | None = None,
     estimator_config: est.EstimatorConfig | None = None,
     oracle_estimate: bool = False,
+    float32_positions: bool = False,
 ) -> SimulationResult:
     """Run ``spec.trials`` trials of ``spec.steps`` steps of a mission in this process.
 
@@ -144,6 +148,9 @@ def simulate(
         oracle_estimate: plan with the true source instead of each drone's estimate (the
             paper's assumption that the estimate is given); the estimator still runs and its
             error is still recorded.
+        float32_positions: round every new position to float32, as a MAVLink position setpoint
+            is (the ideal simulated vehicle lands exactly on it): a lockstep distributed run
+            then computes the same numbers (docs/distributed.md).
 
     Returns:
         The :class:`SimulationResult`.
@@ -168,6 +175,8 @@ def simulate(
     ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
 
     pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
+    if float32_positions:
+        pos = pos.astype(np.float32).astype(np.float64)
     prev_step = np.zeros((M, N, 3))
     positions = np.empty((K + 1, M, N, 3))
     positions[0] = pos
@@ -244,6 +253,9 @@ def simulate(
 
         u = step.displacement
         pos = step.next_position
+        if float32_positions:
+            pos = pos.astype(np.float32).astype(np.float64)
+            u = pos - positions[k]
         prev_step = u
         positions[k + 1] = pos
         if progress is not None:
@@ -269,13 +281,21 @@ def simulate(
 
 
 def safety_margins(
-    positions: FloatArray, sources: FloatArray, limits: Limits, boxes_min: FloatArray, boxes_max: FloatArray
+    positions: FloatArray,
+    sources: FloatArray,
+    limits: Limits,
+    boxes_min: FloatArray,
+    boxes_max: FloatArray,
+    kinematic_tol: float = KINEMATIC_TOL,
 ) -> dict[str, FloatArray]:
     """Margins of every safety constraint after each step, from the true trajectories.
 
     Args:
         positions: (K+1, M, N, 3) true positions, m, ENU. sources: (K+1, 3) true source.
         limits, boxes_min, boxes_max: the mission's.
+        kinematic_tol: tolerance of the speed and turn-rate accounting (m, rad): float64
+            round-off here; positions reported over MAVLink are float32
+            (:data:`MAVLINK_KINEMATIC_TOL`).
 
     Returns:
         Per family of :data:`SAFETY_FAMILIES`, (K, M, N): the margin of the position after
@@ -299,9 +319,9 @@ def safety_margins(
     out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
     out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
     speed = np.linalg.norm(u, axis=-1)
-    out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + KINEMATIC_TOL
+    out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + kinematic_tol
     prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
-    out["turn_rate"] = _turn_margin(prev, u, limits) + KINEMATIC_TOL
+    out["turn_rate"] = _turn_margin(prev, u, limits) + kinematic_tol
     return out
 
 

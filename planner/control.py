@@ -40,6 +40,11 @@ BoolArray = NDArray[np.bool_]
 UAV, SOURCE, OBSTACLE, ALTITUDE = 0, 1, 2, 3
 FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude")
 
+#: Relative cut-off of the constraint normals' pseudo-inverse (eq. 14's (NᵀN)⁻¹).
+PINV_RCOND: float = 1e-6
+#: A projected gradient shorter than this fraction of the gradient is zero.
+PG_REL_TOL: float = 1e-9
+
 
 @dataclass(frozen=True)
 class StepResult:
@@ -232,7 +237,9 @@ def control_step(
         g_sel = np.take_along_axis(gt_s, sel, -1)
         on = g_sel < 0.0
         Nm = np.swapaxes(np.take_along_axis(normals[sub], sel[..., None], -2), -1, -2) * on[..., None, :]  # (n, 3, k)
-        pinv = np.linalg.pinv(Nm)  # (n, k, 3) = (NᵀN)⁻¹Nᵀ for independent normals
+        # (n, k, 3) = (NᵀN)⁻¹Nᵀ for independent normals; nearly dependent normals (singular
+        # values below 1e-6 of the largest) count as dependent, so P stays well conditioned.
+        pinv = np.linalg.pinv(Nm, rcond=PINV_RCOND)
         P_sub = np.eye(3) - Nm @ pinv
         correction[sub] = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
 
@@ -246,6 +253,11 @@ def control_step(
     singular = np.asarray(status) == int(FimStatus.SINGULAR)
     pg = project(grad)
     pg_norm = np.sqrt((pg * pg).sum(-1))
+    # A projected gradient at round-off level (the active constraints leave no descent
+    # direction) is zero: normalising it would turn numerical noise into a full step.
+    g_norm = np.sqrt((grad * grad).sum(-1))
+    pg = np.where((pg_norm <= PG_REL_TOL * g_norm)[..., None], 0.0, pg)
+    pg_norm = np.where(pg_norm <= PG_REL_TOL * g_norm, 0.0, pg_norm)
     if xi is None:
         descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None]
     else:

@@ -21,7 +21,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import queue
+import select
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -86,12 +88,37 @@ class _Inbox:
         self.count = count
         self.queue: queue.SimpleQueue[tuple[str, str, bytes | None]] = queue.SimpleQueue()
         self.dropped: Counter[str] = Counter()
+        # Self-pipe: a callback makes it readable so the node's select() wakes at once.
+        self.wake_r, self.wake_w = os.pipe()
+        os.set_blocking(self.wake_r, False)
+        os.set_blocking(self.wake_w, False)
+
+    def _put(self, item: tuple[str, str, bytes | None]) -> None:
+        self.queue.put(item)
+        try:
+            os.write(self.wake_w, b"z")
+        except (BlockingIOError, OSError):
+            pass  # already readable (or closing)
 
     def on_sample(self, sample: Any) -> None:
-        self.queue.put(("data", str(sample.key_expr), bytes(sample.payload.to_bytes())))
+        self._put(("data", str(sample.key_expr), bytes(sample.payload.to_bytes())))
 
     def on_liveliness(self, sample: Any) -> None:
-        self.queue.put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), None))
+        self._put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), None))
+
+    def clear_wake(self) -> None:
+        try:
+            while os.read(self.wake_r, 4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+
+    def close(self) -> None:
+        for fd in (self.wake_r, self.wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
     def decode(self, key: str, data: bytes) -> Any | None:
         """The message, or None (counted, warned) if it is invalid or spoofed."""
@@ -201,6 +228,7 @@ class PlannerNode:
         if self._log is not None:
             self._log.close()
             self._log = None
+        self.inbox.close()
 
     def _publish(self, publisher: Any, msg: Any, kind: MessageKind | None = None) -> None:
         self.seq += 1
@@ -235,15 +263,32 @@ class PlannerNode:
             except queue.Empty:
                 return
 
-    def _wait(self, predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
-        """Serve Zenoh and MAVLink until ``predicate()``; NodeError naming ``what`` on timeout."""
+    def _wait(self, predicate: Callable[[], bool], timeout_s: float, what: str, missing: Callable[[], Any] | None = None) -> None:
+        """Serve Zenoh and MAVLink until ``predicate()``; NodeError naming ``what`` on timeout.
+
+        Blocks in select() on the MAVLink socket and the Zenoh self-pipe: no busy polling."""
+        link = self._require_link()
         deadline = self.wall() + timeout_s
+        self._drain(0.0)
+        link.pump(0.0)
         while not predicate():
-            if self.wall() > deadline:
-                raise NodeError(f"uav {self.o.uav}: no {what} within {timeout_s:g} s")
-            self._drain(0.002)
-            assert self.link is not None
-            self.link.pump(0.0)
+            remaining = deadline - self.wall()
+            if remaining <= 0:
+                detail = f" (missing: {missing()})" if missing is not None else ""
+                raise NodeError(f"uav {self.o.uav}: no {what} within {timeout_s:g} s{detail}")
+            fds = [self.inbox.wake_r] + ([link.fileno()] if link.fileno() is not None else [])
+            try:
+                select.select(fds, [], [], min(remaining, 0.25))
+            except (OSError, ValueError):
+                pass
+            self.inbox.clear_wake()
+            self._drain(0.0)
+            link.pump(0.0)
+
+    def _require_link(self) -> VehicleLink:
+        if self.link is None:
+            raise NodeError(f"uav {self.o.uav}: the vehicle link is closed")
+        return self.link
 
     # -- flight -----------------------------------------------------------------------------
     def preflight(self) -> None:
@@ -252,8 +297,9 @@ class PlannerNode:
         assert link is not None
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
-        for msg_id in (32, 33, 242, 245):  # LOCAL_POSITION_NED, GLOBAL_POSITION_INT, HOME, EXT_SYS_STATE
-            link.request_interval(msg_id, 10.0)
+        link.request_interval(32, 10.0)  # LOCAL_POSITION_NED: what the planner steps on
+        for msg_id in (33, 242, 245):  # GLOBAL_POSITION_INT, HOME_POSITION, EXTENDED_SYS_STATE
+            link.request_interval(msg_id, 1.0)
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         mode = "OFFBOARD" if link.is_px4 else "GUIDED"
         if not link.telemetry.armed:
@@ -306,7 +352,12 @@ class PlannerNode:
                 )
                 self.view.add(record)
                 self._publish(self._pub_record, record, MessageKind.RECORD)
-                self._wait(lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav), self.o.step_timeout_s, f"records of step {k} from {sorted(self.alive)}")
+                self._wait(
+                    lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav),
+                    self.o.step_timeout_s,
+                    f"records of step {k} from the live planners",
+                    missing=lambda: sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k)),
+                )
                 view = self.view.advance(k)
                 state, rows = self._estimate(state, view, used)
                 used = np.maximum(used, view.saved_steps)
@@ -332,7 +383,9 @@ class PlannerNode:
 
     def _await_step(self, k: int) -> float:
         if self.o.lockstep:
-            self._wait(lambda: self.tick is not None and self.tick.step >= k, self.o.step_timeout_s, f"clock tick of step {k}")
+            # Step 0 starts when the whole swarm is at its start positions: pre-flight deadline.
+            timeout = self.o.preflight_timeout_s if k == 0 else self.o.step_timeout_s
+            self._wait(lambda: self.tick is not None and self.tick.step >= k, timeout, f"clock tick of step {k}")
             assert self.tick is not None
             return self.tick.time_s if self.tick.step == k else self.tick.time_s - (self.tick.step - k) * self.dt
         raise NodeError("real-time stepping is not available in this build; run with the lockstep clock")
