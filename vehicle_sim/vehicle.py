@@ -468,9 +468,13 @@ class SimVehicle:
             m.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_interval,
             m.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_interval,
             m.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._cmd_request_caps,
-            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._cmd_request_protocol,
-            m.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home,
+            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._reply_with(
+                m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, self.msg_autopilot_version
+            ),
+            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(
+                m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version
+            ),
+            m.MAV_CMD_GET_HOME_POSITION: self._reply_with(m.MAV_CMD_GET_HOME_POSITION, self.msg_home_position),
             m.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
             m.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
             m.MAV_CMD_DO_FENCE_ENABLE: self._cmd_fence_enable,
@@ -676,23 +680,15 @@ class SimVehicle:
         self.link.send(builder())
         return m.MAV_RESULT_ACCEPTED
 
-    def _cmd_request_caps(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
-        self._ack(msg, m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, m.MAV_RESULT_ACCEPTED)
-        self.link.send(self.msg_autopilot_version())
-        return m.MAV_RESULT_ACCEPTED
+    def _reply_with(self, command: int, builder: Callable[[], Any]) -> Callable[[Any, tuple[float, ...], int | None], int]:
+        """Handler of a command answered by ACCEPTED followed by one message."""
 
-    def _cmd_request_protocol(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
-        self._ack(msg, m.MAV_CMD_REQUEST_PROTOCOL_VERSION, m.MAV_RESULT_ACCEPTED)
-        self.link.send(self.msg_protocol_version())
-        return m.MAV_RESULT_ACCEPTED
+        def handler(msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
+            self._ack(msg, command, self.m.MAV_RESULT_ACCEPTED)
+            self.link.send(builder())
+            return int(self.m.MAV_RESULT_ACCEPTED)
 
-    def _cmd_get_home(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
-        self._ack(msg, m.MAV_CMD_GET_HOME_POSITION, m.MAV_RESULT_ACCEPTED)
-        self.link.send(self.msg_home_position())
-        return m.MAV_RESULT_ACCEPTED
+        return handler
 
     def _cmd_reposition(self, msg: Any, p: tuple[float, ...], frame: int | None) -> int:
         m = self.m

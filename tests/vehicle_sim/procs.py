@@ -84,29 +84,17 @@ class Proc:
         return rc
 
     def kill(self) -> None:
-        """SIGTERM the process group, then SIGKILL whatever is left."""
-        try:
-            pgid = os.getpgid(self.p.pid)
-        except ProcessLookupError:
-            pgid = None
-        if pgid is not None:
+        """SIGTERM the process group (its id is the pid: own session), wait, then SIGKILL it."""
+        pgid = self.p.pid
+        for sig, grace_s in ((signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
             try:
-                os.killpg(pgid, signal.SIGTERM)
+                os.killpg(pgid, sig)
             except ProcessLookupError:
-                pass
-        try:
-            self.p.wait(3)
-        except subprocess.TimeoutExpired:
-            pass
-        if pgid is not None:
+                break  # no process of the group is left
             try:
-                os.killpg(pgid, signal.SIGKILL)
-            except ProcessLookupError:
+                self.p.wait(grace_s)
+            except subprocess.TimeoutExpired:
                 pass
-        try:
-            self.p.wait(3)
-        except subprocess.TimeoutExpired:
-            pass
         for stream in (self.p.stdin, self.p.stdout, self.p.stderr):
             if stream is not None:
                 try:
