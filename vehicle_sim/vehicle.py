@@ -986,6 +986,29 @@ class SimVehicle:
             now_ns = int(round(self.t * 1e9))
             self.link.send(self.m.MAVLink_timesync_message(now_ns, msg.ts1))
 
+    # ------------------------------------------------------------------ MAVLink FTP
+
+    def _on_file_transfer_protocol(self, msg: Any) -> None:
+        """No file system: answer every FTP request at once so ground stations (MAVProxy's
+        parameter download) fall back to the parameter protocol instead of timing out.
+        Session resets are ACKed; opens/listings get NAK FileNotFound (10); the rest NAK
+        UnknownCommand (7)."""
+        req = bytes(msg.payload)
+        if len(req) < 12:
+            return
+        seq, session, opcode = int.from_bytes(req[0:2], "little"), req[2], req[3]
+        if opcode in (1, 2):  # TerminateSession, ResetSessions
+            reply_op, size, data = 128, 0, b""
+        else:
+            reply_op, size = 129, 1
+            data = bytes([10 if opcode in (3, 4, 6, 11, 14) else 7])
+        body = ((seq + 1) & 0xFFFF).to_bytes(2, "little") + bytes([session, reply_op, size, opcode, 0, 0])
+        body += bytes(4) + data
+        payload = list(body + bytes(251 - len(body)))
+        self.link.send(
+            self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload)
+        )
+
     # ------------------------------------------------------------------ parameters
 
     def _build_params(self) -> dict[str, _Param]:
