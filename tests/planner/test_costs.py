@@ -112,17 +112,26 @@ def test_cost_gradient_matches_finite_differences(seed, roles, los_bits, criteri
         q[i] = p
         return float(cost(fisher_information(src, q, rr, bb, los, ch), criterion)[0])
 
-    h = 2e-4 * np.linalg.norm(src - pos[i])
+    d = np.linalg.norm(src - pos[i])
 
     def central(step: float) -> np.ndarray:
         return np.array([(c(pos[i] + step * e) - c(pos[i] - step * e)) / (2 * step) for e in np.eye(3)])
 
-    # Richardson extrapolation of two central differences: O(h^4), robust for nearly singular J.
-    fd = (4.0 * central(h / 2) - central(h)) / 3.0
-    scale = max(np.linalg.norm(fd), np.linalg.norm(cg.gradient))
-    # Cost round-off is ~1e-16 |C|, amplified by 1/h; truncation is O(h^4).
-    tol = 1e-6 * scale + 1e-13 * abs(float(value)) / h
-    assert np.linalg.norm(cg.gradient - fd) <= tol, (cg.gradient, fd)
+    # Richardson extrapolation of two central differences: O(h^4). Nearly singular J (A costs up
+    # to 1e11 m^2 occur) curve so hard that the best step is smaller: accept the analytic gradient
+    # when the finite differences agree with it at one of a few steps (a wrong formula is off by
+    # far more than 1e-6 at every step).
+    errors = []
+    for h in (2e-4 * d, 5e-5 * d, 1e-5 * d):
+        fd = (4.0 * central(h / 2) - central(h)) / 3.0
+        scale = max(np.linalg.norm(fd), np.linalg.norm(cg.gradient))
+        # Cost round-off is ~1e-16 |C|, amplified by 1/h; truncation is O(h^4).
+        tol = 1e-6 * scale + 1e-13 * abs(float(value)) / h
+        errors.append((np.linalg.norm(cg.gradient - fd), tol, fd))
+        if errors[-1][0] <= tol:
+            break
+    else:
+        raise AssertionError(f"analytic {cg.gradient} vs finite differences (error, tol, fd): {errors}")
     assert np.isfinite(cg.gradient).all()
 
 
