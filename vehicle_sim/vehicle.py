@@ -765,12 +765,13 @@ class SimVehicle:
     # ------------------------------------------------------------------ setpoints
 
     def _offboard_stream_ok(self) -> bool:
+        """PX4 OFFBOARD entry: the latest setpoint is at most 0.5 s old (sim time) and, if an
+        earlier one exists, came within 0.5 s of it (a stream faster than 2 Hz). One fresh
+        setpoint suffices, as on PX4, so MAVSDK's "set one setpoint, then start()" works."""
         ts = self.setpoint_times
-        return (
-            len(ts) >= 2
-            and self.t - ts[-1] <= OFFBOARD_STREAM_GAP_S
-            and ts[-1] - ts[-2] <= OFFBOARD_STREAM_GAP_S
-        )
+        if not ts or self.t - ts[-1] > OFFBOARD_STREAM_GAP_S:
+            return False
+        return len(ts) < 2 or ts[-1] - ts[-2] <= OFFBOARD_STREAM_GAP_S
 
     def _note_setpoint(self) -> None:
         self.setpoint_times = (self.setpoint_times + [self.t])[-3:]

@@ -175,8 +175,9 @@ def mavutilmode(hb) -> str:
     return mavutil.mode_string_v10(hb)
 
 
-def test_arm_takeoff_guided_position_and_disarm_refused_in_flight(make_rig):
-    rig = make_rig()
+@pytest.mark.parametrize("kind", ["udpin", "tcpin"])
+def test_arm_takeoff_guided_position_and_disarm_refused_in_flight(make_rig, kind):
+    rig = make_rig(kind=kind)
     c = rig.client
     rig.fly_up(5.0)
     wait_msg(c, "HEARTBEAT", lambda m: m.base_mode & R.MAV_MODE_FLAG_SAFETY_ARMED and m.get_srcSystem() == 1)

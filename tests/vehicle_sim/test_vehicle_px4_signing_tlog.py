@@ -43,7 +43,10 @@ def test_px4_offboard_needs_stream_and_failsafe_on_loss(make_rig):
     rig = make_rig(VehicleConfig(flavour="px4", profile="ideal"))
     c = rig.client
     v = rig.vehicle
-    # no stream: OFFBOARD refused
+    # no stream: OFFBOARD refused; one stale setpoint (> 0.5 s old) is no stream either
+    assert rig.set_mode("OFFBOARD") == R.MAV_RESULT_FAILED
+    c.mav.set_position_target_local_ned_send(0, 1, 1, R.MAV_FRAME_LOCAL_NED, POS_MASK, 0, 0, -3, 0, 0, 0, 0, 0, 0, 0, 0)
+    wait_until(lambda t=v.t: v.t > t + 1.0, 5, "1 s of sim time")
     assert rig.set_mode("OFFBOARD") == R.MAV_RESULT_FAILED
     # arm in POSCTL, take off (PX4: param7 is AMSL; NaN = MIS_TAKEOFF_ALT = 2.5 m)
     assert rig.arm() == 0
