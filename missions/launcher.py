@@ -206,7 +206,9 @@ class Launcher:
         mission_file = self.out / "mission.yaml"
         mission_file.write_text(mission_to_yaml(m))
         hub = f"tcp/127.0.0.1:{free_port()}"
-        session = open_session(SessionSettings(listen=(hub,)))
+        # The launcher's session is the hub every child connects to; the mission's own
+        # endpoints (routers, other launches) are added to every session.
+        session = open_session(SessionSettings.from_mission(m.zenoh, listen=(hub,)))
         t_start = time.perf_counter()
         try:
             subs = [
@@ -214,13 +216,14 @@ class Launcher:
                 session.declare_subscriber(keys.status(m.id), self._on_status),
             ]
             clock = LockstepClock(session, m.id, n, m.dt_s)
-            child_zenoh = SessionSettings(listen=("tcp/127.0.0.1:0",), connect=(hub,))
+            child_zenoh = SessionSettings.from_mission(m.zenoh, connect=(hub,), listen=("tcp/127.0.0.1:0",))
             for i in range(1, n + 1):
                 port = free_port(socket.SOCK_DGRAM)
                 self._spawn(
                     f"vehicle_{i}",
                     ["vehicle", "--mission", str(mission_file), "--sysid", str(i), "--mavlink", f"udpin:127.0.0.1:{port}",
-                     "--lockstep", "--zenoh-connect", hub, "--tlog", str(self.out / "tlogs" / f"vehicle_{i}.tlog")],
+                     "--lockstep", "--zenoh-connect", hub, "--zenoh-listen", "tcp/127.0.0.1:0",
+                     "--tlog", str(self.out / "tlogs" / f"vehicle_{i}.tlog")],
                 )
                 self._spawn(
                     f"planner_{i}",

@@ -47,8 +47,8 @@ SAFETY_FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude", "sp
 
 #: Tolerance of the kinematic accounting (floating point of the polar round trip), m and rad.
 KINEMATIC_TOL: float = 1e-9
-#: The same for positions reported over MAVLink (float32: ~1.5e-5 m at 150 m from the origin;
-#: two positions per step, and a 1 m step turns a position error into an angle error).
+#: The same for positions reported over MAVLink (m): float32 resolves ~1.5e-5 m at 150 m
+#: from the origin, and a step length or direction comes from two such positions.
 MAVLINK_KINEMATIC_TOL: float = 1e-4
 
 
@@ -321,21 +321,30 @@ def safety_margins(
     speed = np.linalg.norm(u, axis=-1)
     out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + kinematic_tol
     prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
-    out["turn_rate"] = _turn_margin(prev, u, limits) + kinematic_tol
+    out["turn_rate"] = _turn_margin(prev, u, limits, kinematic_tol) + KINEMATIC_TOL
     return out
 
 
-def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits) -> FloatArray:
-    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step."""
+def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
+    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step.
+
+    ``position_tol_m`` is the position uncertainty of the recorded trajectory (float32 over
+    MAVLink): it becomes an angle tolerance of tol / (length of the shorter step), horizontal
+    length for the heading, whole length for the tilt.
+    """
     has_prev = np.linalg.norm(prev, axis=-1) > 0.0
     psi0, psi1 = np.arctan2(prev[..., 1], prev[..., 0]), np.arctan2(u[..., 1], u[..., 0])
     th0 = np.arctan2(prev[..., 2], np.hypot(prev[..., 0], prev[..., 1]))
     th1 = np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
     dpsi = np.abs((psi1 - psi0 + np.pi) % (2.0 * np.pi) - np.pi)
+    rho = np.minimum(np.hypot(prev[..., 0], prev[..., 1]), np.hypot(u[..., 0], u[..., 1]))
+    length = np.minimum(np.linalg.norm(prev, axis=-1), np.linalg.norm(u, axis=-1))
     # The heading of a vertical step is undefined: no heading limit applies across it.
-    vertical = (np.hypot(prev[..., 0], prev[..., 1]) < 1e-9) | (np.hypot(u[..., 0], u[..., 1]) < 1e-9)
+    vertical = rho < max(1e-9, 100.0 * position_tol_m)
     dpsi = np.where(vertical, 0.0, dpsi)
-    slack = np.minimum(limits.heading_change_max_rad - dpsi, limits.tilt_change_max_rad - np.abs(th1 - th0))
+    heading_tol = 2.0 * position_tol_m / np.maximum(rho, 1e-300)
+    tilt_tol = 2.0 * position_tol_m / np.maximum(length, 1e-300)
+    slack = np.minimum(limits.heading_change_max_rad - dpsi + heading_tol, limits.tilt_change_max_rad - np.abs(th1 - th0) + tilt_tol)
     return np.where(has_prev, slack, np.inf)
 
 

@@ -297,9 +297,14 @@ class PlannerNode:
         assert link is not None
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
-        link.request_interval(32, 10.0)  # LOCAL_POSITION_NED: what the planner steps on
-        for msg_id in (33, 242, 245):  # GLOBAL_POSITION_INT, HOME_POSITION, EXTENDED_SYS_STATE
-            link.request_interval(msg_id, 1.0)
+        if self.o.lockstep:
+            # A simulated vehicle in lockstep reports its position on every tick: the streams
+            # only need to be slow (every message is parsed here and logged by the vehicle).
+            rates = {32: 1.0, 33: 0.2, 242: 0.2, 245: 0.2, 30: 0.2, 74: 0.2}  # + ATTITUDE, VFR_HUD
+        else:
+            rates = {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
+        for msg_id, hz in rates.items():
+            link.request_interval(msg_id, hz)
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         mode = "OFFBOARD" if link.is_px4 else "GUIDED"
         if not link.telemetry.armed:
@@ -343,9 +348,12 @@ class PlannerNode:
             prev_step = np.zeros(3)
             done_steps = 0
             for k in range(self.steps):
+                w0 = self.wall()
                 t_k = self._await_step(k)
+                w_tick = self.wall()
                 own = self._own_position(t_k)
                 meas = self._measurement(k)
+                w_meas = self.wall()
                 record = Observation(
                     self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
                     meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad,
@@ -358,6 +366,7 @@ class PlannerNode:
                     f"records of step {k} from the live planners",
                     missing=lambda: sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k)),
                 )
+                w_peers = self.wall()
                 view = self.view.advance(k)
                 state, rows = self._estimate(state, view, used)
                 used = np.maximum(used, view.saved_steps)
@@ -367,6 +376,7 @@ class PlannerNode:
                 nxt = np.asarray(step.next_position, dtype=float)
                 assert self.link is not None
                 self.link.send_setpoint(nxt, u / self.dt)
+                w_sent = self.wall()
                 prev_step = u
                 active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
                 self._publish(
@@ -374,7 +384,9 @@ class PlannerNode:
                     Status(self.o.uav, k, t_k, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
                 )
                 self._publish(self._pub_done, Done(self.o.uav, k))
-                self._log_step(k, t_k, own, record, view, state, result, rows)
+                timing = {"wait_tick_s": w_tick - w0, "wait_measurement_s": w_meas - w_tick, "wait_peers_s": w_peers - w_meas,
+                          "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w_meas}
+                self._log_step(k, t_k, own, record, view, state, result, rows, timing)
                 done_steps += 1
             self._end()
             return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped)}
@@ -437,7 +449,7 @@ class PlannerNode:
             bmin, bmax, self.m.comms.d_hop_m, uniforms, xi=mc.xi, perturbation_rad=mc.random_perturbation_rad,
         )
 
-    def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int) -> None:
+    def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:
         if self._log is None:
             return
         step = result.step
@@ -456,6 +468,7 @@ class PlannerNode:
             "active": {name: bool(a) for name, a in zip(("uav", "source", "obstacle", "altitude"), np.asarray(step.active))},
             "singular": bool(step.singular),
             "filtered": bool(step.filtered),
+            "timing": {name: round(v, 6) for name, v in timing.items()},
         }
         self._log.write(json.dumps(entry) + "\n")
 
