@@ -283,6 +283,10 @@ def figures(out: Path, loads: list[dict[str, Any]], capacity: list[dict[str, Any
         label = "hovering" if airborne else "idle (ground)"
         ax[0].plot([r["n"] for r in rows], [100 * r["cpu_core_fraction"] for r in rows], style, label=label)
         ax[1].plot([r["n"] for r in rows], [r["rss_mb"] for r in rows], style, label=label)
+        late = [r for r in rows if not r["real_time"]]
+        if late:
+            ax[0].plot([r["n"] for r in late], [100 * r["cpu_core_fraction"] for r in late], "rx", ms=12,
+                       label="real time not held" if airborne else None)
     ax[0].axhline(90, color="grey", lw=0.8)
     ax[0].set(xlabel="vehicles in one process", ylabel="CPU (% of one core)", xscale="log", title="CPU, real time x1")
     ax[1].set(xlabel="vehicles in one process", ylabel="resident memory (MB)", xscale="log", title="RSS")
