@@ -19,8 +19,8 @@ pytestmark = pytest.mark.integration
 GEOD = Geod(ellps="WGS84")
 
 
-def _start(*args: str) -> tuple[Proc, str]:
-    proc = Proc(fimnav("vehicle", "--mavlink", "tcpin:127.0.0.1:0", "--speedup", "5", *args))
+def _start(*args: str, speedup: str = "5") -> tuple[Proc, str]:
+    proc = Proc(fimnav("vehicle", "--mavlink", "tcpin:127.0.0.1:0", "--speedup", speedup, *args))
     line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
     port = line.split('"mavlink": "')[1].split('"')[0].rsplit(":", 1)[1]
     return proc, port
@@ -86,7 +86,9 @@ def test_mavsdk_px4_offboard():
     from mavsdk.plugins.offboard import Offboard, PositionNedYaw
     from mavsdk.plugins.telemetry import Telemetry
 
-    proc, port = _start("--flavour", "px4", "--profile", "ideal")
+    # real time: MAVSDK streams offboard setpoints at 20 Hz of wall time; the 1 s offboard-loss
+    # failsafe must not fire when the loaded machine delays it
+    proc, port = _start("--flavour", "px4", "--profile", "ideal", speedup="1")
     m = None
     try:
         m, system = _system(port)
