@@ -38,6 +38,11 @@ MASK_POSITION = MASK_POSITION_VELOCITY | 0b0000_0000_0011_1000
 MASK_VELOCITY = MASK_POSITION_VELOCITY | 0b0000_0000_0000_0111
 
 
+#: Deadline (s) for the heartbeat that confirms a mode change or arming (heartbeats are 1 Hz;
+#: a loaded machine starting dozens of processes can delay them by seconds).
+MODE_CONFIRM_TIMEOUT_S: float = 30.0
+
+
 class LinkError(FimnavError):
     """The vehicle refused a command or the link failed."""
 
@@ -253,13 +258,13 @@ class VehicleLink:
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
         self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom)
-        self.wait_for(lambda: self.telemetry.custom_mode == custom, 5.0, f"heartbeat in mode {name}")
+        self.wait_for(lambda: self.telemetry.custom_mode == custom, MODE_CONFIRM_TIMEOUT_S, f"heartbeat in mode {name}")
 
     def arm(self) -> None:
         """Arm and wait until the heartbeat says armed."""
         m = self.mavutil.mavlink
         self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
-        self.wait_for(lambda: self.telemetry.armed, 5.0, "armed heartbeat")
+        self.wait_for(lambda: self.telemetry.armed, MODE_CONFIRM_TIMEOUT_S, "armed heartbeat")
 
     def takeoff(self, altitude_m: float) -> None:
         """MAV_CMD_NAV_TAKEOFF to ``altitude_m`` above home (acknowledged, not awaited)."""

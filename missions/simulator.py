@@ -254,8 +254,9 @@ def simulate(
         u = step.displacement
         pos = step.next_position
         if float32_positions:
+            # The vehicle lands on the float32 setpoint; the drone keeps its planned step as
+            # its previous direction, as the planner node does.
             pos = pos.astype(np.float32).astype(np.float64)
-            u = pos - positions[k]
         prev_step = u
         positions[k + 1] = pos
         if progress is not None:
