@@ -33,7 +33,7 @@ def connect_client(address: str, source_system: int = 255) -> Any:
     return conn
 
 
-def wait_msg(conn: Any, mtype: str | list[str], cond: Callable[[Any], bool] = lambda m: True, timeout: float = 5.0) -> Any:
+def wait_msg(conn: Any, mtype: str | list[str], cond: Callable[[Any], bool] = lambda m: True, timeout: float = 10.0) -> Any:
     """The first message of ``mtype`` satisfying ``cond`` within ``timeout`` wall seconds."""
     deadline = time.monotonic() + timeout
     while True:
@@ -78,7 +78,7 @@ class Rig:
     def client(self) -> Any:
         return self.clients[0]
 
-    def command(self, cmd: int, *params: float, index: int = 0, timeout: float = 5.0, use_int: bool = False,
+    def command(self, cmd: int, *params: float, index: int = 0, timeout: float = 10.0, use_int: bool = False,
                 frame: int = 0, target_system: int | None = None) -> int:
         """Send COMMAND_LONG (or COMMAND_INT) and return the COMMAND_ACK result."""
         c = self.clients[index]
@@ -108,7 +108,7 @@ class Rig:
     def takeoff(self, alt_m: float, index: int = 0) -> int:
         return self.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt_m, index=index)
 
-    def local(self, cond: Callable[[Any], bool] = lambda m: True, index: int = 0, timeout: float = 5.0) -> Any:
+    def local(self, cond: Callable[[Any], bool] = lambda m: True, index: int = 0, timeout: float = 10.0) -> Any:
         return wait_msg(self.clients[index], "LOCAL_POSITION_NED", cond, timeout)
 
     def fly_up(self, alt_m: float = 5.0, index: int = 0) -> None:
@@ -116,10 +116,10 @@ class Rig:
         assert self.set_mode("GUIDED", index) == mavlink.MAV_RESULT_ACCEPTED
         assert self.arm(index) == mavlink.MAV_RESULT_ACCEPTED
         assert self.takeoff(alt_m, index) == mavlink.MAV_RESULT_ACCEPTED
-        self.local(lambda m: abs(m.z + alt_m) < 0.15, index=index, timeout=10.0)
+        self.local(lambda m: abs(m.z + alt_m) < 0.15, index=index, timeout=20.0)
 
 
-def hello(conn: Any, sysid: int, timeout: float = 5.0) -> Any:
+def hello(conn: Any, sysid: int, timeout: float = 10.0) -> Any:
     """Announce the client with a GCS heartbeat (the vehicle learns our UDP address) and
     wait for the vehicle's heartbeat."""
     deadline = time.monotonic() + timeout
