@@ -432,3 +432,29 @@ def test_tcp_several_clients(make_rig):
         wait_msg(second, "HEARTBEAT", lambda m: m.custom_mode == 4)
     finally:
         second.close()
+
+
+@pytest.mark.parametrize("kind", ["udpout", "tcp"])
+def test_vehicle_dials_out_to_a_listening_gcs(kind):
+    """The SITL-style direction: the ground station listens (udpin / tcpin), the vehicle sends."""
+    from pymavlink import mavutil
+
+    from vehicle_sim.clock import RealTimeClock
+    from vehicle_sim.host import VehicleHost, build_vehicle
+
+    listen = "udpin" if kind == "udpout" else "tcpin"
+    gcs = mavutil.mavlink_connection(f"{listen}:127.0.0.1:0", source_system=255, dialect="ardupilotmega")
+    sock = gcs.port if kind == "udpout" else gcs.listen
+    port = sock.getsockname()[1]
+    v = build_vehicle(VehicleConfig(sysid=9), f"{kind}:127.0.0.1:{port}")
+    host = VehicleHost([v], RealTimeClock(5.0))
+    host.start()
+    try:
+        hb = wait_msg(gcs, "HEARTBEAT", lambda m: m.get_srcSystem() == 9)
+        assert hb.autopilot == R.MAV_AUTOPILOT_ARDUPILOTMEGA
+        gcs.mav.command_long_send(9, 1, R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        assert wait_msg(gcs, "COMMAND_ACK", lambda m: m.command == R.MAV_CMD_COMPONENT_ARM_DISARM).result == 0
+        assert v.armed
+    finally:
+        host.close()
+        gcs.close()
