@@ -26,6 +26,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--criterion", choices=("A", "D"), help="design criterion (default: the mission's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds a step may take before the run fails (default 30)")
+    p.add_argument("--vehicles-per-process", type=int, default=1, help="simulated vehicles hosted by one process (default 1; more for large swarms)")
     p.set_defaults(func=run)
 
 
@@ -45,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     if args.criterion:
         overrides["criterion"] = args.criterion
+    if args.vehicles_per_process < 1:
+        raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
     mission = load_mission(args.mission, overrides)
     out = args.out or Path("results") / f"{mission.id}-{time.strftime('%Y%m%d-%H%M%S')}"
     bar = tqdm(total=mission.steps, unit="step", desc=f"launch {mission.id}", file=sys.stderr, disable=None)
@@ -54,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     try:
-        summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout)
+        summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process)
     finally:
         bar.close()
     viol = sum(summary["violations"].values())

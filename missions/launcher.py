@@ -113,6 +113,7 @@ class Launcher:
         progress: Callable[[int, float, float, int], None] | None = None,
         preflight_timeout_s: float = 120.0,
         step_timeout_s: float = 30.0,
+        vehicles_per_process: int = 1,
     ) -> None:
         self.mission = mission
         self.out = out
@@ -120,6 +121,9 @@ class Launcher:
         self.progress = progress
         self.preflight_timeout_s = preflight_timeout_s
         self.step_timeout_s = step_timeout_s
+        if vehicles_per_process < 1:
+            raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
+        self.vehicles_per_process = vehicles_per_process
         self.children: list[Child] = []
         self.collected = Collected()
         self._stop = threading.Event()
@@ -217,17 +221,22 @@ class Launcher:
             ]
             clock = LockstepClock(session, m.id, n, m.dt_s)
             child_zenoh = SessionSettings.from_mission(m.zenoh, connect=(hub,), listen=("tcp/127.0.0.1:0",))
-            for i in range(1, n + 1):
-                port = free_port(socket.SOCK_DGRAM)
+            ports = {i: free_port(socket.SOCK_DGRAM) for i in range(1, n + 1)}
+            per = self.vehicles_per_process
+            for first in range(1, n + 1, per):
+                ids = list(range(first, min(first + per, n + 1)))
+                name = f"vehicle_{first}" if len(ids) == 1 else f"vehicles_{first}-{ids[-1]}"
+                tlog = self.out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
                 self._spawn(
-                    f"vehicle_{i}",
-                    ["vehicle", "--mission", str(mission_file), "--sysid", str(i), "--mavlink", f"udpin:127.0.0.1:{port}",
-                     "--lockstep", "--zenoh-connect", hub, "--zenoh-listen", "tcp/127.0.0.1:0",
-                     "--tlog", str(self.out / "tlogs" / f"vehicle_{i}.tlog")],
+                    name,
+                    ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
+                     *[a for i in ids for a in ("--mavlink", f"udpin:127.0.0.1:{ports[i]}")],
+                     "--lockstep", "--zenoh-connect", hub, "--zenoh-listen", "tcp/127.0.0.1:0", "--tlog", str(tlog)],
                 )
+            for i in range(1, n + 1):
                 self._spawn(
                     f"planner_{i}",
-                    ["plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep",
+                    ["plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{ports[i]}", "--lockstep",
                      *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
                      "--step-timeout", str(self.step_timeout_s)],
                 )
