@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import subprocess
+from pathlib import Path
 import sys
 import time
 
@@ -128,15 +129,15 @@ def test_bad_signing_key_file_is_a_usage_error(tmp_path):
 
 def test_tlog_is_readable_by_mavlogdump(make_rig, tmp_path):
     tlog = tmp_path / "v1.tlog"
-    rig = make_rig(VehicleConfig(tlog_path=str(tlog)))
+    rig = make_rig(VehicleConfig(tlog_path=str(tlog)), speedup=2.0)
     assert rig.set_mode("GUIDED") == 0
     assert rig.arm() == 0
     wait_msg(rig.client, "LOCAL_POSITION_NED")
     rig.host.close()
-    import shutil
+    import sysconfig
 
-    tool = shutil.which("mavlogdump.py")
-    cmd = [tool] if tool else [sys.executable, "-m", "pymavlink.tools.mavlogdump"]
+    script = Path(sysconfig.get_path("scripts")) / "mavlogdump.py"  # the installed script, no shim
+    cmd = [sys.executable, str(script)] if script.exists() else [sys.executable, "-m", "pymavlink.tools.mavlogdump"]
     env = dict(os.environ, MAVLINK20="1")
     out = subprocess.run(
         [*cmd, "--dialect", "ardupilotmega", "--types", "HEARTBEAT,COMMAND_LONG,COMMAND_ACK", str(tlog)],
