@@ -154,3 +154,29 @@ def test_port_in_use_is_a_clear_error():
         finally:
             proc.kill()
     assert rc == 2 and "Traceback" not in proc.err and "in use" in proc.err
+
+
+def test_sigterm_stops_cleanly_and_flushes_the_tlogs(tmp_path):
+    import os
+    import signal
+
+    pattern = str(tmp_path / "v{sysid}.tlog")
+    proc = Proc(fimnav("vehicle", "--count", "2", "--mavlink", "udpin:127.0.0.1:0", "--tlog", pattern))
+    clients = []
+    try:
+        ready = _ready(proc)
+        for v in ready["vehicles"]:
+            c = connect_client(v["mavlink"])
+            clients.append(c)
+            hello(c, v["sysid"])
+        os.killpg(proc.p.pid, signal.SIGTERM)
+        assert proc.wait(20) == 0
+        assert "Traceback" not in proc.err
+    finally:
+        for c in clients:
+            c.close()
+        proc.kill()
+    for sysid in (1, 2):
+        data = (tmp_path / f"v{sysid}.tlog").read_bytes()
+        # uint64 BE time stamp then a MAVLink 2 frame: the first frame is ours or the client's
+        assert len(data) > 20 and data[8] == 0xFD
