@@ -22,6 +22,7 @@ from typing import Any
 
 from comms import keys
 from comms.messages import Done, MessageError, Tick, decode, encode
+from comms.pubsub import declare_publisher
 from planner.errors import FimnavError
 
 #: Simulated time per pre-flight tick (s), and wall time between pre-flight ticks (s): the
@@ -59,7 +60,7 @@ class LockstepClock:
         self.dt = dt_s
         self.wall = wall
         self._q: queue.SimpleQueue[tuple[str, str, bytes | None]] = queue.SimpleQueue()
-        self._pub = session.declare_publisher(keys.tick(mission_id))
+        self._pub = declare_publisher(session, keys.tick(mission_id))
         self._subs = [
             session.declare_subscriber(keys.done(mission_id), lambda s: self._q.put(("done", str(s.key_expr), bytes(s.payload.to_bytes())))),
             session.liveliness().declare_subscriber(

@@ -23,6 +23,7 @@ from typing import Any
 
 from comms import keys
 from comms.messages import MessageError, MessageKind, Observation, Tick, decode, encode
+from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
 from vehicle_sim.clock import LockstepClock
 from vehicle_sim.clock import Tick as VehicleTick
@@ -53,7 +54,7 @@ class ZenohBridge:
         self.seq = 0
         self.session = open_session(settings)
         self._sub = self.session.declare_subscriber(keys.tick(mission_id), self._on_tick_sample)
-        self._pubs = {v.sysid: self.session.declare_publisher(keys.measurement(mission_id, v.sysid)) for v in vehicles}
+        self._pubs = {v.sysid: declare_publisher(self.session, keys.measurement(mission_id, v.sysid)) for v in vehicles}
         self._tokens = [self.session.liveliness().declare_token(keys.alive(mission_id, "vehicle", v.sysid)) for v in vehicles]
 
     def _on_tick_sample(self, sample: Any) -> None:
