@@ -8,16 +8,17 @@ from typing import Any
 
 
 def udp_drops(port: int) -> int:
-    """Datagrams the kernel dropped on the IPv4 UDP socket bound to 127.0.0.1:``port``
-    (``drops`` column of /proc/net/udp): a receive buffer overflow shows up here."""
-    want = f"0100007F:{port:04X}"
+    """Datagrams the kernel dropped on the IPv4 UDP socket bound to local ``port`` (on
+    127.0.0.1 or the wildcard address; ``drops`` column of /proc/net/udp): a receive buffer
+    overflow shows up here."""
+    wanted = {f"0100007F:{port:04X}", f"00000000:{port:04X}"}
     with open("/proc/net/udp") as fh:
         next(fh)
         for line in fh:
             cols = line.split()
-            if cols[1] == want:
+            if cols[1] in wanted:
                 return int(cols[-1])
-    raise AssertionError(f"no UDP socket bound to 127.0.0.1:{port}")
+    raise AssertionError(f"no UDP socket bound to port {port}")
 
 
 def recv_until(conn: Any, pred: Callable[[Any], bool], timeout_s: float, what: str) -> Any:
