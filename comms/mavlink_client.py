@@ -1,11 +1,27 @@
 """The planner's MAVLink link to its own autopilot (vehicle_sim, ArduPilot or PX4).
 
-A thin, typed layer over pymavlink's ``mavutil`` connection: wait for the heartbeat, request
-streams, switch modes, arm, take off, stream position + velocity setpoints, and read the
-vehicle's position with its timestamp. Frames: the mission frame is ENU about the mission
-origin; MAVLink LOCAL_NED is north-east-down about the vehicle's EKF origin, which for a
-simulated vehicle of the mission is the mission origin. Conversion (x_E, y_N, z_U) ↔
-(n, e, d) = (y, x, −z) happens here, at the MAVLink edge, and nowhere else.
+A thin, typed layer over pymavlink's ``mavutil`` connection: wait for the heartbeat, tell the
+autopilot's flavour from HEARTBEAT.autopilot, request streams (SET_MESSAGE_INTERVAL, or
+REQUEST_DATA_STREAM where that is refused), report what the vehicle still lacks to fly (GPS
+fix, EKF, home, EKF origin), switch modes, arm, take off, stream setpoints and read the
+vehicle's position with its timestamp.
+
+Frames (DESIGN.md): the mission frame is ENU about the mission origin.
+
+* ``frame="local_ned"``: SET_POSITION_TARGET_LOCAL_NED and LOCAL_POSITION_NED, NED about the
+  vehicle's EKF origin; only right where that origin *is* the mission origin (fimnav's own
+  simulated vehicles, or a vehicle whose GPS_GLOBAL_ORIGIN was checked). (x_E, y_N, z_U) ↔
+  (n, e, d) = (y, x, −z).
+* ``frame="global"``: SET_POSITION_TARGET_GLOBAL_INT and GLOBAL_POSITION_INT, converted with
+  pyproj (:mod:`comms.geodesy`): every vehicle keeps its own EKF origin. The altitude reference
+  is explicit: ``amsl`` (MAV_FRAME_GLOBAL_INT, altitude = origin altitude + z) or ``relative``
+  (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, altitude above home = z).
+
+Setpoint streaming: :meth:`VehicleLink.set_stream` installs a function of wall time giving the
+current setpoint; every :meth:`pump` re-sends it once its period has elapsed, so the stream
+keeps flowing while the planner waits for anything (a command's ACK, a mode heartbeat, the
+peers' records): ArduPilot's GUID_TIMEOUT and PX4's offboard-loss timer never see a gap
+caused by the planner waiting.
 
 Every wait has a deadline and says what it was waiting for when it expires
 (:class:`LinkTimeout`); nothing sleeps a fixed time.
@@ -15,14 +31,17 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
-from planner.errors import FimnavError
+from comms.geodesy import MissionFrame
+from planner.errors import FimnavError, UsageError
 
 #: Our MAVLink identity: a companion computer of the vehicle's system.
 COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
@@ -31,16 +50,47 @@ ARDUPILOT_GUIDED = 4
 ARDUPILOT_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9, "POSHOLD": 16, "BRAKE": 17}
 #: PX4 custom modes (main_mode << 16 | sub_mode << 24).
 PX4_MODES = {"POSCTL": 3 << 16, "OFFBOARD": 6 << 16, "AUTO.LOITER": (4 << 16) | (3 << 24), "AUTO.RTL": (4 << 16) | (5 << 24), "AUTO.LAND": (4 << 16) | (6 << 24), "AUTO.TAKEOFF": (4 << 16) | (2 << 24)}
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
-#: SET_POSITION_TARGET type masks (ignore acceleration and yaw / yaw rate).
+Flavour = Literal["ardupilot", "px4"]
+Frame = Literal["local_ned", "global"]
+AltitudeReference = Literal["amsl", "relative"]
+
+#: SET_POSITION_TARGET type masks (POSITION_TARGET_TYPEMASK: bits set = ignored). Always
+#: ignore acceleration (bits 6-8), yaw (10) and yaw rate (11); ArduPilot and PX4 accept
+#: position, velocity and position + velocity with these (ArduPilot: "all 3 axes must be
+#: provided"). Position + velocity = 0b1101_1100_0000 = 3520.
 MASK_POSITION_VELOCITY = 0b0000_1100_0000_0000 | 0b0000_0001_1100_0000  # use pos + vel
 MASK_POSITION = MASK_POSITION_VELOCITY | 0b0000_0000_0011_1000
 MASK_VELOCITY = MASK_POSITION_VELOCITY | 0b0000_0000_0000_0111
 
-
 #: Deadline (s) for the heartbeat that confirms a mode change or arming (heartbeats are 1 Hz;
 #: a loaded machine starting dozens of processes can delay them by seconds).
 MODE_CONFIRM_TIMEOUT_S: float = 30.0
+#: No autopilot heartbeat for this long (wall s) = the link is lost (noticed within 3 s).
+LINK_LOSS_S: float = 2.0
+
+# EKF_STATUS_REPORT flags a copter needs for position control (ArduPilot's own pre-arm
+# test: attitude, velocities and absolute horizontal and vertical position), and the
+# constant-position mode flag that says it has no position yet.
+EKF_READY_FLAGS = 1 | 2 | 4 | 16 | 32
+EKF_CONST_POS_MODE = 128
+MAV_SYS_STATUS_AHRS = 0x200000
+MAV_SYS_STATUS_PREARM_CHECK = 0x10000000
+MAV_LANDED_STATE_NAMES = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
+
+#: Message ids.
+MSG_SYS_STATUS = 1
+MSG_GPS_RAW_INT = 24
+MSG_LOCAL_POSITION_NED = 32
+MSG_GLOBAL_POSITION_INT = 33
+MSG_GPS_GLOBAL_ORIGIN = 49
+MSG_EKF_STATUS_REPORT = 193
+MSG_HOME_POSITION = 242
+MSG_EXTENDED_SYS_STATE = 245
+#: REQUEST_DATA_STREAM groups (ArduPilot) that carry each message, for the fallback.
+DATA_STREAM_OF = {MSG_SYS_STATUS: 2, MSG_GPS_RAW_INT: 2, MSG_LOCAL_POSITION_NED: 6, MSG_GLOBAL_POSITION_INT: 6,
+                  MSG_EKF_STATUS_REPORT: 12, MSG_HOME_POSITION: 12, MSG_EXTENDED_SYS_STATE: 12}
 
 
 class LinkError(FimnavError):
@@ -60,6 +110,42 @@ def mavutil_module() -> Any:
     return mavutil
 
 
+def read_signing_key(path: str | Path) -> bytes:
+    """Read a MAVLink 2 signing key file: 32 raw bytes, or 64 hex digits (text).
+
+    The key is a secret: a file that its group or others may read or write is refused
+    (``chmod 600 FILE``), and the key itself never appears in a message.
+
+    Raises:
+        UsageError: missing or unreadable file, permissions too open, wrong length/content.
+    """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as exc:
+        raise UsageError(f"signing key {str(p)!r}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise UsageError(f"signing key {str(p)!r}: expected a regular file")
+    if st.st_mode & 0o077:
+        raise UsageError(
+            f"signing key {str(p)!r}: permissions {stat.S_IMODE(st.st_mode):04o} let the group or others "
+            f"read it; expected 0600 or stricter (run: chmod 600 {p})"
+        )
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise UsageError(f"signing key {str(p)!r}: {exc.strerror or exc}") from None
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise UsageError(f"signing key {str(p)!r}: expected 32 raw bytes or 64 hex digits, found {len(data)} bytes")
+
+
 def enu_to_ned(v: Iterable[float]) -> tuple[float, float, float]:
     """(x east, y north, z up) → (north, east, down)."""
     x, y, z = v
@@ -71,18 +157,44 @@ def ned_to_enu(n: float, e: float, d: float) -> np.ndarray:
     return np.array([e, n, -d], dtype=float)
 
 
+def flavour_of_autopilot(autopilot: int | None) -> Flavour | None:
+    """The flavour of a HEARTBEAT.autopilot value (MAV_AUTOPILOT_*), or None if unknown."""
+    if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return "ardupilot"
+    if autopilot == MAV_AUTOPILOT_PX4:
+        return "px4"
+    return None
+
+
 @dataclass
 class Telemetry:
-    """What the link has heard of the vehicle (updated by :meth:`VehicleLink.pump`)."""
+    """What the link has heard of the vehicle (updated by :meth:`VehicleLink.pump`).
+
+    Positions are in the mission ENU frame (m), converted from LOCAL_POSITION_NED or from
+    GLOBAL_POSITION_INT according to the link's frame; ``position_time_ms`` is the vehicle's
+    ``time_boot_ms`` of that message and ``position_wall_s`` our wall clock on receipt.
+    """
 
     heartbeat_wall_s: float = -math.inf
+    heartbeats: int = 0
     autopilot: int | None = None
     custom_mode: int | None = None
     armed: bool = False
     position_enu_m: np.ndarray | None = None
     velocity_enu_mps: np.ndarray | None = None
     position_time_ms: int = -1
+    position_wall_s: float = -math.inf
     home_known: bool = False
+    home_global: tuple[float, float, float] | None = None  # lat deg, lon deg, alt m AMSL
+    origin_global: tuple[float, float, float] | None = None  # EKF origin, same units
+    gps_fix_type: int | None = None
+    satellites: int | None = None
+    sensors_present: int | None = None
+    sensors_health: int | None = None
+    ekf_flags: int | None = None
+    landed_state: int | None = None
+    signed_seen: bool = False
+    statustexts: list[str] = field(default_factory=list)
 
 
 class VehicleLink:
@@ -93,8 +205,13 @@ class VehicleLink:
             ``/dev/ttyUSB0,57600``).
         target_system: the vehicle's system id.
         source_system: our system id (default: the vehicle's, as a companion computer).
-        signing_key: 32-byte MAVLink 2 signing key, or None.
+        signing_key: 32-byte MAVLink 2 signing key, or None. With a key, everything we send
+            is signed and unsigned input is refused.
         wall: monotonic clock (seconds), injectable for tests.
+        frame: ``"local_ned"`` or ``"global"`` (see the module doc).
+        mission_frame: the mission's :class:`MissionFrame` (required for ``"global"``).
+        altitude_reference: ``"amsl"`` or ``"relative"`` (global frame only).
+        flavour: force ``"ardupilot"`` or ``"px4"``; None: from HEARTBEAT.autopilot.
     """
 
     def __init__(
@@ -104,39 +221,78 @@ class VehicleLink:
         source_system: int | None = None,
         signing_key: bytes | None = None,
         wall: Callable[[], float] = time.monotonic,
+        frame: Frame = "local_ned",
+        mission_frame: MissionFrame | None = None,
+        altitude_reference: AltitudeReference = "relative",
+        flavour: Flavour | None = None,
     ) -> None:
+        if frame == "global" and mission_frame is None:
+            raise ValueError("frame='global' needs the mission frame")
         self.mavutil = mavutil_module()
+        self.connection = connection
         self.target_system = target_system
         self.wall = wall
-        try:
-            self.conn = self.mavutil.mavlink_connection(
-                connection,
-                source_system=source_system if source_system is not None else target_system,
-                source_component=COMPONENT_ID,
-                dialect="ardupilotmega",
-            )
-        except Exception as exc:  # pymavlink raises bare OSError/ValueError/SerialException
-            raise LinkError(f"cannot open MAVLink connection {connection!r}: {exc}") from None
-        self.mav = self.conn.mav
-        if signing_key is not None:
-            if len(signing_key) != 32:
-                raise LinkError(f"signing key: expected 32 bytes, found {len(signing_key)}")
-            self.conn.setup_signing(signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
+        self.frame: Frame = frame
+        self.mission_frame = mission_frame
+        self.altitude_reference: AltitudeReference = altitude_reference
+        self.forced_flavour: Flavour | None = flavour
+        self._source_system = source_system if source_system is not None else target_system
+        if signing_key is not None and len(signing_key) != 32:
+            raise LinkError(f"signing key: expected 32 bytes, found {len(signing_key)}")
+        self._signing_key = signing_key
+        self.conn: Any = None
+        self._open()
         self.telemetry = Telemetry()
         self._last_gcs_heartbeat = -math.inf
         self.acks: dict[int, int] = {}
-        self.statustexts: list[str] = []
+        self.statustexts = self.telemetry.statustexts
+        self._stream: Callable[[float], tuple[np.ndarray | None, np.ndarray | None]] | None = None
+        self.stream_period_s = 0.25
+        self._stream_last = -math.inf
+        self.setpoints_sent = 0
+
+    def _open(self) -> None:
+        try:
+            self.conn = self.mavutil.mavlink_connection(
+                self.connection,
+                source_system=self._source_system,
+                source_component=COMPONENT_ID,
+                dialect="ardupilotmega",
+                autoreconnect=True,
+            )
+        except Exception as exc:  # pymavlink raises bare OSError/ValueError/SerialException
+            raise LinkError(f"cannot open MAVLink connection {self.connection!r}: {exc}") from None
+        self.mav = self.conn.mav
+        if self._signing_key is not None:
+            self.conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
+
+    # -- identity ---------------------------------------------------------------------------
+    @property
+    def flavour(self) -> Flavour:
+        """The autopilot flavour: the forced one, else HEARTBEAT.autopilot (ArduPilot when the
+        heartbeat names neither)."""
+        if self.forced_flavour is not None:
+            return self.forced_flavour
+        return flavour_of_autopilot(self.telemetry.autopilot) or "ardupilot"
+
+    @property
+    def is_px4(self) -> bool:
+        return self.flavour == "px4"
 
     # -- receiving --------------------------------------------------------------------------
     def pump(self, timeout_s: float = 0.0) -> int:
         """Read every pending message (waiting up to ``timeout_s`` for the first); return how
-        many were for us. Sends our own 1 Hz heartbeat as a side effect."""
+        many were for us. Sends our own 1 Hz heartbeat and the due setpoint as side effects."""
         self._heartbeat_out()
+        self._stream_out()
         n = 0
         deadline = self.wall() + timeout_s
         while True:
             remaining = deadline - self.wall()
-            msg = self.conn.recv_match(blocking=remaining > 0 and n == 0, timeout=max(remaining, 0.0))
+            try:
+                msg = self.conn.recv_match(blocking=remaining > 0 and n == 0, timeout=max(remaining, 0.0))
+            except (OSError, ValueError):
+                return n  # a transport error is a silent link: the heartbeat timeout reports it
             if msg is None:
                 return n
             if self._handle(msg):
@@ -146,23 +302,54 @@ class VehicleLink:
         if msg.get_srcSystem() != self.target_system:
             return False
         kind = msg.get_type()
+        if kind == "BAD_DATA":
+            return False
         tel = self.telemetry
+        if self.mav.signing.sig_count:
+            tel.signed_seen = True  # (frames with a signature block, checked or not)
         if kind == "HEARTBEAT" and msg.get_srcComponent() == AUTOPILOT_COMPONENT:
             tel.heartbeat_wall_s = self.wall()
+            tel.heartbeats += 1
             tel.autopilot = msg.autopilot
             tel.custom_mode = msg.custom_mode
             tel.armed = bool(msg.base_mode & 128)
         elif kind == "LOCAL_POSITION_NED":
-            if msg.time_boot_ms >= tel.position_time_ms:
+            if self.frame == "local_ned" and msg.time_boot_ms >= tel.position_time_ms:
                 tel.position_time_ms = msg.time_boot_ms
+                tel.position_wall_s = self.wall()
                 tel.position_enu_m = ned_to_enu(msg.x, msg.y, msg.z)
                 tel.velocity_enu_mps = ned_to_enu(msg.vx, msg.vy, msg.vz)
+        elif kind == "GLOBAL_POSITION_INT":
+            if self.frame == "global" and (msg.time_boot_ms >= tel.position_time_ms or msg.time_boot_ms < tel.position_time_ms - 10_000):
+                # (a time_boot_ms far behind the last one: the autopilot rebooted)
+                assert self.mission_frame is not None
+                x, y, z = self.mission_frame.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                if self.altitude_reference == "relative":
+                    z = msg.relative_alt * 1e-3
+                tel.position_time_ms = msg.time_boot_ms
+                tel.position_wall_s = self.wall()
+                tel.position_enu_m = np.array([x, y, z], dtype=float)
+                tel.velocity_enu_mps = ned_to_enu(msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
         elif kind == "HOME_POSITION":
             tel.home_known = True
+            tel.home_global = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            tel.origin_global = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "GPS_RAW_INT":
+            tel.gps_fix_type = msg.fix_type
+            tel.satellites = msg.satellites_visible
+        elif kind == "SYS_STATUS":
+            tel.sensors_present = msg.onboard_control_sensors_present
+            tel.sensors_health = msg.onboard_control_sensors_health
+        elif kind == "EKF_STATUS_REPORT":
+            tel.ekf_flags = msg.flags
+        elif kind == "EXTENDED_SYS_STATE":
+            tel.landed_state = msg.landed_state
         elif kind == "COMMAND_ACK":
             self.acks[msg.command] = msg.result
         elif kind == "STATUSTEXT":
-            self.statustexts.append(msg.text)
+            text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("utf-8", "replace")
+            tel.statustexts.append(text.rstrip("\x00"))
         return True
 
     def wait_for(self, predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -171,13 +358,31 @@ class VehicleLink:
         while not predicate():
             remaining = deadline - self.wall()
             if remaining <= 0:
-                raise LinkTimeout(f"vehicle {self.target_system}: no {what} within {timeout_s:g} s")
-            self.pump(min(remaining, 0.05))
+                raise LinkTimeout(f"vehicle {self.target_system}: no {what} within {timeout_s:g} s{self._signing_hint()}")
+            self.pump(min(remaining, 0.02 if self._stream is not None else 0.05))
+
+    def _signing_hint(self) -> str:
+        if self._signing_key is not None and self.mav.signing.badsig_count:
+            return (f" ({self.mav.signing.badsig_count} frames from the vehicle carried a signature that does not "
+                    "match our signing key: check that both use the same key)")
+        if self._signing_key is None and (self.telemetry.signed_seen or self.mav.signing.sig_count):
+            return (" (the vehicle signs its messages: it probably refuses our unsigned ones; give the "
+                    "signing key with --signing-key or vehicles.overrides[i].signing_key_file)")
+        return ""
 
     def wait_heartbeat(self, timeout_s: float = 10.0) -> None:
         """Wait for the autopilot's heartbeat."""
-        start = self.telemetry.heartbeat_wall_s
-        self.wait_for(lambda: self.telemetry.heartbeat_wall_s > start, timeout_s, "heartbeat")
+        start = self.telemetry.heartbeats
+        self.wait_for(lambda: self.telemetry.heartbeats > start, timeout_s, "heartbeat")
+
+    def check_signing(self) -> None:
+        """Refuse to go on unsigned with a vehicle that signs its frames (it refuses unsigned
+        commands: every command would time out). :class:`LinkError` with what to do."""
+        if self._signing_key is None and self.telemetry.signed_seen:
+            raise LinkError(
+                f"vehicle {self.target_system} uses MAVLink 2 signing and would refuse this planner's unsigned "
+                "frames: give the key with --signing-key FILE or vehicles.overrides[i].signing_key_file"
+            )
 
     def fileno(self) -> int | None:
         """The file descriptor to select() on for incoming MAVLink, if the transport has one."""
@@ -189,8 +394,62 @@ class VehicleLink:
         return self.wall() - self.telemetry.heartbeat_wall_s
 
     @property
-    def is_px4(self) -> bool:
-        return self.telemetry.autopilot == MAV_AUTOPILOT_PX4
+    def lost(self) -> bool:
+        """No autopilot heartbeat for :data:`LINK_LOSS_S` (after having heard one)."""
+        return self.telemetry.heartbeats > 0 and self.link_age_s() > LINK_LOSS_S
+
+    def reopen(self) -> None:
+        """Close and reopen the transport (a TCP connection or a serial port that died)."""
+        try:
+            self.conn.close()
+        except OSError:
+            pass
+        self._open()
+
+    # -- readiness --------------------------------------------------------------------------
+    def not_ready(self) -> list[str]:
+        """What the vehicle still lacks to fly by setpoints, in words (empty: ready).
+
+        GPS 3D fix (GPS_RAW_INT.fix_type ≥ 3); EKF: EKF_STATUS_REPORT with attitude, velocity
+        and absolute position and not in constant-position mode (ArduPilot), or, where the
+        autopilot sends no such report (PX4, vehicle_sim), SYS_STATUS with the AHRS healthy;
+        the pre-arm checks passed where SYS_STATUS reports them; home position
+        (HOME_POSITION); EKF origin (GPS_GLOBAL_ORIGIN)."""
+        t = self.telemetry
+        missing = []
+        if t.gps_fix_type is None:
+            missing.append("GPS status (no GPS_RAW_INT yet)")
+        elif t.gps_fix_type < 3:
+            missing.append(f"GPS 3D fix (fix_type {t.gps_fix_type}, {t.satellites} satellites)")
+        if t.ekf_flags is not None:
+            if (t.ekf_flags & EKF_READY_FLAGS) != EKF_READY_FLAGS or t.ekf_flags & EKF_CONST_POS_MODE:
+                missing.append(f"EKF position estimate (EKF_STATUS_REPORT flags {t.ekf_flags:#06x})")
+        elif t.sensors_present is None:
+            missing.append("system status (no SYS_STATUS yet)")
+        elif t.sensors_present & MAV_SYS_STATUS_AHRS and not (t.sensors_health or 0) & MAV_SYS_STATUS_AHRS:
+            missing.append("EKF/AHRS healthy (SYS_STATUS)")
+        if t.sensors_present is not None and t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK and not t.armed:
+            if not (t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK:
+                reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
+                missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
+        if not t.home_known:
+            missing.append("home position (HOME_POSITION)")
+        if t.origin_global is None:
+            missing.append("EKF origin (GPS_GLOBAL_ORIGIN)")
+        return missing
+
+    def request_message(self, message_id: int) -> bool:
+        """MAV_CMD_REQUEST_MESSAGE (one message now); False if refused or unanswered."""
+        m = self.mavutil.mavlink
+        try:
+            self.command(m.MAV_CMD_REQUEST_MESSAGE, [message_id], timeout_s=6.0, what=f"REQUEST_MESSAGE({message_id})")
+        except LinkTimeout:
+            return False
+        except LinkError:
+            if message_id == MSG_HOME_POSITION:
+                self.mav.command_long_send(self.target_system, AUTOPILOT_COMPONENT, m.MAV_CMD_GET_HOME_POSITION, 0, 0, 0, 0, 0, 0, 0, 0)
+            return False
+        return True
 
     # -- sending ----------------------------------------------------------------------------
     def _heartbeat_out(self) -> None:
@@ -198,7 +457,32 @@ class VehicleLink:
         if now - self._last_gcs_heartbeat >= 1.0:
             self._last_gcs_heartbeat = now
             m = self.mavutil.mavlink
-            self.mav.heartbeat_send(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
+            try:
+                self.mav.heartbeat_send(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
+            except OSError:
+                pass  # the link is down: the heartbeat timeout reports it
+
+    def set_stream(self, fn: Callable[[float], tuple[np.ndarray | None, np.ndarray | None]] | None, period_s: float | None = None) -> None:
+        """Stream ``fn(wall_s) -> (position ENU m | None, velocity ENU m/s | None)`` every
+        ``period_s`` wall seconds from now on (sent at once); None stops the stream."""
+        self._stream = fn
+        if period_s is not None:
+            self.stream_period_s = period_s
+        self._stream_last = -math.inf
+        self._stream_out()
+
+    def _stream_out(self) -> None:
+        if self._stream is None:
+            return
+        now = self.wall()
+        if now - self._stream_last < self.stream_period_s:
+            return
+        self._stream_last = now
+        pos, vel = self._stream(now)
+        try:
+            self.send_setpoint(pos, vel)
+        except OSError:
+            pass
 
     def command(
         self,
@@ -239,14 +523,44 @@ class VehicleLink:
             reason = "; ".join(self.statustexts[texts_before:]) or "no reason given"
             name = m.enums["MAV_RESULT"][result].name if result in m.enums["MAV_RESULT"] else str(result)
             raise LinkError(f"vehicle {self.target_system} refused {label}: {name} ({reason})")
-        raise LinkTimeout(f"vehicle {self.target_system}: no acknowledgement of {label} after {retries} tries in {timeout_s:g} s")
+        raise LinkTimeout(f"vehicle {self.target_system}: no acknowledgement of {label} after {retries} tries in {timeout_s:g} s{self._signing_hint()}")
 
     def request_interval(self, message_id: int, rate_hz: float) -> None:
-        """SET_MESSAGE_INTERVAL for one message."""
+        """SET_MESSAGE_INTERVAL for one message (rate in the autopilot's time, Hz)."""
         m = self.mavutil.mavlink
         self.command(m.MAV_CMD_SET_MESSAGE_INTERVAL, [message_id, 1e6 / rate_hz], what=f"SET_MESSAGE_INTERVAL({message_id})")
 
-    def set_mode(self, name: str) -> None:
+    def request_streams(self, rates_hz: dict[int, float], optional: Iterable[int] = ()) -> list[str]:
+        """Request each message at its rate with SET_MESSAGE_INTERVAL; where the autopilot
+        refuses it or does not answer (older firmware, some radios), fall back to
+        REQUEST_DATA_STREAM for the message's ArduPilot stream group. Messages in ``optional``
+        may be refused without a fallback (e.g. EKF_STATUS_REPORT on PX4). Returns notes of
+        what fell back, for the log."""
+        m = self.mavutil.mavlink
+        optional = set(optional)
+        notes: list[str] = []
+        fallback: dict[int, float] = {}
+        for msg_id, hz in rates_hz.items():
+            try:
+                self.command(m.MAV_CMD_SET_MESSAGE_INTERVAL, [msg_id, 1e6 / hz], timeout_s=6.0, what=f"SET_MESSAGE_INTERVAL({msg_id})")
+            except LinkTimeout:
+                if msg_id in DATA_STREAM_OF:
+                    group = DATA_STREAM_OF[msg_id]
+                    fallback[group] = max(fallback.get(group, 0.0), hz)
+                notes.append(f"message {msg_id}: no answer to SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM instead")
+            except LinkError as exc:
+                if msg_id in optional:
+                    notes.append(f"message {msg_id}: not streamed ({exc})")
+                    continue
+                if msg_id in DATA_STREAM_OF:
+                    group = DATA_STREAM_OF[msg_id]
+                    fallback[group] = max(fallback.get(group, 0.0), hz)
+                notes.append(f"message {msg_id}: SET_MESSAGE_INTERVAL refused, REQUEST_DATA_STREAM instead")
+        for group, hz in fallback.items():
+            self.mav.request_data_stream_send(self.target_system, AUTOPILOT_COMPONENT, group, max(1, int(math.ceil(hz))), 1)
+        return notes
+
+    def set_mode(self, name: str, timeout_s: float = MODE_CONFIRM_TIMEOUT_S) -> None:
         """Switch flight mode by name (ArduPilot copter or PX4 names) and wait to see it."""
         m = self.mavutil.mavlink
         table = PX4_MODES if self.is_px4 else ARDUPILOT_MODES
@@ -258,7 +572,18 @@ class VehicleLink:
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
         self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom)
-        self.wait_for(lambda: self.telemetry.custom_mode == custom, MODE_CONFIRM_TIMEOUT_S, f"heartbeat in mode {name}")
+        self.wait_for(lambda: self.telemetry.custom_mode == custom, timeout_s, f"heartbeat in mode {name}")
+
+    def mode_name(self) -> str:
+        """The current mode's name (from the last heartbeat), or its number."""
+        table = PX4_MODES if self.is_px4 else ARDUPILOT_MODES
+        cm = self.telemetry.custom_mode
+        return next((n for n, v in table.items() if v == cm), str(cm))
+
+    def in_mode(self, name: str) -> bool:
+        """True when the last heartbeat reports mode ``name``."""
+        table = PX4_MODES if self.is_px4 else ARDUPILOT_MODES
+        return self.telemetry.custom_mode == table.get(name)
 
     def arm(self) -> None:
         """Arm and wait until the heartbeat says armed."""
@@ -278,19 +603,45 @@ class VehicleLink:
 
         self.command(m.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, 0, 0, 0, altitude_m], what=f"takeoff to {altitude_m:g} m", done_already=climbing)
 
+    def home_z_m(self) -> float:
+        """Mission-frame height of the vehicle's home (m): from HOME_POSITION with the AMSL
+        reference; 0 with the relative one (home on the ground at the origin's height)."""
+        h = self.telemetry.home_global
+        if self.altitude_reference == "amsl" and h is not None and self.mission_frame is not None:
+            return self.mission_frame.to_enu(*h)[2]
+        return 0.0
+
     def send_setpoint(self, position_enu_m: Iterable[float] | None, velocity_enu_mps: Iterable[float] | None) -> None:
-        """SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED) with position and/or velocity."""
+        """One setpoint with position and/or velocity (mission ENU, m and m/s), as
+        SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED) or SET_POSITION_TARGET_GLOBAL_INT
+        (MAV_FRAME_GLOBAL_INT or MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) by the link's frame."""
         m = self.mavutil.mavlink
         if position_enu_m is None and velocity_enu_mps is None:
             raise ValueError("a setpoint needs a position or a velocity")
         mask = MASK_POSITION_VELOCITY if position_enu_m is not None and velocity_enu_mps is not None else (MASK_POSITION if velocity_enu_mps is None else MASK_VELOCITY)
-        n, e, d = enu_to_ned(position_enu_m) if position_enu_m is not None else (0.0, 0.0, 0.0)
         vn, ve, vd = enu_to_ned(velocity_enu_mps) if velocity_enu_mps is not None else (0.0, 0.0, 0.0)
-        self.mav.set_position_target_local_ned_send(
-            0, self.target_system, AUTOPILOT_COMPONENT, m.MAV_FRAME_LOCAL_NED, mask, n, e, d, vn, ve, vd, 0, 0, 0, 0, 0
+        self.setpoints_sent += 1
+        if self.frame == "local_ned":
+            n, e, d = enu_to_ned(position_enu_m) if position_enu_m is not None else (0.0, 0.0, 0.0)
+            self.mav.set_position_target_local_ned_send(
+                0, self.target_system, AUTOPILOT_COMPONENT, m.MAV_FRAME_LOCAL_NED, mask, n, e, d, vn, ve, vd, 0, 0, 0, 0, 0
+            )
+            return
+        assert self.mission_frame is not None
+        lat_e7 = lon_e7 = 0
+        alt = 0.0
+        if position_enu_m is not None:
+            x, y, z = (float(v) for v in position_enu_m)
+            g = self.mission_frame.to_global(x, y, z)
+            lat_e7, lon_e7 = g.lat_e7, g.lon_e7
+            alt = g.alt_amsl_m if self.altitude_reference == "amsl" else z
+        frame = m.MAV_FRAME_GLOBAL_INT if self.altitude_reference == "amsl" else m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        self.mav.set_position_target_global_int_send(
+            0, self.target_system, AUTOPILOT_COMPONENT, frame, mask, lat_e7, lon_e7, alt, vn, ve, vd, 0, 0, 0, 0, 0
         )
 
     def close(self) -> None:
+        self._stream = None
         try:
             self.conn.close()
         except OSError:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,8 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--mission", required=True, type=Path, metavar="MISSION.yaml")
     p.add_argument("--uav", required=True, type=int, help="drone id, 1..N")
-    p.add_argument("--mavlink", required=True, metavar="CONN", help="pymavlink connection string to the vehicle")
+    p.add_argument("--mavlink", metavar="CONN", help="pymavlink connection string to the vehicle (udpout:HOST:PORT, "
+                   "udpin:, tcp:, /dev/ttyUSB0,57600; default: the mission's vehicles.overrides[i].connection)")
     p.add_argument("--sysid", type=int, help="vehicle system id (default: the drone id)")
     p.add_argument("--steps", type=int, help="steps to fly (default: the mission's)")
     p.add_argument("--lockstep", action="store_true", help="step on the lockstep clock (simulation)")
@@ -30,6 +32,21 @@ def register(subparsers: Any) -> None:
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="extra zenoh endpoint to connect to")
     p.add_argument("--log", type=Path, help="JSON-lines step log")
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds to wait for a tick, a measurement or peers (default 30)")
+    p.add_argument("--preflight-timeout", type=float, default=120.0, help="seconds the readiness wait, take-off and flight to the start may take (default 120)")
+    rt = p.add_argument_group("real time (external autopilots; without --lockstep)")
+    rt.add_argument("--speedup", type=float, default=1.0, help="mission seconds per wall second: 1 for a real vehicle, "
+                    "the --speedup of a simulated vehicle (default 1)")
+    rt.add_argument("--flavour", choices=("auto", "ardupilot", "px4"), help="autopilot (default: the mission's override, else "
+                    "auto = from HEARTBEAT.autopilot)")
+    rt.add_argument("--setpoint-frame", choices=("auto", "global", "local_ned"), help="setpoint frame (default: the mission's "
+                    "vehicles.setpoint_frame; auto = global in real time)")
+    rt.add_argument("--signing-key", type=Path, metavar="FILE", help="MAVLink 2 signing key file, mode 0600 (default: the "
+                    "mission's vehicles.overrides[i].signing_key_file)")
+    rt.add_argument("--start-at", type=float, metavar="UNIX_S", help="UNIX time of step 0 (default: the next multiple of "
+                    "dt/speedup once at the start position)")
+    rt.add_argument("--stream-hz", type=float, default=5.0, help="setpoint stream rate, mission-time Hz, >= 4 (default 5)")
+    rt.add_argument("--measurement-max-age", type=float, metavar="S", help="newest payload measurement used if at most this "
+                    "old, mission seconds (default dt)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.set_defaults(func=run)
@@ -37,11 +54,12 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load the mission and fly the node; print a JSON summary on stdout."""
+    from comms.mavlink_client import read_signing_key
     from comms.session import SessionSettings
     from missions.loader import load_mission, parse_overrides
     from planner.node import NodeOptions, PlannerNode
 
-    logging.basicConfig(level=args.log_level, stream=sys.stderr, format=f"plan[{args.uav}] %(levelname)s %(message)s")
+    logging.basicConfig(level=args.log_level, stream=sys.stderr, format=f"%(asctime)s plan[{args.uav}] %(levelname)s %(message)s")
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps: expected a positive integer, found {args.steps}")
@@ -54,9 +72,25 @@ def run(args: argparse.Namespace) -> int:
         settings = SessionSettings.from_mission(mission.zenoh)
     if args.zenoh_connect:
         settings = SessionSettings(**{**settings.__dict__, "connect": settings.connect + tuple(args.zenoh_connect)})
+    n = mission.drones.count
+    if not 1 <= args.uav <= n:
+        raise UsageError(f"--uav: expected a drone id in 1..{n}, found {args.uav}")
+    conn = args.mavlink or mission.vehicles.for_drone(args.uav - 1).connection
+    if conn is None:
+        raise UsageError(f"--mavlink: no connection given and the mission has no vehicles.overrides[{args.uav - 1}].connection")
+    for name in ("speedup", "step_timeout", "preflight_timeout", "stream_hz"):
+        v = getattr(args, name)
+        if not (math.isfinite(v) and v > 0):
+            raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {v}")
+    if args.stream_hz < 4:
+        raise UsageError(f"--stream-hz: expected at least 4 Hz, found {args.stream_hz:g}")
+    if args.signing_key is not None:
+        read_signing_key(args.signing_key)  # permissions and format, before anything starts
     options = NodeOptions(
-        uav=args.uav, mavlink=args.mavlink, zenoh=settings, lockstep=args.lockstep, steps=args.steps,
-        sysid=args.sysid, log_path=args.log, step_timeout_s=args.step_timeout,
+        uav=args.uav, mavlink=conn, zenoh=settings, lockstep=args.lockstep, steps=args.steps,
+        sysid=args.sysid, log_path=args.log, step_timeout_s=args.step_timeout, preflight_timeout_s=args.preflight_timeout,
+        speedup=args.speedup, flavour=args.flavour, setpoint_frame=args.setpoint_frame, signing_key_file=args.signing_key,
+        stream_hz=args.stream_hz, measurement_max_age_s=args.measurement_max_age, start_at_unix=args.start_at,
     )
     summary = PlannerNode(mission, options).run()
     print(json.dumps(summary), flush=True)

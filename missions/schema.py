@@ -506,12 +506,22 @@ class VehicleOverride(_Section):
     connection: MavlinkConnection | None = Field(
         None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle."
     )
-    flavour: Literal["ardupilot", "px4"] | None = None
+    flavour: Literal["auto", "ardupilot", "px4"] | None = Field(
+        None,
+        description="Autopilot flavour. 'ardupilot' or 'px4' forces it for the planner (and sets the "
+        "simulated vehicle's); 'auto' or absent: the planner detects it from HEARTBEAT.autopilot.",
+    )
     signing_key_file: FilePath | None = Field(None, description="MAVLink 2 signing key file.")
+    setpoint_frame: Literal["auto", "global", "local_ned"] | None = Field(
+        None, description="Setpoint frame of this drone; absent: vehicles.setpoint_frame."
+    )
 
 
 class ResolvedVehicle(BaseModel):
-    """The vehicle settings of one drone after applying its override to the defaults."""
+    """The vehicle settings of one drone after applying its override to the defaults.
+
+    ``flavour`` is the simulated vehicle's flavour; ``autopilot`` is what the planner assumes:
+    the flavour forced by the override, or ``auto`` (detected from HEARTBEAT.autopilot)."""
 
     model_config = ConfigDict(frozen=True)
 
@@ -519,6 +529,8 @@ class ResolvedVehicle(BaseModel):
     flavour: Literal["ardupilot", "px4"]
     profile: Literal["ideal", "pointmass"]
     signing_key_file: Path | None
+    autopilot: Literal["auto", "ardupilot", "px4"] = "auto"
+    setpoint_frame: Literal["auto", "global", "local_ned"] = "auto"
 
 
 class Vehicles(_Section):
@@ -529,15 +541,24 @@ class Vehicles(_Section):
         "ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper)."
     )
     overrides: tuple[VehicleOverride, ...] = Field((), description="One entry per drone, drone 1 first.")
+    setpoint_frame: Literal["auto", "global", "local_ned"] = Field(
+        "auto",
+        description="Planner setpoints: 'global' (SET_POSITION_TARGET_GLOBAL_INT, each vehicle keeps its own "
+        "EKF origin), 'local_ned' (SET_POSITION_TARGET_LOCAL_NED; the vehicle's EKF origin must be the "
+        "mission origin), 'auto' (local_ned in lockstep simulation, global in real time).",
+    )
 
     def for_drone(self, index: int) -> ResolvedVehicle:
         """Settings of the drone at 0-based ``index`` (drone ``index + 1``)."""
         o = self.overrides[index] if self.overrides else VehicleOverride()
+        forced = o.flavour if o.flavour in ("ardupilot", "px4") else None
         return ResolvedVehicle(
             connection=o.connection,
-            flavour=o.flavour or self.flavour,
+            flavour=forced or self.flavour,
             profile=self.profile,
             signing_key_file=o.signing_key_file,
+            autopilot=forced or "auto",
+            setpoint_frame=o.setpoint_frame or self.setpoint_frame,
         )
 
 

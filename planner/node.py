@@ -14,10 +14,24 @@ it holds its start position; then ``Tick(k, t_k)`` for k = 0..K-1, each after ev
 planner has published ``Done(k-1)``. The vehicle advances to t_k on the tick and its payload
 publishes the measurement of step k; the planner waits for telemetry stamped ≥ t_k and for
 that measurement, and publishes ``Done(k)`` once its setpoint is on the wire.
+
+Real time (external autopilots, docs/external-autopilots.md): the planner detects the
+autopilot (HEARTBEAT.autopilot), requests its streams, waits until it is ready to fly (GPS,
+EKF, home, EKF origin; the log says what is missing), takes off by the autopilot's rules
+(ArduPilot: GUIDED, arm, NAV_TAKEOFF; PX4: setpoint stream first, OFFBOARD, arm) and flies to
+its start. Step k then begins at wall time ``t0 + k·dt/speedup`` on a grid shared by every
+planner of the mission (UNIX time multiples of dt/speedup, or ``--start-at``); the own
+measurement is the newest payload measurement not older than a bound; the peers' records of
+step k are gathered until a deadline inside the step, never a barrier; the setpoint is a
+short trajectory towards the planned position, re-sent at ≥ 4 Hz of mission time until the
+next step replaces it, so a late step never leaves the vehicle without a setpoint. A lost
+vehicle link (no heartbeat for 2 s) is reported; the planner keeps publishing its last record
+flagged stale, and resumes (back into GUIDED/OFFBOARD) when the heartbeat returns.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -35,7 +49,21 @@ import numpy as np
 
 from comms import keys
 from comms.latency import DelayedView
-from comms.mavlink_client import LinkError, VehicleLink
+from comms.geodesy import MissionFrame
+from comms.mavlink_client import (
+    MAV_LANDED_STATE_NAMES,
+    MSG_EKF_STATUS_REPORT,
+    MSG_EXTENDED_SYS_STATE,
+    MSG_GLOBAL_POSITION_INT,
+    MSG_GPS_GLOBAL_ORIGIN,
+    MSG_GPS_RAW_INT,
+    MSG_HOME_POSITION,
+    MSG_LOCAL_POSITION_NED,
+    MSG_SYS_STATUS,
+    LinkError,
+    VehicleLink,
+    read_signing_key,
+)
 from comms.messages import Done, MessageError, MessageKind, Observation, Status, Tick, decode, encode
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
@@ -48,6 +76,17 @@ log = logging.getLogger("fimnav.plan")
 
 #: Distance (m) within which the vehicle counts as at its start position.
 START_TOLERANCE_M: float = 0.05
+#: The same in real time, for a vehicle with real dynamics (m).
+START_TOLERANCE_REALTIME_M: float = 0.3
+#: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
+READY_REPORT_PERIOD_S: float = 5.0
+#: What each autopilot's own failsafe does while the planner's link is lost (for the log).
+FAILSAFE_NOTE = {
+    "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
+    "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
+    "px4": "PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); "
+    "a data-link loss (NAV_DLL_ACT) may follow",
+}
 
 
 class NodeError(FimnavError):
@@ -68,6 +107,20 @@ class NodeOptions:
         log_path: JSON-lines log of every step.
         step_timeout_s: how long to wait for a tick, a measurement or the peers' records.
         preflight_timeout_s: how long the take-off and the flight to the start may take.
+        speedup: real time only: mission seconds per wall second (1 for a real vehicle; the
+            ``--speedup`` of a simulated vehicle in tests).
+        flavour: ``"auto"`` (from HEARTBEAT.autopilot), ``"ardupilot"`` or ``"px4"``; None:
+            the mission's ``vehicles.overrides[i].flavour`` (absent: auto).
+        setpoint_frame: ``"auto"``, ``"global"`` or ``"local_ned"``; None: the mission's.
+        signing_key_file: MAVLink 2 signing key; None: the mission's (absent: no signing).
+        stream_hz: real time: setpoint stream rate in mission-time Hz (≥ 4).
+        peer_wait_fraction: real time: the peers' records of step k are awaited until
+            ``t_k + peer_wait_fraction · dt``.
+        measurement_max_age_s: real time: the newest payload measurement is used if it is
+            at most this old (mission seconds; None: one step, dt).
+        start_at_unix: real time: UNIX time of step 0 (None: the next multiple of dt/speedup
+            after the planner is at its start, so planners started apart share the grid).
+        end_timeout_s: real time: how long the end of mission (landing) may take (wall s).
     """
 
     uav: int
@@ -79,6 +132,29 @@ class NodeOptions:
     log_path: Path | None = None
     step_timeout_s: float = 30.0
     preflight_timeout_s: float = 120.0
+    speedup: float = 1.0
+    flavour: str | None = None
+    setpoint_frame: str | None = None
+    signing_key_file: Path | None = None
+    stream_hz: float = 5.0
+    peer_wait_fraction: float = 0.5
+    measurement_max_age_s: float | None = None
+    start_at_unix: float | None = None
+    end_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        for name in ("speedup", "stream_hz", "step_timeout_s", "preflight_timeout_s", "end_timeout_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise NodeError(f"{name}: expected a positive number, found {v!r}")
+        if self.stream_hz < 4.0:
+            raise NodeError(f"stream_hz: expected at least 4 Hz (the setpoint stream keeps the autopilot's timeouts away), found {self.stream_hz:g}")
+        if not 0.0 < self.peer_wait_fraction < 1.0:
+            raise NodeError(f"peer_wait_fraction: expected a fraction of the step in (0, 1), found {self.peer_wait_fraction!r}")
+        if self.flavour not in (None, "auto", "ardupilot", "px4"):
+            raise NodeError(f"flavour: expected auto, ardupilot or px4, found {self.flavour!r}")
+        if self.setpoint_frame not in (None, "auto", "global", "local_ned"):
+            raise NodeError(f"setpoint frame: expected auto, global or local_ned, found {self.setpoint_frame!r}")
 
 
 class _Inbox:
@@ -154,6 +230,7 @@ class PlannerNode:
         link_factory: builds the :class:`VehicleLink` (injectable for tests).
         session_factory: opens the Zenoh session (injectable for tests).
         wall: monotonic wall clock (s).
+        unix: UNIX wall clock (s): the real-time step grid and record times.
     """
 
     def __init__(
@@ -163,10 +240,12 @@ class PlannerNode:
         link_factory: Callable[[str, int], VehicleLink] | None = None,
         session_factory: Callable[[SessionSettings], Any] = open_session,
         wall: Callable[[], float] = time.monotonic,
+        unix: Callable[[], float] = time.time,
     ) -> None:
         self.m = mission
         self.o = options
         self.wall = wall
+        self.unix = unix
         n = mission.drones.count
         if not 1 <= options.uav <= n:
             raise NodeError(f"--uav {options.uav}: the mission has drones 1..{n}")
@@ -184,7 +263,24 @@ class PlannerNode:
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
         self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated")
         self.inbox = _Inbox(mission.id, n)
-        self._link_factory = link_factory or (lambda conn, sysid: VehicleLink(conn, sysid))
+        resolved = mission.vehicles.for_drone(self.i)
+        self.flavour_setting = options.flavour or resolved.autopilot
+        frame = options.setpoint_frame or resolved.setpoint_frame
+        self.frame = ("local_ned" if options.lockstep else "global") if frame == "auto" else frame
+        key_file = options.signing_key_file or resolved.signing_key_file
+        # Read (and permission-check) the key before anything opens: a refused key starts nothing.
+        self._signing_key = read_signing_key(key_file) if key_file is not None else None
+        self.mission_frame = MissionFrame.of_mission(mission)
+        self._link_factory = link_factory or self._default_link
+        # Real-time state.
+        self.t0_unix: float | None = None
+        self.dt_wall = self.dt / options.speedup
+        self.latest_measurement: Observation | None = None
+        self.link_down_since: float | None = None
+        self.resume_needed = False
+        self.link_losses: list[dict[str, float]] = []
+        self.last_record: Observation | None = None
+        self.late_steps = 0
         self._session_factory = session_factory
         self.session: Any = None
         self.link: VehicleLink | None = None
@@ -193,6 +289,13 @@ class PlannerNode:
         self.measurements: dict[int, Observation] = {}
         self.seq = 0
         self._log: TextIO | None = None
+
+    def _default_link(self, conn: str, sysid: int) -> VehicleLink:
+        forced = None if self.flavour_setting == "auto" else self.flavour_setting
+        return VehicleLink(
+            conn, sysid, signing_key=self._signing_key, wall=self.wall, frame=self.frame,  # type: ignore[arg-type]
+            mission_frame=self.mission_frame, altitude_reference=self.m.altitude_reference, flavour=forced,  # type: ignore[arg-type]
+        )
 
     # -- plumbing ---------------------------------------------------------------------------
     def _open(self) -> None:
@@ -247,9 +350,14 @@ class PlannerNode:
                 msg = self.inbox.decode(key, data)  # type: ignore[arg-type]
                 if isinstance(msg, Observation):
                     if "/measurement/" in key:
-                        self.measurements[msg.step] = msg
-                    else:
+                        if self.o.lockstep:
+                            self.measurements[msg.step] = msg
+                        elif self.latest_measurement is None or msg.time_s >= self.latest_measurement.time_s:
+                            self.latest_measurement = msg
+                    elif self.o.lockstep:
                         self.view.add(msg)
+                    else:
+                        self._add_realtime_record(msg)
                 elif isinstance(msg, Tick):
                     if self.tick is None or msg.step >= self.tick.step:
                         self.tick = msg
@@ -277,14 +385,24 @@ class PlannerNode:
             if remaining <= 0:
                 detail = f" (missing: {missing()})" if missing is not None else ""
                 raise NodeError(f"uav {self.o.uav}: no {what} within {timeout_s:g} s{detail}")
-            fds = [self.inbox.wake_r] + ([link.fileno()] if link.fileno() is not None else [])
-            try:
-                select.select(fds, [], [], min(remaining, 0.25))
-            except (OSError, ValueError):
-                pass
-            self.inbox.clear_wake()
-            self._drain(0.0)
-            link.pump(0.0)
+            self._sleep_io(min(remaining, 0.25))
+
+    def _sleep_io(self, timeout_s: float) -> None:
+        """Block in select() on the MAVLink socket and the Zenoh self-pipe for at most
+        ``timeout_s`` (and at most one setpoint-stream period), then serve both."""
+        link = self._require_link()
+        if not self.o.lockstep:
+            timeout_s = min(timeout_s, link.stream_period_s)
+        fds = [self.inbox.wake_r] + ([link.fileno()] if link.fileno() is not None else [])
+        try:
+            select.select(fds, [], [], max(timeout_s, 0.0))
+        except (OSError, ValueError):
+            pass
+        self.inbox.clear_wake()
+        self._drain(0.0)
+        link.pump(0.0)
+        if not self.o.lockstep:
+            self._check_link()
 
     def _require_link(self) -> VehicleLink:
         if self.link is None:
@@ -338,9 +456,11 @@ class PlannerNode:
     # -- the mission ------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
         """Fly the mission; return a summary (steps done, dropped messages)."""
-        self._open()
         try:
+            self._open()
             self._drain(0.0)
+            if not self.o.lockstep:
+                return self._run_realtime()
             self.preflight()
             self._publish(self._pub_done, Done(self.o.uav, -1))
             log.info("uav %d ready at the start position", self.o.uav)
@@ -365,13 +485,10 @@ class PlannerNode:
                     lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav),
                     self.o.step_timeout_s,
                     f"records of step {k} from the live planners",
-                    missing=lambda: sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k)),
+                    missing=lambda: self._missing_peers(k),
                 )
                 w_peers = self.wall()
-                view = self.view.advance(k)
-                state, rows = self._estimate(state, view, used)
-                used = np.maximum(used, view.saved_steps)
-                result = self._plan(k, own, prev_step, view, state)
+                view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
                 step = result.step
                 u = np.asarray(step.displacement, dtype=float)
                 nxt = np.asarray(step.next_position, dtype=float)
@@ -401,7 +518,7 @@ class PlannerNode:
             self._wait(lambda: self.tick is not None and self.tick.step >= k, timeout, f"clock tick of step {k}")
             assert self.tick is not None
             return self.tick.time_s if self.tick.step == k else self.tick.time_s - (self.tick.step - k) * self.dt
-        raise NodeError("real-time stepping is not available in this build; run with the lockstep clock")
+        raise NodeError("internal: _await_step is the lockstep clock; real time steps in _run_realtime")
 
     def _own_position(self, t_k: float) -> np.ndarray:
         link = self.link
@@ -416,6 +533,18 @@ class PlannerNode:
         for s in [s for s in self.measurements if s <= k]:
             meas = self.measurements.pop(s)
         return meas
+
+    def _missing_peers(self, k: int) -> list[int]:
+        """Live peers (1-based ids) whose record of step k has not arrived."""
+        return sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k))
+
+    def _view_estimate_plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
+        """Step k after the records are in: delayed view, source estimate (with the records
+        not used before), control step. Returns (view, state, new rows, used steps, plan)."""
+        view = self.view.advance(k)
+        state, rows = self._estimate(state, view, used)
+        used = np.maximum(used, view.saved_steps)
+        return view, state, rows, used, self._plan(k, own, prev_step, view, state)
 
     def _estimate(self, state: est.EstimatorState, view: Any, used: np.ndarray) -> tuple[est.EstimatorState, int]:
         new = view.saved_steps > used
@@ -494,6 +623,314 @@ class PlannerNode:
             raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
         log.info("uav %d: mission over (%s)", self.o.uav, action)
 
+
+    # -- real time --------------------------------------------------------------------------
+    def _add_realtime_record(self, rec: Observation) -> None:
+        """A peer's record, re-indexed onto this planner's step grid by its time stamp (UNIX
+        s): planners started apart number their steps differently but share the grid."""
+        if rec.sender == self.o.uav or self.t0_unix is None:
+            return  # before our step 0 a record cannot enter any view
+        step = int(round((rec.time_s - self.t0_unix) / self.dt_wall))
+        if step < 0:
+            return
+        self.view.add(dataclasses.replace(rec, step=step))
+
+    def _check_link(self) -> None:
+        """Notice a lost vehicle link (no heartbeat for 2 s) and its return; report both."""
+        link = self.link
+        if link is None:
+            return
+        if link.lost and self.link_down_since is None:
+            self.link_down_since = self.wall()
+            log.error(
+                "uav %d: vehicle link lost (no heartbeat for %.1f s): publishing the last record as stale "
+                "until it returns; meanwhile %s", self.o.uav, link.link_age_s(), FAILSAFE_NOTE[link.flavour],
+            )
+        elif self.link_down_since is not None and not link.lost:
+            down = self.wall() - self.link_down_since
+            self.link_losses.append({"down_s": round(down, 3)})
+            log.warning("uav %d: vehicle link back after %.1f s; resuming", self.o.uav, down)
+            self.link_down_since = None
+            self.resume_needed = True
+
+    def _serve_until_unix(self, t_unix: float, predicate: Callable[[], bool] | None = None) -> bool:
+        """Serve MAVLink (the setpoint stream), Zenoh and the link watch until UNIX time
+        ``t_unix`` or until ``predicate()``; return whether the predicate held."""
+        while True:
+            if predicate is not None and predicate():
+                return True
+            remaining = t_unix - self.unix()
+            if remaining <= 0:
+                return predicate() if predicate is not None else True
+            self._sleep_io(remaining)
+
+    def _wait_rt(self, predicate: Callable[[], bool], timeout_s: float, what: str, missing: Callable[[], Any] | None = None) -> None:
+        """:meth:`_wait` that also fails at once, naming ``what``, when the link is lost."""
+
+        def ok() -> bool:
+            if self.link_down_since is not None:
+                raise NodeError(f"uav {self.o.uav}: vehicle link lost while waiting for {what}")
+            return predicate()
+
+        self._wait(ok, timeout_s, what, missing)
+
+    def _ready_wait(self) -> None:
+        """Wait until the vehicle can fly by setpoints, saying what it waits for."""
+        link = self._require_link()
+        deadline = self.wall() + self.o.preflight_timeout_s
+        last_report = -math.inf
+        last_request = self.wall()
+        while True:
+            missing = link.not_ready()
+            if not missing:
+                return
+            now = self.wall()
+            if now >= deadline:
+                raise NodeError(f"uav {self.o.uav}: vehicle not ready to fly after {self.o.preflight_timeout_s:g} s; still waiting for: {'; '.join(missing)}")
+            if now - last_report >= READY_REPORT_PERIOD_S:
+                log.info("uav %d: waiting for the vehicle: %s", self.o.uav, "; ".join(missing))
+                last_report = now
+            if now - last_request >= READY_REPORT_PERIOD_S:
+                last_request = now
+                if not link.telemetry.home_known:
+                    link.request_message(MSG_HOME_POSITION)
+                if link.telemetry.origin_global is None:
+                    link.request_message(MSG_GPS_GLOBAL_ORIGIN)
+            self._sleep_io(min(0.25, deadline - now))
+
+    def _preflight_realtime(self) -> None:
+        """Heartbeat, flavour, streams, readiness, mode, arm, take-off and flight to the
+        start, by the rules of the detected autopilot."""
+        link = self._require_link()
+        t = self.o.preflight_timeout_s
+        link.wait_heartbeat(t)
+        link.check_signing()
+        detected = link.telemetry.autopilot
+        if link.forced_flavour is not None:
+            log.info("uav %d: autopilot %s (forced; HEARTBEAT.autopilot = %s)", self.o.uav, link.flavour, detected)
+        else:
+            log.info("uav %d: autopilot %s (HEARTBEAT.autopilot = %s)", self.o.uav, link.flavour, detected)
+        s = self.o.speedup
+        link.stream_period_s = 1.0 / (self.o.stream_hz * s)
+        pos_msg = MSG_GLOBAL_POSITION_INT if self.frame == "global" else MSG_LOCAL_POSITION_NED
+        rates = {pos_msg: 10.0, MSG_SYS_STATUS: 1.0, MSG_GPS_RAW_INT: 1.0, MSG_HOME_POSITION: 0.5, MSG_EXTENDED_SYS_STATE: 1.0}
+        optional = [MSG_EXTENDED_SYS_STATE]
+        if not link.is_px4:
+            rates[MSG_EKF_STATUS_REPORT] = 1.0
+            optional.append(MSG_EKF_STATUS_REPORT)
+        for note in link.request_streams(rates, optional):
+            log.info("uav %d: %s", self.o.uav, note)
+        link.request_message(MSG_HOME_POSITION)
+        link.request_message(MSG_GPS_GLOBAL_ORIGIN)
+        self._ready_wait()
+        origin = link.telemetry.origin_global
+        assert origin is not None
+        shared = self.mission_frame.matches(*origin)
+        log.info("uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
+                 self.o.uav, *origin, "is" if shared else "is not", "SET_POSITION_TARGET_GLOBAL_INT" if self.frame == "global" else "LOCAL_NED")
+        if self.frame == "local_ned" and not shared:
+            raise NodeError(
+                f"uav {self.o.uav}: setpoint_frame local_ned needs the vehicle's EKF origin at the mission origin "
+                f"({self.m.origin.lat_deg:.7f}, {self.m.origin.lon_deg:.7f}, {self.m.origin.alt_m:g} m); it is at "
+                f"({origin[0]:.7f}, {origin[1]:.7f}, {origin[2]:g} m): use setpoint_frame global"
+            )
+        self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
+        pos = link.telemetry.position_enu_m
+        assert pos is not None
+        climb_to = float(self.m.takeoff_alt_m if self.m.takeoff_alt_m is not None else self.start[2])
+        tol = START_TOLERANCE_REALTIME_M
+        if link.is_px4:
+            # PX4: the setpoint stream must run (> 2 Hz, PX4 ≥ 1.14 wants it for a second)
+            # before OFFBOARD is accepted; the stream is a hold above the current position.
+            above = np.array([pos[0], pos[1], max(climb_to, float(pos[2]))])
+            link.set_stream(lambda _t: (above, None))
+            stream_since = self.wall()
+            self._wait(lambda: self.wall() - stream_since >= 1.2 / s, t, "setpoint stream before OFFBOARD")
+            if not link.in_mode("OFFBOARD"):
+                link.set_mode("OFFBOARD")
+            if not link.telemetry.armed:
+                link.arm()
+            self._wait_rt(lambda: self._z() >= climb_to - tol, t, f"take-off to {climb_to:g} m")
+        else:
+            if not link.in_mode("GUIDED"):
+                link.set_mode("GUIDED")
+            if not link.telemetry.armed:
+                link.arm()
+                # NAV_TAKEOFF altitude is above home; no setpoint until it is reached (a setpoint
+                # would end the take-off in ArduPilot).
+                link.takeoff(climb_to - link.home_z_m())
+                self._wait_rt(lambda: self._z() >= climb_to - tol, t, f"take-off to {climb_to:g} m")
+        start = self.start.copy()
+        link.set_stream(lambda _t: (start, None))
+        log.info("uav %d: airborne in %s, flying to the start position", self.o.uav, link.mode_name())
+        self._wait_rt(lambda: self._distance_to(start) < tol, t, "start position")
+
+    def _z(self) -> float:
+        pos = self._require_link().telemetry.position_enu_m
+        return -math.inf if pos is None else float(pos[2])
+
+    def _distance_to(self, target: np.ndarray) -> float:
+        pos = self._require_link().telemetry.position_enu_m
+        return math.inf if pos is None else float(np.linalg.norm(pos - target))
+
+    def _resume(self) -> None:
+        """After a link loss: back into GUIDED/OFFBOARD (the stream is already running)."""
+        link = self._require_link()
+        self.resume_needed = False
+        self._wait(lambda: link.telemetry.custom_mode is not None, self.o.step_timeout_s, "heartbeat after the link loss")
+        if not link.telemetry.armed:
+            raise NodeError(
+                f"uav {self.o.uav}: the vehicle is disarmed after the link loss (mode {link.mode_name()}; landed by "
+                "its failsafe or rebooted): not taking off again without an operator"
+            )
+        mode = "OFFBOARD" if link.is_px4 else "GUIDED"
+        if not link.in_mode(mode):
+            log.warning("uav %d: vehicle in %s after the link loss; switching back to %s", self.o.uav, link.mode_name(), mode)
+            link.set_mode(mode)
+        log.info("uav %d: resumed in %s", self.o.uav, mode)
+
+    def _trajectory(self, own: np.ndarray, u: np.ndarray, t_from: float) -> Callable[[float], tuple[np.ndarray | None, np.ndarray | None]]:
+        """The streamed setpoint of one step: from ``own`` along ``u`` (m, ENU) over one
+        step, position + velocity feed-forward u/dt; then the end point, zero velocity."""
+        dt_w = self.dt_wall
+        v = u / self.dt
+        end = own + u
+        zero = np.zeros(3)
+
+        def at(t_wall: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+            f = (t_wall - t_from) / dt_w
+            if f >= 1.0:
+                return end, zero
+            return own + u * max(f, 0.0), v
+
+        return at
+
+    def _run_realtime(self) -> dict[str, Any]:
+        """Fly the mission on the wall clock (see the module doc)."""
+        link = self._require_link()
+        try:
+            self._preflight_realtime()
+        except LinkError as exc:
+            raise NodeError(f"uav {self.o.uav}: pre-flight failed: {exc}") from None
+        self._publish(self._pub_done, Done(self.o.uav, -1))
+        dtw = self.dt_wall
+        now = self.unix()
+        self.t0_unix = self.o.start_at_unix if self.o.start_at_unix is not None else math.ceil((now + 0.25 * dtw) / dtw) * dtw
+        log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.o.uav, self.t0_unix, dtw)
+        max_age_wall = (self.o.measurement_max_age_s if self.o.measurement_max_age_s is not None else self.dt) / self.o.speedup
+        state = est.initial_state((), self.est_config)
+        used = np.full(self.n, -1, dtype=np.int64)
+        prev_step = np.zeros(3)
+        done_steps = stale_steps = 0
+        k = max(0, math.ceil((now - self.t0_unix) / dtw - 1e-9)) if self.o.start_at_unix is not None else 0
+        while k < self.steps:
+            t_k = self.t0_unix + k * dtw
+            self._serve_until_unix(t_k)
+            w0 = self.unix()
+            if w0 - t_k > dtw:
+                skip = int((w0 - t_k) // dtw)
+                self.late_steps += skip
+                log.warning("uav %d: step %d is %.3f s late; skipping %d step(s), the vehicle follows the last setpoint", self.o.uav, k, w0 - t_k, skip)
+                k += skip
+                continue
+            if self.resume_needed and self.link_down_since is None:
+                try:
+                    self._resume()
+                except LinkError as exc:
+                    log.error("uav %d: resuming failed (%s); retrying next step", self.o.uav, exc)
+                    self.resume_needed = True
+            if self.link_down_since is not None or self.resume_needed:
+                if self.last_record is not None:
+                    stale = dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True)
+                    self._publish(self._pub_record, stale, MessageKind.RECORD)
+                stale_steps += 1
+                k += 1
+                continue
+            pos = link.telemetry.position_enu_m
+            assert pos is not None
+            own = pos.astype(float)
+            meas = self.latest_measurement
+            fresh = meas is not None and w0 - meas.time_s <= max_age_wall
+            if not fresh:
+                log.warning("uav %d: step %d without a payload measurement newer than %.3g s", self.o.uav, k, max_age_wall)
+            nan = float("nan")
+            record = Observation(
+                self.o.uav, k, w0, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
+                bool(meas.los) if fresh and meas else True,
+                meas.range_m if fresh and meas and self.ranging[self.i] else nan,
+                meas.azimuth_rad if fresh and meas and self.bearing[self.i] else nan,
+                meas.elevation_rad if fresh and meas and self.bearing[self.i] else nan,
+            )
+            self.last_record = record
+            self.view.add(record)
+            self._publish(self._pub_record, record, MessageKind.RECORD)
+            w_meas = self.unix()
+            peers = lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav)  # noqa: E731
+            if not self._serve_until_unix(t_k + self.o.peer_wait_fraction * dtw, peers):
+                log.info("uav %d: step %d without the records of %s (deadline)", self.o.uav, k, self._missing_peers(k))
+            w_peers = self.unix()
+            view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
+            step = result.step
+            u = np.asarray(step.next_position, dtype=float) - own
+            link.set_stream(self._trajectory(own, u, self.wall()))
+            w_sent = self.unix()
+            prev_step = np.asarray(step.displacement, dtype=float)
+            active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
+            self._publish(
+                self._pub_status,
+                Status(self.o.uav, k, w0, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
+            )
+            self._publish(self._pub_done, Done(self.o.uav, k))
+            timing = {"late_s": w0 - t_k, "wait_peers_s": w_peers - w_meas, "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w0}
+            self._log_step(k, w0, own, record, view, state, result, rows, timing)
+            done_steps += 1
+            k += 1
+        end = self._end_realtime()
+        return {
+            "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
+            "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses,
+            "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
+        }
+
+    def _end_realtime(self) -> dict[str, Any]:
+        """End of mission as the mission says, confirmed by the vehicle's mode and state:
+        hold (ArduPilot: GUIDED at a position target, which never times out; PX4:
+        AUTO.LOITER), land (LAND / AUTO.LAND until landed and disarmed) or RTL (RTL /
+        AUTO.RTL, confirmed by the mode)."""
+        link = self._require_link()
+        action = self.m.end_action
+        if self.link_down_since is not None:
+            log.error("uav %d: mission over with the vehicle link down: its failsafe keeps control", self.o.uav)
+            return {"action": action, "confirmed": False, "reason": "link lost"}
+        pos = link.telemetry.position_enu_m
+        try:
+            if action == "hold":
+                if pos is not None:
+                    hold = pos.astype(float)
+                    link.set_stream(lambda _t: (hold, None))
+                if link.is_px4:
+                    link.set_mode("AUTO.LOITER")
+                want = "AUTO.LOITER" if link.is_px4 else "GUIDED"
+                self._wait(lambda: link.in_mode(want) and link.telemetry.armed, self.o.end_timeout_s, f"armed heartbeat in {want}")
+            elif action == "land":
+                link.set_mode("AUTO.LAND" if link.is_px4 else "LAND")
+                link.set_stream(None)
+                self._wait(lambda: not link.telemetry.armed and link.telemetry.landed_state in (None, 1), self.o.end_timeout_s, "landed and disarmed vehicle")
+            else:
+                link.set_mode("AUTO.RTL" if link.is_px4 else "RTL")
+                link.set_stream(None)
+        except LinkError as exc:
+            raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
+        finally:
+            if action == "hold" and not link.is_px4:
+                pass  # a position target in GUIDED holds without a stream
+            else:
+                link.set_stream(None)
+        landed = link.telemetry.landed_state
+        end = {"action": action, "confirmed": True, "mode": link.mode_name(), "armed": link.telemetry.armed,
+               "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None}
+        log.info("uav %d: mission over (%s): vehicle in %s, %s", self.o.uav, action, end["mode"], "armed" if end["armed"] else "disarmed")
+        return end
 
 def _num(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None

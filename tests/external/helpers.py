@@ -1,0 +1,257 @@
+"""Helpers of the real-time tests: real ``fimnav vehicle`` / ``fimnav plan`` processes in their
+own sessions (process groups, killed at the end), waits on their output with deadlines, a UDP
+relay the test can cut, a Zenoh peer publishing payload measurements, and .tlog reading."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+ENV = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
+
+
+class Proc:
+    """``python -m missions ARGS`` in its own session; stdout and stderr collected by threads."""
+
+    def __init__(self, args: Sequence[str], cwd: Path | None = None) -> None:
+        self.args = list(args)
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", "missions", *self.args],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            start_new_session=True, env=ENV, cwd=cwd,
+        )
+        self._lock = threading.Lock()
+        self.text = {"out": "", "err": ""}
+        for name, stream in (("out", self.p.stdout), ("err", self.p.stderr)):
+            threading.Thread(target=self._pump, args=(stream, name), daemon=True).start()
+
+    def _pump(self, stream: Any, name: str) -> None:
+        fd = stream.fileno()
+        while True:
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:
+                return
+            if not chunk:
+                return
+            with self._lock:
+                self.text[name] += chunk.decode("utf-8", errors="replace")
+
+    @property
+    def out(self) -> str:
+        with self._lock:
+            return self.text["out"]
+
+    @property
+    def err(self) -> str:
+        with self._lock:
+            return self.text["err"]
+
+    def expect(self, pattern: str, timeout_s: float, stream: str = "out") -> re.Match[str]:
+        """Wait until ``pattern`` (regex) appears in ``stream``; fail with the output."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            m = rx.search(self.out if stream == "out" else self.err)
+            if m:
+                return m
+            if self.p.poll() is not None:
+                time.sleep(0.05)  # let the reader threads catch up once
+                m = rx.search(self.out if stream == "out" else self.err)
+                if m:
+                    return m
+                raise AssertionError(f"{self.args[:1]} exited {self.p.returncode} before {pattern!r}:\n{self.tail()}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{pattern!r} not seen within {timeout_s} s:\n{self.tail()}")
+            time.sleep(0.02)
+
+    def wait(self, timeout_s: float) -> int:
+        try:
+            return self.p.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{self.args[:1]} still running after {timeout_s} s:\n{self.tail()}") from None
+
+    def tail(self) -> str:
+        return f"--- stdout\n{self.out[-3000:]}\n--- stderr\n{self.err[-4000:]}"
+
+    def stop(self) -> None:
+        """SIGTERM the process group, then SIGKILL it if it lingers."""
+        for sig, grace in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if self.p.poll() is not None:
+                break
+            try:
+                os.killpg(self.p.pid, sig)
+            except (ProcessLookupError, PermissionError):
+                break
+            try:
+                self.p.wait(grace)
+            except subprocess.TimeoutExpired:
+                continue
+        try:  # stragglers of the group (none expected)
+            os.killpg(self.p.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def start_vehicle(procs: list[Proc], mission: Path, tlog: Path, *extra: str, sysid: int = 1) -> tuple[Proc, int]:
+    """A simulated vehicle of ``mission`` on a free UDP port (udpin); return it and its port."""
+    v = Proc(["vehicle", "--mission", str(mission), "--sysid", str(sysid), "--mavlink", "udpin:127.0.0.1:0",
+              "--profile", "pointmass", "--tlog", str(tlog), *extra])
+    procs.append(v)
+    ready = json.loads(v.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+    port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+    return v, port
+
+
+class UdpRelay:
+    """Forward UDP between a planner (which sends to :attr:`port`) and a vehicle's port, in a
+    thread; :attr:`cut` drops everything in both directions (a lost radio link)."""
+
+    def __init__(self, vehicle_port: int) -> None:
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back.bind(("127.0.0.1", 0))
+        self.port = self.front.getsockname()[1]
+        self.vehicle = ("127.0.0.1", vehicle_port)
+        self.client: tuple[str, int] | None = None
+        self.cut = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.front, self.back], [], [], 0.1)
+            for s in ready:
+                try:
+                    data, addr = s.recvfrom(65536)
+                except OSError:
+                    continue
+                if self.cut.is_set():
+                    continue
+                if s is self.front:
+                    self.client = addr
+                    self.back.sendto(data, self.vehicle)
+                elif self.client is not None:
+                    self.front.sendto(data, self.client)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.front.close()
+        self.back.close()
+
+
+@dataclass
+class SwarmPeer:
+    """The test's Zenoh peer: payload measurements for drones (a payload on its own
+    schedule, stamped with UNIX time) and a log of the planners' records."""
+
+    mission_id: str
+    count: int
+    ranges_m: dict[int, float]
+    period_s: float = 0.05
+    records: list[Any] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        from comms import keys
+        from comms.session import SessionSettings, open_session
+
+        port = free_tcp_port()
+        self.endpoint = f"tcp/127.0.0.1:{port}"
+        self.session = open_session(SessionSettings(listen=(self.endpoint,)))
+        self._pubs = {uav: self.session.declare_publisher(keys.measurement(self.mission_id, uav)) for uav in self.ranges_m}
+        self._lock = threading.Lock()
+        self._sub = self.session.declare_subscriber(keys.record(self.mission_id), self._on_record)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _on_record(self, sample: Any) -> None:
+        from comms.messages import decode
+
+        _, msg = decode(bytes(sample.payload.to_bytes()), self.mission_id, self.count)
+        with self._lock:
+            self.records.append(msg)
+
+    def snapshot(self) -> list[Any]:
+        with self._lock:
+            return list(self.records)
+
+    def _run(self) -> None:
+        from comms.messages import MessageKind, Observation, encode
+
+        seq = 0
+        while not self._stop.wait(self.period_s):
+            for uav, rng in self.ranges_m.items():
+                seq += 1
+                obs = Observation(uav, seq, time.time(), (0.0, 0.0, 0.0), True, False, True, rng, float("nan"), float("nan"))
+                self._pubs[uav].put(encode(obs, self.mission_id, seq, MessageKind.MEASUREMENT))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.session.close()
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class TlogSummary:
+    """What a vehicle's .tlog shows: its STATUSTEXTs, its (mode, armed) sequence, the
+    planner's setpoint messages by (type, frame, mask) and the last landed state."""
+
+    texts: list[str]
+    modes: list[tuple[int, bool]]
+    setpoints: dict[tuple[str, int, int], int]
+    landed_state: int | None
+    commands: dict[int, int]
+
+
+def read_tlog(path: Path) -> TlogSummary:
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    texts: list[str] = []
+    modes: list[tuple[int, bool]] = []
+    setpoints: dict[tuple[str, int, int], int] = {}
+    landed = None
+    commands: dict[int, int] = {}
+    while True:
+        m = log.recv_match()
+        if m is None:
+            break
+        t = m.get_type()
+        if t == "STATUSTEXT":
+            texts.append(m.text)
+        elif t == "HEARTBEAT" and m.get_srcComponent() == 1:
+            state = (int(m.custom_mode), bool(m.base_mode & 128))
+            if not modes or modes[-1] != state:
+                modes.append(state)
+        elif t.startswith("SET_POSITION_TARGET"):
+            key = (t, int(m.coordinate_frame), int(m.type_mask))
+            setpoints[key] = setpoints.get(key, 0) + 1
+        elif t == "EXTENDED_SYS_STATE":
+            landed = int(m.landed_state)
+        elif t == "COMMAND_LONG" and m.get_srcComponent() == 191:
+            commands[int(m.command)] = commands.get(int(m.command), 0) + 1
+    log.close()
+    return TlogSummary(texts, modes, setpoints, landed, commands)

@@ -1,0 +1,251 @@
+"""Real-time flights: real ``fimnav plan`` processes against real ``fimnav vehicle`` processes
+(ArduPilot and PX4 flavours) on 127.0.0.1, with the vehicles' clock sped up.
+
+What is checked comes from both sides: the planner's summary and log (what it detected and
+confirmed) and the vehicle's .tlog (what the autopilot actually received and did: setpoint
+message types, frames and masks, modes, STATUSTEXTs such as the GUIDED velocity timeout or
+the PX4 offboard-loss failsafe, landed state).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+
+from .helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle
+
+pytestmark = pytest.mark.integration
+
+#: Sim seconds per wall second for vehicles and planners: dt = 1 s is 0.2 s of wall time, the
+#: setpoint stream (5 Hz of mission time) is 25 Hz; ArduPilot's 3 s guided timeout is 0.6 s
+#: and PX4's 1 s offboard-loss timeout 0.2 s of wall time, so a planner that stalls shows.
+SPEEDUP = 5.0
+ARDUPILOT_GUIDED, ARDUPILOT_RTL, ARDUPILOT_LAND = 4, 6, 9
+PX4_OFFBOARD, PX4_LOITER, PX4_LAND = 6 << 16, (4 << 16) | (3 << 24), (4 << 16) | (6 << 24)
+GLOBAL_RELATIVE_ALT_INT = 6
+MASK_POS_VEL, MASK_POS = 3520, 3576
+MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_NAV_TAKEOFF = 511, 22
+
+
+@pytest.fixture
+def procs() -> Iterator[list[Proc]]:
+    """Every process a test starts; each process group is stopped at the end."""
+    started: list[Proc] = []
+    yield started
+    for p in reversed(started):
+        p.stop()
+
+
+def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps: int, end_action: str, **extra: object) -> Path:
+    mission = {
+        "id": mission_id, "dt_s": 1.0, "steps": steps,
+        "drones": {"count": len(starts), "roles": "ranging", "start": {"positions_m": starts}},
+        "source": {"position_m": [60.0, 90.0, 2.0]},
+        "end_action": end_action, **extra,
+    }
+    path.write_text(yaml.safe_dump(mission))
+    return path
+
+
+def plan_args(mission: Path, uav: int, peer: SwarmPeer, *extra: str) -> list[str]:
+    return ["plan", "--mission", str(mission), "--uav", str(uav), "--speedup", str(SPEEDUP),
+            "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60", *extra]
+
+
+def summary_of(p: Proc) -> dict:
+    return json.loads(p.out.strip().splitlines()[-1])
+
+
+def stop_and_read(vehicle: Proc, tlog: Path):  # noqa: ANN201
+    vehicle.stop()
+    return read_tlog(tlog)
+
+
+def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list[Proc]) -> None:
+    """Drone 1 on an ArduPilot-flavoured vehicle, drone 2 on a PX4-flavoured one, each with its
+    own connection string in the mission and its flavour detected from HEARTBEAT.autopilot:
+    streams, readiness, mode, arm, take-off, global setpoints re-sent often enough that no
+    timeout fires, peers' records shared in real time, landing confirmed on both sides."""
+    steps = 15
+    base = write_mission(tmp_path / "base.yaml", "mixed", [[10.0, 20.0, 8.0], [16.0, 20.0, 9.0]], steps, "land")
+    v1, port1 = start_vehicle(procs, base, tmp_path / "v1.tlog", "--speedup", str(SPEEDUP), sysid=1)
+    v2, port2 = start_vehicle(procs, base, tmp_path / "v2.tlog", "--speedup", str(SPEEDUP), "--flavour", "px4", sysid=2)
+    mission = yaml.safe_load(base.read_text())
+    mission["vehicles"] = {"overrides": [{"connection": f"udpout:127.0.0.1:{port1}"}, {"connection": f"udpout:127.0.0.1:{port2}", "flavour": "auto"}]}
+    flown = tmp_path / "mission.yaml"
+    flown.write_text(yaml.safe_dump(mission))
+    peer = SwarmPeer("mixed", 2, {1: 70.0, 2: 72.0})
+    try:
+        planners = [Proc([*plan_args(flown, i, peer), "--log", str(tmp_path / f"p{i}.jsonl")]) for i in (1, 2)]
+        procs.extend(planners)
+        for p in planners:
+            assert p.wait(90.0) == 0, p.tail()
+        records = peer.snapshot()
+    finally:
+        peer.close()
+    s1, s2 = (summary_of(p) for p in planners)
+    assert (s1["flavour"], s2["flavour"]) == ("ardupilot", "px4")
+    assert "HEARTBEAT.autopilot = 3" in planners[0].err and "HEARTBEAT.autopilot = 12" in planners[1].err
+    for s in (s1, s2):
+        assert s["frame"] == "global" and s["steps"] == steps and s["link_losses"] == []
+        assert s["end"]["confirmed"] and s["end"]["armed"] is False and s["end"]["landed_state"] == "ON_GROUND"
+    assert s1["end"]["mode"] == "LAND" and s2["end"]["mode"] == "AUTO.LAND"
+
+    # The payload's measurements (published on their own schedule) went into the records.
+    for uav, rng in ((1, 70.0), (2, 72.0)):
+        mine = [r for r in records if r.sender == uav]
+        assert len(mine) == steps and all(r.range_m == rng and not r.stale for r in mine)
+    # The peers' records of step k arrived before the step's deadline (not a barrier).
+    for i, other in ((1, 1), (2, 0)):
+        log = [json.loads(line) for line in (tmp_path / f"p{i}.jsonl").read_text().splitlines()]
+        on_time = sum(e["saved_steps"][other] == e["step"] for e in log)
+        assert on_time >= 0.7 * steps, [e["saved_steps"] for e in log]
+        # the planner moved: the planned positions change from step to step
+        assert len({tuple(e["next_position_m"]) for e in log}) == steps
+
+    t1 = stop_and_read(v1, tmp_path / "v1.tlog")
+    t2 = stop_and_read(v2, tmp_path / "v2.tlog")
+    for t in (t1, t2):
+        # Only global setpoints (relative altitude), position + velocity or position only.
+        assert set(t.setpoints) <= {("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, m) for m in (MASK_POS_VEL, MASK_POS)}, t.setpoints
+        assert t.setpoints.get(("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, MASK_POS_VEL), 0) >= steps
+        assert t.commands.get(MAV_CMD_SET_MESSAGE_INTERVAL, 0) >= 5
+        assert not [x for x in t.texts if "timeout" in x.lower() or "failsafe" in x.lower() or "fence" in x.lower()], t.texts
+        assert t.landed_state == 1  # MAV_LANDED_STATE_ON_GROUND
+    assert (ARDUPILOT_GUIDED, True) in t1.modes and t1.modes[-1] == (ARDUPILOT_LAND, False)
+    assert t1.commands.get(MAV_CMD_NAV_TAKEOFF) == 1
+    assert (PX4_OFFBOARD, True) in t2.modes and t2.modes[-1] == (PX4_LAND, False)
+    assert MAV_CMD_NAV_TAKEOFF not in t2.commands  # PX4 climbs in OFFBOARD on the stream
+
+
+@pytest.mark.parametrize("flavour", ["px4", pytest.param("ardupilot", marks=pytest.mark.slow)])
+def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+    """The radio link is cut mid-mission (a UDP relay stops forwarding): the planner notices
+    within 3 s, publishes its last record flagged stale, and when the link returns resumes
+    (PX4: its offboard-loss failsafe switched to AUTO.LOITER meanwhile; the planner goes back
+    to OFFBOARD) and finishes the mission; end of mission 'hold' confirmed."""
+    mission = write_mission(tmp_path / "m.yaml", "loss", [[10.0, 20.0, 8.0]], 60, "hold")
+    vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--flavour", flavour)
+    relay = UdpRelay(port)
+    peer = SwarmPeer("loss", 1, {1: 80.0})
+    try:
+        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{relay.port}"))
+        procs.append(planner)
+        planner.expect(r"ready at the start position", 60.0, "err")
+        deadline = time.monotonic() + 20.0
+        while len(peer.snapshot()) < 5:
+            assert time.monotonic() < deadline, planner.tail()
+            time.sleep(0.02)
+        relay.cut.set()
+        t_cut = time.monotonic()
+        planner.expect(r"vehicle link lost", 10.0, "err")
+        noticed_s = time.monotonic() - t_cut
+        while not any(r.stale for r in peer.snapshot()):
+            assert time.monotonic() < t_cut + 10.0, planner.tail()
+            time.sleep(0.02)
+        relay.cut.clear()
+        planner.expect(r"resumed in (OFFBOARD|GUIDED)", 30.0, "err")
+        assert planner.wait(60.0) == 0, planner.tail()
+        records = peer.snapshot()
+    finally:
+        peer.close()
+        relay.close()
+    assert noticed_s < 3.0, noticed_s
+    s = summary_of(planner)
+    assert len(s["link_losses"]) == 1 and s["stale_steps"] >= 2
+    assert s["end"]["confirmed"] and s["end"]["armed"] is True
+    stale = [r for r in records if r.stale]
+    first_stale = records.index(stale[0])
+    # Stale records repeat the last state (position and measurement) at the current step.
+    assert all(r.position_m == records[first_stale - 1].position_m for r in stale)
+    assert [r.step for r in records] == sorted(r.step for r in records)
+    assert not records[-1].stale
+    t = stop_and_read(vehicle, tmp_path / "v.tlog")
+    if flavour == "px4":
+        assert s["end"]["mode"] == "AUTO.LOITER"
+        assert "Failsafe: offboard lost, holding" in t.texts  # the vehicle's own failsafe
+        i = t.modes.index((PX4_LOITER, True))  # ... then the planner took it back
+        assert (PX4_OFFBOARD, True) in t.modes[i:]
+        assert t.modes[-1] == (PX4_LOITER, True)
+    else:
+        assert s["end"]["mode"] == "GUIDED"
+        assert t.modes[-1] == (ARDUPILOT_GUIDED, True)
+
+
+def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, procs: list[Proc]) -> None:
+    """A vehicle with MAVLink 2 signing on: a planner without the key stops at once with a
+    message that says why; with the key (mode 0600) it flies the mission and ends in RTL."""
+    key = tmp_path / "signing.key"
+    secret = os.urandom(32)
+    key.write_bytes(secret)
+    key.chmod(0o600)
+    mission = write_mission(tmp_path / "m.yaml", "signed", [[10.0, 20.0, 8.0]], 10, "rtl")
+    vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--signing-key", str(key))
+    peer = SwarmPeer("signed", 1, {1: 75.0})
+    try:
+        unsigned = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}"))
+        procs.append(unsigned)
+        assert unsigned.wait(30.0) == 1, unsigned.tail()
+        assert "MAVLink 2 signing" in unsigned.err and "--signing-key" in unsigned.err
+        assert "Traceback" not in unsigned.err
+        signed = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(key)))
+        procs.append(signed)
+        assert signed.wait(60.0) == 0, signed.tail()
+    finally:
+        peer.close()
+    s = summary_of(signed)
+    assert s["steps"] == 10 and s["end"]["mode"] == "RTL" and s["end"]["confirmed"]
+    for text in (signed.out + signed.err, unsigned.out + unsigned.err):
+        assert secret.hex() not in text and secret.hex().upper() not in text
+    t = stop_and_read(vehicle, tmp_path / "v.tlog")
+    assert t.setpoints.get(("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, MASK_POS_VEL), 0) >= 10
+    assert not [x for x in t.texts if "timeout" in x.lower()], t.texts
+    assert (ARDUPILOT_RTL, True) in t.modes
+
+
+@pytest.mark.parametrize("mode", [0o640, 0o604])
+def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> None:
+    """A signing key others can read is refused before anything starts, from the command
+    line and from the mission, with what to do; the key never appears in the message."""
+    key = tmp_path / "k.key"
+    secret = os.urandom(32).hex()
+    key.write_text(secret + "\n")
+    key.chmod(mode)
+    mission = write_mission(tmp_path / "m.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold")
+    cli = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", "udpout:127.0.0.1:9", "--signing-key", str(key)])
+    assert cli.wait(30.0) == 2, cli.tail()
+    m = yaml.safe_load(mission.read_text())
+    m["vehicles"] = {"overrides": [{"connection": "udpout:127.0.0.1:9", "signing_key_file": str(key)}]}
+    from_mission = write_mission(tmp_path / "m2.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold", vehicles=m["vehicles"])
+    via_mission = Proc(["plan", "--mission", str(from_mission), "--uav", "1", "--preflight-timeout", "5"])
+    assert via_mission.wait(30.0) == 2, via_mission.tail()
+    for p in (cli, via_mission):
+        assert f"permissions {mode:04o}" in p.err and "chmod 600" in p.err, p.err
+        assert secret not in p.err + p.out and "Traceback" not in p.err
+
+
+def test_geodesy_round_trip_and_against_vehicle_sim() -> None:
+    """Mission ENU ↔ WGS-84 (comms.geodesy) round-trips to 1 µm and agrees with the
+    simulated vehicle's own pyproj frame (vehicle_sim.geo) to 1 mm at 1 km."""
+    from comms.geodesy import MissionFrame
+    from vehicle_sim.config import Origin
+    from vehicle_sim.geo import LocalFrame
+
+    frame = MissionFrame(-35.363261, 149.165230, 584.0)
+    ref = LocalFrame(Origin(-35.363261, 149.165230, 584.0))
+    for x, y, z in ((0.0, 0.0, 0.0), (10.0, 20.0, 8.0), (-1000.0, 700.0, 120.0), (1000.0, -1000.0, 3.0)):
+        g = frame.to_global(x, y, z)
+        assert math.isclose(g.alt_amsl_m, 584.0 + z, abs_tol=1e-9)
+        back = frame.to_enu(g.lat_deg, g.lon_deg, g.alt_amsl_m)
+        assert max(abs(a - b) for a, b in zip(back, (x, y, z))) < 1e-6
+        # vehicle_sim maps a setpoint's lat/lon at the origin's height, z = alt - origin alt
+        rx, ry, _ = ref.geodetic_to_enu(g.lat_deg, g.lon_deg, 584.0)
+        assert math.hypot(rx - x, ry - y) < 1e-3
+    assert frame.matches(-35.363261, 149.165230, 584.0) and not frame.matches(-35.3632, 149.165230, 584.0)
