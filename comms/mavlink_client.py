@@ -29,6 +29,7 @@ Every wait has a deadline and says what it was waiting for when it expires
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import stat
@@ -241,6 +242,7 @@ class VehicleLink:
             raise LinkError(f"signing key: expected 32 bytes, found {len(signing_key)}")
         self._signing_key = signing_key
         self.conn: Any = None
+        self.foreign_datagrams = 0
         self._open()
         self.telemetry = Telemetry()
         self._last_gcs_heartbeat = -math.inf
@@ -263,8 +265,47 @@ class VehicleLink:
         except Exception as exc:  # pymavlink raises bare OSError/ValueError/SerialException
             raise LinkError(f"cannot open MAVLink connection {self.connection!r}: {exc}") from None
         self.mav = self.conn.mav
+        if isinstance(self.conn, self.mavutil.mavudp):
+            self._datagram_receiver(self.conn)
         if self._signing_key is not None:
             self.conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
+
+    def _datagram_receiver(self, conn: Any) -> None:
+        """Read the UDP socket ourselves: with ``udpout`` only datagrams from the vehicle's
+        address are accepted (others are counted in :attr:`foreign_datagrams`), and a frame
+        left unfinished at the end of a datagram is dropped before the next datagram is
+        parsed, so a stray byte from any host cannot swallow the vehicle's next frames
+        (MAVLink senders put whole frames in each datagram)."""
+        peer = None if conn.udp_server else conn.destination_addr
+        mav = conn.mav
+        self.foreign_datagrams = 0
+
+        def recv(n: int | None = None) -> bytes | str:
+            if mav.buf_len() > 0 and mav.bytes_needed() <= 0:
+                return b""  # frames of the current datagram still to parse
+            while True:
+                try:
+                    data, addr = conn.port.recvfrom(65535)
+                except (BlockingIOError, InterruptedError):
+                    return b""
+                except OSError as exc:
+                    if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                        return b""
+                    raise
+                if peer is not None and addr != peer:
+                    self.foreign_datagrams += 1
+                    continue
+                if conn.udp_server:
+                    conn.clients.add(addr)
+                    conn.clients_last_alive[addr] = time.time()
+                if mav.buf_len() > 0:  # an unfinished frame of the previous datagram
+                    mav.buf = bytearray()
+                    mav.buf_index = 0
+                    mav.expected_length = 8  # HEADER_LEN_V1 + 2, the parser's initial state
+                    mav.have_prefix_error = False
+                return data
+
+        conn.recv = recv
 
     # -- identity ---------------------------------------------------------------------------
     @property
