@@ -1,0 +1,231 @@
+"""Hostile Zenoh payloads at the decoder (``comms.messages.decode``) and at the planner's
+inbox (``planner.node._Inbox.decode``): property tests with hypothesis.
+
+Properties: any byte string either decodes or raises :class:`MessageError` (never another
+exception); whatever decodes re-encodes to the same bytes (so nothing is silently
+reinterpreted) and carries only finite, plausible values; every single corruption of a
+valid record that the validator must catch (truncation, version, kind, mission tag, NaN or
+infinite fields, role/flag bits, sender range) is refused; the inbox counts and drops
+spoofed senders (sender ≠ key expression) and kinds on the wrong key.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from comms import keys
+from comms.messages import (
+    MAX_COORD_M,
+    Done,
+    MessageError,
+    MessageKind,
+    Observation,
+    Status,
+    Tick,
+    decode,
+    encode,
+    mission_tag,
+)
+from planner.node import _Inbox
+
+MISSION = "alpha"
+N = 5
+HEADER = 14
+
+finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e5, max_value=1e5)
+angle = st.floats(min_value=-3.14, max_value=3.14)
+
+
+@st.composite
+def observations(draw: st.DrawFn) -> Observation:
+    ranging, bearing = draw(st.sampled_from([(True, False), (False, True), (True, True)]))
+    return Observation(
+        sender=draw(st.integers(1, N)), step=draw(st.integers(0, 10_000)), time_s=draw(finite),
+        position_m=(draw(finite), draw(finite), draw(finite)), ranging=ranging, bearing=bearing, los=draw(st.booleans()),
+        range_m=draw(finite) if ranging else math.nan,
+        azimuth_rad=draw(angle) if bearing else math.nan,
+        elevation_rad=draw(st.floats(min_value=-1.5, max_value=1.5)) if bearing else math.nan,
+        stale=draw(st.booleans()),
+    )
+
+
+def valid_record(sender: int = 2) -> bytes:
+    return encode(Observation(sender, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7)
+
+
+def _finite_values(msg: object) -> bool:
+    if isinstance(msg, Observation):
+        return math.isfinite(msg.time_s) and all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in msg.position_m)
+    if isinstance(msg, (Tick, Status)):
+        return math.isfinite(msg.time_s)
+    return True
+
+
+@settings(max_examples=3000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=200))
+def test_random_bytes_never_raise_anything_but_message_error(data: bytes) -> None:
+    try:
+        header, msg = decode(data, MISSION, N)
+    except MessageError:
+        return
+    assert _finite_values(msg)
+
+
+@settings(max_examples=2000, deadline=None)
+@given(observations(), st.data())
+def test_any_corruption_of_a_record_is_refused_or_reencodes_identically(obs: Observation, data: st.DataObject) -> None:
+    raw = bytearray(encode(obs, MISSION, 1))
+    i = data.draw(st.integers(0, len(raw) - 1))
+    raw[i] ^= data.draw(st.integers(1, 255))
+    try:
+        header, msg = decode(bytes(raw), MISSION, N)
+    except MessageError:
+        return
+    # a mutation that still decodes must be a message that says exactly those bytes
+    assert encode(msg, MISSION, header.seq, kind=header.kind) == bytes(raw)
+    assert _finite_values(msg)
+
+
+@settings(max_examples=500, deadline=None)
+@given(observations())
+def test_valid_records_round_trip(obs: Observation) -> None:
+    header, msg = decode(encode(obs, MISSION, 9), MISSION, N)
+    assert header.kind == MessageKind.RECORD and header.seq == 9
+    assert msg.sender == obs.sender and msg.position_m == obs.position_m and msg.step == obs.step
+
+
+@given(st.binary(min_size=0, max_size=200).filter(lambda b: len(b) != len(valid_record())))
+def test_truncated_or_padded_records_are_refused(tail: bytes) -> None:
+    raw = valid_record()
+    cut = raw[: len(tail) % len(raw)] if len(tail) < len(raw) else raw + tail[: len(tail) - len(raw)]
+    assume(len(cut) != len(raw))
+    with pytest.raises(MessageError):
+        decode(cut, MISSION, N)
+
+
+@pytest.mark.parametrize("version", [0, 2, 3, 255])
+def test_unknown_schema_versions_are_refused(version: int) -> None:
+    raw = bytearray(valid_record())
+    raw[2] = version
+    with pytest.raises(MessageError, match="unknown schema version"):
+        decode(bytes(raw), MISSION, N)
+
+
+@pytest.mark.parametrize("kind", [0, 6, 77, 255])
+def test_unknown_kinds_are_refused(kind: int) -> None:
+    raw = bytearray(valid_record())
+    raw[3] = kind
+    with pytest.raises(MessageError, match="unknown message kind"):
+        decode(bytes(raw), MISSION, N)
+
+
+def test_records_of_another_mission_are_refused() -> None:
+    other = encode(Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, False, True, 10.0, math.nan, math.nan), "bravo", 7)
+    assert mission_tag("bravo") != mission_tag(MISSION)
+    with pytest.raises(MessageError, match="another mission"):
+        decode(other, MISSION, N)
+
+
+# Offsets in a record (header 14 bytes, body <Id3dBBddd): step 14, time 18, x 26, y 34, z 42,
+# role 50, flags 51, range 52, azimuth 60, elevation 68.
+FIELDS = {"time": 18, "x": 26, "y": 34, "z": 42, "range": 52, "azimuth": 60, "elevation": 68}
+
+
+@pytest.mark.parametrize("field", sorted(FIELDS))
+@pytest.mark.parametrize("value", [math.inf, -math.inf, 1e300])
+def test_infinite_or_huge_values_are_refused(field: str, value: float) -> None:
+    if field == "time" and math.isfinite(value):
+        pytest.skip("time is only required finite (sim or wall seconds)")
+    raw = bytearray(valid_record())
+    struct.pack_into("<d", raw, FIELDS[field], value)
+    with pytest.raises(MessageError):
+        decode(bytes(raw), MISSION, N)
+
+
+@pytest.mark.parametrize("field", ["time", "x", "y", "z"])
+def test_nan_position_or_time_is_refused(field: str) -> None:
+    raw = bytearray(valid_record())
+    struct.pack_into("<d", raw, FIELDS[field], math.nan)
+    with pytest.raises(MessageError, match="finite"):
+        decode(bytes(raw), MISSION, N)
+
+
+def test_nan_measurement_means_not_measured_and_is_handled_by_the_estimator_contract() -> None:
+    """NaN range/angles are the wire's 'not measured' (module doc): they decode as NaN."""
+    raw = bytearray(valid_record())
+    struct.pack_into("<d", raw, FIELDS["range"], math.nan)
+    _, msg = decode(bytes(raw), MISSION, N)
+    assert math.isnan(msg.range_m)
+
+
+@pytest.mark.parametrize("sender", [0, N + 1, 65535])
+def test_sender_out_of_range_is_refused(sender: int) -> None:
+    raw = bytearray(valid_record())
+    struct.pack_into("<H", raw, 8, sender)
+    with pytest.raises(MessageError, match="sender id"):
+        decode(bytes(raw), MISSION, N)
+
+
+@pytest.mark.parametrize("role,flags", [(0, 1), (4, 1), (255, 1), (3, 4), (3, 255)])
+def test_unknown_role_or_flag_bits_are_refused(role: int, flags: int) -> None:
+    raw = bytearray(valid_record())
+    raw[50], raw[51] = role, flags
+    with pytest.raises(MessageError):
+        decode(bytes(raw), MISSION, N)
+
+
+def test_status_with_a_huge_peer_count_is_refused() -> None:
+    st_raw = encode(Status(1, 2, 0.5, (1.0, 2.0, 3.0), True, False, 0, (1, 1, 1, 1, 1)), MISSION, 1)
+    raw = bytearray(st_raw)
+    struct.pack_into("<H", raw, HEADER + 39, 65535)
+    with pytest.raises(MessageError):
+        decode(bytes(raw), MISSION, N)
+
+
+def test_tick_with_nan_time_is_refused() -> None:
+    raw = bytearray(encode(Tick(3, 0.3), MISSION, 1))
+    struct.pack_into("<d", raw, HEADER + 4, math.nan)
+    with pytest.raises(MessageError):
+        decode(bytes(raw), MISSION, N)
+
+
+# ---------------------------------------------------------------------- the planner's inbox
+
+
+def test_inbox_drops_spoofed_sender_and_counts_it() -> None:
+    inbox = _Inbox(MISSION, N)
+    try:
+        assert inbox.decode(keys.record(MISSION, 2), valid_record(2)) is not None
+        assert inbox.decode(keys.record(MISSION, 3), valid_record(2)) is None  # sender 2 on drone 3's key
+        assert inbox.decode(keys.measurement(MISSION, 2), valid_record(2)) is None  # a record on a measurement key
+        assert inbox.decode(keys.done(MISSION, 2), valid_record(2)) is None
+        assert inbox.decode(keys.record(MISSION, 2), b"garbage") is None
+        assert sum(inbox.dropped.values()) == 4
+    finally:
+        inbox.close()
+
+
+@settings(max_examples=1000, deadline=None)
+@given(st.binary(max_size=120), st.sampled_from(["record/1", "record/4", "measurement/2", "clock/tick", "clock/done/3", "status/1"]))
+def test_inbox_never_raises_and_counts_every_drop(data: bytes, tail: str) -> None:
+    inbox = _Inbox(MISSION, N)
+    try:
+        msg = inbox.decode(f"fimnav/{MISSION}/{tail}", data)
+        assert (msg is None) == (sum(inbox.dropped.values()) == 1)
+    finally:
+        inbox.close()
+
+
+def test_done_message_is_valid_reference() -> None:
+    """The reference for the property above: valid messages pass the inbox."""
+    inbox = _Inbox(MISSION, N)
+    try:
+        assert inbox.decode(keys.done(MISSION, 3), encode(Done(3, 4), MISSION, 1)) == Done(3, 4)
+        assert inbox.decode(keys.tick(MISSION), encode(Tick(4, 0.4), MISSION, 1)) == Tick(4, 0.4)
+    finally:
+        inbox.close()
