@@ -281,6 +281,8 @@ class PlannerNode:
         self.link_losses: list[dict[str, float]] = []
         self.last_record: Observation | None = None
         self.late_steps = 0
+        self.mode_changes: list[str] = []
+        self._reported_mode: str | None = None
         self._session_factory = session_factory
         self.session: Any = None
         self.link: VehicleLink | None = None
@@ -789,6 +791,18 @@ class PlannerNode:
             link.set_mode(mode)
         log.info("uav %d: resumed in %s", self.o.uav, mode)
 
+    def _watch_mode(self) -> None:
+        """Report (once per change) a vehicle that left GUIDED/OFFBOARD while the link is up:
+        a pilot or a failsafe has taken control. The planner does not fight it: it keeps
+        stepping and streaming, which the vehicle ignores outside GUIDED/OFFBOARD."""
+        link = self._require_link()
+        want = "OFFBOARD" if link.is_px4 else "GUIDED"
+        now = link.mode_name()
+        if not link.in_mode(want) and now != self._reported_mode:
+            log.warning("uav %d: the vehicle left %s (now %s): a pilot or a failsafe has control; not taking it back", self.o.uav, want, now)
+            self.mode_changes.append(now)
+        self._reported_mode = now if not link.in_mode(want) else None
+
     def _trajectory(self, own: np.ndarray, u: np.ndarray, t_from: float) -> Callable[[float], tuple[np.ndarray | None, np.ndarray | None]]:
         """The streamed setpoint of one step: from ``own`` along ``u`` (m, ENU) over one
         step, position + velocity feed-forward u/dt; then the end point, zero velocity."""
@@ -846,6 +860,7 @@ class PlannerNode:
                 stale_steps += 1
                 k += 1
                 continue
+            self._watch_mode()
             pos = link.telemetry.position_enu_m
             assert pos is not None
             own = pos.astype(float)
@@ -888,7 +903,7 @@ class PlannerNode:
         end = self._end_realtime()
         return {
             "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
-            "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses,
+            "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses, "mode_changes": self.mode_changes,
             "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
         }
 

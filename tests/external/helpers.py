@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 ENV = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
 
 
@@ -103,6 +105,19 @@ class Proc:
             os.killpg(self.p.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+
+
+def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps: int, end_action: str, **extra: object) -> Path:
+    """A one-file mission in ``path``: drones (ranging) at ``starts`` (m, ENU), a source
+    far enough from them, dt 1 s."""
+    mission = {
+        "id": mission_id, "dt_s": 1.0, "steps": steps,
+        "drones": {"count": len(starts), "roles": "ranging", "start": {"positions_m": starts}},
+        "source": {"position_m": [60.0, 90.0, 2.0]},
+        "end_action": end_action, **extra,
+    }
+    path.write_text(yaml.safe_dump(mission))
+    return path
 
 
 def start_vehicle(procs: list[Proc], mission: Path, tlog: Path, *extra: str, sysid: int = 1) -> tuple[Proc, int]:

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from .helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle
+from .helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
 
 pytestmark = pytest.mark.integration
 
@@ -41,17 +41,6 @@ def procs() -> Iterator[list[Proc]]:
     yield started
     for p in reversed(started):
         p.stop()
-
-
-def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps: int, end_action: str, **extra: object) -> Path:
-    mission = {
-        "id": mission_id, "dt_s": 1.0, "steps": steps,
-        "drones": {"count": len(starts), "roles": "ranging", "start": {"positions_m": starts}},
-        "source": {"position_m": [60.0, 90.0, 2.0]},
-        "end_action": end_action, **extra,
-    }
-    path.write_text(yaml.safe_dump(mission))
-    return path
 
 
 def plan_args(mission: Path, uav: int, peer: SwarmPeer, *extra: str) -> list[str]:
@@ -157,6 +146,7 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
     finally:
         peer.close()
         relay.close()
+    print(f"link loss noticed {noticed_s:.2f} s after the cut")
     assert noticed_s < 3.0, noticed_s
     s = summary_of(planner)
     assert len(s["link_losses"]) == 1 and s["stale_steps"] >= 2
