@@ -937,10 +937,9 @@ class PlannerNode:
         except LinkError as exc:
             raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
         finally:
-            if action == "hold" and not link.is_px4:
-                pass  # a position target in GUIDED holds without a stream
-            else:
-                link.set_stream(None)
+            # The stream ends with the planner; ArduPilot holds a position-only target in
+            # GUIDED without one, PX4 holds in AUTO.LOITER.
+            link.set_stream(None)
         landed = link.telemetry.landed_state
         end = {"action": action, "confirmed": True, "mode": link.mode_name(), "armed": link.telemetry.armed,
                "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None}

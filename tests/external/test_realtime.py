@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -239,3 +240,42 @@ def test_geodesy_round_trip_and_against_vehicle_sim() -> None:
         rx, ry, _ = ref.geodetic_to_enu(g.lat_deg, g.lon_deg, 584.0)
         assert math.hypot(rx - x, ry - y) < 1e-3
     assert frame.matches(-35.363261, 149.165230, 584.0) and not frame.matches(-35.3632, 149.165230, 584.0)
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", pytest.param("px4", marks=pytest.mark.slow)])
+def test_killed_planner_leaves_the_vehicle_holding_within_its_timeout(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+    """kill -9 of the planner mid-mission: the setpoint stream stops and the vehicle's own
+    timeout takes over within GUID_TIMEOUT (ArduPilot: holds its last position target) or
+    COM_OF_LOSS_T (PX4: offboard-loss failsafe, AUTO.LOITER); it stays armed in the air.
+    Watched by a second MAVLink peer of the vehicle (the test)."""
+    from comms.mavlink_client import VehicleLink
+
+    mission = write_mission(tmp_path / "m.yaml", "kill", [[10.0, 20.0, 8.0]], 200, "hold")
+    vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--flavour", flavour)
+    peer = SwarmPeer("kill", 1, {1: 80.0})
+    watch = VehicleLink(f"udpout:127.0.0.1:{port}", 1, source_system=200)
+    try:
+        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}"))
+        procs.append(planner)
+        planner.expect(r"ready at the start position", 60.0, "err")
+        deadline = time.monotonic() + 20.0
+        while len(peer.snapshot()) < 5:
+            assert time.monotonic() < deadline, planner.tail()
+            watch.pump(0.02)
+        watch.statustexts.clear()
+        os.killpg(planner.p.pid, 9)
+        t_kill = time.monotonic()
+        want = "Guided: velocity timeout, holding" if flavour == "ardupilot" else "Failsafe: offboard lost, holding"
+        watch.wait_for(lambda: want in watch.statustexts, 10.0, want)
+        held_after_s = time.monotonic() - t_kill
+        watch.wait_for(lambda: watch.telemetry.velocity_enu_mps is not None and float(np.linalg.norm(watch.telemetry.velocity_enu_mps)) < 0.05, 10.0, "vehicle at rest")
+        mode = "GUIDED" if flavour == "ardupilot" else "AUTO.LOITER"
+        watch.wait_for(lambda: watch.in_mode(mode) and watch.telemetry.armed, 10.0, f"armed heartbeat in {mode}")
+        tel = watch.telemetry
+        assert tel.position_enu_m is not None and tel.position_enu_m[2] > 5.0  # still in the air
+    finally:
+        watch.close()
+        peer.close()
+    timeout_s = 3.0 if flavour == "ardupilot" else 1.0  # GUID_TIMEOUT / COM_OF_LOSS_T (sim s)
+    print(f"{flavour}: vehicle holding {held_after_s:.2f} s (wall) after kill -9; timeout {timeout_s / SPEEDUP:.2f} s wall")
+    assert held_after_s < timeout_s / SPEEDUP + 1.0
