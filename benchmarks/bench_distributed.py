@@ -58,7 +58,7 @@ def step_latencies(out: Path) -> np.ndarray:
 
 
 def swarm_mission(path: Path, drones: int) -> Path:
-    """The paper's heterogeneous scenario with ``drones`` drones on a wide start ellipse."""
+    """The paper's heterogeneous scenario with ``drones`` drones (at most 100) on a start grid."""
     import yaml
 
     m = yaml.safe_load((ROOT / "missions" / "paper" / "heterogeneous.yaml").read_text())
@@ -67,7 +67,9 @@ def swarm_mission(path: Path, drones: int) -> Path:
     m["drones"] = {
         "count": drones,
         "roles": [roles[i % 3] for i in range(drones)],
-        "start": {"ellipse": {"center_m": [0.0, 170.0, 12.0], "radius_x_m": 200.0, "radius_z_m": 8.0}},
+        # A 20 x 5 grid 10 m x 4 m apart, 170 m north of the source (an ellipse this wide would
+        # bunch its ends closer than d_U*).
+        "start": {"positions_m": [[-95.0 + 10.0 * (i % 20), 170.0, 4.0 + 4.0 * (i // 20)] for i in range(drones)]},
     }
     path.write_text(yaml.safe_dump(m, sort_keys=False))
     return path
