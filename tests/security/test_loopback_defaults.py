@@ -1,0 +1,112 @@
+"""By default nothing listens beyond loopback: the mission's default Zenoh endpoints, every
+paper mission, a default Zenoh session, ``fimnav vehicle`` with its default MAVLink binding,
+and every process of a running ``fimnav launch`` — checked on the sockets the processes
+actually hold (/proc), not only on the configuration."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from comms.session import SessionSettings, open_session
+from missions.loader import load_mission
+from missions.schema import ZenohSpec
+
+from security.proc import Fimnav
+from security.sockets import sockets_of
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = sorted((ROOT / "missions" / "paper").glob("*.yaml"))
+
+
+def _host(endpoint: str) -> str:
+    proto, _, rest = endpoint.partition("/")
+    return rest.rsplit(":", 1)[0].strip("[]")
+
+
+def test_default_zenoh_section_is_loopback_only() -> None:
+    spec = ZenohSpec()
+    assert spec.mode == "peer" and spec.connect == () and spec.multicast_scouting is False
+    assert spec.listen and all(_host(e) == "127.0.0.1" for e in spec.listen)
+    assert spec.tls is None and spec.auth is None
+    assert SessionSettings() == SessionSettings.from_mission(spec)
+
+
+@pytest.mark.parametrize("path", PAPER, ids=[p.stem for p in PAPER])
+def test_paper_missions_listen_on_loopback_only(path: Path) -> None:
+    z = load_mission(path).zenoh
+    assert all(_host(e) == "127.0.0.1" for e in z.listen), z.listen
+    assert z.connect == () and z.multicast_scouting is False
+
+
+def test_a_default_session_holds_only_loopback_sockets() -> None:
+    before = set(sockets_of(os.getpid()))
+    s = open_session(SessionSettings())
+    try:
+        new = [x for x in sockets_of(os.getpid()) if x not in before and x.listening]
+        assert new, "the session should listen somewhere (on loopback)"
+        assert all(x.loopback for x in new), new
+    finally:
+        s.close()
+
+
+@pytest.mark.integration
+def test_fimnav_vehicle_default_mavlink_binding_is_loopback() -> None:
+    """No ``--mavlink``: tcpin on 127.0.0.1 (port 5760 + 10·(sysid − 1), as SITL)."""
+    proc = Fimnav(["vehicle", "--sysid", "201"])
+    try:
+        ready = proc.ready()
+        assert ready["vehicles"][0]["mavlink"] == "tcpin:127.0.0.1:7760"
+        socks = [x for x in sockets_of(proc.p.pid) if x.listening]
+        assert socks and all(x.loopback for x in socks), socks
+    finally:
+        proc.stop()
+
+
+@pytest.mark.integration
+def test_every_process_of_a_launch_listens_on_loopback_only(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    run = subprocess.Popen([sys.executable, "-m", "missions", "launch", str(ROOT / "missions/paper/ranging_los.yaml"),
+                            "--out", str(out), "--steps", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           start_new_session=True, cwd=ROOT)
+    try:
+        log = out / "logs" / "planner_1.jsonl"
+        deadline = time.monotonic() + 180
+        while not (log.exists() and log.read_text().count("\n") >= 2):
+            assert run.poll() is None, run.stderr.read().decode(errors="replace")[-2000:] if run.stderr else ""
+            assert time.monotonic() < deadline, "the mission did not start flying"
+            time.sleep(0.1)  # polling interval of a deadline wait
+        pids = [run.pid] + [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit() and _mentions(p, str(out))]
+        socks = {pid: [x for x in sockets_of(pid) if x.listening] for pid in pids}
+        assert len([p for p in pids if socks[p]]) >= 11, socks  # launcher + vehicles + planners
+        exposed = {pid: [x for x in ss if not x.loopback] for pid, ss in socks.items()}
+        assert not any(exposed.values()), f"sockets reachable from other hosts: {exposed}"
+    finally:
+        try:
+            os.killpg(run.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+        try:
+            run.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(run.pid, signal.SIGKILL)
+            run.wait(10)
+        for p in Path("/proc").iterdir():
+            if p.name.isdigit() and _mentions(p, str(out)):
+                try:
+                    os.kill(int(p.name), signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+
+
+def _mentions(proc_dir: Path, text: str) -> bool:
+    try:
+        return text in (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False
