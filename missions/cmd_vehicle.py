@@ -17,6 +17,7 @@ to stdout (the actual ports when PORT 0 was asked), then runs until SIGINT/SIGTE
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -74,6 +75,7 @@ def register(subparsers: Any) -> None:
     clock.add_argument("--lockstep", action="store_true", help="advance only on zenoh clock ticks")
     p.add_argument("--mission-id", help="mission id of the zenoh tick key (default: the mission's)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="zenoh listen endpoint")
+    p.add_argument("--zenoh-mode", choices=("peer", "client", "router"), help="zenoh session mode (default: the mission's)")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="zenoh endpoint to connect")
     p.add_argument("--duration", type=float, help="stop after this many wall seconds")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -265,6 +267,8 @@ def run_vehicle(args: argparse.Namespace) -> int:
                     from vehicle_sim.bridge import ZenohBridge
 
                     settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
+                    if args.zenoh_mode:
+                        settings = dataclasses.replace(settings, mode=args.zenoh_mode, listen=() if args.zenoh_mode == "client" else settings.listen)
                     source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, settings)
                     on_tick = source.on_tick
                 else:

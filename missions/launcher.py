@@ -17,6 +17,7 @@ no port left bound.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
@@ -210,9 +211,14 @@ class Launcher:
         mission_file = self.out / "mission.yaml"
         mission_file.write_text(mission_to_yaml(m))
         hub = f"tcp/127.0.0.1:{free_port()}"
-        # The launcher's session is the hub every child connects to; the mission's own
-        # endpoints (routers, other launches) are added to every session.
-        session = open_session(SessionSettings.from_mission(m.zenoh, listen=(hub,)))
+        # Topology. A mission with the default zenoh section (embedded peer, no endpoints) runs
+        # as a star: the launcher's session is a Zenoh router on a free loopback port and every
+        # child a client of it (O(N) links; a full mesh of 2N+1 peers costs O(N²) keep-alives,
+        # which starves a 2-core machine at N = 100). A mission that names its own endpoints
+        # (routers, other machines) keeps its mode; the launcher's session is then one more peer.
+        star = m.zenoh.mode == "peer" and not m.zenoh.connect
+        base = SessionSettings.from_mission(m.zenoh, listen=(hub,))
+        session = open_session(dataclasses.replace(base, mode="router") if star else base)
         t_start = time.perf_counter()
         try:
             subs = [
@@ -221,6 +227,9 @@ class Launcher:
             ]
             clock = LockstepClock(session, m.id, n, m.dt_s)
             child_zenoh = SessionSettings.from_mission(m.zenoh, connect=(hub,), listen=("tcp/127.0.0.1:0",))
+            if star:
+                child_zenoh = dataclasses.replace(child_zenoh, mode="client", listen=())
+            vehicle_zenoh = ["--zenoh-connect", hub] + (["--zenoh-mode", "client"] if star else ["--zenoh-listen", "tcp/127.0.0.1:0"])
             ports = {i: free_port(socket.SOCK_DGRAM) for i in range(1, n + 1)}
             per = self.vehicles_per_process
             for first in range(1, n + 1, per):
@@ -231,7 +240,7 @@ class Launcher:
                     name,
                     ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
                      *[a for i in ids for a in ("--mavlink", f"udpin:127.0.0.1:{ports[i]}")],
-                     "--lockstep", "--zenoh-connect", hub, "--zenoh-listen", "tcp/127.0.0.1:0", "--tlog", str(tlog)],
+                     "--lockstep", *vehicle_zenoh, "--tlog", str(tlog)],
                 )
             for i in range(1, n + 1):
                 self._spawn(
