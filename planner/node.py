@@ -78,6 +78,8 @@ log = logging.getLogger("fimnav.plan")
 START_TOLERANCE_M: float = 0.05
 #: The same in real time, for a vehicle with real dynamics (m).
 START_TOLERANCE_REALTIME_M: float = 0.3
+#: Real time: a position older than this (wall s) is not planned on.
+POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
@@ -282,6 +284,8 @@ class PlannerNode:
         self.last_record: Observation | None = None
         self.late_steps = 0
         self.mode_changes: list[str] = []
+        self.stale_peers: dict[int, int] = {}  # drone id -> last step it said "stale"
+        self.position_gaps = 0
         self._reported_mode: str | None = None
         self._session_factory = session_factory
         self.session: Any = None
@@ -538,7 +542,7 @@ class PlannerNode:
 
     def _missing_peers(self, k: int) -> list[int]:
         """Live peers (1-based ids) whose record of step k has not arrived."""
-        return sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k))
+        return sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k) and self.stale_peers.get(j) != k)
 
     def _view_estimate_plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
         """Step k after the records are in: delayed view, source estimate (with the records
@@ -634,6 +638,11 @@ class PlannerNode:
             return  # before our step 0 a record cannot enter any view
         step = int(round((rec.time_s - self.t0_unix) / self.dt_wall))
         if step < 0:
+            return
+        if rec.stale:
+            # Nothing new of that drone (its vehicle link is down): it has answered for this
+            # step, but its saved record keeps ageing (the age widens the safety margin).
+            self.stale_peers[rec.sender] = step
             return
         self.view.add(dataclasses.replace(rec, step=step))
 
@@ -863,6 +872,16 @@ class PlannerNode:
             self._watch_mode()
             pos = link.telemetry.position_enu_m
             assert pos is not None
+            age = self.wall() - link.telemetry.position_wall_s
+            if age > POSITION_MAX_AGE_S:
+                # Heartbeats but no position: plan nothing on an old position.
+                self.position_gaps += 1
+                log.warning("uav %d: step %d: the last position is %.2f s old; publishing the last record as stale", self.o.uav, k, age)
+                if self.last_record is not None:
+                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True), MessageKind.RECORD)
+                stale_steps += 1
+                k += 1
+                continue
             own = pos.astype(float)
             meas = self.latest_measurement
             fresh = meas is not None and w0 - meas.time_s <= max_age_wall
@@ -880,7 +899,7 @@ class PlannerNode:
             self.view.add(record)
             self._publish(self._pub_record, record, MessageKind.RECORD)
             w_meas = self.unix()
-            peers = lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav)  # noqa: E731
+            peers = lambda: not self._missing_peers(k)  # noqa: E731
             if not self._serve_until_unix(t_k + self.o.peer_wait_fraction * dtw, peers):
                 log.info("uav %d: step %d without the records of %s (deadline)", self.o.uav, k, self._missing_peers(k))
             w_peers = self.unix()

@@ -202,7 +202,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
 
 
 @pytest.mark.parametrize("mode", [0o640, 0o604])
-def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> None:
+def test_group_or_world_readable_key_is_refused(tmp_path: Path, procs: list[Proc], mode: int) -> None:
     """A signing key others can read is refused before anything starts, from the command
     line and from the mission, with what to do; the key never appears in the message."""
     key = tmp_path / "k.key"
@@ -211,11 +211,13 @@ def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> No
     key.chmod(mode)
     mission = write_mission(tmp_path / "m.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold")
     cli = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", "udpout:127.0.0.1:9", "--signing-key", str(key)])
+    procs.append(cli)
     assert cli.wait(30.0) == 2, cli.tail()
     m = yaml.safe_load(mission.read_text())
     m["vehicles"] = {"overrides": [{"connection": "udpout:127.0.0.1:9", "signing_key_file": str(key)}]}
     from_mission = write_mission(tmp_path / "m2.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold", vehicles=m["vehicles"])
     via_mission = Proc(["plan", "--mission", str(from_mission), "--uav", "1", "--preflight-timeout", "5"])
+    procs.append(via_mission)
     assert via_mission.wait(30.0) == 2, via_mission.tail()
     for p in (cli, via_mission):
         assert f"permissions {mode:04o}" in p.err and "chmod 600" in p.err, p.err
