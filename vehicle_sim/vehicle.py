@@ -42,6 +42,7 @@ RTL_ALT_DEFAULT_M = 15.0
 PX4_TAKEOFF_ALT_DEFAULT_M = 2.5
 #: MAV_CMD_DO_SET_GLOBAL_ORIGIN (common.xml, not yet in pymavlink's ardupilotmega dialect).
 MAV_CMD_DO_SET_GLOBAL_ORIGIN = 611
+ORIGIN_ALT_MAX_M = (2**31 - 1) / 1000.0  # GPS_GLOBAL_ORIGIN.altitude is int32 mm
 
 # REQUEST_DATA_STREAM groups (ArduPilot's assignment of our messages).
 DATA_STREAMS: dict[int, tuple[str, ...]] = {
@@ -160,6 +161,7 @@ class SimVehicle:
         self.params = self._build_params()
         self.commands_handled = 0
         self.ignored_messages = 0
+        self.acks_sent = 0
 
     # ------------------------------------------------------------------ frames and helpers
 
@@ -202,6 +204,7 @@ class SimVehicle:
 
     def _ack(self, msg: Any, command: int, result: int, text: str | None = None, severity: int = 4) -> int:
         """COMMAND_ACK to the sender, then the STATUSTEXT reason if any."""
+        self.acks_sent += 1
         self.link.send(
             self.m.MAVLink_command_ack_message(
                 command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
@@ -484,7 +487,16 @@ class SimVehicle:
         if handler is None:
             self._ack(msg, command, m.MAV_RESULT_UNSUPPORTED)
             return
-        handler(msg, p, frame)
+        acks_before = self.acks_sent
+        try:
+            handler(msg, p, frame)
+        except Exception:  # noqa: BLE001 - a handler bug must still answer the command
+            # Handlers validate their parameters and answer; reaching this is a bug in the
+            # vehicle: logged and counted, and the sender still gets its COMMAND_ACK.
+            self.ignored_messages += 1
+            log.exception("sysid %d: error handling command %d", self.sysid, command)
+            if self.acks_sent == acks_before:
+                self._ack(msg, command, m.MAV_RESULT_FAILED, "Command: internal error", 3)
 
     def _prearm_failure(self) -> str | None:
         if not self.mode.armable:
@@ -534,6 +546,8 @@ class SimVehicle:
         if self.flying:
             return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: already flying")
         alt = float(p[6])
+        if math.isinf(alt):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude is not finite")
         if self.config.flavour == "px4":
             z = self.home[2] + self.takeoff_alt_m if math.isnan(alt) else self._alt_to_z(alt, frame, amsl_default=True)
         else:
@@ -691,30 +705,51 @@ class SimVehicle:
         return handler
 
     def _cmd_reposition(self, msg: Any, p: tuple[float, ...], frame: int | None) -> int:
+        """MAV_CMD_DO_REPOSITION (COMMAND_INT only): param1 ground speed (m/s; ≤ 0 or NaN:
+        unchanged), param2 flags (MAV_DO_REPOSITION_FLAGS, an integer), x/y latitude and
+        longitude (1e-7 deg; both 0: stay over the current position), z altitude in ``frame``
+        (NaN: keep the current altitude; ±inf is not an altitude). Every parameter is
+        checked before anything changes (DENIED), then the state (TEMPORARILY_REJECTED)."""
         m = self.m
         cmd = m.MAV_CMD_DO_REPOSITION
         if frame is None:
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: send as COMMAND_INT")
+        speed_mps, flags, alt = float(p[0]), float(p[1]), float(p[6])
+        if not (math.isfinite(flags) and flags == int(flags) and 0 <= flags <= 0xFFFFFFFF):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: flags must be an integer")
+        if math.isinf(speed_mps):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: speed is not finite")
+        if math.isinf(alt):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: altitude is not finite")
+        lat_i, lon_i = int(p[4]), int(p[5])
+        if not (abs(lat_i) < 900_000_000 and abs(lon_i) <= 1_800_000_000):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: invalid latitude/longitude")
         if not self.flying:
             return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Reposition: not flying")
-        if self.mode.behaviour != "guided":
-            if int(p[1]) & m.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and self.config.flavour == "ardupilot":
-                self.set_mode(self.info.mode(self.info.guided_mode))  # type: ignore[arg-type]
-            else:
-                return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: not in guided mode")
-        lat_i, lon_i = int(p[4]), int(p[5])
+        change_mode = bool(int(flags) & m.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE) and self.config.flavour == "ardupilot"
+        if self.mode.behaviour != "guided" and not change_mode:
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: not in guided mode")
         cur = self.position
         if lat_i == 0 and lon_i == 0:
             x, y = float(cur[0]), float(cur[1])
         else:
             x, y, _ = self.world.geodetic_to_enu(lat_i * 1e-7, lon_i * 1e-7, self.config.origin.alt_m)
-        z = float(cur[2]) if not math.isfinite(p[6]) else self._alt_to_z(float(p[6]), frame, amsl_default=False)
-        target = np.array([x, y, z])
+        z = float(cur[2]) if math.isnan(alt) else self._alt_to_z(alt, frame, amsl_default=False)
+        target = np.array([x, y, z], dtype=float)
         if not np.all(np.isfinite(target)):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: invalid target")
-        if p[0] > 0 and math.isfinite(p[0]):
-            self.speed_override_mps = float(p[0])
+        if self.fence.action == "reject" and not self.inside_fence(target):
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Fence: target outside fence, refused")
+        if self.mode.behaviour != "guided":
+            reason = self.set_mode(self.info.mode(self.info.guided_mode))  # type: ignore[arg-type]
+            if reason:
+                return self._ack(msg, cmd, m.MAV_RESULT_FAILED, reason, 3)
+        previous_speed = self.speed_override_mps
+        if speed_mps > 0:
+            self.speed_override_mps = speed_mps
         ok = self._apply_guided(target, None, source="reposition")
+        if not ok:
+            self.speed_override_mps = previous_speed
         return self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED if ok else m.MAV_RESULT_DENIED)
 
     def _cmd_change_speed(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
@@ -753,6 +788,8 @@ class SimVehicle:
             origin = Origin(float(lat_deg), float(lon_deg), float(alt_m))
         except ValueError as exc:
             return f"Origin: {exc}"[:50]
+        if not abs(origin.alt_m) <= ORIGIN_ALT_MAX_M:
+            return "Origin: altitude out of range"
         self.ekf = self.world if origin == self.config.origin else LocalFrame(origin)
         self.link.send(self.msg_gps_global_origin())
         return None

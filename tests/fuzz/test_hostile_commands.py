@@ -168,8 +168,6 @@ def test_reposition_outside_the_fence_or_infinite_is_denied(airborne: Rig, x: in
     assert airborne.target() == before
 
 
-@pytest.mark.xfail(strict=True, reason="vehicle_sim/vehicle.py _cmd_reposition: any non-finite altitude (inf too) is taken "
-                   "as 'keep the current altitude' and ACCEPTED; only NaN means that in MAV_CMD_DO_REPOSITION")
 def test_reposition_with_infinite_altitude_is_denied(airborne: Rig) -> None:
     result, texts = airborne.ack(R.MAV_CMD_DO_REPOSITION, -1, 0, 0, NAN, 0, 0, INF, use_int=True)
     assert result == R.MAV_RESULT_DENIED, texts
@@ -186,8 +184,6 @@ def test_reposition_with_nan_altitude_keeps_the_altitude(airborne: Rig) -> None:
     assert target is not None and abs(target[2] - 10.0) < 1e-9 and abs(target[0] - 5.0) < 0.05
 
 
-@pytest.mark.xfail(strict=True, reason="vehicle_sim/vehicle.py _cmd_reposition: int(p[1]) of a NaN param2 raises "
-                   "ValueError outside GUIDED, the exception is swallowed by handle() and no COMMAND_ACK is sent")
 def test_reposition_with_nan_flags_outside_guided_is_denied() -> None:
     rig = Rig(VehicleConfig(airborne=True, start_enu_m=(0.0, 0.0, 10.0), profile="ideal", geofence=FENCE))
     try:

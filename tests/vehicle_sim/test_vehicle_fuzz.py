@@ -18,7 +18,7 @@ from vehicle_sim.config import VehicleConfig
 from vehicle_sim.link import mavlink_module
 
 from conftest import mavlink as R, wait_msg
-from memlink import gcs_encoder, memory_vehicle
+from memlink import decode_all, gcs_encoder, memory_vehicle
 
 
 def _state_without_time(v):
@@ -153,3 +153,72 @@ def test_fuzz_over_udp_keeps_the_vehicle_alive(make_rig):
     wait_msg(rig.client, "HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=3)
     assert _state_without_time(rig.vehicle) == before
     assert rig.vehicle.link.bad_frames >= 500 and rig.vehicle.healthy
+
+
+HOSTILE = (float("nan"), float("inf"), float("-inf"), 1e30, -1e30, -1.0, 0.0, 3.5)
+INT32 = (0, 2**31 - 1, -(2**31))
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+@pytest.mark.parametrize("state", ["disarmed", "armed", "airborne"])
+def test_every_command_answers_hostile_parameters_with_one_ack(flavour: str, state: str) -> None:
+    """Each supported command, with each parameter slot in turn set to NaN, ±inf, ±1e30, -1,
+    0 or a fraction (COMMAND_LONG and COMMAND_INT) and x/y at the int32 limits (COMMAND_INT),
+    is answered with exactly one COMMAND_ACK and never reaches an exception net. The vehicle
+    starts on the ground disarmed, on the ground armed (GUIDED on ArduPilot), or hovering."""
+    m = mavlink_module()
+    commands = [
+        m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_CMD_NAV_TAKEOFF, m.MAV_CMD_NAV_LAND, m.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+        m.MAV_CMD_DO_SET_MODE, m.MAV_CMD_SET_MESSAGE_INTERVAL, m.MAV_CMD_GET_MESSAGE_INTERVAL, m.MAV_CMD_REQUEST_MESSAGE,
+        m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, m.MAV_CMD_REQUEST_PROTOCOL_VERSION, m.MAV_CMD_GET_HOME_POSITION,
+        m.MAV_CMD_DO_REPOSITION, m.MAV_CMD_DO_CHANGE_SPEED, m.MAV_CMD_DO_FENCE_ENABLE, 611,
+    ]
+    v, t = memory_vehicle(VehicleConfig(flavour=flavour, airborne=state == "airborne", profile="ideal"))
+    enc, sink = gcs_encoder()
+    if state == "armed":
+        if flavour == "ardupilot":
+            enc.command_long_send(1, 1, m.MAV_CMD_DO_SET_MODE, 0, 1, 4, 0, 0, 0, 0, 0)
+        enc.command_long_send(1, 1, m.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        for frame in sink.frames:
+            t.inject(frame)
+        v.poll()
+        assert v.armed and not v.flying
+        sink.frames.clear()
+    for cmd in commands:
+        for slot in range(7):
+            for value in HOSTILE:
+                p = [0.0] * 7
+                p[slot] = value
+                enc.command_long_send(1, 1, cmd, 0, *p)
+                if slot not in (4, 5):  # x, y of COMMAND_INT are int32
+                    enc.command_int_send(1, 1, 6, cmd, 0, 0, p[0], p[1], p[2], p[3], 0, 0, p[6])
+        for x in INT32:
+            for y in INT32:
+                enc.command_int_send(1, 1, 6, cmd, 0, 0, -1, 0, 0, float("nan"), x, y, 10.0)
+    for frame in sink.frames:
+        t.outbox.clear()
+        t.inject(frame)
+        assert v.poll() == 1
+        acks = [a for a in decode_all(t.outbox) if a.get_type() == "COMMAND_ACK"]
+        assert len(acks) == 1, (frame.hex(), [a.to_dict() for a in acks])
+    assert v.ignored_messages == 0
+
+
+def test_a_command_handler_that_raises_still_answers_failed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The exception net: a handler bug is counted, and the sender still gets its ACK."""
+    m = mavlink_module()
+    v, t = memory_vehicle()
+
+    def broken(*_a: object) -> int:
+        raise ZeroDivisionError("bug")
+
+    monkeypatch.setattr(v, "_cmd_change_speed", broken)
+    enc, sink = gcs_encoder()
+    enc.command_long_send(1, 1, m.MAV_CMD_DO_CHANGE_SPEED, 0, 1, 5, 0, 0, 0, 0, 0)
+    t.inject(sink.frames[0])
+    v.poll()
+    out = decode_all(t.outbox)
+    acks = [a for a in out if a.get_type() == "COMMAND_ACK"]
+    assert [(a.command, a.result) for a in acks] == [(m.MAV_CMD_DO_CHANGE_SPEED, m.MAV_RESULT_FAILED)]
+    assert any(x.get_type() == "STATUSTEXT" and "internal error" in x.text for x in out)
+    assert v.ignored_messages == 1
