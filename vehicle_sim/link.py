@@ -13,11 +13,26 @@ The sockets are non-blocking; :meth:`MavlinkLink.receive` drains what is pending
 with one pymavlink parser per peer stream (robust parsing: a malformed frame becomes a
 ``BAD_DATA`` that is counted and dropped, never an exception). pymavlink is imported lazily
 with ``MAVLINK20=1`` so frames are MAVLink 2 (dialect ``ardupilotmega``).
+
+Signing (MAVLink 2): the replay protection belongs to the *link*, not to a peer socket. All
+parsers of a link share one signing state: one table of the last timestamp accepted per
+stream ``(link id, system id, component id)``, so a signed frame captured on the network and
+sent again from another UDP port or TCP connection is refused like one replayed on the same
+stream. A frame's signature is verified *before* its timestamp is recorded (pymavlink 2.4.50
+records it first, which would let anyone without the key push a stream's timestamp into the
+future and lock its sender out of every peer of the link). A stream not seen yet is accepted
+if its timestamp is at most one minute behind the link's own (the wall clock, or the newest
+valid timestamp received), as the MAVLink 2 signing specification says.
+
+SETUP_SIGNING frames carry the key in clear: they are never written to the .tlog, in either
+direction.
 """
 
 from __future__ import annotations
 
 import errno
+import hashlib
+import hmac
 import logging
 import os
 import socket
@@ -32,6 +47,8 @@ log = logging.getLogger(__name__)
 
 UDP_MAX = 65535
 SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01, the MAVLink 2 signing epoch
+SIGNING_NEW_STREAM_WINDOW = 60 * 100_000  # a new signed stream may lag 1 min (10 µs units)
+MAVLINK_MSG_ID_SETUP_SIGNING = 256  # carries the signing key in clear: never logged
 
 
 def mavlink_module() -> Any:
@@ -363,28 +380,31 @@ def open_transport(conn: str) -> Transport:
 def read_signing_key(path: str) -> bytes:
     """Read a 32-byte MAVLink 2 signing key: 32 raw bytes, or 64 hex digits (text).
 
+    The key is a secret: a file that its group or others may read or write is refused
+    (``chmod 600 FILE``), and the key never appears in a message. Same rules and messages as
+    the planner's key (:func:`comms.mavlink_client.read_signing_key`, which this calls).
+
     Raises:
-        UsageError: unreadable file or wrong length / content.
+        UsageError: missing or unreadable file, not a regular file, permissions too open,
+            wrong length / content.
     """
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise UsageError(f"signing key {path!r}: {exc.strerror or exc}") from None
-    if len(data) == 32:
-        return data
-    text = data.strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    raise UsageError(f"signing key {path!r}: expected 32 raw bytes or 64 hex digits, found {len(data)} bytes")
+    from comms.mavlink_client import read_signing_key as read_key  # lazy: numpy, pyproj
+
+    return read_key(path)
 
 
 def signing_timestamp_now() -> int:
     """Current MAVLink 2 signing timestamp (10 µs units since 2015-01-01)."""
     return int(max(0.0, time.time() - SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+def _frame_msg_id(buf: bytes) -> int | None:
+    """Message id in the header of an encoded MAVLink 1 or 2 frame (None: not a frame)."""
+    if len(buf) >= 10 and buf[0] == 0xFD:
+        return buf[7] | (buf[8] << 8) | (buf[9] << 16)
+    if len(buf) >= 6 and buf[0] == 0xFE:
+        return buf[5]
+    return None
 
 
 class _Sink:
@@ -404,9 +424,11 @@ class MavlinkLink:
         transport: the socket transport.
         sysid, compid: our MAVLink ids (compid 1 = autopilot).
         tlog_path: append every valid frame in and out as ``uint64 BE µs`` + frame (the
-            .tlog format of MAVProxy / ``mavlogdump.py``); None for no log.
+            .tlog format of MAVProxy / ``mavlogdump.py``), except SETUP_SIGNING (it carries
+            the key); None for no log.
         signing_key: 32-byte key: sign what we send, refuse unsigned input
-            (RADIO_STATUS excepted, as ArduPilot does).
+            (RADIO_STATUS excepted, as ArduPilot does); a signed frame is accepted once
+            per link (timestamps per stream must increase, across all peer sockets).
     """
 
     def __init__(
@@ -431,9 +453,17 @@ class MavlinkLink:
             sig.link_id = 0
             sig.timestamp = signing_timestamp_now()
         self._parsers: dict[object, Any] = {}
+        #: Signing state of the link's input, shared by every peer's parser: the stream
+        #: timestamp table (replay protection) and the good/bad signature counters.
+        self.rx_signing: Any = self.mavlink.MAVLinkSigning()
+        if signing_key is not None:
+            self.rx_signing.secret_key = signing_key
+            self.rx_signing.allow_unsigned_callback = self._allow_unsigned
         self.bad_frames = 0
         self.frames_in = 0
         self.frames_out = 0
+        #: Frames not written to the .tlog because they carry the signing key (SETUP_SIGNING).
+        self.frames_not_logged = 0
         self._tlog: BinaryIO | None = None
         if tlog_path is not None:
             try:
@@ -449,11 +479,42 @@ class MavlinkLink:
         if parser is None:
             parser = self.mavlink.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
             parser.robust_parsing = True
-            if self.signing_key is not None:
-                parser.signing.secret_key = self.signing_key
-                parser.signing.allow_unsigned_callback = self._allow_unsigned
+            parser.signing = self.rx_signing
+            parser.check_signature = self._check_signature
             self._parsers[peer] = parser
         return parser
+
+    def _check_signature(self, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        """Accept a signed frame (replaces pymavlink's ``MAVLink.check_signature`` on every
+        parser of the link): the signature must match the key, and then the 48-bit timestamp
+        (10 µs since 2015-01-01) must be newer than the last one accepted on the link for
+        its stream ``(link id, system, component)`` — whichever peer socket brought it —
+        or, for a new stream, at most one minute behind the link's own timestamp."""
+        sig = self.rx_signing
+        key = sig.secret_key
+        if key is None or len(msgbuf) < 13:
+            return False
+        if not hmac.compare_digest(hashlib.sha256(bytes(key) + bytes(msgbuf[:-6])).digest()[:6], bytes(msgbuf[-6:])):
+            log.debug("signed frame from %d/%d: bad signature", src_system, src_component)
+            return False
+        link_id = msgbuf[-13]
+        timestamp = int.from_bytes(bytes(msgbuf[-12:-6]), "little")
+        stream = (link_id, src_system, src_component)
+        last = sig.stream_timestamps.get(stream)
+        if last is not None:
+            if timestamp <= last:
+                log.debug("signed frame from %d/%d link %d: old timestamp (replay?)", src_system, src_component, link_id)
+                return False
+        else:
+            local = max(signing_timestamp_now(), sig.timestamp, self.encoder.signing.timestamp)
+            if timestamp + SIGNING_NEW_STREAM_WINDOW < local:
+                log.debug("signed frame from %d/%d link %d: new stream too old", src_system, src_component, link_id)
+                return False
+        sig.stream_timestamps[stream] = timestamp
+        sig.timestamp = max(sig.timestamp, timestamp)
+        # our own timestamp never falls behind a valid one received (MAVLink 2 signing)
+        self.encoder.signing.timestamp = max(self.encoder.signing.timestamp, timestamp)
+        return True
 
     def filenos(self) -> list[int]:
         """File descriptors to wait on."""
@@ -477,7 +538,10 @@ class MavlinkLink:
             good.append(m)
             self.frames_in += 1
             if self._tlog is not None:
-                self._log(m.get_msgbuf())
+                if m.get_msgId() == MAVLINK_MSG_ID_SETUP_SIGNING:
+                    self.frames_not_logged += 1
+                else:
+                    self._log(m.get_msgbuf())
         return good
 
     def receive(self) -> list[Any]:
@@ -499,7 +563,10 @@ class MavlinkLink:
         self.frames_out += 1
         self.transport.write(buf)
         if self._tlog is not None:
-            self._log(buf)
+            if _frame_msg_id(buf) == MAVLINK_MSG_ID_SETUP_SIGNING:
+                self.frames_not_logged += 1
+            else:
+                self._log(buf)
 
     def _log(self, buf: bytes) -> None:
         assert self._tlog is not None

@@ -140,9 +140,6 @@ def test_replayed_signed_frame_on_the_same_stream_is_refused(signed_vehicle: tup
         good.close()
 
 
-@pytest.mark.xfail(strict=True, reason="vehicle_sim/link.py: one pymavlink parser (and so one signing timestamp "
-                   "table) per UDP peer: a signed frame captured on the network and replayed from another source "
-                   "port within pymavlink's 60 s window is accepted again")
 def test_replayed_signed_frame_from_another_port_is_refused(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
     proc, port, _ = signed_vehicle
     loiter = _signed_frame(KEY, 250, lambda e: e.command_long_encode(1, 1, R.MAV_CMD_DO_SET_MODE, 0, 1, 5, 0, 0, 0, 0, 0))
@@ -190,8 +187,6 @@ def test_key_is_never_in_the_output_nor_in_the_tlog_of_normal_traffic(signed_veh
         assert secret not in logs, "signing key found in the vehicle's output"
 
 
-@pytest.mark.xfail(strict=True, reason="vehicle_sim/link.py MavlinkLink.parse writes every valid incoming frame to the "
-                   ".tlog, SETUP_SIGNING included: the 32-byte key a ground station provisions ends up in clear in the log")
 def test_setup_signing_frame_is_stripped_from_the_tlog(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
     proc, port, tlog = signed_vehicle
     good = client(port, 250, KEY)
@@ -206,8 +201,6 @@ def test_setup_signing_frame_is_stripped_from_the_tlog(signed_vehicle: tuple[Fim
 
 
 @pytest.mark.parametrize("mode", [0o640, 0o604])
-@pytest.mark.xfail(strict=True, reason="vehicle_sim/link.py read_signing_key does not check the key file's permissions: "
-                   "a group- or world-readable key is used without a word")
 def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> None:
     path = key_file(tmp_path, mode=mode)
     proc = Fimnav(["vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key", str(path), "--duration", "0.5"])

@@ -82,6 +82,7 @@ def test_px4_offboard_needs_stream_and_failsafe_on_loss(make_rig):
 def _write_key(tmp_path, key: bytes) -> str:
     path = tmp_path / "signing.key"
     path.write_bytes(key)
+    path.chmod(0o600)  # a key readable by others is refused
     return str(path)
 
 
@@ -123,6 +124,7 @@ def test_bad_signing_key_file_is_a_usage_error(tmp_path):
 
     bad = tmp_path / "short.key"
     bad.write_bytes(b"123")
+    bad.chmod(0o600)
     with pytest.raises(UsageError, match="32 raw bytes or 64 hex"):
         build_vehicle(VehicleConfig(signing_key_path=str(bad)), "udpin:127.0.0.1:0")
 
