@@ -112,7 +112,7 @@ class Launcher:
         out: Path,
         python: str = sys.executable,
         progress: Callable[[int, float, float, int], None] | None = None,
-        preflight_timeout_s: float = 120.0,
+        preflight_timeout_s: float | None = None,
         step_timeout_s: float = 30.0,
         vehicles_per_process: int = 1,
     ) -> None:
@@ -120,7 +120,9 @@ class Launcher:
         self.out = out
         self.python = python
         self.progress = progress
-        self.preflight_timeout_s = preflight_timeout_s
+        # Start-up and pre-flight of 2N processes share two cores: the deadline grows with N.
+        n = mission.drones.count
+        self.preflight_timeout_s = preflight_timeout_s if preflight_timeout_s is not None else 120.0 + 2.0 * n
         self.step_timeout_s = step_timeout_s
         if vehicles_per_process < 1:
             raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
