@@ -232,18 +232,21 @@ class Launcher:
             if star:
                 child_zenoh = dataclasses.replace(child_zenoh, mode="client", listen=())
             vehicle_zenoh = ["--zenoh-connect", hub] + (["--zenoh-mode", "client"] if star else ["--zenoh-listen", "tcp/127.0.0.1:0"])
-            ports = {i: free_port(socket.SOCK_DGRAM) for i in range(1, n + 1)}
+            # Vehicles bind port 0 and report the port the OS gave them (no race with the
+            # ephemeral ports of a hundred other sockets); planners start once they are known.
             per = self.vehicles_per_process
+            vehicle_children = []
             for first in range(1, n + 1, per):
                 ids = list(range(first, min(first + per, n + 1)))
                 name = f"vehicle_{first}" if len(ids) == 1 else f"vehicles_{first}-{ids[-1]}"
                 tlog = self.out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
-                self._spawn(
+                vehicle_children.append(self._spawn(
                     name,
                     ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
-                     *[a for i in ids for a in ("--mavlink", f"udpin:127.0.0.1:{ports[i]}")],
+                     *[a for _ in ids for a in ("--mavlink", "udpin:127.0.0.1:0")],
                      "--lockstep", *vehicle_zenoh, "--tlog", str(tlog)],
-                )
+                ))
+            ports = self._vehicle_ports(vehicle_children, self.preflight_timeout_s)
             for i in range(1, n + 1):
                 self._spawn(
                     f"planner_{i}",
@@ -280,6 +283,29 @@ class Launcher:
                     s.undeclare()
             session.close()
         return self._result(time.perf_counter() - t_start)
+
+    def _vehicle_ports(self, children: list[Child], timeout_s: float) -> dict[int, int]:
+        """The MAVLink UDP port of every vehicle, from the vehicles' JSON ready lines."""
+        ports: dict[int, int] = {}
+        deadline = time.monotonic() + timeout_s
+        pending = list(children)
+        while pending:
+            if self._stop.is_set():
+                raise ClockError("stopped while the vehicles started")
+            if time.monotonic() > deadline:
+                raise LaunchError(f"{pending[0].name} did not report ready within {timeout_s:g} s:\n{pending[0].tail()}")
+            for c in list(pending):
+                code = c.proc.poll()
+                if code is not None:
+                    raise LaunchError(f"{c.name} exited with status {code} while starting:\n{c.tail()}")
+                ready = _ready_line(c.log_path)
+                if ready is not None:
+                    for v in ready.get("vehicles", []):
+                        ports[int(v["sysid"])] = int(str(v["mavlink"]).rsplit(":", 1)[1])
+                    pending.remove(c)
+            if pending:
+                self._stop.wait(0.05)  # polling the children's log files, with the deadline above
+        return ports
 
     def _should_stop(self) -> bool:
         if self._stop.is_set():
@@ -395,6 +421,23 @@ class Launcher:
             return np.asarray(json.loads(last)["next_position_m"], dtype=float)
         except (ValueError, KeyError):
             return None
+
+
+def _ready_line(path: Path) -> dict[str, Any] | None:
+    """The ``{"event": "ready", ...}`` JSON line a vehicle process prints, if it has yet."""
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return None
+    for line in text.splitlines():
+        if line.startswith("{") and '"ready"' in line:
+            try:
+                obj = json.loads(line)
+            except ValueError:
+                continue
+            if obj.get("event") == "ready":
+                return obj
+    return None
 
 
 @contextlib.contextmanager
