@@ -3,7 +3,7 @@
 A vehicle (``vehicle_sim.host.VehicleHost`` in a thread, real ``udpin`` socket, real-time
 clock) hovers in GUIDED. A fuzz socket sends invalid frames (tests/fuzz/frames.py: random
 bytes, bit flips of valid frames of 17 message types, truncations, extensions; every one
-checked invalid by an independent parser) in batches; after each batch a second socket (its
+checked invalid by an independent parser, alone and in the stream of the frames before it) in batches; after each batch a second socket (its
 own parser stream on the vehicle) sends TIMESYNC with a unique ``ts1`` and waits for the
 answer, so the vehicle has read the whole batch before the next one (no receive-buffer
 overflow: the kernel's drop counter of the vehicle's socket is checked to stay 0, so every
@@ -95,6 +95,7 @@ def run_fuzz(n_frames: int, seed: int, flavour: str = "ardupilot") -> dict[str, 
         recv_until(probe, lambda m: m.get_type() == "HEARTBEAT" and m.get_srcSystem() == cfg.sysid, 5, "heartbeat after the fuzz")
         figures = {
             "frames": len(corpus.frames), "kinds": dict(corpus.kinds), "valid_mutations_set_aside": corpus.valid_mutations,
+            "valid_in_stream_set_aside": corpus.valid_in_stream,
             "seed_types": sorted(corpus.seed_types), "seconds": elapsed, "frames_per_s": len(corpus.frames) / elapsed,
             "bad_frames_counted": v.link.bad_frames, "kernel_drops": drops, "heartbeats_during": heartbeats,
             "ignored_messages": v.ignored_messages, "healthy": v.healthy,

@@ -111,7 +111,12 @@ def test_garbage_on_the_swarm_keys_changes_nothing(tmp_path: Path, launches: lis
     mission = load_mission(out / "mission.yaml")
     pos, _ = read_trajectories(out, mission)
     sim = simulate(RunSpec(mission, mission.criterion, 1, mission.steps), float32_positions=True)
-    np.testing.assert_allclose(pos, sim.positions_m[:, 0], atol=0.01, rtol=0)
+    # Every step the planners computed: as the simulator to 1e-4 m (a clean run agrees to
+    # ~5e-8 m; one forged or garbled record in an estimate moves the next step by far more).
+    # The last row (the position after the last setpoint) is left out: it is sampled at the
+    # end of the mission and on a loaded machine the vehicle may still be on its way there
+    # (measured up to 0.28 m, also in runs where no message reached the swarm at all).
+    np.testing.assert_allclose(pos[:-1], sim.positions_m[:-1, 0], atol=1e-4, rtol=0)
     summary = json.loads((out / "summary.json").read_text())["runs"][0]
     assert summary["violations"] == {k: 0 for k in summary["violations"]}
     assert summary["dropped_messages"] > 0  # the launcher's own record collector dropped garbage too

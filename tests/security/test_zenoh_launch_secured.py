@@ -97,7 +97,12 @@ def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Lau
     mission = load_mission(out / "mission.yaml")
     pos, _ = read_trajectories(out, mission)
     sim = simulate(RunSpec(mission, mission.criterion, 1, mission.steps), float32_positions=True)
-    np.testing.assert_allclose(pos, sim.positions_m[:, 0], atol=0.01, rtol=0)
+    # Every step the planners computed: as the simulator to 1e-4 m (a clean run agrees to
+    # ~5e-8 m; one forged or garbled record in an estimate moves the next step by far more).
+    # The last row (the position after the last setpoint) is left out: it is sampled at the
+    # end of the mission and on a loaded machine the vehicle may still be on its way there
+    # (measured up to 0.28 m, also in runs where no message reached the swarm at all).
+    np.testing.assert_allclose(pos[:-1], sim.positions_m[:-1, 0], atol=1e-4, rtol=0)
     for i in range(1, mission.drones.count + 1):
         text = (out / "logs" / f"planner_{i}.log").read_text()
         assert "launch-secret-771" not in text and "PRIVATE KEY" not in text
