@@ -32,6 +32,7 @@ from __future__ import annotations
 import errno
 import math
 import os
+import socket
 import stat
 import time
 from collections.abc import Callable, Iterable
@@ -147,6 +148,30 @@ def read_signing_key(path: str | Path) -> bytes:
     raise UsageError(f"signing key {str(p)!r}: expected 32 raw bytes or 64 hex digits, found {len(data)} bytes")
 
 
+def _frame_or_garbage_buffered(mav: Any) -> bool:
+    """True when pymavlink's parser buffer holds a whole frame, or a byte that is not a
+    frame start (the parser skips it): parsing can go on without reading more. False when it
+    is empty or holds only the beginning of a frame. (``bytes_needed()`` cannot tell: it
+    stays at 1 while several frames are buffered.)"""
+    buf = mav.buf
+    i = mav.buf_index
+    avail = len(buf) - i
+    if avail <= 0:
+        return False
+    magic = buf[i]
+    if magic == 0xFD:  # MAVLink 2: 10-byte header, payload, CRC, optional 13-byte signature
+        if avail < 3:
+            return False
+        need = 10 + buf[i + 1] + 2 + (13 if buf[i + 2] & 0x01 else 0)
+    elif magic == 0xFE:  # MAVLink 1: 6-byte header, payload, CRC
+        if avail < 2:
+            return False
+        need = 6 + buf[i + 1] + 2
+    else:
+        return True
+    return avail >= need
+
+
 def enu_to_ned(v: Iterable[float]) -> tuple[float, float, float]:
     """(x east, y north, z up) → (north, east, down)."""
     x, y, z = v
@@ -213,6 +238,7 @@ class VehicleLink:
         mission_frame: the mission's :class:`MissionFrame` (required for ``"global"``).
         altitude_reference: ``"amsl"`` or ``"relative"`` (global frame only).
         flavour: force ``"ardupilot"`` or ``"px4"``; None: from HEARTBEAT.autopilot.
+        connect_timeout_s: how long a ``tcp:`` connection is retried while refused (s).
     """
 
     def __init__(
@@ -226,6 +252,7 @@ class VehicleLink:
         mission_frame: MissionFrame | None = None,
         altitude_reference: AltitudeReference = "relative",
         flavour: Flavour | None = None,
+        connect_timeout_s: float = 30.0,
     ) -> None:
         if frame == "global" and mission_frame is None:
             raise ValueError("frame='global' needs the mission frame")
@@ -241,8 +268,10 @@ class VehicleLink:
         if signing_key is not None and len(signing_key) != 32:
             raise LinkError(f"signing key: expected 32 bytes, found {len(signing_key)}")
         self._signing_key = signing_key
+        self.connect_timeout_s = connect_timeout_s
         self.conn: Any = None
         self.foreign_datagrams = 0
+        self.reconnects = 0
         self._open()
         self.telemetry = Telemetry()
         self._last_gcs_heartbeat = -math.inf
@@ -254,19 +283,30 @@ class VehicleLink:
         self.setpoints_sent = 0
 
     def _open(self) -> None:
-        try:
-            self.conn = self.mavutil.mavlink_connection(
-                self.connection,
-                source_system=self._source_system,
-                source_component=COMPONENT_ID,
-                dialect="ardupilotmega",
-                autoreconnect=True,
-            )
-        except Exception as exc:  # pymavlink raises bare OSError/ValueError/SerialException
-            raise LinkError(f"cannot open MAVLink connection {self.connection!r}: {exc}") from None
+        tcp = self.connection.startswith("tcp:")
+        deadline = self.wall() + (self.connect_timeout_s if tcp else 0.0)
+        while True:
+            try:
+                self.conn = self.mavutil.mavlink_connection(
+                    self.connection,
+                    source_system=self._source_system,
+                    source_component=COMPONENT_ID,
+                    dialect="ardupilotmega",
+                    **({"retries": 0} if tcp else {}),
+                )
+                break
+            except ConnectionRefusedError as exc:
+                # A TCP autopilot or SITL that is not listening yet: try again until the deadline.
+                if self.wall() >= deadline:
+                    raise LinkError(f"cannot open MAVLink connection {self.connection!r} within {self.connect_timeout_s:g} s: {exc}") from None
+                time.sleep(0.25)
+            except Exception as exc:  # pymavlink raises bare OSError/ValueError/SerialException
+                raise LinkError(f"cannot open MAVLink connection {self.connection!r}: {exc}") from None
         self.mav = self.conn.mav
         if isinstance(self.conn, self.mavutil.mavudp):
             self._datagram_receiver(self.conn)
+        elif isinstance(self.conn, self.mavutil.mavtcp):
+            self._tcp_transport(self.conn)
         if self._signing_key is not None:
             self.conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
 
@@ -281,8 +321,8 @@ class VehicleLink:
         self.foreign_datagrams = 0
 
         def recv(n: int | None = None) -> bytes | str:
-            if mav.buf_len() > 0 and mav.bytes_needed() <= 0:
-                return b""  # frames of the current datagram still to parse
+            if _frame_or_garbage_buffered(mav):
+                return b""  # the current datagram still holds something to parse
             while True:
                 try:
                     data, addr = conn.port.recvfrom(65535)
@@ -306,6 +346,66 @@ class VehicleLink:
                 return data
 
         conn.recv = recv
+
+    def _tcp_transport(self, conn: Any) -> None:
+        """A TCP connection that never blocks the planner: a closed or reset connection is
+        dropped at once (nothing printed, nothing raised) and opened again at most once per
+        second from :meth:`pump` (0.2 s connect timeout), e.g. to an autopilot or SITL that
+        restarts on the same port. Frames that cannot be written while it is down are lost,
+        as on a radio link."""
+        dest = conn.destination_addr
+        mav = conn.mav
+        next_try = [0.0]
+
+        def down() -> None:
+            if conn.port is not None:
+                try:
+                    conn.port.close()
+                except OSError:
+                    pass
+                conn.port = None
+
+        def recv(n: int | None = None) -> bytes:
+            if conn.port is None:
+                now = self.wall()
+                if now < next_try[0]:
+                    return b""
+                next_try[0] = now + 1.0
+                try:
+                    sock = socket.create_connection(dest, timeout=0.2)
+                except OSError:
+                    return b""
+                sock.setblocking(False)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn.port = sock
+                conn.fd = sock.fileno()
+                mav.buf = bytearray()  # a frame cut by the old connection is gone
+                mav.buf_index = 0
+                mav.expected_length = 8
+                self.reconnects += 1
+            try:
+                data = conn.port.recv(n if n and n > 0 else 4096)
+            except (BlockingIOError, InterruptedError):
+                return b""
+            except OSError:
+                down()
+                return b""
+            if not data:
+                down()
+            return data
+
+        def write(buf: bytes) -> None:
+            if conn.port is None:
+                return
+            try:
+                conn.port.send(buf)
+            except (BlockingIOError, InterruptedError):
+                pass  # send buffer full: this frame is lost
+            except OSError:
+                down()
+
+        conn.recv = recv
+        conn.write = write
 
     # -- identity ---------------------------------------------------------------------------
     @property
@@ -427,6 +527,8 @@ class VehicleLink:
 
     def fileno(self) -> int | None:
         """The file descriptor to select() on for incoming MAVLink, if the transport has one."""
+        if isinstance(self.conn, self.mavutil.mavtcp) and self.conn.port is None:
+            return None  # TCP down: nothing to wait on until pump() reconnects
         fd = getattr(self.conn, "fd", None)
         return fd if isinstance(fd, int) and fd >= 0 else None
 
@@ -438,14 +540,6 @@ class VehicleLink:
     def lost(self) -> bool:
         """No autopilot heartbeat for :data:`LINK_LOSS_S` (after having heard one)."""
         return self.telemetry.heartbeats > 0 and self.link_age_s() > LINK_LOSS_S
-
-    def reopen(self) -> None:
-        """Close and reopen the transport (a TCP connection or a serial port that died)."""
-        try:
-            self.conn.close()
-        except OSError:
-            pass
-        self._open()
 
     # -- readiness --------------------------------------------------------------------------
     def not_ready(self) -> list[str]:
@@ -561,6 +655,11 @@ class VehicleLink:
                 return result
             if attempt > 0 and done_already is not None and done_already():
                 return m.MAV_RESULT_ACCEPTED
+            if len(self.statustexts) == texts_before:  # an autopilot sends its reason after the ACK
+                try:
+                    self.wait_for(lambda: len(self.statustexts) > texts_before, 0.3, "reason")
+                except LinkTimeout:
+                    pass
             reason = "; ".join(self.statustexts[texts_before:]) or "no reason given"
             name = m.enums["MAV_RESULT"][result].name if result in m.enums["MAV_RESULT"] else str(result)
             raise LinkError(f"vehicle {self.target_system} refused {label}: {name} ({reason})")
@@ -685,5 +784,5 @@ class VehicleLink:
         self._stream = None
         try:
             self.conn.close()
-        except OSError:
+        except (OSError, AttributeError):  # (a TCP connection already dropped has no socket)
             pass

@@ -723,14 +723,7 @@ class PlannerNode:
             log.info("uav %d: autopilot %s (HEARTBEAT.autopilot = %s)", self.o.uav, link.flavour, detected)
         s = self.o.speedup
         link.stream_period_s = 1.0 / (self.o.stream_hz * s)
-        pos_msg = MSG_GLOBAL_POSITION_INT if self.frame == "global" else MSG_LOCAL_POSITION_NED
-        rates = {pos_msg: 10.0, MSG_SYS_STATUS: 1.0, MSG_GPS_RAW_INT: 1.0, MSG_HOME_POSITION: 0.5, MSG_EXTENDED_SYS_STATE: 1.0}
-        optional = [MSG_EXTENDED_SYS_STATE]
-        if not link.is_px4:
-            rates[MSG_EKF_STATUS_REPORT] = 1.0
-            optional.append(MSG_EKF_STATUS_REPORT)
-        for note in link.request_streams(rates, optional):
-            log.info("uav %d: %s", self.o.uav, note)
+        self._request_streams()
         link.request_message(MSG_HOME_POSITION)
         link.request_message(MSG_GPS_GLOBAL_ORIGIN)
         self._ready_wait()
@@ -776,6 +769,18 @@ class PlannerNode:
         log.info("uav %d: airborne in %s, flying to the start position", self.o.uav, link.mode_name())
         self._wait_rt(lambda: self._distance_to(start) < tol, t, "start position")
 
+    def _request_streams(self) -> None:
+        """The telemetry the real-time planner reads, at rates in the autopilot's time (Hz)."""
+        link = self._require_link()
+        pos_msg = MSG_GLOBAL_POSITION_INT if self.frame == "global" else MSG_LOCAL_POSITION_NED
+        rates = {pos_msg: 10.0, MSG_SYS_STATUS: 1.0, MSG_GPS_RAW_INT: 1.0, MSG_HOME_POSITION: 0.5, MSG_EXTENDED_SYS_STATE: 1.0}
+        optional = [MSG_EXTENDED_SYS_STATE]
+        if not link.is_px4:
+            rates[MSG_EKF_STATUS_REPORT] = 1.0
+            optional.append(MSG_EKF_STATUS_REPORT)
+        for note in link.request_streams(rates, optional):
+            log.info("uav %d: %s", self.o.uav, note)
+
     def _z(self) -> float:
         pos = self._require_link().telemetry.position_enu_m
         return -math.inf if pos is None else float(pos[2])
@@ -794,6 +799,8 @@ class PlannerNode:
                 f"uav {self.o.uav}: the vehicle is disarmed after the link loss (mode {link.mode_name()}; landed by "
                 "its failsafe or rebooted): not taking off again without an operator"
             )
+        # The autopilot may have rebooted (stream rates gone): ask for the streams again.
+        self._request_streams()
         mode = "OFFBOARD" if link.is_px4 else "GUIDED"
         if not link.in_mode(mode):
             log.warning("uav %d: vehicle in %s after the link loss; switching back to %s", self.o.uav, link.mode_name(), mode)

@@ -281,3 +281,36 @@ def test_killed_planner_leaves_the_vehicle_holding_within_its_timeout(tmp_path: 
     timeout_s = 3.0 if flavour == "ardupilot" else 1.0  # GUID_TIMEOUT / COM_OF_LOSS_T (sim s)
     print(f"{flavour}: vehicle holding {held_after_s:.2f} s (wall) after kill -9; timeout {timeout_s / SPEEDUP:.2f} s wall")
     assert held_after_s < timeout_s / SPEEDUP + 1.0
+
+
+def test_vehicle_restarted_on_the_same_tcp_port_is_reconnected_and_resumed(tmp_path: Path, procs: list[Proc]) -> None:
+    """kill -9 of the vehicle process mid-mission on a TCP link, then a new vehicle on the
+    same port (booting in the air, as an autopilot that rebooted in flight would not, but as
+    a SITL restarted with a hover state does): the planner reports the loss, reconnects the
+    TCP connection itself without blocking its loop, asks for its streams again and resumes."""
+    mission = write_mission(tmp_path / "m.yaml", "tcp", [[10.0, 20.0, 8.0]], 60, "hold")
+    args = ["--speedup", str(SPEEDUP)]
+    first = Proc(["vehicle", "--mission", str(mission), "--mavlink", "tcpin:127.0.0.1:0", "--profile", "pointmass", *args])
+    procs.append(first)
+    ready = json.loads(first.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+    port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+    peer = SwarmPeer("tcp", 1, {1: 80.0})
+    try:
+        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"tcp:127.0.0.1:{port}"))
+        procs.append(planner)
+        planner.expect(r"ready at the start position", 60.0, "err")
+        first.stop()
+        planner.expect(r"vehicle link lost", 10.0, "err")
+        second = Proc(["vehicle", "--mission", str(mission), "--mavlink", f"tcpin:127.0.0.1:{port}", "--profile", "pointmass", "--airborne", *args])
+        procs.append(second)
+        second.expect(r"\{\"event\": \"ready\"", 30.0)
+        planner.expect(r"vehicle link back after", 20.0, "err")
+        planner.expect(r"resumed in GUIDED", 20.0, "err")
+        assert planner.wait(60.0) == 0, planner.tail()
+    finally:
+        peer.close()
+    s = summary_of(planner)
+    assert len(s["link_losses"]) == 1 and s["end"]["mode"] == "GUIDED" and s["end"]["armed"] is True
+    assert s["steps"] + s["stale_steps"] + s["late_steps"] == 60
+    assert "Attempting reconnect" not in planner.out and "EOF on TCP" not in planner.out  # stdout is the summary only
+    assert len(planner.out.strip().splitlines()) == 1
