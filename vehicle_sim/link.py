@@ -3,7 +3,8 @@
 Connection strings are pymavlink's / MAVProxy's:
 
 * ``udpin:HOST:PORT`` (alias ``udp:``): bind and answer every peer that has written to us;
-* ``udpout:HOST:PORT``: send to HOST:PORT (from an ephemeral port) and read the replies;
+* ``udpout:HOST:PORT``: send to HOST:PORT (from an ephemeral port of the address that routes
+  there) and read the replies of HOST:PORT only;
 * ``tcpin:HOST:PORT``: listen; several ground stations may connect at once;
 * ``tcp:HOST:PORT``: connect (retried every second while refused).
 
@@ -161,6 +162,10 @@ class UdpTransport(Transport):
                 self.dest: tuple[str, int] | None = None
             else:
                 self.dest = (socket.gethostbyname(host), port)
+                # connected: the kernel binds the source address of the route (127.0.0.1 for
+                # a loopback ground station, not 0.0.0.0) and delivers only the destination's
+                # datagrams, so no other host can talk to the vehicle through this socket
+                self.sock.connect(self.dest)
         except OSError as exc:
             self.sock.close()
             raise UsageError(f"MAVLink connection {kind}:{host}:{port}: {exc.strerror or exc}") from None

@@ -459,6 +459,22 @@ def test_vehicle_dials_out_to_a_listening_gcs(kind):
         gcs.mav.command_long_send(9, 1, R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
         assert wait_msg(gcs, "COMMAND_ACK", lambda m: m.command == R.MAV_CMD_COMPONENT_ARM_DISARM).result == 0
         assert v.armed
+        if kind == "udpout":
+            # bound to loopback, and deaf to anyone but the ground station it dials
+            local = v.link.transport.sock.getsockname()
+            assert local[0] == "127.0.0.1", local
+            import socket
+
+            intruder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                enc = R.MAVLink(None, srcSystem=250, srcComponent=190)
+                intruder.sendto(enc.command_long_encode(9, 1, R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196, 0, 0, 0, 0, 0)
+                                .pack(enc), local)
+                gcs.mav.command_long_send(9, 1, R.MAV_CMD_REQUEST_MESSAGE, 0, R.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
+                wait_msg(gcs, "AUTOPILOT_VERSION")  # the ground station's later command is handled ...
+                assert v.armed  # ... the intruder's earlier disarm never arrived
+            finally:
+                intruder.close()
     finally:
         host.close()
         gcs.close()
