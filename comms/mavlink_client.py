@@ -542,17 +542,20 @@ class VehicleLink:
         return self.telemetry.heartbeats > 0 and self.link_age_s() > LINK_LOSS_S
 
     # -- readiness --------------------------------------------------------------------------
-    def not_ready(self) -> list[str]:
+    def not_ready(self, require_gps: bool = True) -> list[str]:
         """What the vehicle still lacks to fly by setpoints, in words (empty: ready).
 
-        GPS 3D fix (GPS_RAW_INT.fix_type ≥ 3); EKF: EKF_STATUS_REPORT with attitude, velocity
+        GPS 3D fix (GPS_RAW_INT.fix_type ≥ 3; only with ``require_gps``: a vehicle flown in
+        LOCAL_NED may navigate without GPS, e.g. on motion capture); EKF: EKF_STATUS_REPORT with attitude, velocity
         and absolute position and not in constant-position mode (ArduPilot), or, where the
         autopilot sends no such report (PX4, vehicle_sim), SYS_STATUS with the AHRS healthy;
         the pre-arm checks passed where SYS_STATUS reports them; home position
         (HOME_POSITION); EKF origin (GPS_GLOBAL_ORIGIN)."""
         t = self.telemetry
         missing = []
-        if t.gps_fix_type is None:
+        if not require_gps:
+            pass
+        elif t.gps_fix_type is None:
             missing.append("GPS status (no GPS_RAW_INT yet)")
         elif t.gps_fix_type < 3:
             missing.append(f"GPS 3D fix (fix_type {t.gps_fix_type}, {t.satellites} satellites)")

@@ -692,7 +692,7 @@ class PlannerNode:
         last_report = -math.inf
         last_request = self.wall()
         while True:
-            missing = link.not_ready()
+            missing = link.not_ready(require_gps=self.frame == "global")
             if not missing:
                 return
             now = self.wall()

@@ -257,9 +257,11 @@ def test_killed_planner_leaves_the_vehicle_holding_within_its_timeout(tmp_path: 
     peer = SwarmPeer("kill", 1, {1: 80.0})
     watch = VehicleLink(f"udpout:127.0.0.1:{port}", 1, source_system=200)
     try:
-        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}"))
+        # (LOCAL_NED here: the simulated vehicle's EKF origin is the mission origin, checked)
+        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
         procs.append(planner)
         planner.expect(r"ready at the start position", 60.0, "err")
+        assert "(is the mission origin); setpoints in LOCAL_NED" in planner.err
         deadline = time.monotonic() + 20.0
         while len(peer.snapshot()) < 5:
             assert time.monotonic() < deadline, planner.tail()
@@ -314,3 +316,19 @@ def test_vehicle_restarted_on_the_same_tcp_port_is_reconnected_and_resumed(tmp_p
     assert s["steps"] + s["stale_steps"] + s["late_steps"] == 60
     assert "Attempting reconnect" not in planner.out and "EOF on TCP" not in planner.out  # stdout is the summary only
     assert len(planner.out.strip().splitlines()) == 1
+
+
+def test_local_ned_is_refused_when_the_ekf_origin_is_not_the_mission_origin(tmp_path: Path, procs: list[Proc]) -> None:
+    """A vehicle whose EKF origin is 100 m off the mission origin: LOCAL_NED setpoints would
+    land 100 m off, so the planner refuses them before arming; global setpoints are fine."""
+    mission = write_mission(tmp_path / "m.yaml", "origin", [[10.0, 20.0, 8.0]], 3, "hold")
+    _, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--origin=-35.3623610,149.165230,584")
+    peer = SwarmPeer("origin", 1, {1: 80.0})
+    try:
+        p = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
+        procs.append(p)
+        assert p.wait(60.0) == 1, p.tail()
+    finally:
+        peer.close()
+    assert "setpoint_frame local_ned needs the vehicle's EKF origin at the mission origin" in p.err and "use setpoint_frame global" in p.err
+    assert "Arming" not in p.err and "Traceback" not in p.err
