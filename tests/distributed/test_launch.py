@@ -125,7 +125,7 @@ def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, la
     (with the MAVLink float32 precision of positions emulated): positions within 1 cm for every
     step and final PEB within 2 % (measured: 1e-5 m and 1e-6, docs/distributed.md)."""
     out = tmp_path / "het"
-    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "60")
+    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "60", "--step-timeout", "60")
     launches.append(run)
     code, stdout, stderr = run.wait()
     assert code == 0, stderr[-3000:]
@@ -167,7 +167,7 @@ def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
     """With a small d_hop the age of every record each planner used is what the hop counts of
     the geometry give (recomputed here with scipy from the recorded positions)."""
     out = tmp_path / "hops"
-    run = Launch(PAPER / "ranging_los.yaml", out, "--steps", "25", "--set", "comms.d_hop_m=12", "--set", "comms.h_max=3")
+    run = Launch(PAPER / "ranging_los.yaml", out, "--steps", "25", "--step-timeout", "60", "--set", "comms.d_hop_m=12", "--set", "comms.h_max=3")
     launches.append(run)
     code, _, stderr = run.wait()
     assert code == 0, stderr[-3000:]
@@ -208,7 +208,7 @@ def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launche
         runs = []
         for name, mission_id in (("ranging_los", "alpha"), ("heterogeneous", "bravo")):
             out = tmp_path / mission_id
-            run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--set", f"id={mission_id}", "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]')
+            run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--step-timeout", "60", "--set", f"id={mission_id}", "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]')
             launches.append(run)
             runs.append((run, out))
         for run, out in runs:
@@ -236,7 +236,7 @@ def test_sigint_stops_every_process(tmp_path: Path, launches: list[Launch]) -> N
     """Ctrl-C (SIGINT) to the launcher mid-mission: it exits with 130 and a clear message, and no
     vehicle or planner process is left."""
     out = tmp_path / "sigint"
-    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "400")
+    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "400", "--step-timeout", "60")
     launches.append(run)
     log = out / "logs" / "planner_1.jsonl"
     wait_for(lambda: log.exists() and log.read_text().count("\n") >= 3, 120.0, "the mission to fly three steps")
