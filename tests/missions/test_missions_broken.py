@@ -44,12 +44,41 @@ def run_check(target: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def run_check_in_process(target: str) -> subprocess.CompletedProcess[str]:
+    """The same ``fimnav check`` entry point (``missions.cli.main``), in this process."""
+    import contextlib
+    import io
+
+    from missions.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    cwd = os.getcwd()
+    os.chdir(REPO)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["check", target])
+    finally:
+        os.chdir(cwd)
+    return subprocess.CompletedProcess(["fimnav", "check", target], code, out.getvalue(), err.getvalue())
+
+
+#: Every sixth corpus file also goes through a real ``python -m missions check`` subprocess
+#: (the process boundary: exit status, no traceback); all go through the CLI entry point.
+SUBPROCESS_SAMPLE = frozenset(str(c.relative_to(REPO)) for c in CASES[::6])
+
+
 @pytest.fixture(scope="module")
 def corpus_runs() -> dict[str, subprocess.CompletedProcess[str]]:
-    """Run ``fimnav check`` on every corpus file, two subprocesses at a time."""
+    """``fimnav check`` on every corpus file: in process, and for a sample as a subprocess too
+    (the two must agree)."""
     rels = [str(c.relative_to(REPO)) for c in CASES]
+    runs = {rel: run_check_in_process(rel) for rel in rels}
     with ThreadPoolExecutor(max_workers=2) as pool:
-        return dict(zip(rels, pool.map(run_check, rels)))
+        sample = sorted(SUBPROCESS_SAMPLE)
+        for rel, proc in zip(sample, pool.map(run_check, sample)):
+            assert (proc.returncode, proc.stderr) == (runs[rel].returncode, runs[rel].stderr), rel
+            runs[rel] = proc
+    return runs
 
 
 def assert_one_clear_error(proc: subprocess.CompletedProcess[str], file_label: str) -> str:
