@@ -201,7 +201,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
     assert (ARDUPILOT_RTL, True) in t.modes
 
 
-@pytest.mark.parametrize("mode", [0o640, 0o604])
+@pytest.mark.parametrize("mode", [0o640, pytest.param(0o604, marks=pytest.mark.slow)])
 def test_group_or_world_readable_key_is_refused(tmp_path: Path, procs: list[Proc], mode: int) -> None:
     """A signing key others can read is refused before anything starts, from the command
     line and from the mission, with what to do; the key never appears in the message."""
@@ -285,6 +285,7 @@ def test_killed_planner_leaves_the_vehicle_holding_within_its_timeout(tmp_path: 
     assert held_after_s < timeout_s / SPEEDUP + 1.0
 
 
+@pytest.mark.slow
 def test_vehicle_restarted_on_the_same_tcp_port_is_reconnected_and_resumed(tmp_path: Path, procs: list[Proc]) -> None:
     """kill -9 of the vehicle process mid-mission on a TCP link, then a new vehicle on the
     same port (booting in the air, as an autopilot that rebooted in flight would not, but as
