@@ -125,6 +125,7 @@ def test_vehicle_survives_100k_invalid_frames_over_udp() -> None:
     assert figures["frames"] == 100_000
 
 
+@pytest.mark.slow
 def test_px4_vehicle_survives_invalid_frames_over_udp() -> None:
     figures = run_fuzz(20_000, seed=8, flavour="px4")
     print(figures)

@@ -70,6 +70,7 @@ def test_fimnav_vehicle_default_mavlink_binding_is_loopback() -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_every_process_of_a_launch_listens_on_loopback_only(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = subprocess.Popen([sys.executable, "-m", "missions", "launch", str(ROOT / "missions/paper/ranging_los.yaml"),
