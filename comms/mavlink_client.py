@@ -580,7 +580,7 @@ class VehicleLink:
         """MAV_CMD_REQUEST_MESSAGE (one message now); False if refused or unanswered."""
         m = self.mavutil.mavlink
         try:
-            self.command(m.MAV_CMD_REQUEST_MESSAGE, [message_id], timeout_s=6.0, what=f"REQUEST_MESSAGE({message_id})")
+            self.command(m.MAV_CMD_REQUEST_MESSAGE, [message_id], timeout_s=3.0, what=f"REQUEST_MESSAGE({message_id})")
         except LinkTimeout:
             return False
         except LinkError:
@@ -683,10 +683,14 @@ class VehicleLink:
         optional = set(optional)
         notes: list[str] = []
         fallback: dict[int, float] = {}
+        unanswered = False
         for msg_id, hz in rates_hz.items():
             try:
+                if unanswered:  # one unanswered request is enough: do not spend 6 s on each
+                    raise LinkTimeout("SET_MESSAGE_INTERVAL not answered")
                 self.command(m.MAV_CMD_SET_MESSAGE_INTERVAL, [msg_id, 1e6 / hz], timeout_s=6.0, what=f"SET_MESSAGE_INTERVAL({msg_id})")
             except LinkTimeout:
+                unanswered = True
                 if msg_id in DATA_STREAM_OF:
                     group = DATA_STREAM_OF[msg_id]
                     fallback[group] = max(fallback.get(group, 0.0), hz)

@@ -24,8 +24,9 @@ class ScriptedAutopilot:
     without position, no home and no EKF origin; every COMMAND_LONG is answered UNSUPPORTED;
     REQUEST_DATA_STREAM requests are recorded."""
 
-    def __init__(self) -> None:
+    def __init__(self, answer_commands: bool = True) -> None:
         os.environ["MAVLINK20"] = "1"
+        self.answer_commands = answer_commands
         from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
         self.m = mavlink
@@ -65,7 +66,8 @@ class ScriptedAutopilot:
         m = self.m
         if msg.get_type() == "COMMAND_LONG":
             self.commands.append(msg.command)
-            self.enc.command_ack_send(msg.command, m.MAV_RESULT_UNSUPPORTED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+            if self.answer_commands:
+                self.enc.command_ack_send(msg.command, m.MAV_RESULT_UNSUPPORTED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
         elif msg.get_type() == "REQUEST_DATA_STREAM":
             self.data_streams.append((msg.req_stream_id, msg.req_message_rate))
 
@@ -75,9 +77,10 @@ class ScriptedAutopilot:
         self.sock.close()
 
 
-@pytest.fixture
-def autopilot() -> Iterator[ScriptedAutopilot]:
-    ap = ScriptedAutopilot()
+@pytest.fixture(params=["refusing", pytest.param("silent", marks=pytest.mark.slow)])
+def autopilot(request: pytest.FixtureRequest) -> Iterator[ScriptedAutopilot]:
+    """An autopilot that answers every command UNSUPPORTED, or (slow) answers none."""
+    ap = ScriptedAutopilot(answer_commands=request.param == "refusing")
     yield ap
     ap.close()
 
@@ -90,7 +93,11 @@ def test_refused_intervals_fall_back_to_data_streams_and_the_readiness_wait_says
     finally:
         p.stop()
     assert "autopilot ardupilot (HEARTBEAT.autopilot = 3)" in p.err
-    assert "SET_MESSAGE_INTERVAL refused, REQUEST_DATA_STREAM instead" in p.err
+    if autopilot.answer_commands:
+        assert "SET_MESSAGE_INTERVAL refused, REQUEST_DATA_STREAM instead" in p.err
+    else:  # one unanswered request (6 s), then data streams for every message at once
+        assert "no answer to SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM instead" in p.err
+        assert autopilot.commands.count(511) == 3, autopilot.commands  # 3 tries of the first only
     # POSITION (6), EXTENDED_STATUS (2) and EXTRA3 (12, home) groups, each at least once
     assert {6, 2, 12} <= {sid for sid, _ in autopilot.data_streams}, autopilot.data_streams
     assert "waiting for the vehicle: GPS 3D fix (fix_type 1" in p.err
