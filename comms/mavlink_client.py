@@ -615,7 +615,10 @@ class VehicleLink:
         now = self.wall()
         if now - self._stream_last < self.stream_period_s:
             return
-        self._stream_last = now
+        # On a grid of the period (a late wake-up does not slow the average rate down), but
+        # never more than one period behind (no burst after a stall).
+        last = self._stream_last
+        self._stream_last = now if last == -math.inf else max(last + self.stream_period_s, now - self.stream_period_s)
         pos, vel = self._stream(now)
         try:
             self.send_setpoint(pos, vel)

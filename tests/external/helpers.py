@@ -238,6 +238,7 @@ class TlogSummary:
     setpoints: dict[tuple[str, int, int], int]
     landed_state: int | None
     commands: dict[int, int]
+    setpoint_times_s: list[float]  # wall time (tlog stamp) of every setpoint received
 
 
 def read_tlog(path: Path) -> TlogSummary:
@@ -250,6 +251,7 @@ def read_tlog(path: Path) -> TlogSummary:
     setpoints: dict[tuple[str, int, int], int] = {}
     landed = None
     commands: dict[int, int] = {}
+    times: list[float] = []
     while True:
         m = log.recv_match()
         if m is None:
@@ -264,9 +266,10 @@ def read_tlog(path: Path) -> TlogSummary:
         elif t.startswith("SET_POSITION_TARGET"):
             key = (t, int(m.coordinate_frame), int(m.type_mask))
             setpoints[key] = setpoints.get(key, 0) + 1
+            times.append(float(m._timestamp))
         elif t == "EXTENDED_SYS_STATE":
             landed = int(m.landed_state)
         elif t == "COMMAND_LONG" and m.get_srcComponent() == 191:
             commands[int(m.command)] = commands.get(int(m.command), 0) + 1
     log.close()
-    return TlogSummary(texts, modes, setpoints, landed, commands)
+    return TlogSummary(texts, modes, setpoints, landed, commands, times)
