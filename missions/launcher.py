@@ -352,15 +352,39 @@ class Launcher:
         J = fisher_information(src, pos, m.drones.ranging_mask() & valid, m.drones.bearing_mask() & valid, los, m.channel.to_planner())
         return float(position_error_bound(J)[0])
 
+    def _step_logs(self) -> dict[tuple[int, int], dict[str, Any]]:
+        """Every planner's step log entries by (step, drone id): the authoritative record of
+        what each planner saw and did (a Zenoh message published just before a planner exits
+        can be lost; its own log cannot)."""
+        out: dict[tuple[int, int], dict[str, Any]] = {}
+        for j in range(1, self.mission.drones.count + 1):
+            path = self.out / "logs" / f"planner_{j}.jsonl"
+            with contextlib.suppress(OSError):
+                for line in path.read_text().splitlines():
+                    try:
+                        entry = json.loads(line)
+                        out[(int(entry["step"]), j)] = entry
+                    except (ValueError, KeyError, TypeError):
+                        continue  # a line cut by a killed planner
+        return out
+
     def _result(self, runtime_s: float) -> SimulationResult:
-        """The run as a one-trial :class:`SimulationResult` (same accounting as the simulator)."""
+        """The run as a one-trial :class:`SimulationResult` (same accounting as the simulator),
+        from the planners' step logs, completed by what was heard over Zenoh."""
         m = self.mission
         n, K = m.drones.count, m.steps
-        recs = self.collected.records
+        logs = self._step_logs()
+        # Records (position where measured, LOS) of every drone and step.
+        recs: dict[tuple[int, int], Observation] = dict(self.collected.records)
+        nan = float("nan")
+        for (k, j), e in logs.items():
+            recs[(k, j)] = Observation(j, k, float(e.get("t_s", nan)), tuple(e["position_m"]), bool(m.drones.ranging_mask()[j - 1]),
+                                       bool(m.drones.bearing_mask()[j - 1]), bool(e["measurement"]["los"]), nan, nan, nan)
         positions = np.full((K + 1, 1, n, 3), np.nan)
         estimates = np.full((K, 1, n, 3), np.nan)
         observable = np.zeros((K, 1, n), dtype=bool)
         singular = np.zeros((K, 1, n), dtype=bool)
+        filtered = np.zeros((K, 1, n), dtype=bool)
         ages = np.full((K, 1, n, n), -1, dtype=np.int16)
         peb = np.full((K, 1, n), np.inf)
         active = np.zeros((K, 4), dtype=np.int64)
@@ -369,19 +393,26 @@ class Launcher:
             if 0 <= k < K:
                 positions[k, 0, j - 1] = r.position_m
         for j in range(1, n + 1):
-            nxt = self._final_position(j)
-            if nxt is not None:
-                positions[K, 0, j - 1] = nxt
+            last = logs.get((K - 1, j))
+            if last is not None:
+                positions[K, 0, j - 1] = last["next_position_m"]
+        steps: dict[tuple[int, int], tuple[Any, ...]] = {}
         for (k, j), st in self.collected.status.items():
+            steps[(k, j)] = (st.estimate_m, st.observable, st.singular, False, st.saved_steps, [bool((st.active_mask >> b) & 1) for b in range(4)])
+        for (k, j), e in logs.items():
+            act = e.get("active", {})
+            steps[(k, j)] = (e["estimate_m"], e["observable"], e["singular"], e.get("filtered", False), e["saved_steps"],
+                             [bool(act.get(name, False)) for name in ("uav", "source", "obstacle", "altitude")])
+        for (k, j), (est_m, obs, sing, filt, saved, act) in steps.items():
             if not 0 <= k < K:
                 continue
-            estimates[k, 0, j - 1] = st.estimate_m
-            observable[k, 0, j - 1] = st.observable
-            singular[k, 0, j - 1] = st.singular
-            ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in st.saved_steps]
-            peb[k, 0, j - 1] = self._peb_of_view(st.saved_steps, recs, sources[k])
-            for b in range(4):
-                active[k, b] += (st.active_mask >> b) & 1
+            estimates[k, 0, j - 1] = est_m
+            observable[k, 0, j - 1] = obs
+            singular[k, 0, j - 1] = sing
+            filtered[k, 0, j - 1] = filt
+            ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in saved]
+            peb[k, 0, j - 1] = self._peb_of_view(saved, recs, sources[k])
+            active[k] += np.asarray(act, dtype=np.int64)
         missing = np.isnan(positions).any(-1)
         if missing.any():
             # Steps a drone did not fly (it died): hold its last known position for the record.
@@ -401,26 +432,11 @@ class Launcher:
             margins_m=margins,
             active=active,
             singular_fallback=singular,
-            filtered=np.zeros((K, 1, n), dtype=bool),
+            filtered=filtered,
             record_ages=ages,
             runtime_s=runtime_s,
             extra={"distributed": 1.0, "dropped_messages": float(self.collected.dropped), "missing_drone_steps": float(missing[:K].sum())},
         )
-
-    def _final_position(self, uav: int) -> np.ndarray | None:
-        """The last planned position of a planner, from its step log."""
-        path = self.out / "logs" / f"planner_{uav}.jsonl"
-        last = None
-        with contextlib.suppress(OSError):
-            for line in path.read_text().splitlines():
-                if line.strip():
-                    last = line
-        if last is None:
-            return None
-        try:
-            return np.asarray(json.loads(last)["next_position_m"], dtype=float)
-        except (ValueError, KeyError):
-            return None
 
 
 def _ready_line(path: Path) -> dict[str, Any] | None:
