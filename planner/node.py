@@ -743,6 +743,8 @@ class PlannerNode:
         assert pos is not None
         climb_to = float(self.m.takeoff_alt_m if self.m.takeoff_alt_m is not None else self.start[2])
         tol = START_TOLERANCE_REALTIME_M
+        # Take-off done at 95 % of the climb (an autopilot's altitude settles slowly at the end).
+        climb_tol = max(tol, 0.05 * (climb_to - float(pos[2])))
         if link.is_px4:
             # PX4: the setpoint stream must run (> 2 Hz, PX4 ≥ 1.14 wants it for a second)
             # before OFFBOARD is accepted; the stream is a hold above the current position.
@@ -754,7 +756,7 @@ class PlannerNode:
                 link.set_mode("OFFBOARD")
             if not link.telemetry.armed:
                 link.arm()
-            self._wait_rt(lambda: self._z() >= climb_to - tol, t, f"take-off to {climb_to:g} m")
+            self._wait_rt(lambda: self._z() >= climb_to - climb_tol, t, f"take-off to {climb_to:g} m")
         else:
             if not link.in_mode("GUIDED"):
                 link.set_mode("GUIDED")
@@ -763,7 +765,7 @@ class PlannerNode:
                 # NAV_TAKEOFF altitude is above home; no setpoint until it is reached (a setpoint
                 # would end the take-off in ArduPilot).
                 link.takeoff(climb_to - link.home_z_m())
-                self._wait_rt(lambda: self._z() >= climb_to - tol, t, f"take-off to {climb_to:g} m")
+                self._wait_rt(lambda: self._z() >= climb_to - climb_tol, t, f"take-off to {climb_to:g} m")
         start = self.start.copy()
         link.set_stream(lambda _t: (start, None))
         log.info("uav %d: airborne in %s, flying to the start position", self.o.uav, link.mode_name())
