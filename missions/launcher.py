@@ -324,8 +324,10 @@ class Launcher:
         m = self.mission
         n = m.drones.count
         with self.collected.lock:
-            recs = dict(self.collected.records)
             stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
+            # Only the records the views name (copying every record each step is O(K²)).
+            wanted = {(s, i + 1) for st in stat.values() if st is not None for i, s in enumerate(st.saved_steps) if s >= 0}
+            recs = {key: self.collected.records[key] for key in wanted if key in self.collected.records}
         src = m.source.position_at(self._t(k))
         pebs, errs = [], []
         for j, st in stat.items():
