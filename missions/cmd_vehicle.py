@@ -267,8 +267,11 @@ def run_vehicle(args: argparse.Namespace) -> int:
                     from vehicle_sim.bridge import ZenohBridge
 
                     settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
-                    if args.zenoh_mode:
-                        settings = dataclasses.replace(settings, mode=args.zenoh_mode, listen=() if args.zenoh_mode == "client" else settings.listen)
+                    if args.zenoh_mode == "client":
+                        # A client of the given router(s) only (fimnav launch: the launcher's).
+                        settings = dataclasses.replace(settings, mode="client", listen=(), connect=tuple(args.zenoh_connect))
+                    elif args.zenoh_mode:
+                        settings = dataclasses.replace(settings, mode=args.zenoh_mode)
                     source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, settings)
                     on_tick = source.on_tick
                 else:

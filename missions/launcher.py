@@ -213,14 +213,14 @@ class Launcher:
         mission_file = self.out / "mission.yaml"
         mission_file.write_text(mission_to_yaml(m))
         hub = f"tcp/127.0.0.1:{free_port()}"
-        # Topology. A mission with the default zenoh section (embedded peer, no endpoints) runs
-        # as a star: the launcher's session is a Zenoh router on a free loopback port and every
-        # child a client of it (O(N) links; a full mesh of 2N+1 peers costs O(N²) keep-alives,
-        # which starves a 2-core machine at N = 100). A mission that names its own endpoints
-        # (routers, other machines) keeps its mode; the launcher's session is then one more peer.
-        star = m.zenoh.mode == "peer" and not m.zenoh.connect
+        # Topology: a star. The launcher's session is a Zenoh router on a free loopback port and
+        # every child (planners, vehicles) a client of it: O(N) links, and every message is
+        # routed (Zenoh peers do not forward for each other, so in a mesh a message between two
+        # children whose direct link has not formed yet is lost; a full mesh of 2N+1 peers also
+        # costs O(N²) keep-alives). The mission's own endpoints (routers, other machines,
+        # another launch) are connected by the router, so the swarm joins a larger network.
         base = SessionSettings.from_mission(m.zenoh, listen=(hub,))
-        session = open_session(dataclasses.replace(base, mode="router") if star else base)
+        session = open_session(dataclasses.replace(base, mode="router"))
         t_start = time.perf_counter()
         try:
             subs = [
@@ -228,10 +228,8 @@ class Launcher:
                 session.declare_subscriber(keys.status(m.id), self._on_status),
             ]
             clock = LockstepClock(session, m.id, n, m.dt_s)
-            child_zenoh = SessionSettings.from_mission(m.zenoh, connect=(hub,), listen=("tcp/127.0.0.1:0",))
-            if star:
-                child_zenoh = dataclasses.replace(child_zenoh, mode="client", listen=())
-            vehicle_zenoh = ["--zenoh-connect", hub] + (["--zenoh-mode", "client"] if star else ["--zenoh-listen", "tcp/127.0.0.1:0"])
+            child_zenoh = dataclasses.replace(SessionSettings.from_mission(m.zenoh), mode="client", listen=(), connect=(hub,))
+            vehicle_zenoh = ["--zenoh-connect", hub, "--zenoh-mode", "client"]
             # Vehicles bind port 0 and report the port the OS gave them (no race with the
             # ephemeral ports of a hundred other sockets); planners start once they are known.
             per = self.vehicles_per_process

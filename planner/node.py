@@ -291,6 +291,8 @@ class PlannerNode:
         self.session: Any = None
         self.link: VehicleLink | None = None
         self.alive: set[int] = set()
+        #: Planners whose liveliness token went away (and did not come back).
+        self.left: set[int] = set()
         self.tick: Tick | None = None
         self.measurements: dict[int, Observation] = {}
         self.seq = 0
@@ -371,6 +373,7 @@ class PlannerNode:
                 uav = keys.uav_of(key)
                 if uav is not None and 1 <= uav <= self.n:
                     (self.alive.add if kind == "alive" else self.alive.discard)(uav)
+                    (self.left.discard if kind == "alive" else self.left.add)(uav)
                     if kind == "gone":
                         log.warning("planner %d left the swarm", uav)
             try:
@@ -487,11 +490,15 @@ class PlannerNode:
                 )
                 self.view.add(record)
                 self._publish(self._pub_record, record, MessageKind.RECORD)
+                # Lockstep barrier: every other planner of the mission, except those that left.
+                # (Waiting only for the planners already seen alive would let a planner whose
+                # liveliness has not reached us yet be skipped, and the views would differ.)
+                expected = [j for j in range(1, self.n + 1) if j != self.o.uav]
                 self._wait(
-                    lambda: all(self.view.has(j, k) for j in self.alive if j != self.o.uav),
+                    lambda: all(self.view.has(j, k) for j in expected if j not in self.left),
                     self.o.step_timeout_s,
-                    f"records of step {k} from the live planners",
-                    missing=lambda: self._missing_peers(k),
+                    f"records of step {k} from the planners",
+                    missing=lambda: sorted(j for j in expected if j not in self.left and not self.view.has(j, k)),
                 )
                 w_peers = self.wall()
                 view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
