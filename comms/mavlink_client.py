@@ -33,7 +33,6 @@ import errno
 import math
 import os
 import socket
-import stat
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -43,6 +42,7 @@ from typing import Any, Literal
 import numpy as np
 
 from comms.geodesy import MissionFrame
+from comms.session import check_secret_file
 from planner.errors import FimnavError, UsageError
 
 #: Our MAVLink identity: a companion computer of the vehicle's system.
@@ -122,17 +122,7 @@ def read_signing_key(path: str | Path) -> bytes:
         UsageError: missing or unreadable file, permissions too open, wrong length/content.
     """
     p = Path(path)
-    try:
-        st = p.stat()
-    except OSError as exc:
-        raise UsageError(f"signing key {str(p)!r}: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise UsageError(f"signing key {str(p)!r}: expected a regular file")
-    if st.st_mode & 0o077:
-        raise UsageError(
-            f"signing key {str(p)!r}: permissions {stat.S_IMODE(st.st_mode):04o} let the group or others "
-            f"read it; expected 0600 or stricter (run: chmod 600 {p})"
-        )
+    check_secret_file(p, "signing key")
     try:
         data = p.read_bytes()
     except OSError as exc:
