@@ -5,7 +5,7 @@ unless the mission names one), multicast scouting is off, so nothing outside the
 contacted and nothing else has to be started. ``fimnav launch`` adds, for every child
 process, the launcher's own endpoint to ``connect``; peers then learn each other's
 endpoints by gossip. Client and router modes and explicit endpoints come from the mission, so
-planners on several machines join through Zenoh routers (docs/comms.md).
+planners on several machines join through Zenoh routers (docs/distributed.md).
 
 The transport lease is short (:data:`LEASE_MS`), so a peer that dies is noticed (liveliness
 token deleted) within a few seconds.
