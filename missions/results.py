@@ -164,15 +164,8 @@ def plot_peb(results: Sequence[SimulationResult], path: Path) -> None:
             lo = np.where(np.isfinite(stats["p10"]), stats["p10"], np.nan)
             hi = np.where(np.isfinite(stats["p90"]), stats["p90"], np.nan)
             ax.fill_between(steps, lo, hi, color=colour, alpha=0.12, lw=0)
-    ax.set_yscale("log")
-    ax.set_xlabel("step k")
-    ax.set_ylabel(r"$\overline{\mathrm{PEB}}^{(k)}$ [m]")
     ax.set_title("Position error bound (A solid, D dashed)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    _finish_log_plot(plt, fig, ax, r"$\overline{\mathrm{PEB}}^{(k)}$ [m]", path)
 
 
 def plot_estimate_error(results: Sequence[SimulationResult], path: Path) -> None:
@@ -183,9 +176,14 @@ def plot_estimate_error(results: Sequence[SimulationResult], path: Path) -> None
     for r, (label, colour, ls) in zip(results, _style(results)):
         err = r.estimate_error_m.reshape(r.estimate_error_m.shape[0], -1)
         ax.plot(np.median(err, axis=-1), ls, color=colour, label=label, lw=1.6)
+    _finish_log_plot(plt, fig, ax, "median estimate error [m]", path)
+
+
+def _finish_log_plot(plt: Any, fig: Any, ax: Any, ylabel: str, path: Path) -> None:
+    """Log-scale per-step axes: labels, grid, legend; save to ``path`` and close."""
     ax.set_yscale("log")
     ax.set_xlabel("step k")
-    ax.set_ylabel("median estimate error [m]")
+    ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
     fig.tight_layout()

@@ -32,7 +32,6 @@ from numpy.typing import NDArray
 from missions.schema import Mission
 from planner import estimator as est
 from planner.agent import plan
-from planner.control import ALTITUDE, OBSTACLE, SOURCE, UAV
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
@@ -347,8 +346,3 @@ def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits, position_tol_m
     tilt_tol = 2.0 * position_tol_m / np.maximum(length, 1e-300)
     slack = np.minimum(limits.heading_change_max_rad - dpsi + heading_tol, limits.tilt_change_max_rad - np.abs(th1 - th0) + tilt_tol)
     return np.where(has_prev, slack, np.inf)
-
-
-def control_families() -> dict[str, int]:
-    """Column index of each control constraint family in :attr:`SimulationResult.active`."""
-    return {"uav": UAV, "source": SOURCE, "obstacle": OBSTACLE, "altitude": ALTITUDE}

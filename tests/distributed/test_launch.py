@@ -191,17 +191,11 @@ def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
 def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launches: list[Launch]) -> None:
     """Two missions with different ids on one Zenoh network (both connect to a common peer):
     each completes, neither receives a message of the other, and each matches its simulator."""
-    import socket
+    from comms.session import SessionSettings, open_session
+    from missions.launcher import free_port
 
-    import zenoh
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    conf = zenoh.Config()
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    hub = zenoh.open(conf)
+    port = free_port()
+    hub = open_session(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",)))
     heard: list[str] = []
     sub = hub.declare_subscriber("fimnav/**", lambda sample: heard.append(str(sample.key_expr)))
     try:
