@@ -145,11 +145,16 @@ def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, la
     assert peb[-1] < 0.8 * peb[0], f"PEB {peb[0]:.2f} -> {peb[-1]:.2f} m"
     sim = simulate(RunSpec(mission, mission.criterion, 1, mission.steps), float32_positions=True)
     np.testing.assert_allclose(pos, sim.positions_m[:, 0], atol=0.01, rtol=0)
-    # The estimator runs batched in the simulator and per drone in a node: round-off level
-    # differences, amplified by its robust weights, reach ~1 cm over long runs (never a
-    # different control decision: the positions above are equal).
-    np.testing.assert_allclose(est, sim.estimates_m[:, 0], atol=0.1, rtol=0)
+    # The estimator runs batched in the simulator and per drone in a node, so the two differ by
+    # round-off; its discrete decisions (innovation gate, Tukey cutoff) can flip on round-off and
+    # then move an estimate by a small fraction of its own uncertainty. Seen: 1e-5 m here, and
+    # once 0.12 m at the last step on another CPU (PEB 17.7 m there). So: almost every estimate
+    # equal to 1 cm, and every estimate within 2 % of the step's PEB.
     sim_peb = sim.peb_stats()["mean"]
+    diff = np.linalg.norm(est - sim.estimates_m[:, 0], axis=-1)  # (K, N), m
+    assert np.mean(diff <= 0.01) >= 0.99, f"{np.mean(diff <= 0.01):.3f} of the estimates equal to 1 cm"
+    worst = np.max(diff / sim_peb[:, None])
+    assert worst <= 0.02, f"an estimate {worst:.3f} PEB away from the simulator's"
     assert abs(peb[-1] - sim_peb[-1]) <= 0.02 * sim_peb[-1]
 
     # The vehicles' .tlog files are readable by pymavlink (what mavlogdump.py uses).
