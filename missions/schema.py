@@ -39,6 +39,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from comms.faults import FaultModel
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Limits
 
@@ -418,6 +419,31 @@ class Constraints(_Section):
         )
 
 
+class Faults(_Section):
+    """Injected loss and extra delay of the peers' records at each receiver (issue 7).
+
+    Deterministic for a seed: receiver i draws its decisions from its own stream (see
+    :mod:`comms.faults`); the planner node and the in-process simulator inject the same faults.
+    Off by default.
+    """
+
+    loss: Float = Field(
+        0.0, ge=0.0, lt=1.0, description="Probability that a peer's record is lost at a receiver, in [0, 1)."
+    )
+    extra_delay_steps: Int = Field(
+        0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late."
+    )
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any fault is injected."""
+        return self.loss > 0.0 or self.extra_delay_steps > 0
+
+    def to_model(self) -> FaultModel | None:
+        """The :class:`comms.faults.FaultModel` of these settings, or None when off."""
+        return FaultModel(self.loss, self.extra_delay_steps) if self.enabled else None
+
+
 class Comms(_Section):
     """Multi-hop sharing of records (section II-B): range r_max = ``d_hop_m``, hop cap h_max."""
 
@@ -426,6 +452,7 @@ class Comms(_Section):
     latency: Literal["emulated", "real"] = Field(
         "emulated", description="'emulated': one step of delay per hop (the paper); 'real': network latency."
     )
+    faults: Faults = Field(Faults(), description="Injected loss and extra delay of the peers' records (off by default).")
 
 
 class Controller(_Section):

@@ -14,6 +14,8 @@ import numpy as np
 #: Purpose tags of the streams.
 MEASUREMENT_STREAM: int = 0
 CONTROL_STREAM: int = 1
+#: Receiving-side loss and delay injection (:mod:`comms.faults`): drawn by the receiver.
+FAULT_STREAM: int = 2
 
 #: Uniform variates per drone and step for the measurement noise.
 MEASUREMENT_DRAWS: int = 5
