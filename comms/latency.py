@@ -6,6 +6,12 @@ drone j's record of step ℓ = k − h_ij + 1, with h_ij the hop count on the di
 d_hop over the drones' current positions; beyond h_max hops, or when j is unreachable, drone i
 keeps the last record of j it saved. With ``emulate=False`` (real radio networks, where the
 latency is real) the view is simply the newest record received from each peer.
+
+Injected faults (``faults``, :mod:`comms.faults`): receiver i decides, from its own seeded
+stream, whether each peer record is lost or delayed by extra steps; a lost record still counts
+as arrived for the lockstep barrier (:meth:`DelayedView.has`) and still places its sender in the
+disk graph, but never enters the view; the planner falls back on its saved record (the memory
+buffer). Without emulation the faults apply with one hop to every peer.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comms.faults import FaultBuffer, FaultModel
 from comms.messages import Observation
 from planner.network import NEVER, hop_counts, update_saved_steps
 
@@ -39,14 +46,29 @@ class DelayedView:
     Args:
         own_index: drone i (0-based). count: N. d_hop_m, h_max: the mission's comms.
         emulate: apply the hop latency (True) or use the newest records (False).
+        faults: injected loss and extra delay (None or disabled: none).
+        seed, trial: the mission seed and trial of the fault decisions (the receiver's stream).
     """
 
-    def __init__(self, own_index: int, count: int, d_hop_m: float, h_max: int, emulate: bool = True) -> None:
+    def __init__(
+        self,
+        own_index: int,
+        count: int,
+        d_hop_m: float,
+        h_max: int,
+        emulate: bool = True,
+        faults: FaultModel | None = None,
+        seed: int = 0,
+        trial: int = 0,
+    ) -> None:
         self.own = own_index
         self.count = count
         self.d_hop_m = d_hop_m
         self.h_max = h_max
         self.emulate = emulate
+        self.faults: FaultBuffer | None = None
+        if faults is not None and faults.enabled:
+            self.faults = FaultBuffer(faults, seed, [trial], [own_index], count, h_max if emulate else 1)
         self._history: list[dict[int, Observation]] = [dict() for _ in range(count)]
         self._saved = np.full(count, NEVER, dtype=np.int64)
         self._last_position = np.full((count, 3), np.nan)
@@ -74,11 +96,19 @@ class DelayedView:
             # Hop counts over the drones' current positions; drones never heard of are far away.
             pos = np.where(known[:, None], current, 1e12 * (1 + np.arange(self.count))[:, None])
             hops_all = hop_counts(pos, self.d_hop_m, max_hops=self.h_max + 1)
-            # A delayed record ℓ is only usable if it has arrived; ℓ itself comes from the rule.
-            saved_all = np.full((self.count, self.count), NEVER, dtype=np.int64)
-            saved_all[self.own] = self._saved
-            new = update_saved_steps(saved_all, hops_all, step, self.h_max)[self.own]
             hops = hops_all[self.own]
+            if self.faults is not None:
+                new = self.faults.update(self._saved[None, None], hops[None, None], step)[0, 0]
+            else:
+                # A delayed record ℓ is only usable if it has arrived; ℓ itself comes from the rule.
+                saved_all = np.full((self.count, self.count), NEVER, dtype=np.int64)
+                saved_all[self.own] = self._saved
+                new = update_saved_steps(saved_all, hops_all, step, self.h_max)[self.own]
+        elif self.faults is not None:
+            # No hop latency: every peer is one hop away, the injected faults still apply.
+            one_hop = np.where(np.arange(self.count) == self.own, 0, 1)
+            new = self.faults.update(self._saved[None, None], one_hop[None, None], step)[0, 0]
+            hops = np.full(self.count, -1, dtype=np.int64)
         else:
             newest = np.array([max(h) if h else NEVER for h in self._history], dtype=np.int64)
             new = np.maximum(self._saved, np.minimum(newest, step))
@@ -99,7 +129,13 @@ class DelayedView:
         """Forget records that can no longer enter a view (older than the saved ones and
         older than the hop window)."""
         horizon = step - self.h_max
+        if self.faults is not None:
+            # The fault window (hop and extra delay) and the newest record that left it.
+            horizon = min(horizon, step - self.faults.window + 1)
         for j, h in enumerate(self._history):
             keep_from = min(horizon, int(self._saved[j]))
+            if self.faults is not None:
+                best = int(self.faults.old_best[0, 0, j])
+                keep_from = keep_from if best < 0 else min(keep_from, best)
             for s in [s for s in h if s < keep_from]:
                 del h[s]

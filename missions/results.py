@@ -11,6 +11,8 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
       runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
       runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
       runs/<run>/summary.json   final PEB, estimate error, violations per constraint, run time
+                                (with injected comms faults: "faults", the PEB penalty against
+                                the same mission without faults)
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
 was used).
@@ -28,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from missions.loader import mission_to_yaml
-from missions.simulator import SAFETY_FAMILIES, SimulationResult
+from missions.simulator import SAFETY_FAMILIES, SimulationResult, fault_penalty
 
 
 def run_name(result: SimulationResult) -> str:
@@ -38,8 +40,13 @@ def run_name(result: SimulationResult) -> str:
     return f"{spec.mission.id}_{spec.criterion}{suffix}"
 
 
-def summarize(result: SimulationResult) -> dict[str, Any]:
-    """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time."""
+def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time.
+
+    A run with injected comms faults (``comms.faults``) also gets ``"faults"``: the PEB penalty
+    against the same mission without faults (:func:`missions.simulator.fault_penalty`), given
+    as ``penalty`` or else computed here (a fault-free simulation of the same trials and steps).
+    """
     spec = result.spec
     stats = result.peb_stats()
     final_err = result.estimate_error_m[-1]
@@ -69,7 +76,15 @@ def summarize(result: SimulationResult) -> dict[str, Any]:
         "safety_filter_steps": int(result.filtered.sum()),
         "runtime_s": round(result.runtime_s, 3),
         "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
-    }
+    } | _faults(result, penalty)
+
+
+def _faults(result: SimulationResult, penalty: dict[str, Any] | None) -> dict[str, Any]:
+    """``{"faults": penalty}`` for a run with injected comms faults, else nothing."""
+    mission = result.spec.mission
+    if not mission.comms.faults.enabled:
+        return {}
+    return {"faults": penalty if penalty is not None else fault_penalty(mission, result)}
 
 
 def _num(x: float) -> float | None:
@@ -78,8 +93,8 @@ def _num(x: float) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def write_run(result: SimulationResult, out: Path) -> dict[str, Any]:
-    """Write ``runs/<run>/`` for one run; return its summary."""
+def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``runs/<run>/`` for one run; return its summary (``penalty``: see :func:`summarize`)."""
     run_dir = out / "runs" / run_name(result)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "mission.yaml").write_text(mission_to_yaml(result.spec.mission))
@@ -100,7 +115,7 @@ def write_run(result: SimulationResult, out: Path) -> dict[str, Any]:
             for i in range(pos.shape[1]):
                 e = est[min(k, K - 1), i]
                 w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
-    summary = summarize(result)
+    summary = summarize(result, penalty)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -109,10 +124,20 @@ def _fmt(x: float) -> str:
     return f"{float(x):.10g}"
 
 
-def write_results(results: Sequence[SimulationResult], out: Path, command: Sequence[str] = (), figures: bool = True) -> list[dict[str, Any]]:
-    """Write the whole results directory for one or several runs; return the summaries."""
+def write_results(
+    results: Sequence[SimulationResult],
+    out: Path,
+    command: Sequence[str] = (),
+    figures: bool = True,
+    penalties: Sequence[dict[str, Any] | None] | None = None,
+) -> list[dict[str, Any]]:
+    """Write the whole results directory for one or several runs; return the summaries.
+
+    ``penalties``: per run, its fault penalty if already computed (see :func:`summarize`).
+    """
     out.mkdir(parents=True, exist_ok=True)
-    summaries = [write_run(r, out) for r in results]
+    pens = list(penalties) if penalties is not None else [None] * len(results)
+    summaries = [write_run(r, out, p) for r, p in zip(results, pens, strict=True)]
     doc = {
         "command": list(command),
         "python": platform.python_version(),

@@ -9,7 +9,8 @@ arrays carry the trial and drone axes together, so one numpy call serves all M·
 Step k of a trial, for every drone i (all drones in parallel):
 
 1. record: true position p_i^(k), LOS of its link, measurement from p_i^(k) (eq. 3);
-2. hop counts on the disk graph of the current positions; memory buffer update (ℓ = k − h + 1);
+2. hop counts on the disk graph of the current positions; memory buffer update (ℓ = k − h + 1;
+   with injected loss and delay, ``comms.faults``, the newest usable record, :mod:`comms.faults`);
 3. the records new to drone i feed its estimator; p̂_0,i^(k) and its information;
 4. J(p̂_0,i; q_i^(k)) over the records it holds, cost gradient (eq. 6, 13), control step (eq. 14);
 5. PEB (eq. 18) at the true source with the positions known to drone i, estimate error, and
@@ -29,7 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from missions.schema import Mission
+from comms.faults import FaultBuffer
+from missions.schema import Faults, Mission
 from planner import estimator as est
 from planner.agent import plan
 from planner.fim import fisher_information, position_error_bound
@@ -184,6 +186,9 @@ def simulate(
     rec_el = np.full((K, M, N), np.nan)
     rec_los = np.zeros((K, M, N), dtype=bool)
     saved = np.full((M, N, N), -1, dtype=np.int64)
+    fault_model = comms.faults.to_model()
+    # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
+    faults = FaultBuffer(fault_model, mission.seed, range(M), range(N), N, comms.h_max) if fault_model is not None else None
     used = np.full((M, N, N), -1, dtype=np.int64)
     state = est.initial_state((M, N), estimator_config)
     eye = np.eye(N, dtype=bool)
@@ -210,7 +215,7 @@ def simulate(
 
         # 2. Delayed view (hop latency, memory buffer).
         hops = hop_counts(pos, comms.d_hop_m, max_hops=comms.h_max + 1)
-        saved = update_saved_steps(saved, hops, k, comms.h_max)
+        saved = update_saved_steps(saved, hops, k, comms.h_max) if faults is None else faults.update(saved, hops, k)
         have = saved >= 0
         ages[k] = np.where(have, k - saved, -1)
         view_pos = _gather(positions, saved)  # (M, N, N, 3)
@@ -276,8 +281,89 @@ def simulate(
         filtered=filtered,
         record_ages=ages,
         runtime_s=time.perf_counter() - t0,
-        extra={"oracle_estimate": float(oracle_estimate)},
+        extra=_extra(oracle_estimate, float32_positions, faults),
     )
+
+
+def _extra(oracle_estimate: bool, float32_positions: bool, faults: FaultBuffer | None) -> dict[str, float]:
+    """The run's flags and, with injected faults, the fraction of peer records lost."""
+    extra = {"oracle_estimate": float(oracle_estimate), "float32_positions": float(float32_positions)}
+    if faults is not None:
+        extra["fault_lost_fraction"] = faults.lost / max(faults.decided, 1)
+    return extra
+
+
+def without_faults(mission: Mission) -> Mission:
+    """The same mission with ``comms.faults`` off (the baseline of the PEB penalty)."""
+    return mission.model_copy(update={"comms": mission.comms.model_copy(update={"faults": Faults()})})
+
+
+def mean_record_age(result: SimulationResult) -> float:
+    """Mean age k − ℓ (steps) of the peers' records the drones held, over steps, trials and
+    drone pairs i ≠ j that held one (ages grow when the memory buffer falls back)."""
+    ages = result.record_ages
+    n = ages.shape[-1]
+    held = (ages >= 0) & ~np.eye(n, dtype=bool)
+    return float(ages[held].mean()) if held.any() else float("nan")
+
+
+def fault_penalty(mission: Mission, result: SimulationResult, baseline: SimulationResult | None = None) -> dict[str, float | None]:
+    """PEB penalty of the injected loss and delay: ``result`` (run with ``mission.comms.faults``)
+    against the same mission without faults.
+
+    The baseline, unless given, is simulated in this process with the same criterion, trials,
+    steps and flags as ``result``; a distributed run (``result.extra['distributed']``) is
+    compared with the float32-position simulation, which equals a fault-free distributed run to
+    1e-7 m (docs/distributed.md). The PEB is eq. 18 at the true source, averaged over drones and
+    trials per step (:meth:`SimulationResult.peb_stats`).
+
+    Args:
+        mission: the mission as run (with faults).
+        result: its result (in-process or distributed).
+        baseline: the fault-free result, if already computed.
+
+    Returns:
+        JSON-ready dict: the fault settings, final mean PEB (m) with and without faults, their
+        difference (m) and ratio, the same for the mean over steps of the mean PEB, the mean
+        record age (steps) with and without faults, the fraction of peer records lost (in-process
+        runs) and the baseline's run time (s). None where a PEB is undefined (singular views).
+    """
+    if baseline is None:
+        spec = result.spec
+        flags = result.extra
+        baseline = simulate(
+            RunSpec(without_faults(mission), spec.criterion, spec.trials, spec.steps),
+            oracle_estimate=bool(flags.get("oracle_estimate", 0.0)),
+            float32_positions=bool(flags.get("float32_positions", 0.0) or flags.get("distributed", 0.0)),
+        )
+    faulty, clean = result.peb_stats()["mean"], baseline.peb_stats()["mean"]
+    k = min(len(faulty), len(clean))
+    final_f, final_b = float(faulty[k - 1]), float(clean[k - 1])
+    both = np.isfinite(faulty[:k]) & np.isfinite(clean[:k])  # steps where every view is singular are skipped
+    mean_f = float(faulty[:k][both].mean()) if both.any() else float("nan")
+    mean_b = float(clean[:k][both].mean()) if both.any() else float("nan")
+
+    def num(x: float) -> float | None:
+        return x if np.isfinite(x) else None
+
+    out: dict[str, float | None] = {
+        "loss": mission.comms.faults.loss,
+        "extra_delay_steps": float(mission.comms.faults.extra_delay_steps),
+        "final_peb_mean_m": num(final_f),
+        "baseline_final_peb_mean_m": num(final_b),
+        "final_peb_penalty_m": num(final_f - final_b),
+        "final_peb_penalty_ratio": num(final_f / final_b) if final_b > 0 else None,
+        "mean_peb_over_steps_m": num(mean_f),
+        "baseline_mean_peb_over_steps_m": num(mean_b),
+        "mean_peb_penalty_m": num(mean_f - mean_b),
+        "mean_peb_penalty_ratio": num(mean_f / mean_b) if mean_b > 0 else None,
+        "mean_record_age_steps": num(mean_record_age(result)),
+        "baseline_mean_record_age_steps": num(mean_record_age(baseline)),
+        "baseline_runtime_s": round(baseline.runtime_s, 3),
+    }
+    if "fault_lost_fraction" in result.extra:
+        out["lost_fraction"] = float(result.extra["fault_lost_fraction"])
+    return out
 
 
 def safety_margins(

@@ -1,0 +1,189 @@
+"""Injected loss and delay of the peers' records (issue 7), against a brute-force reference.
+
+The reference re-derives everything independently: the decisions from the receiver's
+SeedSequence (its own draws, not comms.faults), hop counts from scipy's shortest paths, and the
+memory buffer by scanning every record ever sent: at step k drone i holds the newest record s
+of drone j with s not lost and s + (h_ij − 1) + d_ijs ≤ k, when 1 ≤ h_ij ≤ h_max, never going
+back in time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import shortest_path
+
+from comms.faults import FaultBuffer, FaultModel
+from comms.latency import DelayedView
+from comms.messages import Observation
+from missions.results import summarize
+from missions.schema import Faults
+from missions.simulator import RunSpec, fault_penalty, mean_record_age, simulate
+from tests.simulator.conftest import paper_mission
+
+FAULT_PURPOSE = 2  # the purpose id of the fault stream, written out: the reference does not import it
+
+
+def ref_decisions(seed: int, trial: int, i: int, steps: int, n: int, loss: float, max_delay: int) -> tuple[np.ndarray, np.ndarray]:
+    """Receiver i's decisions (steps, N): lost, extra delay; N pairs of uniforms per step."""
+    g = np.random.default_rng(np.random.SeedSequence([seed, trial, i, FAULT_PURPOSE]))
+    lost = np.zeros((steps, n), dtype=bool)
+    delay = np.zeros((steps, n), dtype=int)
+    for s in range(steps):
+        for j in range(n):
+            u_loss, u_delay = g.random(), g.random()
+            lost[s, j] = u_loss < loss
+            delay[s, j] = min(int(u_delay * (max_delay + 1)), max_delay)
+    return lost, delay
+
+
+def ref_hops(p: np.ndarray, d_hop: float) -> np.ndarray:
+    """Hop counts (N, N) from scipy's unweighted shortest paths; −1 unreachable."""
+    adj = (np.linalg.norm(p[:, None] - p[None], axis=-1) <= d_hop).astype(float)
+    np.fill_diagonal(adj, 0.0)
+    d = shortest_path(adj, unweighted=True)
+    return np.where(np.isfinite(d), d, -1).astype(int)
+
+
+def ref_saved(positions: np.ndarray, i: int, d_hop: float, h_max: int, lost: np.ndarray, delay: np.ndarray, one_hop: bool = False) -> np.ndarray:
+    """Brute-force saved steps (K, N) of receiver i over positions (K, N, 3)."""
+    steps, n = positions.shape[:2]
+    saved = np.full(n, -1)
+    out = np.empty((steps, n), dtype=int)
+    for k in range(steps):
+        hops = np.where(np.arange(n) == i, 0, 1) if one_hop else ref_hops(positions[k], d_hop)[i]
+        for j in range(n):
+            if j == i:
+                saved[j] = k
+            elif 1 <= hops[j] <= (1 if one_hop else h_max):
+                usable = [s for s in range(k + 1) if not lost[s, j] and s + hops[j] - 1 + delay[s, j] <= k]
+                if usable:
+                    saved[j] = max(saved[j], max(usable))
+        out[k] = saved
+    return out
+
+
+def random_walk(rng: np.random.Generator, steps: int, n: int) -> np.ndarray:
+    """Positions (steps, N, 3) wandering in and out of each other's range (d_hop = 30 m)."""
+    start = rng.uniform(-40.0, 40.0, (n, 3)) * [1.0, 1.0, 0.2]
+    return start + np.cumsum(rng.normal(0.0, 4.0, (steps, n, 3)) * [1.0, 1.0, 0.2], axis=0)
+
+
+def record(j: int, k: int, p: np.ndarray) -> Observation:
+    return Observation(j + 1, k, float(k), tuple(float(v) for v in p), True, False, True, 10.0, float("nan"), float("nan"))
+
+
+@pytest.mark.parametrize(("h_max", "loss", "max_delay", "emulate"), [(3, 0.3, 2, True), (1, 0.2, 0, True), (2, 0.0, 3, True), (1, 0.25, 2, False)])
+def test_delayed_view_with_faults_matches_brute_force(h_max: int, loss: float, max_delay: int, emulate: bool) -> None:
+    """The node's view, fed every record (lockstep: all arrive), equals the reference."""
+    rng = np.random.default_rng(11)
+    steps, n, seed, d_hop = 60, 6, 5, 30.0
+    positions = random_walk(rng, steps, n)
+    for i in (0, 3):
+        lost, delay = ref_decisions(seed, 0, i, steps, n, loss, max_delay)
+        want = ref_saved(positions, i, d_hop, h_max, lost, delay, one_hop=not emulate)
+        view = DelayedView(i, n, d_hop, h_max, emulate=emulate, faults=FaultModel(loss, max_delay), seed=seed)
+        for k in range(steps):
+            for j in range(n):
+                view.add(record(j, k, positions[k, j]))
+                assert view.has(j + 1, k)  # lost records count as arrived for the barrier
+            v = view.advance(k)
+            np.testing.assert_array_equal(v.saved_steps, want[k], err_msg=f"receiver {i}, step {k}")
+            for j, rec in enumerate(v.records):
+                assert (rec is None) == (want[k, j] < 0)
+                if rec is not None:
+                    assert rec.step == want[k, j]
+                    np.testing.assert_array_equal(rec.position_m, positions[want[k, j], j])
+        # The faults did something: some held records are older than the no-fault rule's.
+        if loss > 0 or max_delay > 0:
+            assert (np.arange(steps)[:, None] - want).max() >= 2
+
+
+def test_zero_faults_buffer_equals_the_paper_rule() -> None:
+    """loss 0, no delay: the fault buffer is planner.network's ℓ = k − h + 1 rule."""
+    from planner.network import hop_counts, update_saved_steps
+
+    rng = np.random.default_rng(3)
+    steps, n, h_max = 50, 7, 3
+    positions = random_walk(rng, steps, n)[:, None]  # (K, 1 trial, N, 3)
+    buf = FaultBuffer(FaultModel(0.0, 0), 1, [0], range(n), n, h_max)
+    a = b = np.full((1, n, n), -1, dtype=np.int64)
+    for k in range(steps):
+        hops = hop_counts(positions[k], 30.0, max_hops=h_max + 1)
+        a, b = buf.update(a, hops, k), update_saved_steps(b, hops, k, h_max)
+        np.testing.assert_array_equal(a, b)
+
+
+def test_fault_settings_are_validated() -> None:
+    with pytest.raises(ValueError, match=r"loss: expected a probability in \[0, 1\), found 1.0"):
+        FaultModel(1.0, 0)
+    with pytest.raises(ValueError, match="max_extra_delay_steps"):
+        FaultModel(0.1, -1)
+    lost, delay = FaultModel(0.25, 3).decide([[0.2, 0.0], [0.25, 0.999999], [0.9, 0.5]])
+    np.testing.assert_array_equal(lost, [True, False, False])
+    np.testing.assert_array_equal(delay, [0, 3, 2])
+
+
+def test_simulator_without_faults_is_unchanged(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Forcing the fault machinery on with zero loss and delay changes no bit of the run."""
+    m = paper_mission("heterogeneous")
+    off = simulate(RunSpec(m, "A", 2, 40))
+    monkeypatch.setattr(Faults, "to_model", lambda self: FaultModel(0.0, 0))
+    on = simulate(RunSpec(m, "A", 2, 40))
+    for name in ("positions_m", "estimates_m", "peb_m", "record_ages"):
+        np.testing.assert_array_equal(getattr(on, name), getattr(off, name), err_msg=name)
+
+
+def test_simulator_faults_match_brute_force() -> None:
+    """Every drone's record ages in the vectorised simulator equal the brute-force buffer over
+    the simulated positions, with each receiver's own decisions (trial by trial)."""
+    loss, max_delay = 0.3, 2
+    m = paper_mission("heterogeneous", **{"comms.faults.loss": loss, "comms.faults.extra_delay_steps": max_delay, "comms.h_max": 2, "comms.d_hop_m": 40.0})
+    res = simulate(RunSpec(m, "A", 2, 40))
+    steps, trials, n = res.record_ages.shape[:3]
+    for trial in range(trials):
+        for i in range(n):
+            lost, delay = ref_decisions(m.seed, trial, i, steps, n, loss, max_delay)
+            want = ref_saved(res.positions_m[:steps, trial], i, m.comms.d_hop_m, m.comms.h_max, lost, delay)
+            ages = np.where(want >= 0, np.arange(steps)[:, None] - want, -1)
+            np.testing.assert_array_equal(res.record_ages[:, trial, i], ages, err_msg=f"trial {trial}, drone {i}")
+
+
+@pytest.fixture(scope="module")
+def lossy_and_baseline() -> tuple:
+    """Heterogeneous paper mission, 20 % loss, 6 trials x 200 steps, and its fault-free run."""
+    m = paper_mission("heterogeneous", **{"comms.faults.loss": 0.2})
+    res = simulate(RunSpec(m, "A", 6, 200))
+    return m, res, fault_penalty(m, res)
+
+
+def test_twenty_percent_loss_completes_and_falls_back(lossy_and_baseline: tuple) -> None:
+    m, res, pen = lossy_and_baseline
+    assert np.isfinite(res.positions_m).all() and res.positions_m.shape[0] == 201
+    assert res.extra["fault_lost_fraction"] == pytest.approx(0.2, abs=0.01)
+    # h_max = 1: without faults every record held is current; with loss, saved ones age.
+    assert pen["baseline_mean_record_age_steps"] == 0.0
+    assert pen["mean_record_age_steps"] == pytest.approx(0.25, abs=0.05)  # 0.2 / (1 − 0.2) in range
+    assert res.record_ages.max() >= 3
+    assert sum(res.violations().values()) == 0
+
+
+def test_twenty_percent_loss_costs_peb_on_average(lossy_and_baseline: tuple) -> None:
+    """Fewer fresh records: a higher PEB on average over trials and steps."""
+    m, res, pen = lossy_and_baseline
+    assert pen["mean_peb_penalty_m"] > 0.0
+    assert pen["mean_peb_penalty_ratio"] > 1.0
+    assert pen["final_peb_penalty_ratio"] == pytest.approx(pen["final_peb_mean_m"] / pen["baseline_final_peb_mean_m"])
+    s = summarize(res, pen)
+    assert s["faults"] is pen and s["faults"]["loss"] == 0.2
+
+
+def test_summary_reports_the_penalty_only_with_faults() -> None:
+    m = paper_mission("heterogeneous", **{"comms.faults.extra_delay_steps": 2})
+    res = simulate(RunSpec(m, "A", 1, 30))
+    s = summarize(res)  # computes its own baseline
+    base = simulate(RunSpec(paper_mission("heterogeneous"), "A", 1, 30))
+    assert s["faults"]["baseline_final_peb_mean_m"] == pytest.approx(float(base.peb_stats()["mean"][-1]), rel=0, abs=0)
+    assert s["faults"]["extra_delay_steps"] == 2
+    assert s["faults"]["mean_record_age_steps"] == pytest.approx(mean_record_age(res))
+    assert "faults" not in summarize(base)
