@@ -59,6 +59,20 @@ def register(subparsers: Any) -> None:
     p.add_argument("--accel-max", type=float, help="maximum acceleration (m/s^2, default 5)")
     p.add_argument("--guided-timeout", type=float, default=3.0, help="GUIDED velocity timeout (s, default 3)")
     p.add_argument("--physics-hz", type=float, default=50.0, help="physics rate (Hz, default 50)")
+    p.add_argument(
+        "--ready-after",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="sim seconds from boot until GPS fix, EKF position, home and EKF origin (a real copter's "
+        "start-up; arming is refused until then; default 0: ready at boot; real-time clock only)",
+    )
+    p.add_argument(
+        "--ekf-status-hz",
+        type=float,
+        default=2.0,
+        help="EKF_STATUS_REPORT rate, ArduPilot flavour (Hz of sim time, default 2 as ArduPilot's EXTRA3; 0: on request)",
+    )
     p.add_argument("--lag", type=float, default=0.0, help="first-order velocity lag (s, pointmass)")
     p.add_argument("--wind", metavar="WX,WY,WZ", help="constant wind, ENU m/s (pointmass)")
     p.add_argument("--noise", type=float, default=0.0, help="reported position noise std (m)")
@@ -131,6 +145,14 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         value = getattr(args, name)
         if not (math.isfinite(value) and value > 0):
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {value}")
+    for name in ("ready_after", "ekf_status_hz"):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise UsageError(f"--{name.replace('_', '-')}: expected a number >= 0, found {value}")
+    if args.ready_after > 0 and args.lockstep:
+        raise UsageError("--ready-after: needs the real-time clock (in lockstep, sim time only advances once the planners fly)")
+    if args.ready_after > 0 and args.airborne:
+        raise UsageError("--ready-after: a vehicle booting --airborne is ready at boot")
     start = _floats(args.start, 3, "--start")
     wind = _floats(args.wind, 3, "--wind") or (0.0, 0.0, 0.0)
     fence_z = _floats(args.fence_z, 2, "--fence-z")
@@ -224,6 +246,8 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
                 seed=seed,
                 signing_key_path=key,
                 tlog_path=tlog,
+                ready_after_s=args.ready_after,
+                ekf_status_hz=args.ekf_status_hz,
             )
         except ValueError as exc:
             raise UsageError(f"vehicle {sysid}: {exc}") from None

@@ -178,6 +178,12 @@ class VehicleConfig:
             with a key, unsigned incoming frames are refused.
         tlog_path: write every frame in and out to this .tlog (None: no log).
         battery_drain_per_s: fraction of battery used per flying second (0..1).
+        ready_after_s: sim seconds from boot until the vehicle can fly, as a real copter
+            that aligns its EKF and waits for a GPS fix (0: ready at boot). Before that:
+            no GPS fix, EKF without position, no home and no EKF origin, arming refused
+            with the PreArm reason (see docs/vehicle_sim.md, "Readiness start-up").
+        ekf_status_hz: default rate of EKF_STATUS_REPORT (Hz, sim time; ArduPilot flavour
+            only, as its EXTRA3 stream; 0: only on request).
     """
 
     sysid: int = 1
@@ -201,6 +207,8 @@ class VehicleConfig:
     signing_key_path: str | None = None
     tlog_path: str | None = None
     battery_drain_per_s: float = 1.0 / 1800.0
+    ready_after_s: float = 0.0
+    ekf_status_hz: float = 2.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.sysid, int) and 1 <= self.sysid <= 255):
@@ -230,6 +238,14 @@ class VehicleConfig:
             raise ValueError(f"VehicleConfig.position_noise_m must be >= 0 m, found {self.position_noise_m!r}")
         if not (0.0 <= self.battery_drain_per_s < 1.0):
             raise ValueError(f"VehicleConfig.battery_drain_per_s must be in [0, 1), found {self.battery_drain_per_s!r}")
+        if not (math.isfinite(self.ready_after_s) and self.ready_after_s >= 0.0):
+            raise ValueError(f"VehicleConfig.ready_after_s must be a finite number >= 0 s, found {self.ready_after_s!r}")
+        if self.airborne and self.ready_after_s > 0.0:
+            raise ValueError(
+                f"VehicleConfig: a vehicle booting airborne is ready at boot; ready_after_s must be 0, found {self.ready_after_s!r}"
+            )
+        if not (math.isfinite(self.ekf_status_hz) and self.ekf_status_hz >= 0.0):
+            raise ValueError(f"VehicleConfig.ekf_status_hz must be >= 0 Hz, found {self.ekf_status_hz!r}")
         for name, hz in self.rates_hz:
             if not (math.isfinite(hz) and hz >= 0.0):
                 raise ValueError(f"VehicleConfig.rates_hz[{name!r}] must be >= 0 Hz, found {hz!r}")

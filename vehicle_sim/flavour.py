@@ -32,12 +32,15 @@ class Mode:
         name: the name ground stations show (pymavlink's mode maps).
         behaviour: the internal behaviour, see the module doc.
         armable: arming is allowed in this mode.
+        needs_position: the mode needs a position estimate (GPS fix, EKF position): refused
+            while the vehicle is not ready (ArduPilot ``requires_GPS()``, PX4 mode requirements).
     """
 
     custom_mode: int
     name: str
     behaviour: Behaviour
     armable: bool
+    needs_position: bool = False
 
 
 def px4_custom_mode(main: int, sub: int = 0) -> int:
@@ -48,26 +51,26 @@ def px4_custom_mode(main: int, sub: int = 0) -> int:
 ARDUPILOT_MODES: tuple[Mode, ...] = (
     Mode(0, "STABILIZE", "hold", True),
     Mode(2, "ALT_HOLD", "hold", True),
-    Mode(3, "AUTO", "mission", False),
-    Mode(4, "GUIDED", "guided", True),
-    Mode(5, "LOITER", "hold", True),
-    Mode(6, "RTL", "rtl", False),
+    Mode(3, "AUTO", "mission", False, True),
+    Mode(4, "GUIDED", "guided", True, True),
+    Mode(5, "LOITER", "hold", True, True),
+    Mode(6, "RTL", "rtl", False, True),
     Mode(9, "LAND", "land", False),
-    Mode(16, "POSHOLD", "hold", True),
-    Mode(17, "BRAKE", "hold", False),
+    Mode(16, "POSHOLD", "hold", True, True),
+    Mode(17, "BRAKE", "hold", False, True),
 )
 
 PX4_MODES: tuple[Mode, ...] = (
     Mode(px4_custom_mode(1), "MANUAL", "hold", True),
     Mode(px4_custom_mode(2), "ALTCTL", "hold", True),
-    Mode(px4_custom_mode(3), "POSCTL", "hold", True),
+    Mode(px4_custom_mode(3), "POSCTL", "hold", True, True),
     Mode(px4_custom_mode(7), "STABILIZED", "hold", True),
-    Mode(px4_custom_mode(4, 2), "TAKEOFF", "takeoff", True),
-    Mode(px4_custom_mode(4, 3), "LOITER", "hold", True),
-    Mode(px4_custom_mode(4, 4), "MISSION", "mission", False),
-    Mode(px4_custom_mode(4, 5), "RTL", "rtl", False),
+    Mode(px4_custom_mode(4, 2), "TAKEOFF", "takeoff", True, True),
+    Mode(px4_custom_mode(4, 3), "LOITER", "hold", True, True),
+    Mode(px4_custom_mode(4, 4), "MISSION", "mission", False, True),
+    Mode(px4_custom_mode(4, 5), "RTL", "rtl", False, True),
     Mode(px4_custom_mode(4, 6), "LAND", "land", False),
-    Mode(px4_custom_mode(6), "OFFBOARD", "guided", True),
+    Mode(px4_custom_mode(6), "OFFBOARD", "guided", True, True),
 )
 
 

@@ -44,13 +44,41 @@ PX4_TAKEOFF_ALT_DEFAULT_M = 2.5
 MAV_CMD_DO_SET_GLOBAL_ORIGIN = 611
 ORIGIN_ALT_MAX_M = (2**31 - 1) / 1000.0  # GPS_GLOBAL_ORIGIN.altitude is int32 mm
 
+# EKF_STATUS_REPORT.flags (ArduPilot EKF_STATUS_FLAGS).
+EKF_ATTITUDE = 1
+EKF_VELOCITY_HORIZ = 2
+EKF_VELOCITY_VERT = 4
+EKF_POS_HORIZ_REL = 8
+EKF_POS_HORIZ_ABS = 16
+EKF_POS_VERT_ABS = 32
+EKF_CONST_POS_MODE = 128
+EKF_PRED_POS_HORIZ_REL = 256
+EKF_PRED_POS_HORIZ_ABS = 512
+#: Flags of an EKF that has aligned its attitude but has no position (no GPS yet).
+EKF_FLAGS_ALIGNED = EKF_ATTITUDE | EKF_CONST_POS_MODE
+#: Flags of an EKF using GPS on the ground (no terrain height: no POS_VERT_AGL).
+EKF_FLAGS_READY = (
+    EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_REL | EKF_POS_HORIZ_ABS
+    | EKF_POS_VERT_ABS | EKF_PRED_POS_HORIZ_REL | EKF_PRED_POS_HORIZ_ABS
+)
+#: Start-up stages: EKF initialising, attitude aligned (no GPS fix), ready (GPS, home, origin).
+STAGES: tuple[str, ...] = ("init", "aligned", "ready")
+#: ArduPilot copter FS_GCS_ENABLE -> action on GCS heartbeat loss (no SmartRTL path and no
+#: DO_LAND_START in the simulator: SmartRTL falls back as ArduPilot does, 6 is RTL).
+FS_GCS_ACTIONS: dict[int, str | None] = {0: None, 1: "rtl", 2: "rtl", 3: "rtl", 4: "land", 5: "land", 6: "rtl"}
+#: PX4 COM_OBL_RC_ACT -> action on offboard loss. Position/Altitude/Manual need an RC
+#: transmitter, which a simulated vehicle has not: PX4 then falls back to Hold.
+PX4_OBL_ACTIONS: dict[int, str] = {0: "hold", 1: "hold", 2: "hold", 3: "rtl", 4: "land", 5: "hold", 6: "terminate", 7: "terminate"}
+FS_GCS_TIMEOUT_DEFAULT_S = 5.0
+SYSID_MYGCS_DEFAULT = 255
+
 # REQUEST_DATA_STREAM groups (ArduPilot's assignment of our messages).
 DATA_STREAMS: dict[int, tuple[str, ...]] = {
     2: ("SYS_STATUS", "GPS_RAW_INT", "SYSTEM_TIME"),  # EXTENDED_STATUS
     6: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),  # POSITION
     10: ("ATTITUDE",),  # EXTRA1
     11: ("VFR_HUD",),  # EXTRA2
-    12: ("BATTERY_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION"),  # EXTRA3
+    12: ("BATTERY_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "EKF_STATUS_REPORT"),  # EXTRA3
 }
 
 
@@ -63,6 +91,8 @@ class VehicleState:
         position_enu_m, velocity_enu_mps: true state (3,) each.
         params: every parameter value. intervals_s: telemetry intervals (None = off).
         origin: EKF origin. fence_enabled: fence on.
+        stage: start-up stage (``"init"``, ``"aligned"``, ``"ready"``, see :data:`STAGES`).
+        gcs_failsafe: the ArduPilot GCS failsafe is active.
     """
 
     t_s: float
@@ -76,6 +106,8 @@ class VehicleState:
     intervals_s: tuple[tuple[str, float | None], ...]
     origin: Origin
     fence_enabled: bool
+    stage: str = "ready"
+    gcs_failsafe: bool = False
 
 
 @dataclass
@@ -117,6 +149,16 @@ class SimVehicle:
         self.guided_timeout_s = config.guided_timeout_s
         self.offboard_loss_s = config.offboard_loss_s
         self.rtl_alt_m = RTL_ALT_DEFAULT_M
+        self.ready_after_s = config.ready_after_s
+        self.stage = "ready" if config.ready_after_s <= 0.0 else "init"
+        self.origin_set = self.stage == "ready"  # EKF origin known (ready, or set by a GCS)
+        # Failsafe parameters (ArduPilot FS_GCS_*, SYSID_MYGCS; PX4 COM_OBL_RC_ACT).
+        self.fs_gcs_enable = 0.0
+        self.fs_gcs_timeout_s = FS_GCS_TIMEOUT_DEFAULT_S
+        self.sysid_mygcs = float(SYSID_MYGCS_DEFAULT)
+        self.gcs_last_seen_t: float | None = None  # sim time of the last SYSID_MYGCS heartbeat
+        self.gcs_failsafe = False
+        self.offboard_loss_action = 0.0
         self.takeoff_alt_m = PX4_TAKEOFF_ALT_DEFAULT_M
         self.sysid_param = float(config.sysid)
         self.h = 1.0 / config.physics_hz
@@ -156,6 +198,8 @@ class SimVehicle:
         self.defaults: dict[str, float | None] = {}
         for name, hz in config.rates_hz:
             self.defaults[name] = 1.0 / hz if hz > 0 else None
+        if config.flavour == "ardupilot":  # ArduPilot's EXTRA3 stream; PX4 has no such message
+            self.defaults["EKF_STATUS_REPORT"] = 1.0 / config.ekf_status_hz if config.ekf_status_hz > 0 else None
         self.intervals = dict(self.defaults)
         self._due: dict[str, float] = {name: 0.0 for name in self.intervals}
         self.params = self._build_params()
@@ -213,6 +257,70 @@ class SimVehicle:
         if text:
             self.statustext(severity, text)
         return result
+
+    # ------------------------------------------------------------------ readiness
+
+    @property
+    def ready(self) -> bool:
+        """True once the vehicle can fly: GPS 3D fix, EKF position, home and EKF origin set."""
+        return self.stage == "ready"
+
+    def _update_readiness(self) -> None:
+        """Advance the start-up stages with sim time: EKF attitude aligned at half of
+        ``ready_after_s``, GPS fix, EKF position, home and origin at ``ready_after_s``."""
+        if self.stage == "ready":
+            return
+        if self.t + 1e-9 >= self.ready_after_s:
+            self._become_ready()
+        elif self.stage == "init" and self.t + 1e-9 >= 0.5 * self.ready_after_s:
+            self.stage = "aligned"
+            if self.config.flavour == "ardupilot":
+                self.statustext(6, "EKF3 IMU0 tilt alignment complete")
+                self.statustext(6, "EKF3 IMU0 MAG0 initial yaw alignment complete")
+
+    def _become_ready(self) -> None:
+        """GPS fix, EKF position, home and origin set: report them at once, position first
+        (a planner that sees home and origin then already has a valid position), then
+        HOME_POSITION and GPS_GLOBAL_ORIGIN (ArduPilot's AP_AHRS::set_home sends both)."""
+        self.stage = "ready"
+        self.origin_set = True
+        names = ["GPS_RAW_INT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYS_STATUS"]
+        if "EKF_STATUS_REPORT" in self.defaults:
+            names.append("EKF_STATUS_REPORT")
+        for name in names:
+            self.link.send(self._telemetry_builder(name)())
+        if self.config.flavour == "ardupilot":
+            self.statustext(6, "EKF3 IMU0 origin set")
+            self.statustext(6, "EKF3 IMU0 is using GPS")
+        self.link.send(self.msg_home_position())
+        self.link.send(self.msg_gps_global_origin())
+
+    def _not_ready_reason(self) -> str | None:
+        """The pre-arm failure of a vehicle that is not ready yet (ArduPilot "PreArm: ...",
+        PX4 "Preflight Fail: ..."), or None when ready."""
+        if self.stage == "ready":
+            return None
+        if self.config.flavour == "px4":
+            if self.stage == "init":
+                return "Preflight Fail: Attitude not valid"
+            return "Preflight Fail: GPS fix too low"
+        if self.stage == "init":
+            return "PreArm: EKF attitude is bad"
+        return "PreArm: Need 3D Fix"
+
+    def _available(self, name: str) -> bool:
+        """Whether telemetry message ``name`` can be sent now: before the vehicle is ready
+        there is no home, no local position and (unless a GCS set one) no EKF origin; PX4
+        publishes no global position either (ArduPilot sends GLOBAL_POSITION_INT with zeros)."""
+        if self.stage == "ready":
+            return True
+        if name in ("HOME_POSITION", "LOCAL_POSITION_NED"):
+            return False
+        if name == "GPS_GLOBAL_ORIGIN":
+            return self.origin_set
+        if name == "GLOBAL_POSITION_INT":
+            return self.config.flavour == "ardupilot"
+        return True
 
     # ------------------------------------------------------------------ fence
 
@@ -277,6 +385,10 @@ class SimVehicle:
         """Switch to ``mode``; return None or the reason for refusing."""
         if mode.behaviour == "mission":
             return "Mode change failed: no mission"
+        if mode.needs_position and not self.ready and mode.custom_mode != self.mode.custom_mode:
+            if self.config.flavour == "px4":
+                return f"Switching to {mode.name} is currently not possible"
+            return f"Mode change to {mode.name} failed: requires position"
         if mode.behaviour == "guided" and self.config.flavour == "px4" and not self._offboard_stream_ok():
             return "Offboard: no setpoint stream >2Hz"
         if mode.behaviour in ("land", "rtl") and not self.flying:
@@ -368,12 +480,63 @@ class SimVehicle:
                     self.guided_kind = "position"
                     self.statustext(4, "Guided: velocity timeout, holding")
             elif self.t - (self.setpoint_times[-1] if self.setpoint_times else -math.inf) > self.offboard_loss_s:
-                self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
                 self.guided_kind = ""
-                self._hold_here()
-                self.statustext(2, "Failsafe: offboard lost, holding")
+                self._offboard_failsafe()
+        self._check_gcs_failsafe()
         if self.flying:
             self.battery = max(0.0, self.battery - self.config.battery_drain_per_s * self.h)
+
+    def _offboard_failsafe(self) -> None:
+        """PX4 offboard loss (no setpoint for COM_OF_LOSS_T): the COM_OBL_RC_ACT action."""
+        action = PX4_OBL_ACTIONS.get(int(self.offboard_loss_action), "hold")
+        if action == "hold":
+            self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
+            self._hold_here()
+            self.statustext(2, "Failsafe: offboard lost, holding")
+        elif action == "terminate":
+            self.statustext(0, "Failsafe: offboard lost, motors off")
+            self._motors_off()
+        else:
+            self.statustext(2, f"Failsafe: offboard lost, {'returning' if action == 'rtl' else 'landing'}")
+            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
+
+    def _motors_off(self) -> None:
+        """Disarm now, in the air too (flight termination): the mass drops to the ground."""
+        self.armed = False
+        if self.flying:
+            self.position[2] = self.config.ground_z_m
+            self._touchdown()
+
+    def _on_heartbeat(self, msg: Any) -> None:
+        """ArduPilot: a heartbeat from SYSID_MYGCS keeps the GCS failsafe away (or clears it)."""
+        if self.config.flavour != "ardupilot" or msg.get_srcSystem() != int(self.sysid_mygcs):
+            return
+        self.gcs_last_seen_t = self.t
+        if self.gcs_failsafe:
+            self.gcs_failsafe = False
+            self.statustext(4, "GCS Failsafe Cleared")
+
+    def _check_gcs_failsafe(self) -> None:
+        """ArduPilot copter GCS failsafe: FS_GCS_ENABLE set, a SYSID_MYGCS heartbeat seen once,
+        none for FS_GCS_TIMEOUT (sim s): disarmed, nothing; landed, disarm; landing, go on
+        landing; otherwise the FS_GCS_ENABLE action (RTL or LAND). Once per loss."""
+        if self.config.flavour != "ardupilot" or self.gcs_failsafe or self.gcs_last_seen_t is None:
+            return
+        action = FS_GCS_ACTIONS.get(int(self.fs_gcs_enable))
+        if action is None or self.t - self.gcs_last_seen_t <= self.fs_gcs_timeout_s:
+            return
+        self.gcs_failsafe = True
+        if not self.armed:
+            self.statustext(4, "GCS Failsafe")
+        elif not self.flying:
+            self.statustext(4, "GCS Failsafe - Disarming")
+            self._motors_off()
+            self.statustext(6, "Disarming motors")
+        elif self.mode.behaviour == "land":
+            self.statustext(4, "GCS Failsafe - Continuing Landing")
+        else:
+            self.statustext(4, "GCS Failsafe")
+            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
 
     def _physics_to(self, t_next: float) -> None:
         h = t_next - self.t
@@ -381,6 +544,7 @@ class SimVehicle:
             return
         self.pm.step(h, t_next)
         self.t = t_next
+        self._update_readiness()
         if self.pm.fenced:
             self.statustext(4, "Fence: stopped at boundary", key="fence_motion")
         self._update_logic()
@@ -477,7 +641,7 @@ class SimVehicle:
             m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(
                 m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version
             ),
-            m.MAV_CMD_GET_HOME_POSITION: self._reply_with(m.MAV_CMD_GET_HOME_POSITION, self.msg_home_position),
+            m.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home_position,
             m.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
             m.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
             m.MAV_CMD_DO_FENCE_ENABLE: self._cmd_fence_enable,
@@ -499,6 +663,9 @@ class SimVehicle:
                 self._ack(msg, command, m.MAV_RESULT_FAILED, "Command: internal error", 3)
 
     def _prearm_failure(self) -> str | None:
+        not_ready = self._not_ready_reason()
+        if not_ready:
+            return not_ready
         if not self.mode.armable:
             return f"PreArm: mode {self.mode.name} not armable"
         if self.config.flavour == "px4" and self.mode.behaviour == "guided" and not self._offboard_stream_ok():
@@ -519,7 +686,7 @@ class SimVehicle:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_ACCEPTED)
             reason = None if p[1] == FORCE_ARM_MAGIC else self._prearm_failure()
             if reason:
-                return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, reason, 3)
+                return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, reason, 2)
             self.armed = True
             self.statustext(6, "Arming motors")
             return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_ACCEPTED)
@@ -545,6 +712,8 @@ class SimVehicle:
             return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: vehicle not armed")
         if self.flying:
             return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: already flying")
+        if not self.ready:
+            return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: no position estimate")
         alt = float(p[6])
         if math.isinf(alt):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude is not finite")
@@ -690,9 +859,28 @@ class SimVehicle:
         builder = builders.get(mid) or (self._telemetry_builder(name) if name else None)
         if builder is None:
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, f"Request: message {mid} not available")
+        cls = m.mavlink_map.get(mid)
+        if cls is not None and not self._available(cls.msgname):
+            # Not available yet (no home, no origin): ArduPilot accepts the request and its
+            # sender sends nothing; PX4's stream cannot send and the request is DENIED.
+            if self.config.flavour == "px4":
+                return self._ack(msg, cmd, m.MAV_RESULT_DENIED)
+            return self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
         self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
         self.link.send(builder())
         return m.MAV_RESULT_ACCEPTED
+
+    def _cmd_get_home_position(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
+        """MAV_CMD_GET_HOME_POSITION: HOME_POSITION and GPS_GLOBAL_ORIGIN (as ArduPilot);
+        without a home yet ArduPilot answers FAILED, PX4 DENIED."""
+        m = self.m
+        cmd = m.MAV_CMD_GET_HOME_POSITION
+        if not self.ready:
+            return self._ack(msg, cmd, m.MAV_RESULT_DENIED if self.config.flavour == "px4" else m.MAV_RESULT_FAILED)
+        self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
+        self.link.send(self.msg_home_position())
+        self.link.send(self.msg_gps_global_origin())
+        return int(m.MAV_RESULT_ACCEPTED)
 
     def _reply_with(self, command: int, builder: Callable[[], Any]) -> Callable[[Any, tuple[float, ...], int | None], int]:
         """Handler of a command answered by ACCEPTED followed by one message."""
@@ -791,6 +979,7 @@ class SimVehicle:
         if not abs(origin.alt_m) <= ORIGIN_ALT_MAX_M:
             return "Origin: altitude out of range"
         self.ekf = self.world if origin == self.config.origin else LocalFrame(origin)
+        self.origin_set = True
         self.link.send(self.msg_gps_global_origin())
         return None
 
@@ -1120,6 +1309,15 @@ class SimVehicle:
         def read_only(_v: float) -> str | None:
             return "read-only"
 
+        def integer(attr: str, lo: int, hi: int) -> Callable[[float], str | None]:
+            def _set(v: float) -> str | None:
+                if not (math.isfinite(v) and v == int(v) and lo <= v <= hi):
+                    return f"must be an integer in {lo}..{hi}"
+                setattr(self, attr, float(v))
+                return None
+
+            return _set
+
         home_z = lambda: float(self.home[2])  # noqa: E731
         z_max_get = lambda: self.fence.z_max_m - home_z()  # noqa: E731
         z_min_get = lambda: self.fence.z_min_m - home_z()  # noqa: E731
@@ -1142,6 +1340,7 @@ class SimVehicle:
                 P("MPC_LAND_SPEED", False, lambda: self.limits.land_speed_mps, setter(lim, "land_speed_mps", 1.0)),
                 P("MPC_TKO_SPEED", False, lambda: self.limits.takeoff_speed_mps, setter(lim, "takeoff_speed_mps", 1.0)),
                 P("COM_OF_LOSS_T", False, lambda: self.offboard_loss_s, scalar("offboard_loss_s", 0.1, 60.0)),
+                P("COM_OBL_RC_ACT", True, lambda: self.offboard_loss_action, integer("offboard_loss_action", 0, 7)),
                 P("MIS_TAKEOFF_ALT", False, lambda: self.takeoff_alt_m, scalar("takeoff_alt_m", 0.5, 1000.0)),
                 P("RTL_RETURN_ALT", False, lambda: self.rtl_alt_m, scalar("rtl_alt_m", 0.0, 1000.0)),
                 P("GF_MAX_VER_DIST", False, z_max_get, fence_alt("z_max_m", True)),
@@ -1159,6 +1358,9 @@ class SimVehicle:
                 P("LAND_SPEED", False, lambda: self.limits.land_speed_mps * 100, setter(lim, "land_speed_mps", 0.01)),
                 P("PILOT_SPEED_UP", False, lambda: self.limits.takeoff_speed_mps * 100, setter(lim, "takeoff_speed_mps", 0.01)),
                 P("GUID_TIMEOUT", False, lambda: self.guided_timeout_s, scalar("guided_timeout_s", 0.1, 5.0)),
+                P("FS_GCS_ENABLE", True, lambda: self.fs_gcs_enable, integer("fs_gcs_enable", 0, 6)),
+                P("FS_GCS_TIMEOUT", False, lambda: self.fs_gcs_timeout_s, scalar("fs_gcs_timeout_s", 2.0, 120.0)),
+                P("SYSID_MYGCS", True, lambda: self.sysid_mygcs, integer("sysid_mygcs", 1, 255)),
                 P("RTL_ALT", False, lambda: self.rtl_alt_m * 100, lambda v: scalar("rtl_alt_m", 0.0, 1000.0)(v / 100)),
                 P("FENCE_ALT_MAX", False, z_max_get, fence_alt("z_max_m", True)),
                 P("FENCE_ALT_MIN", False, z_min_get, fence_alt("z_min_m", True)),
@@ -1235,7 +1437,8 @@ class SimVehicle:
                 continue
             due = self._due[name]
             if t + 1e-9 >= due or name in forced:
-                self.link.send(self._telemetry_builder(name)())
+                if self._available(name):
+                    self.link.send(self._telemetry_builder(name)())
                 nxt = due + iv
                 self._due[name] = nxt if nxt > t else t + iv
 
@@ -1285,6 +1488,10 @@ class SimVehicle:
         if self.fence.enabled:
             present |= m.MAV_SYS_STATUS_GEOFENCE
         health = sensors | (m.MAV_SYS_STATUS_GEOFENCE if self.fence.enabled else 0)
+        if not self.ready:  # no GPS fix; the EKF (AHRS) is unhealthy until its attitude aligns
+            health &= ~m.MAV_SYS_STATUS_SENSOR_GPS
+            if self.stage == "init":
+                health &= ~m.MAV_SYS_STATUS_AHRS
         if self._prearm_failure() is None or self.armed:
             health |= m.MAV_SYS_STATUS_PREARM_CHECK
         if not self.healthy:
@@ -1302,7 +1509,11 @@ class SimVehicle:
 
     def msg_global_position_int(self) -> Any:
         """GLOBAL_POSITION_INT: lat/lon 1e7 deg, alt mm AMSL, relative_alt mm above home,
-        velocity cm/s NED, heading cdeg."""
+        velocity cm/s NED, heading cdeg. Before the vehicle is ready (ArduPilot only; PX4
+        sends none): all zeros, as ArduPilot sends its never-set location."""
+        if not self.ready:
+            hdg0 = int(round(math.degrees(self.yaw_rad) % 360.0 * 100)) % 36000
+            return self.m.MAVLink_global_position_int_message(self.time_boot_ms(), 0, 0, 0, 0, 0, 0, 0, hdg0)
         p = self._reported_position()
         lat, lon, alt = self.world.enu_to_geodetic(float(p[0]), float(p[1]), float(p[2]))
         vn, ve, vd = self.vel_enu_to_ned(self.pm.velocity)
@@ -1333,7 +1544,11 @@ class SimVehicle:
         return self.m.MAVLink_attitude_message(self.time_boot_ms(), roll, pitch, self.yaw_rad, 0.0, 0.0, 0.0)
 
     def msg_gps_raw_int(self) -> Any:
-        """GPS_RAW_INT: 3D fix, 16 satellites."""
+        """GPS_RAW_INT: 3D fix, 16 satellites; before the vehicle is ready no fix and no
+        satellites (fix_type 0 while the EKF initialises, then 1), position unknown (0)."""
+        if not self.ready:
+            fix = self.m.GPS_FIX_TYPE_NO_GPS if self.stage == "init" else self.m.GPS_FIX_TYPE_NO_FIX
+            return self.m.MAVLink_gps_raw_int_message(int(round(self.t * 1e6)), fix, 0, 0, 0, 65535, 65535, 0, 65535, 0)
         p = self._reported_position()
         lat, lon, alt = self.world.enu_to_geodetic(float(p[0]), float(p[1]), float(p[2]))
         v = self.pm.velocity
@@ -1351,6 +1566,18 @@ class SimVehicle:
             cog,
             16,
         )
+
+    def msg_ekf_status_report(self) -> Any:
+        """EKF_STATUS_REPORT (ArduPilot): flags (EKF_STATUS_FLAGS) and normalised variances
+        (test ratios, 1 = at the innovation gate): 0 while the EKF initialises, attitude with
+        constant-position mode once aligned, everything but terrain height when ready."""
+        if self.stage == "ready":
+            flags, var = EKF_FLAGS_READY, 0.05
+        elif self.stage == "aligned":
+            flags, var = EKF_FLAGS_ALIGNED, 0.5
+        else:
+            flags, var = 0, 0.0
+        return self.m.MAVLink_ekf_status_report_message(flags, var, var, var, var, 0.0)
 
     def msg_home_position(self) -> Any:
         """HOME_POSITION: geodetic and local NED."""
@@ -1463,6 +1690,8 @@ class SimVehicle:
             intervals_s=tuple(self.intervals.items()),
             origin=self.ekf.origin,
             fence_enabled=self.fence.enabled,
+            stage=self.stage,
+            gcs_failsafe=self.gcs_failsafe,
         )
 
 
