@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -167,6 +168,11 @@ class EstimatorConfig:
             :func:`update`, step 6.
         recheck_threshold: PL cost drop (≈ χ² units) that the PL solution must achieve over
             the current estimate before the estimate is moved there.
+        consistency_threshold: χ² threshold (3 degrees of freedom) of the score test of the
+            recent records against the estimate (None disables it; see :func:`update`,
+            step 7). 25 ≈ the 1.5·10⁻⁵ upper quantile of χ²₃.
+        consistency_forgetting: memory λ_c ∈ (0, 1) of the recent-records score, per call
+            (0.9: about ten calls).
         lm_damping: initial LM damping, relative to the diagonal of the scoring matrix.
         nlos_bearing_weight: weight of bearings flagged NLOS (0: they carry no information).
         min_rcond: observability threshold on det J/(tr J/3)³ of the information matrix J
@@ -196,6 +202,8 @@ class EstimatorConfig:
     suspect_deflation: float = 0.1
     recheck_every: int = 5
     recheck_threshold: float = 25.0
+    consistency_threshold: float | None = 25.0
+    consistency_forgetting: float = 0.9
     lm_damping: float = 1e-3
     nlos_bearing_weight: float = 0.0
     min_rcond: float = 1e-9
@@ -227,6 +235,16 @@ class EstimatorConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"EstimatorConfig.{name}: expected a finite positive number, found {value!r}")
+        if self.consistency_threshold is not None and not (
+            math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0
+        ):
+            raise ValueError(
+                f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}"
+            )
+        if not 0.0 < self.consistency_forgetting < 1.0:
+            raise ValueError(
+                f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}"
+            )
         if self.gate_sigma is not None and not (math.isfinite(self.gate_sigma) and self.gate_sigma > 0.0):
             raise ValueError(f"EstimatorConfig.gate_sigma: expected None or a positive number, found {self.gate_sigma!r}")
         if not 0.0 <= self.gate_max_fraction <= 1.0:
@@ -281,8 +299,13 @@ class EstimatorState:
         window_weight: their forgetting weights λ^age, (..., window_rows).
         measurement_count: scalar components (range, azimuth, elevation) used so far, (...,).
         suspect: (...,) bool, True where more than ``suspect_fraction`` of the last call's
-            components of one type lay beyond ``suspect_sigma`` (a wrong basin, perhaps):
-            the next call deflates the prior and restarts with Huber iterations.
+            components of one type lay beyond ``suspect_sigma`` (a wrong basin, perhaps), or
+            where the score test failed: the next call deflates the prior and restarts with
+            Huber iterations.
+        score_matrix, score_vector: the recent records' scoring matrix S_H (..., 3, 3), m⁻²,
+            and S_v (..., 3), m⁻¹, each record linearised at its call's estimate and weighted
+            λ_c^age, so that their score at x is ≈ S_H x − S_v (the consistency test).
+        consistency: (...,) the score statistic T of the last call (≈ χ²₃ when consistent).
         calls: number of :func:`update` calls so far.
     """
 
@@ -303,6 +326,9 @@ class EstimatorState:
     window_weight: FloatArray
     measurement_count: NDArray[np.int64]
     suspect: BoolArray
+    score_matrix: FloatArray
+    score_vector: FloatArray
+    consistency: FloatArray
     calls: int = 0
 
     @property
@@ -341,6 +367,9 @@ def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | N
         window_weight=np.zeros(b + (config.window_rows,)),
         measurement_count=np.zeros(b, dtype=np.int64),
         suspect=np.zeros(b, dtype=bool),
+        score_matrix=np.zeros(b + (3, 3)),
+        score_vector=np.zeros(b + (3,)),
+        consistency=np.zeros(b),
     )
 
 
@@ -902,6 +931,130 @@ def _take(m: Measurements, idx: NDArray[np.intp]) -> Measurements:
     )
 
 
+def _scatter(a: NDArray, b: NDArray, sel: BoolArray) -> NDArray:
+    """A copy of ``a`` with ``a[sel] = b``."""
+    out = np.array(a, copy=True)
+    out[sel] = b
+    return out
+
+
+def _lm_iterations(
+    x: FloatArray,
+    mu: FloatArray,
+    rows: _Rows,
+    ev: _Eval | None,
+    prior_info: FloatArray,
+    prior_vec: FloatArray,
+    active: BoolArray,
+    its: range,
+    redescend: Callable[[int], bool | BoolArray],
+    channel: Channel,
+    config: EstimatorConfig,
+) -> tuple[FloatArray, FloatArray, _Eval, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Levenberg-Marquardt (Fisher scoring) iterations ``its`` of the robust cost plus the prior
+    ½xᵀΛx − ηᵀx, for a batch of source positions x (..., 3), m, ENU.
+
+    ``ev``: the evaluation at x for the first iteration (None: evaluate here). ``redescend(it)``:
+    where Tukey's loss applies at iteration it. Each step is capped at half the mean distance
+    to the records and projected into the search box; it is kept only if the cost does not
+    increase (then the damping μ shrinks by 3, else it grows by 4).
+
+    Returns:
+        x, μ, the evaluation at the last iterate x_lin, the gradient g (m⁻¹), scoring matrix H
+        and Fisher information F (m⁻²) there (prior included in g and H, not in F), and x_lin.
+    """
+    k = config.huber_k
+    ml = config.range_cost == "ml"
+    c = config.tukey_c
+    x_lin = x
+    g = H = F = None
+    for it in its:
+        rd = redescend(it)
+        if ev is None:
+            ev = _evaluate(x, rows, channel, k, ml, redescend=rd, tukey_c=c, suspect_sigma=config.suspect_sigma)
+            assert isinstance(ev, _Eval)
+        x_lin = x
+        g, H, F = _accumulate(ev)
+        g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
+        H = H + prior_info
+        cost = ev.cost + _prior_cost(x, prior_info, prior_vec)
+        dH = np.einsum("...ii->...i", H)
+        tr = dH.sum(axis=-1)
+        Hd = H + (mu[..., None] * dH + 1e-12 * tr[..., None] + 1e-300)[..., None] * np.eye(3)
+        Hinv, ok = _inv3_spd(Hd)
+        step = -np.einsum("...ij,...j->...i", Hinv, g)
+        # Trust region: a step at most half the mean distance to the records (angles are
+        # linear only for steps small against the range; far from the data the robust cost
+        # is nearly flat and an unbounded step could run away).
+        n_w = np.maximum(ev.n_used.sum(axis=-1), 1e-300)
+        reach = 0.5 * np.einsum("...k,...k->...", ev.d, ev.ar + ev.aa + ev.ae) / n_w
+        norm = np.sqrt(np.einsum("...i,...i->...", step, step))
+        shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
+        cand = config.clip(x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0))
+        c_new = _evaluate(cand, rows, channel, k, ml, d_var=None if ml else ev.d, cost_only=True, redescend=rd, tukey_c=c)
+        c_new = c_new + _prior_cost(cand, prior_info, prior_vec)
+        accept = np.isfinite(c_new) & (c_new <= cost) & active
+        x = np.where(accept[..., None], cand, x)
+        mu = np.where(accept, mu / 3.0, mu * 4.0)
+        last, ev = ev, None
+    assert g is not None and H is not None and F is not None
+    return x, mu, last, g, H, F, x_lin
+
+
+def _score_test(
+    score_H: FloatArray,
+    score_v: FloatArray,
+    g_new: FloatArray,
+    H_new: FloatArray,
+    x_lin: FloatArray,
+    x: FloatArray,
+    active: BoolArray,
+    threshold: float,
+    config: EstimatorConfig,
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
+    r"""Score test of the recent records against the estimate (Rao's test, 3 dof).
+
+    The new records' robust cost, linearised at x_lin (its gradient g_new (..., 3), m⁻¹, and
+    scoring matrix H_new (..., 3, 3), m⁻²), joins the recent-records model with memory λ_c:
+
+    .. math::
+        S_H \leftarrow \lambda_c S_H + H_{new},\qquad
+        S_v \leftarrow \lambda_c S_v + H_{new} x_{lin} - g_{new},\qquad
+        s(x) = S_H x - S_v \approx \sum_{recent} \lambda_c^{age} \nabla C_i(x).
+
+    When the estimate x is consistent with those records, s(x) is their score, zero-mean with
+    covariance ≈ S_H (each record's score has covariance H_i: a robust GLS estimating equation),
+    so T = s(x)ᵀ S_H⁻¹ s(x) ≈ χ²₃ (a little less: x has used them). A wrong estimate that the
+    accumulated prior defends (records linearised once, at poor earlier estimates) makes the
+    recent records pull consistently one way: T grows with every call. Coordinates of x on a
+    bound of the search box are left out (at a constrained optimum the score along them is not
+    zero-mean). Where T > ``threshold`` the test fails; the recent model is then
+    reset so that a failure needs fresh evidence.
+
+    Returns:
+        (S_H, S_v, T, fail), shapes (..., 3, 3), (..., 3), (...,), (...,).
+    """
+    lc = config.consistency_forgetting
+    act = active[..., None]
+    S_H = score_H * lc + np.where(act[..., None], H_new, 0.0)
+    S_v = score_v * lc + np.where(act, np.einsum("...ij,...j->...i", H_new, x_lin) - g_new, 0.0)
+    s = np.einsum("...ij,...j->...i", S_H, x) - S_v
+    lo = np.asarray(config.bounds_min_m, dtype=float)
+    hi = np.asarray(config.bounds_max_m, dtype=float)
+    free = (x > lo) & (x < hi)
+    s = np.where(free, s, 0.0)
+    keep = free[..., :, None] & free[..., None, :]
+    eye = np.eye(3, dtype=bool)
+    tr = np.maximum(np.einsum("...ii->...", S_H), 1e-300)
+    S_t = np.where(keep, S_H, np.where(eye, tr[..., None, None], 0.0))
+    S_inv, ok = _inv3_spd(S_t)
+    T = np.where(ok & active, np.einsum("...i,...ij,...j->...", s, S_inv, s), 0.0)
+    fail = active & (T > threshold)
+    S_H = np.where(fail[..., None, None], 0.0, S_H)
+    S_v = np.where(fail[..., None], 0.0, S_v)
+    return S_H, S_v, T, fail
+
+
 def update(
     state: EstimatorState,
     measurements: Measurements,
@@ -963,7 +1116,7 @@ def update(
     initialised = state.initialised
     x = x_prev
     todo = ~initialised
-    n_iter = config.iterations
+    long_run = np.zeros(bshape, dtype=bool)  # elements that get init_iterations this call
     fresh_start = state.suspect & state.initialised  # initialised, moved or suspect
     if M > 0 and np.any(todo):
         # Pseudo-linear equations of the new records (only needed until initialisation).
@@ -985,8 +1138,7 @@ def update(
         prior_vec = np.where(just[..., None], eta_d, prior_vec)
         initialised = initialised | just
         fresh_start = fresh_start | just
-        if np.any(just):
-            n_iter = max(n_iter, config.init_iterations)
+        long_run = long_run | just
     # Global re-check (every recheck_every calls): the squared-range PL solution of all past
     # ranges against the current estimate; move there when the PL cost drops by more than the
     # threshold AND the new records prefer it.
@@ -1017,7 +1169,7 @@ def update(
             prior_fisher = np.where(move[..., None, None], lam_r, prior_fisher)
             prior_vec = np.where(move[..., None], eta_r, prior_vec)
             fresh_start = fresh_start | move
-            n_iter = max(n_iter, config.init_iterations)
+            long_run = long_run | move
     # Squared-range PL equations of the new records, weighted at the current estimate.
     if M > 0:
         rx = x[..., 0, None] - new_rows.px
@@ -1052,64 +1204,59 @@ def update(
         var_bound = np.where(use, tr_adj / np.where(use, det, 1.0), 0.0)
         gate = _Gate(var_bound, use, config.gate_sigma, config.gate_max_fraction)
 
-    # Levenberg-Marquardt (Fisher scoring) iterations, all elements at once.
+    # Levenberg-Marquardt (Fisher scoring) iterations, all elements at once. Each element runs
+    # its own number of iterations (``iterations``, or ``init_iterations`` in a call where it is
+    # initialised or moved), whatever the rest of the batch does: a batch element computes
+    # exactly what the same records give with batch shape () (simulator = planner node).
     k = config.huber_k
     ml = config.range_cost == "ml"
-    mu = np.full(bshape, config.lm_damping)
-    n_iter = n_iter if (np.any(active) and K > 0) else 0
+    run = bool(np.any(active)) and K > 0
+    n_short = config.iterations
+    n_long = max(config.iterations, config.init_iterations)
     # Loss schedule (config.loss == "tukey"): Tukey's biweight for settled elements; after a
     # PL initialisation, Huber for the first half of the iterations, then Tukey; for a
     # suspect or moved element, Huber for the whole call (Tukey's cost is flat far from the
     # data, Huber's still points back to it).
     tukey = config.loss == "tukey"
     c = config.tukey_c
+    init_before = state.initialised
 
-    def redescend(it: int) -> bool | BoolArray:
+    def redescend(it: int, fresh: BoolArray, before: BoolArray, n_el: NDArray[np.int64]) -> bool | BoolArray:
         if not tukey:
             return False
-        if not np.any(fresh_start):
+        if not np.any(fresh):
             return True
-        if 2 * it >= n_iter:
-            return ~(fresh_start & state.initialised)
-        return ~fresh_start
+        return ~fresh | ((2 * it >= n_el) & ~before)
 
-    ev = _evaluate(x, rows, channel, k, ml, gate=gate, redescend=redescend(0), tukey_c=c, suspect_sigma=config.suspect_sigma)
+    n_elem = np.where(long_run, n_long, n_short)
+    ev = _evaluate(
+        x, rows, channel, k, ml, gate=gate, redescend=redescend(0, fresh_start, init_before, n_elem), tukey_c=c,
+        suspect_sigma=config.suspect_sigma,
+    )
     assert isinstance(ev, _Eval)
     rows = rows.with_weights(ev.ar, ev.aa, ev.ae)
-    x_lin = x
-    for it in range(n_iter):
-        rd = redescend(it)
-        if it > 0:
-            ev = _evaluate(x, rows, channel, k, ml, redescend=rd, tukey_c=c, suspect_sigma=config.suspect_sigma)
-            assert isinstance(ev, _Eval)
+    if run:
+        mu = np.full(bshape, config.lm_damping)
+        x, mu, ev, g, H, F, x_lin = _lm_iterations(
+            x, mu, rows, ev, prior_info, prior_vec, active, range(n_short),
+            lambda it: redescend(it, fresh_start, init_before, n_elem), channel, config,
+        )
+        sel = active & (n_elem > n_short)
+        if n_long > n_short and np.any(sel):
+            # The elements that need more iterations continue alone (batch subset).
+            fs, ib, ne = fresh_start[sel], init_before[sel], n_elem[sel]
+            xs, _, evs, gs, Hs, Fs, xls = _lm_iterations(
+                x[sel], mu[sel], rows.subset(sel), None, prior_info[sel], prior_vec[sel], np.ones(ne.shape, dtype=bool),
+                range(n_short, n_long), lambda it: redescend(it, fs, ib, ne), channel, config,
+            )
+            x, g, H, F, x_lin = (_scatter(a, b, sel) for a, b in ((x, xs), (g, gs), (H, Hs), (F, Fs), (x_lin, xls)))
+            ev = _Eval(**{f: _scatter(getattr(ev, f), getattr(evs, f), sel) for f in _Eval.__dataclass_fields__})
+    else:
         x_lin = x
         g, H, F = _accumulate(ev)
         g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
         H = H + prior_info
-        cost = ev.cost + _prior_cost(x, prior_info, prior_vec)
-        dH = np.einsum("...ii->...i", H)
-        tr = dH.sum(axis=-1)
-        Hd = H + (mu[..., None] * dH + 1e-12 * tr[..., None] + 1e-300)[..., None] * np.eye(3)
-        Hinv, ok = _inv3_spd(Hd)
-        step = -np.einsum("...ij,...j->...i", Hinv, g)
-        # Trust region: a step at most half the mean distance to the records (angles are
-        # linear only for steps small against the range; far from the data the robust cost
-        # is nearly flat and an unbounded step could run away).
-        n_w = np.maximum(ev.n_used.sum(axis=-1), 1e-300)
-        reach = 0.5 * np.einsum("...k,...k->...", ev.d, ev.ar + ev.aa + ev.ae) / n_w
-        norm = np.sqrt(np.einsum("...i,...i->...", step, step))
-        shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
-        cand = config.clip(x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0))
-        c_new = _evaluate(cand, rows, channel, k, ml, d_var=None if ml else ev.d, cost_only=True, redescend=rd, tukey_c=c)
-        c_new = c_new + _prior_cost(cand, prior_info, prior_vec)
-        accept = np.isfinite(c_new) & (c_new <= cost) & active
-        x = np.where(accept[..., None], cand, x)
-        mu = np.where(accept, mu / 3.0, mu * 4.0)
-
-    if n_iter == 0:
-        g, H, F = _accumulate(ev)
-        g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
-        H = H + prior_info
+    prior_info_used, prior_vec_used = prior_info, prior_vec
     # Information of everything used, linearised at x_lin (the last iterate evaluated).
     fisher = F + prior_fisher
     suspect = active & np.any((ev.n_used >= 2.5) & (ev.n_big > config.suspect_fraction * ev.n_used), axis=-1)
@@ -1135,6 +1282,20 @@ def update(
             dr_A[~active] += A_l
             dr_b[~active] += b_l
 
+    # Consistency (score) test of the recent records against the estimate.
+    score_H, score_v, consistency = state.score_matrix, state.score_vector, state.consistency
+    if config.consistency_threshold is not None and M > 0 and run:
+        if W == 0:
+            g_new = g - (np.einsum("...ij,...j->...i", prior_info_used, x_lin) - prior_vec_used)
+            H_new = H - prior_info_used
+        else:
+            g_new, H_new, _ = _accumulate(ev, slice(K - M, K))
+        score_H, score_v, consistency, fail = _score_test(
+            state.score_matrix, state.score_vector, g_new, H_new, x_lin, x, active, config.consistency_threshold, config
+        )
+        if np.any(fail):
+            suspect = suspect | fail
+            fisher = np.where(fail[..., None, None], fisher * config.suspect_deflation, fisher)
     fisher = 0.5 * (fisher + np.swapaxes(fisher, -1, -2))
     finite = np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(fisher), axis=(-1, -2))
     x = np.where(finite[..., None], x, x_prev)
@@ -1172,5 +1333,8 @@ def update(
         window_weight=window_weight,
         measurement_count=count,
         suspect=suspect,
+        score_matrix=score_H,
+        score_vector=score_v,
+        consistency=consistency,
         calls=state.calls + 1,
     )
