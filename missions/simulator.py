@@ -324,9 +324,11 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
 
     Returns:
         JSON-ready dict: the fault settings, final mean PEB (m) with and without faults, their
-        difference (m) and ratio, the same for the mean over steps of the mean PEB, the mean
-        record age (steps) with and without faults, the fraction of peer records lost (in-process
-        runs) and the baseline's run time (s). None where a PEB is undefined (singular views).
+        difference (m), its standard error over trials (``*_se_m``, paired: the trials share
+        their seeds) and ratio, the same for the mean over steps of the mean PEB, the PEB at
+        step 0 with and without faults (same positions: missing records only raise it), the
+        mean record age (steps) with and without faults, the fraction of peer records lost
+        (in-process runs) and the baseline's run time (s). None where a PEB is undefined.
     """
     if baseline is None:
         spec = result.spec
@@ -343,6 +345,11 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
     mean_f = float(faulty[:k][both].mean()) if both.any() else float("nan")
     mean_b = float(clean[:k][both].mean()) if both.any() else float("nan")
 
+    # Per trial (same seeds: paired, common random numbers): the spread of the penalty.
+    se_final = _paired_se(_trial_means(result.peb_m[k - 1 : k]), _trial_means(baseline.peb_m[k - 1 : k]))
+    se_mean = _paired_se(_trial_means(result.peb_m[:k]), _trial_means(baseline.peb_m[:k]))
+    init_f, init_b = float(faulty[0]), float(clean[0])
+
     def num(x: float) -> float | None:
         return x if np.isfinite(x) else None
 
@@ -357,6 +364,11 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
         "baseline_mean_peb_over_steps_m": num(mean_b),
         "mean_peb_penalty_m": num(mean_f - mean_b),
         "mean_peb_penalty_ratio": num(mean_f / mean_b) if mean_b > 0 else None,
+        "final_peb_penalty_se_m": num(se_final),
+        "mean_peb_penalty_se_m": num(se_mean),
+        "initial_peb_mean_m": num(init_f),
+        "baseline_initial_peb_mean_m": num(init_b),
+        "initial_peb_penalty_ratio": num(init_f / init_b) if init_b > 0 else None,
         "mean_record_age_steps": num(mean_record_age(result)),
         "baseline_mean_record_age_steps": num(mean_record_age(baseline)),
         "baseline_runtime_s": round(baseline.runtime_s, 3),
@@ -364,6 +376,23 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
     if "fault_lost_fraction" in result.extra:
         out["lost_fraction"] = float(result.extra["fault_lost_fraction"])
     return out
+
+
+def _trial_means(peb_m: FloatArray) -> FloatArray:
+    """Per trial, the mean over steps of the mean PEB over drones (singular views skipped),
+    from PEB (K, M, N); NaN for a trial without a finite PEB."""
+    finite = np.isfinite(peb_m)
+    count = finite.sum(-1)
+    per_step = np.divide(np.where(finite, peb_m, 0.0).sum(-1), count, out=np.full(count.shape, np.nan), where=count > 0)
+    ok = np.isfinite(per_step)
+    n = ok.sum(0)
+    return np.divide(np.where(ok, per_step, 0.0).sum(0), n, out=np.full(n.shape, np.nan), where=n > 0)
+
+
+def _paired_se(a: FloatArray, b: FloatArray) -> float:
+    """Standard error (m) of the mean of the per-trial differences a − b (NaN below 2 trials)."""
+    d = (a - b)[np.isfinite(a - b)]
+    return float(d.std(ddof=1) / np.sqrt(d.size)) if d.size >= 2 else float("nan")
 
 
 def safety_margins(
