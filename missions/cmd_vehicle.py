@@ -82,6 +82,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--fence-radius", type=float, help="fence radius about home (m)")
     p.add_argument("--fence-action", choices=("clamp", "reject"), default="clamp", help="outside targets (default clamp)")
     p.add_argument("--no-fence", action="store_true", help="disable the geofence")
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="set a parameter at boot, in the flavour's names and units (repeatable), "
+        "e.g. FS_GCS_ENABLE=1 or COM_OBL_RC_ACT=4",
+    )
     p.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file (32 bytes or 64 hex digits)")
     p.add_argument("--tlog", metavar="PATH", help="write a .tlog; '{sysid}' in PATH is replaced per vehicle")
     clock = p.add_mutually_exclusive_group()
@@ -107,6 +115,21 @@ def _floats(text: str | None, n: int, option: str) -> tuple[float, ...] | None:
     if len(values) != n or not all(math.isfinite(v) for v in values):
         raise UsageError(f"{option}: expected {n} comma-separated finite numbers, found {text!r}")
     return values
+
+
+def _params(items: Sequence[str]) -> tuple[tuple[str, float], ...]:
+    """``--param NAME=VALUE`` options -> (name, value) pairs (names checked by the vehicle)."""
+    out: list[tuple[str, float]] = []
+    for item in items:
+        name, sep, text = item.partition("=")
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not sep or not name.strip() or not math.isfinite(value):
+            raise UsageError(f"--param: expected NAME=VALUE with a finite number, found {item!r}")
+        out.append((name.strip().upper(), value))
+    return tuple(out)
 
 
 def _connection_for(args: argparse.Namespace, i: int, sysid: int) -> str:
@@ -153,6 +176,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         raise UsageError("--ready-after: needs the real-time clock (in lockstep, sim time only advances once the planners fly)")
     if args.ready_after > 0 and args.airborne:
         raise UsageError("--ready-after: a vehicle booting --airborne is ready at boot")
+    boot_params = _params(args.param)
     start = _floats(args.start, 3, "--start")
     wind = _floats(args.wind, 3, "--wind") or (0.0, 0.0, 0.0)
     fence_z = _floats(args.fence_z, 2, "--fence-z")
@@ -248,6 +272,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
                 tlog_path=tlog,
                 ready_after_s=args.ready_after,
                 ekf_status_hz=args.ekf_status_hz,
+                params=boot_params,
             )
         except ValueError as exc:
             raise UsageError(f"vehicle {sysid}: {exc}") from None
@@ -275,7 +300,11 @@ def run_vehicle(args: argparse.Namespace) -> int:
     on_tick = None
     try:
         for i, (cfg, payload) in enumerate(configs):
-            vehicles.append(build_vehicle(cfg, _connection_for(args, i, cfg.sysid), payload=payload))
+            conn = _connection_for(args, i, cfg.sysid)
+            try:
+                vehicles.append(build_vehicle(cfg, conn, payload=payload))
+            except ValueError as exc:  # a --param the vehicle refuses
+                raise UsageError(f"vehicle {cfg.sysid}: {exc}") from None
         clock: Any
         zenoh_info: dict[str, Any] = {}
         if args.lockstep:

@@ -184,6 +184,8 @@ class VehicleConfig:
             with the PreArm reason (see docs/vehicle_sim.md, "Readiness start-up").
         ekf_status_hz: default rate of EKF_STATUS_REPORT (Hz, sim time; ArduPilot flavour
             only, as its EXTRA3 stream; 0: only on request).
+        params: parameter values set at boot, (name, value) pairs in the flavour's own names
+            and units (as a SITL parameter file); checked by the vehicle when it is built.
     """
 
     sysid: int = 1
@@ -209,6 +211,7 @@ class VehicleConfig:
     battery_drain_per_s: float = 1.0 / 1800.0
     ready_after_s: float = 0.0
     ekf_status_hz: float = 2.0
+    params: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if not (isinstance(self.sysid, int) and 1 <= self.sysid <= 255):

@@ -44,6 +44,7 @@ def build_vehicle(
 
     Raises:
         UsageError: bad connection string, port in use, unreadable signing key or tlog.
+        ValueError: a boot parameter (``config.params``) the vehicle refuses.
     """
     key = read_signing_key(config.signing_key_path) if config.signing_key_path else None
     transport = open_transport(connection)
@@ -52,7 +53,11 @@ def build_vehicle(
     except Exception:
         transport.close()
         raise
-    return SimVehicle(config, link, wall=wall, payload=payload)
+    try:
+        return SimVehicle(config, link, wall=wall, payload=payload)
+    except Exception:
+        link.close()
+        raise
 
 
 class VehicleHost:

@@ -14,6 +14,7 @@ LOCAL_NED is NED about the EKF origin (the mission origin until SET_GPS_GLOBAL_O
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import struct
@@ -203,6 +204,8 @@ class SimVehicle:
         self.intervals = dict(self.defaults)
         self._due: dict[str, float] = {name: 0.0 for name in self.intervals}
         self.params = self._build_params()
+        for name, value in config.params:
+            self._boot_param(name, value)
         self.commands_handled = 0
         self.ignored_messages = 0
         self.acks_sent = 0
@@ -1367,6 +1370,21 @@ class SimVehicle:
                 P("FENCE_RADIUS", False, radius_get, fence_radius),
             ]
         return {p.name: p for p in specific + common}
+
+    def _boot_param(self, name: str, value: float) -> None:
+        """Set parameter ``name`` at boot (``VehicleConfig.params``).
+
+        Raises:
+            ValueError: unknown name (with the closest known names) or a refused value.
+        """
+        p = self.params.get(name)
+        if p is None:
+            close = difflib.get_close_matches(name, list(self.params), n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else f"; known: {', '.join(sorted(self.params))}"
+            raise ValueError(f"parameter {name!r} is not a parameter of the simulated {self.config.flavour} vehicle{hint}")
+        err = p.set(float(value))
+        if err:
+            raise ValueError(f"parameter {name} = {value:g}: {err}")
 
     def _encode_param(self, p: _Param) -> tuple[float, int]:
         m = self.m

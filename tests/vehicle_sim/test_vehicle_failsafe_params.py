@@ -20,7 +20,8 @@ import pytest
 
 from vehicle_sim.config import VehicleConfig
 
-from conftest import drain, mavlink, wait_msg
+from conftest import connect_client, drain, hello, mavlink, wait_msg
+from procs import Proc, fimnav
 
 SPEEDUP = 10.0
 ARDUPILOT_GUIDED, ARDUPILOT_RTL, ARDUPILOT_LAND = 4, 6, 9
@@ -169,3 +170,30 @@ def test_px4_offboard_loss_timeout_and_action(make_rig, action: int, mode: int, 
         assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         p = rig.local()
         assert math.isclose(p.z, -4.0, abs_tol=0.3)
+
+
+def test_boot_parameters_from_the_command_line() -> None:
+    """``fimnav vehicle --param NAME=VALUE`` (as a SITL parameter file): the values are read
+    back over PARAM_REQUEST_READ, integer parameters in the flavour's encoding (PX4 bytewise)."""
+    import json
+
+    p = Proc(fimnav("vehicle", "--flavour", "px4", "--mavlink", "udpin:127.0.0.1:0", "--speedup", "5",
+                    "--param", "COM_OF_LOSS_T=2.5", "--param", "com_obl_rc_act=4"))
+    conn = None
+    try:
+        ready = json.loads(p.expect(r"\{\"event\": \"ready\".*\}").group(0))
+        conn = connect_client(ready["vehicles"][0]["mavlink"])
+        hello(conn, 1)
+        values = {}
+        for name in ("COM_OF_LOSS_T", "COM_OBL_RC_ACT"):
+            conn.mav.param_request_read_send(1, 1, name.encode(), -1)
+            pv = wait_msg(conn, "PARAM_VALUE", lambda m, n=name: m.param_id == n)
+            values[name] = pv
+        assert values["COM_OF_LOSS_T"].param_value == 2.5
+        raw = values["COM_OBL_RC_ACT"]
+        assert raw.param_type == mavlink.MAV_PARAM_TYPE_INT32
+        assert struct.unpack("<i", struct.pack("<f", raw.param_value))[0] == 4
+    finally:
+        if conn is not None:
+            conn.close()
+        p.kill()

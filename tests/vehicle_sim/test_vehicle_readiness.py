@@ -152,6 +152,9 @@ def test_ekf_status_report_rate_and_ready_at_boot(make_rig) -> None:
         (["--ready-after", "2", "--airborne"], "--ready-after: a vehicle booting --airborne is ready at boot"),
         (["--ready-after", "2", "--lockstep", "--mission-id", "x"], "--ready-after: needs the real-time clock"),
         (["--ekf-status-hz", "nan"], "--ekf-status-hz: expected a number >= 0, found nan"),
+        (["--param", "FS_GCS_ENABL=1"], "parameter 'FS_GCS_ENABL' is not a parameter of the simulated ardupilot vehicle; did you mean FS_GCS_ENABLE"),
+        (["--param", "FS_GCS_ENABLE=7"], "parameter FS_GCS_ENABLE = 7: must be an integer in 0..6"),
+        (["--param", "COM_OF_LOSS_T"], "--param: expected NAME=VALUE with a finite number, found 'COM_OF_LOSS_T'"),
     ],
 )
 def test_bad_readiness_options_are_refused_clearly(args: list[str], message: str) -> None:
