@@ -22,6 +22,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_montecarlo",
     "missions.cmd_plan",
     "missions.cmd_launch",
+    "missions.cmd_router",
 )
 
 
