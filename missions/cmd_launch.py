@@ -26,6 +26,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--criterion", choices=("A", "D"), help="design criterion (default: the mission's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds a step may take before the run fails (default 30)")
+    p.add_argument("--on-failure", choices=("continue", "abort", "restart"), default="continue",
+                   help="when a vehicle or planner fails mid-mission: fly on without that drone (default), stop the run, "
+                   "or also restart a failed planner, which rejoins at the current step; the summary lists every failure "
+                   "and the exit status is then 3")
     p.add_argument("--vehicles-per-process", type=int, default=1, help="simulated vehicles hosted by one process (default 1; more for large swarms)")
     p.set_defaults(func=run)
 
@@ -57,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     try:
-        summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process)
+        summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
+                         on_failure=args.on_failure)
     finally:
         bar.close()
     viol = sum(summary["violations"].values())
@@ -66,4 +71,9 @@ def run(args: argparse.Namespace) -> int:
         f"estimate error {summary['final_estimate_error_median_m']} m, violations {viol}, "
         f"{summary['runtime_s']:.1f} s\nresults: {out}"
     )
+    for f in summary["failures"]:
+        print(f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}", file=sys.stderr)
+    if summary["failures"]:
+        print(f"the mission completed with {len(summary['failures'])} failure(s): see {out / 'summary.json'}", file=sys.stderr)
+        return 3
     return 0

@@ -31,6 +31,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--zenoh-config", help="session settings as JSON (set by fimnav launch)")
     p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="extra zenoh endpoint to connect to")
     p.add_argument("--log", type=Path, help="JSON-lines step log")
+    p.add_argument("--rejoin", action="store_true", help="lockstep: take over a vehicle in flight from a planner that died "
+                   "(no pre-flight; fly from the clock's next step; append to --log)")
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds to wait for a tick, a measurement or peers (default 30)")
     p.add_argument("--preflight-timeout", type=float, default=120.0, help="seconds the readiness wait, take-off and flight to the start may take (default 120)")
     rt = p.add_argument_group("real time (external autopilots; without --lockstep)")
@@ -84,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {v}")
     if args.stream_hz < 4:
         raise UsageError(f"--stream-hz: expected at least 4 Hz, found {args.stream_hz:g}")
+    if args.rejoin and not args.lockstep:
+        raise UsageError("--rejoin: only with --lockstep (it rejoins at the lockstep clock's next step)")
     if args.signing_key is not None:
         read_signing_key(args.signing_key)  # permissions and format, before anything starts
     options = NodeOptions(
@@ -91,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
         sysid=args.sysid, log_path=args.log, step_timeout_s=args.step_timeout, preflight_timeout_s=args.preflight_timeout,
         speedup=args.speedup, flavour=args.flavour, setpoint_frame=args.setpoint_frame, signing_key_file=args.signing_key,
         stream_hz=args.stream_hz, measurement_max_age_s=args.measurement_max_age, start_at_unix=args.start_at,
+        rejoin=args.rejoin,
     )
     summary = PlannerNode(mission, options).run()
     print(json.dumps(summary), flush=True)

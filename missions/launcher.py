@@ -50,6 +50,14 @@ log = logging.getLogger("fimnav.launch")
 #: Grace period (s) between SIGTERM and SIGKILL when stopping children.
 STOP_GRACE_S: float = 5.0
 
+#: What the launcher does when a vehicle or a planner fails mid-mission (``--on-failure``):
+#: ``abort`` stops the run (exit 1); ``continue`` flies on without that drone; ``restart`` also
+#: restarts a failed planner (whose vehicle is alive) with ``fimnav plan --rejoin``.
+ON_FAILURE = ("continue", "abort", "restart")
+
+#: Restarts of one drone's planner before it is given up.
+MAX_RESTARTS: int = 3
+
 
 class LaunchError(FimnavError):
     """The distributed run failed; the message says which part and why."""
@@ -104,6 +112,8 @@ class Launcher:
         out: the results directory.
         python: the interpreter for the children.
         progress: called after each step with (step, mean PEB, mean estimate error, alive).
+        on_failure: one of :data:`ON_FAILURE`. Failures are recorded in :attr:`failures`
+            (what failed, at which step, its exit status and last log line, what was done).
     """
 
     def __init__(
@@ -115,6 +125,7 @@ class Launcher:
         preflight_timeout_s: float | None = None,
         step_timeout_s: float = 30.0,
         vehicles_per_process: int = 1,
+        on_failure: str = "continue",
     ) -> None:
         self.mission = mission
         self.out = out
@@ -127,6 +138,17 @@ class Launcher:
         if vehicles_per_process < 1:
             raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
         self.vehicles_per_process = vehicles_per_process
+        if on_failure not in ON_FAILURE:
+            raise LaunchError(f"on failure: expected one of {', '.join(ON_FAILURE)}, found {on_failure!r}")
+        self.on_failure = on_failure
+        #: Every failure seen: {"process", "drones", "step", "status", "reason", "action"}.
+        self.failures: list[dict[str, Any]] = []
+        self._handled: set[int] = set()  # pids of failed children already dealt with
+        self._planner_args: dict[int, list[str]] = {}
+        self._vehicle_child: dict[int, Child] = {}
+        self._restarts: dict[int, int] = {}
+        self._step = -1  # the clock's current step (-1: pre-flight)
+        self._flying = False  # the mission has started (failures are survivable from then on)
         self.children: list[Child] = []
         self.collected = Collected()
         self._stop = threading.Event()
@@ -134,7 +156,7 @@ class Launcher:
     # -- processes --------------------------------------------------------------------------
     def _spawn(self, name: str, args: Sequence[str]) -> Child:
         log_path = self.out / "logs" / f"{name}.log"
-        fh = log_path.open("wb")
+        fh = log_path.open("ab")  # a restarted planner appends to the log of the one it replaces
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
             [self.python, "-m", "missions", *args],
@@ -166,12 +188,41 @@ class Launcher:
                 os.killpg(c.proc.pid, signal.SIGKILL)
 
     def _check_children(self) -> None:
-        for c in self.children:
+        """Deal with children that ended: before the mission or with ``abort``, any failure
+        ends the run; otherwise it is recorded (and a planner restarted if asked), and the run
+        only fails when no planner is left."""
+        for c in list(self.children):
             code = c.proc.poll()
-            if code is not None and c.name.startswith("vehicle"):
-                raise LaunchError(f"{c.name} exited with status {code} during the mission:\n{c.tail()}")
-            if code not in (None, 0):
-                raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
+            if code is None or c.proc.pid in self._handled:
+                continue
+            vehicle = c.name.startswith("vehicle")
+            if code == 0 and not vehicle:
+                continue  # a planner that finished its mission
+            if not self._flying or self.on_failure == "abort":
+                during = " during the mission" if vehicle and self._flying else ""
+                raise LaunchError(f"{c.name} exited with status {code}{during}:\n{c.tail()}")
+            self._handled.add(c.proc.pid)
+            self._on_failure(c, code)
+        planners = [c for c in self.children if c.name.startswith("planner")]
+        if planners and all(c.proc.poll() not in (None, 0) for c in planners):
+            raise LaunchError(f"every planner failed; last: {planners[-1].name}:\n{planners[-1].tail()}")
+
+    def _on_failure(self, c: Child, code: int) -> None:
+        """Record a failed child; restart a failed planner if asked and its vehicle lives."""
+        drones = [i for i, v in self._vehicle_child.items() if v is c] if c.name.startswith("vehicle") else [int(c.name.split("_")[1])]
+        reason = next((line for line in reversed(c.tail(20).splitlines()) if line.strip()), "")
+        entry: dict[str, Any] = {"process": c.name, "drones": drones, "step": self._step, "status": code, "reason": reason[-300:], "action": "continued without it"}
+        if c.name.startswith("planner"):
+            i = drones[0]
+            vehicle_alive = self._vehicle_child[i].proc.poll() is None
+            if self.on_failure == "restart" and vehicle_alive and self._restarts.get(i, 0) < MAX_RESTARTS:
+                self._restarts[i] = self._restarts.get(i, 0) + 1
+                self._spawn(c.name, [*self._planner_args[i], "--rejoin"])
+                entry["action"] = f"restarted (restart {self._restarts[i]} of at most {MAX_RESTARTS})"
+            elif not vehicle_alive:
+                entry["action"] = "drone lost with its vehicle"
+        self.failures.append(entry)
+        log.error("%s failed at step %d (status %s): %s; %s", c.name, self._step, code, reason, entry["action"])
 
     def request_stop(self) -> None:
         """Ask the run to stop (signal handlers call this)."""
@@ -244,17 +295,22 @@ class Launcher:
                      *[a for _ in ids for a in ("--mavlink", "udpin:127.0.0.1:0")],
                      "--lockstep", *vehicle_zenoh, "--tlog", str(tlog)],
                 ))
+            for vc, first in zip(vehicle_children, range(1, n + 1, per)):
+                for i in range(first, min(first + per, n + 1)):
+                    self._vehicle_child[i] = vc
             ports = self._vehicle_ports(vehicle_children, self.preflight_timeout_s)
             for i in range(1, n + 1):
-                self._spawn(
-                    f"planner_{i}",
-                    ["plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{ports[i]}", "--lockstep",
-                     *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
-                     "--step-timeout", str(self.step_timeout_s)],
-                )
+                self._planner_args[i] = [
+                    "plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{ports[i]}", "--lockstep",
+                    *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
+                    "--step-timeout", str(self.step_timeout_s),
+                ]
+                self._spawn(f"planner_{i}", self._planner_args[i])
             stop = self._should_stop
             t0 = clock.preflight(self.preflight_timeout_s, stop)
+            self._flying = True
             for k in range(m.steps):
+                self._step = k
                 # The planners' own deadline expires first and names what they waited for.
                 report = clock.run_step(k, t0, self.step_timeout_s + 15.0, stop)
                 if self.progress is not None:
@@ -262,8 +318,8 @@ class Launcher:
                     self.progress(k, peb, err, len(report.alive))
             # The planners end the mission (hold, land or RTL) and exit.
             deadline = time.monotonic() + 30.0
-            for c in self.children:
-                if c.name.startswith("planner"):
+            for c in list(self.children):
+                if c.name.startswith("planner") and c.proc.pid not in self._handled:
                     try:
                         c.proc.wait(max(0.0, deadline - time.monotonic()))
                     except subprocess.TimeoutExpired:
@@ -314,7 +370,7 @@ class Launcher:
     def _raise_child_failure(self) -> None:
         for c in self.children:
             code = c.proc.poll()
-            if code not in (None, 0):
+            if code not in (None, 0) and c.proc.pid not in self._handled:
                 raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
 
     def _live_stats(self, k: int) -> tuple[float, float]:
@@ -420,6 +476,11 @@ class Launcher:
                 positions[k] = np.where(np.isnan(positions[k]), positions[k - 1], positions[k])
         bmin, bmax = m.obstacle_bounds()
         margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax, MAVLINK_KINEMATIC_TOL)
+        # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
+        # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
+        not_flown = missing[:K] | missing[1:]
+        margins["speed"][not_flown] = np.inf
+        margins["turn_rate"][not_flown | np.concatenate([not_flown[:1], not_flown[:-1]])] = np.inf
         err = np.linalg.norm(estimates - sources[:K, None, None, :], axis=-1)
         return SimulationResult(
             spec=RunSpec(m, m.criterion, 1, K),
@@ -484,6 +545,7 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
             raise Interrupted("interrupted: every process was stopped") from None
     summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
     summary = summaries[0]
-    summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]))
+    summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]),
+                   failures=launcher.failures)
     (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
     return summary

@@ -82,6 +82,9 @@ START_TOLERANCE_REALTIME_M: float = 0.3
 POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
+#: Lockstep: a vehicle that sends nothing for this long (wall s) while the planner waits for its
+#: telemetry is lost (it heartbeats every wall second, even when the clock stands still).
+LOCKSTEP_LINK_LOSS_S: float = 2.5
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
@@ -123,6 +126,10 @@ class NodeOptions:
         start_at_unix: real time: UNIX time of step 0 (None: the next multiple of dt/speedup
             after the planner is at its start, so planners started apart share the grid).
         end_timeout_s: real time: how long the end of mission (landing) may take (wall s).
+        rejoin: lockstep: this planner replaces one that died mid-mission. It skips the
+            pre-flight (the vehicle is airborne and armed), answers the clock's current step
+            as skipped and flies from the next one, with a fresh estimator; its log is
+            appended to, not overwritten.
     """
 
     uav: int
@@ -143,6 +150,7 @@ class NodeOptions:
     measurement_max_age_s: float | None = None
     start_at_unix: float | None = None
     end_timeout_s: float = 120.0
+    rejoin: bool = False
 
     def __post_init__(self) -> None:
         for name in ("speedup", "stream_hz", "step_timeout_s", "preflight_timeout_s", "end_timeout_s"):
@@ -322,7 +330,7 @@ class PlannerNode:
         self._pub_done = declare_publisher(s, keys.done(mid, self.o.uav))
         if self.o.log_path is not None:
             self.o.log_path.parent.mkdir(parents=True, exist_ok=True)
-            self._log = self.o.log_path.open("w")
+            self._log = self.o.log_path.open("a" if self.o.rejoin else "w")
         self.link = self._link_factory(self.o.mavlink, self.o.sysid or self.o.uav)
 
     def close(self) -> None:
@@ -363,6 +371,11 @@ class PlannerNode:
                         elif self.latest_measurement is None or msg.time_s >= self.latest_measurement.time_s:
                             self.latest_measurement = msg
                     elif self.o.lockstep:
+                        if msg.sender in self.left:
+                            # A planner that left is waited for again once its records flow
+                            # (a restarted planner skips the step it joins at).
+                            self.left.discard(msg.sender)
+                            log.warning("planner %d rejoined the swarm at step %d", msg.sender, msg.step)
                         self.view.add(msg)
                     else:
                         self._add_realtime_record(msg)
@@ -373,8 +386,8 @@ class PlannerNode:
                 uav = keys.uav_of(key)
                 if uav is not None and 1 <= uav <= self.n:
                     (self.alive.add if kind == "alive" else self.alive.discard)(uav)
-                    (self.left.discard if kind == "alive" else self.left.add)(uav)
-                    if kind == "gone":
+                    if kind == "gone" and uav != self.o.uav:
+                        self.left.add(uav)
                         log.warning("planner %d left the swarm", uav)
             try:
                 item = self.inbox.queue.get_nowait()
@@ -470,14 +483,12 @@ class PlannerNode:
             self._drain(0.0)
             if not self.o.lockstep:
                 return self._run_realtime()
-            self.preflight()
-            self._publish(self._pub_done, Done(self.o.uav, -1))
-            log.info("uav %d ready at the start position", self.o.uav)
+            first = self._rejoin() if self.o.rejoin else self._start()
             state = est.initial_state((), self.est_config)
             used = np.full(self.n, -1, dtype=np.int64)
             prev_step = np.zeros(3)
             done_steps = 0
-            for k in range(self.steps):
+            for k in range(first, self.steps):
                 w0 = self.wall()
                 t_k = self._await_step(k)
                 w_tick = self.wall()
@@ -524,6 +535,39 @@ class PlannerNode:
         finally:
             self.close()
 
+    def _start(self) -> int:
+        """Pre-flight, then report ready to the clock; the first step is 0."""
+        self.preflight()
+        self._publish(self._pub_done, Done(self.o.uav, -1))
+        log.info("uav %d ready at the start position", self.o.uav)
+        return 0
+
+    def _rejoin(self) -> int:
+        """Take over a vehicle in flight from a planner that died; return the first step to fly.
+
+        The clock's current step p is answered as done (this planner has neither its
+        measurement, published before it subscribed, nor its peers' records) and the planner
+        flies from p + 1; its peers wait for it again from its first record on. The control
+        stream is advanced past the steps it missed, so its draws stay those of its step."""
+        link = self._require_link()
+        t = self.o.preflight_timeout_s
+        link.wait_heartbeat(t)
+        for msg_id, hz in {32: 1.0, 33: 0.2, 242: 0.2, 245: 0.2, 30: 0.2, 74: 0.2}.items():
+            link.request_interval(msg_id, hz)
+        self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
+        if not link.telemetry.armed:
+            raise NodeError(f"uav {self.o.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
+        self._wait(lambda: self.tick is not None and self.tick.step >= 0, t, "a clock tick of the mission to rejoin at")
+        assert self.tick is not None
+        p = self.tick.step
+        if p >= self.steps - 1:
+            raise NodeError(f"uav {self.o.uav}: cannot rejoin at step {p}: the mission has {self.steps} steps")
+        link.set_mode("OFFBOARD" if link.is_px4 else "GUIDED")
+        self._publish(self._pub_done, Done(self.o.uav, p))
+        self.ctrl_rng.random((p + 1) * CONTROL_DRAWS)
+        log.warning("uav %d rejoined at step %d (flying from step %d with a fresh estimator)", self.o.uav, p, p + 1)
+        return p + 1
+
     def _await_step(self, k: int) -> float:
         if self.o.lockstep:
             # Step 0 starts when the whole swarm is at its start positions: pre-flight deadline.
@@ -537,12 +581,31 @@ class PlannerNode:
         link = self.link
         assert link is not None
         stamp = int(round(t_k * 1000.0))
-        self._wait(lambda: link.telemetry.position_time_ms >= stamp, self.o.step_timeout_s, f"position telemetry at t = {t_k:g} s")
+        self._wait(self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
+                   self.o.step_timeout_s, f"position telemetry at t = {t_k:g} s")
         assert link.telemetry.position_enu_m is not None
         return link.telemetry.position_enu_m.astype(float)
 
+    def _vehicle_alive(self, predicate: Callable[[], bool], what: str) -> Callable[[], bool]:
+        """``predicate`` that raises NodeError once the vehicle has been silent (no heartbeat)
+        for :data:`LOCKSTEP_LINK_LOSS_S` during this wait: a lost vehicle is reported within
+        3 s instead of at the step timeout."""
+        link = self._require_link()
+        since = self.wall()
+
+        def check() -> bool:
+            if predicate():
+                return True
+            silent = min(link.link_age_s(), self.wall() - since)
+            if silent > LOCKSTEP_LINK_LOSS_S:
+                raise NodeError(f"uav {self.o.uav}: vehicle link lost: no heartbeat for {silent:.1f} s while waiting for {what}")
+            return False
+
+        return check
+
     def _measurement(self, k: int) -> Observation:
-        self._wait(lambda: k in self.measurements, self.o.step_timeout_s, f"payload measurement of step {k}")
+        self._wait(self._vehicle_alive(lambda: k in self.measurements, f"payload measurement of step {k}"),
+                   self.o.step_timeout_s, f"payload measurement of step {k}")
         for s in [s for s in self.measurements if s <= k]:
             meas = self.measurements.pop(s)
         return meas
@@ -614,6 +677,7 @@ class PlannerNode:
             "timing": {name: round(v, 6) for name, v in timing.items()},
         }
         self._log.write(json.dumps(entry) + "\n")
+        self._log.flush()  # the step log is the record of what was flown: it must survive a kill
 
     def _end(self) -> None:
         """End of mission as the mission says: hold (stay in GUIDED at the last setpoint),

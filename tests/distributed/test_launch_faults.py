@@ -1,0 +1,146 @@
+"""End-to-end faults (issue 7): a vehicle or a planner killed mid-mission, with real processes,
+real Zenoh and real MAVLink sockets on 127.0.0.1.
+
+- A killed vehicle: its planner notices the silent link within 3 s and reports it; the rest of
+  the swarm flies the mission to the end without that drone; the summary says so (exit 3).
+- A planner killed with SIGKILL: its vehicle stops and holds within the guided timeout; the
+  other planners fly on with their last saved record of it (its age grows); the launcher
+  reports it and, with ``--on-failure restart``, restarts it; the new planner rejoins at the
+  clock's current step and flies to the end.
+- ``--on-failure abort``: the first failure stops the run (exit 1), naming the process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.integration
+
+
+def pid_of(out: Path, *needles: str) -> int:
+    """The live process of the run at ``out`` whose command line contains every needle."""
+    for pid in processes_mentioning(str(out)):
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace") + " "
+        if all(n in cmd for n in needles):
+            return pid
+    pytest.fail(f"no process with {needles} in its command line")
+
+
+def steps_logged(out: Path, uav: int) -> list[dict]:
+    path = out / "logs" / f"planner_{uav}.jsonl"
+    if not path.exists():
+        return []
+    entries = []
+    for line in path.read_text().splitlines():
+        try:
+            entries.append(json.loads(line))
+        except ValueError:
+            continue  # a line cut by the kill
+    return entries
+
+
+def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+    out = tmp_path / "dead_vehicle"
+    steps = 40
+    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20")
+    launches.append(run)
+    wait_for(lambda: len(steps_logged(out, 4)) >= 3, 120.0, "the mission to fly three steps")
+    os.kill(pid_of(out, "vehicle", "--sysid 4 "), signal.SIGKILL)
+    code, stdout, stderr = run.wait(180.0)
+    assert code == 3, stderr[-3000:]
+    assert "Traceback" not in stderr and "results:" in stdout
+    assert "completed with 2 failure(s)" in stderr, stderr[-2000:]
+
+    summary = json.loads((out / "summary.json").read_text())["runs"][0]
+    failures = {f["process"]: f for f in summary["failures"]}
+    assert set(failures) == {"vehicle_4", "planner_4"}, summary["failures"]
+    assert failures["vehicle_4"]["drones"] == [4] and failures["planner_4"]["drones"] == [4]
+    # The planner measured the silence itself: noticed within 3 s of the last heartbeat.
+    silent = re.search(r"vehicle link lost: no heartbeat for ([0-9.]+) s", failures["planner_4"]["reason"])
+    assert silent is not None, failures["planner_4"]
+    assert float(silent.group(1)) <= 3.0
+    assert failures["planner_4"]["action"] == "drone lost with its vehicle"
+
+    # The other nine flew every step; drone 4 stopped soon after the kill.
+    for i in range(1, 11):
+        logged = {e["step"] for e in steps_logged(out, i)}
+        if i == 4:
+            assert 3 <= len(logged) < steps
+        else:
+            assert logged == set(range(steps)), i
+    # They kept using their last saved record of drone 4 (its age grows to the end).
+    last = steps_logged(out, 1)[-1]
+    assert last["saved_steps"][3] == max(steps_logged(out, 4), key=lambda e: e["step"])["step"]
+    assert summary["violations"] == {k: 0 for k in summary["violations"]}
+
+
+def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+    out = tmp_path / "dead_planner"
+    steps = 150
+    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--on-failure", "restart")
+    launches.append(run)
+    wait_for(lambda: len(steps_logged(out, 3)) >= 5, 120.0, "the mission to fly five steps")
+    os.kill(pid_of(out, " plan ", "--uav 3 "), signal.SIGKILL)
+    code, stdout, stderr = run.wait(240.0)
+    assert code == 3, stderr[-3000:]
+    assert "Traceback" not in stderr and "results:" in stdout
+
+    summary = json.loads((out / "summary.json").read_text())["runs"][0]
+    assert [(f["process"], f["status"]) for f in summary["failures"]] == [("planner_3", -9)], summary["failures"]
+    assert summary["failures"][0]["action"].startswith("restarted")
+
+    entries = steps_logged(out, 3)
+    flown = [e["step"] for e in entries]
+    assert flown == sorted(flown) and len(set(flown)) == len(flown), "a step flown twice"
+    gap = [k for k in range(steps) if k not in set(flown)]
+    assert gap and flown[-1] == steps - 1, (gap, flown[-5:])
+    killed_after, rejoined_at = gap[0] - 1, gap[-1] + 1
+    assert gap == list(range(killed_after + 1, rejoined_at)), "more than one gap"
+    assert rejoined_at > killed_after + 1
+
+    # Meanwhile the others flew every step on their last saved record of drone 3, whose age
+    # grew; after the rejoin they see it fresh again (h_max = 1: age 0).
+    for i in (1, 2, 4, 10):
+        peer = {e["step"]: e for e in steps_logged(out, i)}
+        assert set(peer) == set(range(steps)), i
+        # (a kill between publishing a record and logging the step leaves one more record)
+        assert peer[rejoined_at - 1]["saved_steps"][2] in (killed_after, killed_after + 1)
+        assert peer[steps - 1]["saved_steps"][2] == steps - 1
+    assert summary["violations"] == {k: 0 for k in summary["violations"]}
+
+    # Its vehicle stopped and held within the guided timeout (3 s) of the last setpoint.
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(str(out / "tlogs" / "vehicle_3.tlog"), dialect="ardupilotmega")
+    t_of = {e["step"]: e["t_s"] for e in steps_logged(out, 1)}  # simulated time of each step (s)
+    from_ms = (t_of[killed_after + 1] + 1.0 + 3.0) * 1000.0  # last setpoint (<= 2 steps) + guided timeout
+    to_ms = (t_of[rejoined_at] - 1.0) * 1000.0
+    assert to_ms - from_ms >= 3000.0, "the planner was away too briefly to see its vehicle hold"
+    held = []
+    while (msg := log.recv_match(type="LOCAL_POSITION_NED")) is not None:
+        if from_ms <= msg.time_boot_ms <= to_ms:
+            held.append(np.hypot(np.hypot(msg.vx, msg.vy), msg.vz))
+    assert held, "no telemetry while the planner was away"
+    assert max(held) < 0.05, f"the vehicle moved at {max(held):.2f} m/s without its planner"
+
+
+def test_abort_stops_the_run_at_the_first_failure(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+    out = tmp_path / "abort"
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "8", "--on-failure", "abort")
+    launches.append(run)
+    wait_for(lambda: len(steps_logged(out, 4)) >= 3, 120.0, "the mission to fly three steps")
+    os.kill(pid_of(out, "vehicle", "--sysid 4 "), signal.SIGKILL)
+    code, _, stderr = run.wait(90.0)
+    assert code == 1
+    assert "vehicle_4" in stderr and "Traceback" not in stderr, stderr[-2000:]
+    wait_for(lambda: not processes_mentioning(str(out)), 15.0, "every child to exit")
