@@ -114,6 +114,9 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
                                 "--log", str(logs[u]), "--preflight-timeout", "60"])
             procs.append(planners[u])
         running = list(planners.values()) + vehicles + [ra, rb]
+        t_ready = wait_for(lambda: all("ready at the start position" in p.err for p in planners.values()), PREFLIGHT_S + 60.0,
+                           "every planner at its start position", running)
+        preflight_margin_s = start_at - (time.time() - (time.monotonic() - t_ready))
 
         def steps_of(u: int) -> list[dict]:
             return read_steps(logs[u])
@@ -146,8 +149,9 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         t_restore, t_restore_unix = time.monotonic(), time.time()
         quiet_from = max(gone.values()) + 0.5
         leaked = {name: watch[name].records_between(quiet_from, t_restore, b if name == "A" else a) for name in watch}
-        if sc.freeze:
-            link.stop()
+        if sc.freeze:  # the frozen router is not resumed: a new link replaces it
+            os.killpg(link.p.pid, signal.SIGKILL)
+            link.wait(10.0)
 
         # -- phase 3: restored -----------------------------------------------------------------
         link2, _, t_link_ready = start_router(procs, ea, eb)
@@ -208,6 +212,7 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
     figures.update({f"first_record_s_{n}": v for n, v in first_rec.items()})
     figures.update({f"liveliness_back_s_{n}": (v - t_restore if v is not None else float("nan")) for n, v in alive_back.items()})
     figures["link_router_ready_s"] = t_link_ready - t_restore
+    figures["preflight_margin_s"] = preflight_margin_s
     print("partition figures:", json.dumps({k: round(v, 3) for k, v in figures.items()}))
     assert leaked == {"A": 0, "B": 0}, leaked
     assert min_d >= c.d_uav_m - POSITION_TOL_M, figures
@@ -241,3 +246,50 @@ def test_a_silent_cut_between_two_groups_of_three(tmp_path: Path, procs: list[Pr
     noticed by the Zenoh lease), then replaced by a new one."""
     run_partition(tmp_path, procs, Scenario(groups=((1, 2, 3), (4, 5, 6)), speedup=4.0, steps=110, linked_steps=10, cut_steps=30,
                                             merged_steps=10, freeze=True))
+
+
+def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[Proc]) -> None:
+    """``fimnav router``: the ready line gives the OS-chosen endpoint; a client of router A
+    receives what a client of router B publishes once a third router links A and B (and not
+    before); SIGINT and SIGTERM stop a router with exit 0 and no traceback; a bad endpoint is a
+    one-line error (exit 2)."""
+    from comms.session import SessionSettings, open_session
+
+    _, ea, _ = start_router(procs)
+    _, eb, _ = start_router(procs)
+    assert ea != eb and ea.startswith("tcp/127.0.0.1:") and not ea.endswith(":0")
+    got: list[float] = []
+    sa = open_session(SessionSettings(mode="client", listen=(), connect=(ea,)))
+    sb = open_session(SessionSettings(mode="client", listen=(), connect=(eb,)))
+    try:
+        sub = sa.declare_subscriber("partition-test/**", lambda _s: got.append(time.monotonic()))
+        pub = sb.declare_publisher("partition-test/x")
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:  # a second of traffic that must not cross (not linked)
+            pub.put(b"x")
+            time.sleep(0.05)
+        assert got == []
+        link, _, t_link = start_router(procs, ea, eb)
+
+        def crossed() -> bool:
+            pub.put(b"x")
+            return bool(got)
+
+        wait_for(crossed, 10.0, "a message from a client of B at a client of A through the link router", [link])
+        print(f"routers linked: first message across {got[0] - t_link:.3f} s after the link router's ready line")
+        sub.undeclare()
+    finally:
+        sa.close()
+        sb.close()
+    # Started together (each is a Python start-up on a shared machine), then checked.
+    bad = {args: Proc(["router", *args]) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
+                                                       ("--auth-user", "swarm"), ("--duration", "nan"))}
+    procs.extend(bad.values())
+    stopped = {signum: start_router(procs)[0] for signum in (signal.SIGINT, signal.SIGTERM)}
+    for signum, r in stopped.items():
+        os.kill(r.p.pid, signum)
+    for r in stopped.values():
+        assert r.wait(15.0) == 0 and "Traceback" not in r.err, r.tail()
+    for args, p in bad.items():
+        assert p.wait(30.0) == 2 and "fimnav router: error:" in p.err and "Traceback" not in p.err, (args, p.tail())
+    assert "cannot open the router" in bad[("--listen", "tcp/127.0.0.1")].err
