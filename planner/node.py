@@ -271,7 +271,8 @@ class PlannerNode:
         self.start = mission.drones.start_positions_m()[self.i]
         self.est_config = mission.estimator_config()
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
-        self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated")
+        self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated",
+                                faults=mission.comms.faults.to_model(), seed=mission.seed)
         self.inbox = _Inbox(mission.id, n)
         resolved = mission.vehicles.for_drone(self.i)
         self.flavour_setting = options.flavour or resolved.autopilot
