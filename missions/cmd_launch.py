@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -30,6 +31,13 @@ def register(subparsers: Any) -> None:
                    help="when a vehicle or planner fails mid-mission: fly on without that drone (default), stop the run, "
                    "or also restart a failed planner, which rejoins at the current step; the summary lists every failure "
                    "and the exit status is then 3")
+    rt = p.add_argument_group("real time (a mixed fleet: drones with vehicles.overrides[i].connection fly that autopilot)")
+    rt.add_argument("--realtime", action="store_true", help="step on the wall clock instead of the lockstep clock; simulated "
+                    "vehicles run in real time; drones with a connection in the mission get no simulated vehicle")
+    rt.add_argument("--speedup", type=float, default=1.0, help="real time: mission seconds per wall second (default 1; "
+                    "more only when every vehicle is simulated, or an external SITL runs at the same speed-up)")
+    rt.add_argument("--start-delay", type=float, metavar="S", help="real time: wall seconds from the launch to step 0 "
+                    "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step")
     p.add_argument("--vehicles-per-process", type=int, default=1, help="simulated vehicles hosted by one process (default 1; more for large swarms)")
     p.set_defaults(func=run)
 
@@ -50,6 +58,14 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     if args.criterion:
         overrides["criterion"] = args.criterion
+    if args.realtime and args.on_failure == "restart":
+        raise UsageError("--on-failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
+    for name in ("speedup", "start_delay"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise UsageError(f"--{name.replace('_', '-')}: expected a positive number of seconds, found {v}")
+    if not args.realtime and (args.speedup != 1.0 or args.start_delay is not None):
+        raise UsageError("--speedup and --start-delay: only with --realtime (lockstep runs as fast as the machine allows)")
     if args.vehicles_per_process < 1:
         raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
     mission = load_mission(args.mission, overrides)
@@ -62,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
-                         on_failure=args.on_failure)
+                         on_failure=args.on_failure, realtime=args.realtime, speedup=args.speedup, start_delay_s=args.start_delay)
     finally:
         bar.close()
     viol = sum(summary["violations"].values())

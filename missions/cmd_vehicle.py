@@ -334,6 +334,24 @@ def run_vehicle(args: argparse.Namespace) -> int:
             zenoh_info = {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
         else:
             clock = RealTimeClock(args.speedup)
+            if mission is not None and (args.zenoh_connect or args.zenoh_listen):
+                # Real time with Zenoh: the payloads publish their measurements (fimnav launch
+                # --realtime); presence tokens as in lockstep.
+                from comms.session import SessionSettings
+                from vehicle_sim.bridge import ZenohBridge
+
+                listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
+                try:
+                    settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
+                    if args.zenoh_mode == "client":
+                        settings = dataclasses.replace(settings, mode="client", listen=(), connect=tuple(args.zenoh_connect))
+                    elif args.zenoh_mode:
+                        settings = dataclasses.replace(settings, mode=args.zenoh_mode)
+                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, vehicles, settings)
+                except Exception as exc:  # zenoh raises its own error type for bad endpoints
+                    raise UsageError(f"zenoh: cannot open the session ({exc})") from None
+                source.start_realtime(vehicles, args.speedup)
+                zenoh_info = {"listen": listen, "connect": args.zenoh_connect, "payload": "realtime"}
         host = VehicleHost(vehicles, clock, on_tick=on_tick)
         ready = {
             "event": "ready",

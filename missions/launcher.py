@@ -114,6 +114,14 @@ class Launcher:
         progress: called after each step with (step, mean PEB, mean estimate error, alive).
         on_failure: one of :data:`ON_FAILURE`. Failures are recorded in :attr:`failures`
             (what failed, at which step, its exit status and last log line, what was done).
+        realtime: fly on the wall clock instead of the lockstep clock: vehicles run in real
+            time (sped up by ``speedup``), planners step every Δt/speedup wall seconds from a
+            shared UNIX start time and wait for their peers only until a deadline. Drones with
+            ``vehicles.overrides[i].connection`` get no simulated vehicle: their planner flies
+            the autopilot at that connection (a mixed fleet).
+        speedup: real time: mission seconds per wall second (1 for real vehicles).
+        start_delay_s: real time: wall seconds from the launch to step 0 (None: 30 s plus 1 s
+            per drone, the start-up, take-off and flight to the start of simulated vehicles).
     """
 
     def __init__(
@@ -126,6 +134,9 @@ class Launcher:
         step_timeout_s: float = 30.0,
         vehicles_per_process: int = 1,
         on_failure: str = "continue",
+        realtime: bool = False,
+        speedup: float = 1.0,
+        start_delay_s: float | None = None,
     ) -> None:
         self.mission = mission
         self.out = out
@@ -141,6 +152,14 @@ class Launcher:
         if on_failure not in ON_FAILURE:
             raise LaunchError(f"on failure: expected one of {', '.join(ON_FAILURE)}, found {on_failure!r}")
         self.on_failure = on_failure
+        if realtime and on_failure == "restart":
+            raise LaunchError("on failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
+        if not (np.isfinite(speedup) and speedup > 0):
+            raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
+        self.realtime = realtime
+        self.speedup = float(speedup)
+        self.start_delay_s = start_delay_s if start_delay_s is not None else 30.0 + 1.0 * n
+        self.start_unix: float | None = None
         #: Every failure seen: {"process", "drones", "step", "status", "reason", "action"}.
         self.failures: list[dict[str, Any]] = []
         self._handled: set[int] = set()  # pids of failed children already dealt with
@@ -278,35 +297,48 @@ class Launcher:
                 session.declare_subscriber(keys.record(m.id), self._on_record),
                 session.declare_subscriber(keys.status(m.id), self._on_status),
             ]
-            clock = LockstepClock(session, m.id, n, m.dt_s)
+            clock = None if self.realtime else LockstepClock(session, m.id, n, m.dt_s)
             child_zenoh = dataclasses.replace(SessionSettings.from_mission(m.zenoh), mode="client", listen=(), connect=(hub,))
             vehicle_zenoh = ["--zenoh-connect", hub, "--zenoh-mode", "client"]
+            timing = ["--speedup", f"{self.speedup:g}"] if self.realtime else ["--lockstep"]
+            # Drones flown on an external autopilot (a mixed fleet, real time) get no vehicle.
+            external = {i for i in range(1, n + 1) if m.vehicles.for_drone(i - 1).connection is not None} if self.realtime else set()
             # Vehicles bind port 0 and report the port the OS gave them (no race with the
             # ephemeral ports of a hundred other sockets); planners start once they are known.
             per = self.vehicles_per_process
             vehicle_children = []
-            for first in range(1, n + 1, per):
-                ids = list(range(first, min(first + per, n + 1)))
+            for ids in _runs([i for i in range(1, n + 1) if i not in external], per):
+                first = ids[0]
                 name = f"vehicle_{first}" if len(ids) == 1 else f"vehicles_{first}-{ids[-1]}"
                 tlog = self.out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
-                vehicle_children.append(self._spawn(
+                vc = self._spawn(
                     name,
                     ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
                      *[a for _ in ids for a in ("--mavlink", "udpin:127.0.0.1:0")],
-                     "--lockstep", *vehicle_zenoh, "--tlog", str(tlog)],
-                ))
-            for vc, first in zip(vehicle_children, range(1, n + 1, per)):
-                for i in range(first, min(first + per, n + 1)):
+                     *timing, *vehicle_zenoh, "--tlog", str(tlog)],
+                )
+                vehicle_children.append(vc)
+                for i in ids:
                     self._vehicle_child[i] = vc
             ports = self._vehicle_ports(vehicle_children, self.preflight_timeout_s)
+            if self.realtime:
+                # On the UNIX grid of multiples of Δt/speed-up: the simulated payloads measure
+                # just before each point of it (vehicle_sim.bridge).
+                dtw = m.dt_s / self.speedup
+                self.start_unix = float(np.ceil((time.time() + self.start_delay_s) / dtw) * dtw)
+                timing = [*timing, "--start-at", f"{self.start_unix:.6f}", "--preflight-timeout", str(self.preflight_timeout_s)]
             for i in range(1, n + 1):
+                conn = [] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
                 self._planner_args[i] = [
-                    "plan", "--mission", str(mission_file), "--uav", str(i), "--mavlink", f"udpout:127.0.0.1:{ports[i]}", "--lockstep",
+                    "plan", "--mission", str(mission_file), "--uav", str(i), *conn, *timing,
                     *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
                     "--step-timeout", str(self.step_timeout_s),
                 ]
                 self._spawn(f"planner_{i}", self._planner_args[i])
             stop = self._should_stop
+            if clock is None:
+                self._fly_realtime()
+                return self._result(time.perf_counter() - t_start)
             t0 = clock.preflight(self.preflight_timeout_s, stop)
             self._flying = True
             for k in range(m.steps):
@@ -337,6 +369,33 @@ class Launcher:
                     s.undeclare()
             session.close()
         return self._result(time.perf_counter() - t_start)
+
+    def _fly_realtime(self) -> None:
+        """Real time: report progress on the wall clock until every planner has ended."""
+        m = self.mission
+        assert self.start_unix is not None
+        dtw = m.dt_s / self.speedup
+        self._flying = True
+        reported = -1
+        end_by = self.start_unix + m.steps * dtw + self.preflight_timeout_s + 120.0
+        while True:
+            if self._should_stop():
+                raise Interrupted("interrupted: every process was stopped")
+            planners = [c for c in self.children if c.name.startswith("planner")]
+            now = time.time()
+            done = min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
+            while reported < done:
+                reported += 1
+                self._step = reported
+                if self.progress is not None:
+                    peb, err = self._live_stats(reported)
+                    self.progress(reported, peb, err, sum(c.proc.poll() is None for c in planners))
+            if all(c.proc.poll() is not None for c in planners):
+                self._check_children()
+                return
+            if now > end_by:
+                raise LaunchError(f"the planners did not end the mission by {end_by - self.start_unix:.0f} s after step 0")
+            self._stop.wait(0.1)  # polling the children, with the deadline above
 
     def _vehicle_ports(self, children: list[Child], timeout_s: float) -> dict[int, int]:
         """The MAVLink UDP port of every vehicle, from the vehicles' JSON ready lines."""
@@ -479,6 +538,17 @@ class Launcher:
         # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
         # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
         not_flown = missing[:K] | missing[1:]
+        if self.realtime:
+            # On the wall clock, positions are sampled at each step's (jittered) start: the
+            # kinematic limits apply to the commanded steps, u_k = next_k − p_k (logged).
+            u = np.full((K, 1, n, 3), np.nan)
+            for (k, j), e in logs.items():
+                if 0 <= k < K:
+                    u[k, 0, j - 1] = np.asarray(e["next_position_m"]) - np.asarray(e["position_m"])
+            not_flown |= np.isnan(u).any(-1)
+            chain = np.concatenate([np.nan_to_num(positions[:1]), np.nan_to_num(positions[:1]) + np.cumsum(np.nan_to_num(u), axis=0)])
+            commanded = safety_margins(chain, sources, m.limits(), bmin, bmax, MAVLINK_KINEMATIC_TOL)
+            margins["speed"], margins["turn_rate"] = commanded["speed"], commanded["turn_rate"]
         margins["speed"][not_flown] = np.inf
         margins["turn_rate"][not_flown | np.concatenate([not_flown[:1], not_flown[:-1]])] = np.inf
         err = np.linalg.norm(estimates - sources[:K, None, None, :], axis=-1)
@@ -498,6 +568,18 @@ class Launcher:
             runtime_s=runtime_s,
             extra={"distributed": 1.0, "dropped_messages": float(self.collected.dropped), "missing_drone_steps": float(missing[:K].sum())},
         )
+
+
+def _runs(ids: Sequence[int], size: int) -> list[list[int]]:
+    """Consecutive ids in groups of at most ``size`` (a vehicle process hosts consecutive
+    system ids)."""
+    groups: list[list[int]] = []
+    for i in ids:
+        if groups and groups[-1][-1] == i - 1 and len(groups[-1]) < size:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups
 
 
 def _ready_line(path: Path) -> dict[str, Any] | None:
@@ -546,6 +628,6 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
     summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
     summary = summaries[0]
     summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]),
-                   failures=launcher.failures)
+                   failures=launcher.failures, clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep")
     (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
     return summary
