@@ -7,10 +7,8 @@ of tests/distributed/test_launch.py).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -28,47 +26,6 @@ LOSS = 0.2
 MAX_DELAY = 2
 
 
-def _index(obj: Any, idx: tuple[int, ...], batch: tuple[int, ...]) -> Any:
-    """Element ``idx`` of a batched estimator dataclass (arrays with the batch's leading shape)."""
-    if dataclasses.is_dataclass(obj):
-        return dataclasses.replace(obj, **{f.name: _index(getattr(obj, f.name), idx, batch) for f in dataclasses.fields(obj)})
-    if isinstance(obj, np.ndarray) and obj.shape[: len(batch)] == batch:
-        return obj[idx]
-    return obj
-
-
-def _stack(items: list[Any], batch: tuple[int, ...]) -> Any:
-    """Inverse of :func:`_index` over every element of ``batch`` (C order)."""
-    first = items[0]
-    if dataclasses.is_dataclass(first):
-        return dataclasses.replace(first, **{f.name: _stack([getattr(o, f.name) for o in items], batch) for f in dataclasses.fields(first)})
-    if isinstance(first, np.ndarray) or isinstance(first, (np.bool_, np.floating, np.integer)):
-        arr = np.stack([np.asarray(o) for o in items])
-        return arr.reshape(batch + arr.shape[1:])
-    return first
-
-
-def per_drone_estimator(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Run the simulator's estimator one drone at a time, as a planner node does.
-
-    planner.estimator.update is batch-coupled: when any element of the batch initialises (or
-    moves basin) *every* element gets ``init_iterations`` Fisher-scoring iterations. Without
-    faults every drone of the paper mission holds the same records, so the batch moves in step
-    and nothing shows; with loss the views differ and the batched estimates drift from a
-    node's (meters after a few steps). Until the estimator iterates per element, the reference
-    simulation calls it per drone."""
-    import missions.simulator as sim_module
-
-    batched = sim_module.est.update
-
-    def update(state: Any, meas: Any, channel: Any, config: Any = None) -> Any:
-        batch = state.batch_shape
-        outs = [batched(_index(state, idx, batch), _index(meas, idx, batch), channel, config) for idx in np.ndindex(batch)]
-        return _stack(outs, batch)
-
-    monkeypatch.setattr(sim_module.est, "update", update)
-
-
 def _node_injects_faults(mission: Mission) -> bool:
     """Whether the planner node builds its delayed view with the mission's faults."""
     from planner.node import NodeOptions, PlannerNode
@@ -77,7 +34,7 @@ def _node_injects_faults(mission: Mission) -> bool:
     return node.view.faults is not None
 
 
-def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: list[Launch], monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: F811
+def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     """The paper's heterogeneous mission, shortened, with 20 % of the peer records lost and up to
     2 steps of extra delay: it completes; every planner held exactly the records the brute-force
     buffer gives with its own decisions (so it fell back on saved records); its positions equal
@@ -112,7 +69,6 @@ def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: li
     assert old > 0, "with loss and delay some planners must use saved (older) records"
 
     # The same faults in the in-process simulator: the same flight.
-    per_drone_estimator(monkeypatch)
     sim = simulate(RunSpec(mission, mission.criterion, 1, STEPS), float32_positions=True)
     np.testing.assert_allclose(pos, sim.positions_m[:, 0], atol=0.01, rtol=0)
     sim_peb = sim.peb_stats()["mean"]
@@ -124,7 +80,6 @@ def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: li
     faults = summary["faults"]
     assert faults["loss"] == LOSS and faults["extra_delay_steps"] == MAX_DELAY
     assert faults["final_peb_mean_m"] == pytest.approx(peb[-1], rel=1e-6)
-    monkeypatch.undo()  # the summary's baseline is the plain simulator (fault-free: identical views)
     clean = simulate(RunSpec(load_mission(PAPER / "heterogeneous.yaml"), mission.criterion, 1, STEPS), float32_positions=True)
     assert faults["baseline_final_peb_mean_m"] == pytest.approx(float(clean.peb_stats()["mean"][-1]), rel=1e-9)
     assert faults["final_peb_penalty_m"] == pytest.approx(faults["final_peb_mean_m"] - faults["baseline_final_peb_mean_m"])
