@@ -451,7 +451,9 @@ class VehicleLink:
                 tel.position_enu_m = ned_to_enu(msg.x, msg.y, msg.z)
                 tel.velocity_enu_mps = ned_to_enu(msg.vx, msg.vy, msg.vz)
         elif kind == "GLOBAL_POSITION_INT":
-            if self.frame == "global" and (msg.time_boot_ms >= tel.position_time_ms or msg.time_boot_ms < tel.position_time_ms - 10_000):
+            if msg.lat == 0 and msg.lon == 0:
+                pass  # no position yet (ArduPilot reports 0, 0 before its first fix)
+            elif self.frame == "global" and (msg.time_boot_ms >= tel.position_time_ms or msg.time_boot_ms < tel.position_time_ms - 10_000):
                 # (a time_boot_ms far behind the last one: the autopilot rebooted)
                 assert self.mission_frame is not None
                 x, y, z = self.mission_frame.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
