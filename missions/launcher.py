@@ -230,7 +230,13 @@ class Launcher:
         """Record a failed child; restart a failed planner if asked and its vehicle lives."""
         drones = [i for i, v in self._vehicle_child.items() if v is c] if c.name.startswith("vehicle") else [int(c.name.split("_")[1])]
         reason = next((line for line in reversed(c.tail(20).splitlines()) if line.strip()), "")
-        entry: dict[str, Any] = {"process": c.name, "drones": drones, "step": self._step, "status": code, "reason": reason[-300:], "action": "continued without it"}
+        step = self._step
+        if c.name.startswith("planner"):
+            # The step it failed at: the one after the last it logged (the launcher may notice
+            # its exit a few steps later).
+            flown = [k for (k, j) in self._step_logs_of(drones[0])]
+            step = max(flown) + 1 if flown else step
+        entry: dict[str, Any] = {"process": c.name, "drones": drones, "step": step, "status": code, "reason": reason[-300:], "action": "continued without it"}
         if c.name.startswith("planner"):
             i = drones[0]
             vehicle_alive = self._vehicle_child[i].proc.poll() is None
@@ -473,14 +479,20 @@ class Launcher:
         can be lost; its own log cannot)."""
         out: dict[tuple[int, int], dict[str, Any]] = {}
         for j in range(1, self.mission.drones.count + 1):
-            path = self.out / "logs" / f"planner_{j}.jsonl"
-            with contextlib.suppress(OSError):
-                for line in path.read_text().splitlines():
-                    try:
-                        entry = json.loads(line)
-                        out[(int(entry["step"]), j)] = entry
-                    except (ValueError, KeyError, TypeError):
-                        continue  # a line cut by a killed planner
+            out.update(self._step_logs_of(j))
+        return out
+
+    def _step_logs_of(self, j: int) -> dict[tuple[int, int], dict[str, Any]]:
+        """Planner ``j``'s step log entries by (step, j)."""
+        out: dict[tuple[int, int], dict[str, Any]] = {}
+        path = self.out / "logs" / f"planner_{j}.jsonl"
+        with contextlib.suppress(OSError):
+            for line in path.read_text().splitlines():
+                try:
+                    entry = json.loads(line)
+                    out[(int(entry["step"]), j)] = entry
+                except (ValueError, KeyError, TypeError):
+                    continue  # a line cut by a killed planner
         return out
 
     def _result(self, runtime_s: float) -> SimulationResult:

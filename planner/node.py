@@ -302,6 +302,10 @@ class PlannerNode:
         self.alive: set[int] = set()
         #: Planners whose liveliness token went away (and did not come back).
         self.left: set[int] = set()
+        #: The step this planner was at when each of them left (its records up to then are late
+        #: ones, not a rejoin).
+        self.left_at: dict[int, int] = {}
+        self.step_now = -1
         self.tick: Tick | None = None
         self.measurements: dict[int, Observation] = {}
         self.seq = 0
@@ -372,7 +376,7 @@ class PlannerNode:
                         elif self.latest_measurement is None or msg.time_s >= self.latest_measurement.time_s:
                             self.latest_measurement = msg
                     elif self.o.lockstep:
-                        if msg.sender in self.left:
+                        if msg.sender in self.left and msg.step > self.left_at.get(msg.sender, -1):
                             # A planner that left is waited for again once its records flow
                             # (a restarted planner skips the step it joins at).
                             self.left.discard(msg.sender)
@@ -389,6 +393,7 @@ class PlannerNode:
                     (self.alive.add if kind == "alive" else self.alive.discard)(uav)
                     if kind == "gone" and uav != self.o.uav:
                         self.left.add(uav)
+                        self.left_at[uav] = self.step_now
                         log.warning("planner %d left the swarm", uav)
             try:
                 item = self.inbox.queue.get_nowait()
@@ -490,6 +495,7 @@ class PlannerNode:
             prev_step = np.zeros(3)
             done_steps = 0
             for k in range(first, self.steps):
+                self.step_now = k
                 w0 = self.wall()
                 t_k = self._await_step(k)
                 w_tick = self.wall()

@@ -69,6 +69,8 @@ def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, 
     assert silent is not None, failures["planner_4"]
     assert float(silent.group(1)) <= 3.0
     assert failures["planner_4"]["action"] == "drone lost with its vehicle"
+    lost_at = max(e["step"] for e in steps_logged(out, 4)) + 1
+    assert failures["planner_4"]["step"] == lost_at and failures["vehicle_4"]["step"] <= lost_at
 
     # The other nine flew every step; drone 4 stopped soon after the kill.
     for i in range(1, 11):
