@@ -168,9 +168,16 @@ class EstimatorConfig:
             :func:`update`, step 6.
         recheck_threshold: PL cost drop (≈ χ² units) that the PL solution must achieve over
             the current estimate before the estimate is moved there.
+        recheck_trust: fraction of the re-check's PL information that is claimed (reported in
+            ``information``) after the estimate moved there; the cost keeps all of it. The
+            squared-range PL solution can be biased by tens of metres (NLOS ranges, 74 %
+            relative noise), and claiming every range's information there made a wrong estimate
+            a confident one (issue 7: the source keep-out around it then missed the source).
         consistency_threshold: χ² threshold (3 degrees of freedom) of the score test of the
-            recent records against the estimate (None disables it; see :func:`update`,
-            step 7). 25 ≈ the 1.5·10⁻⁵ upper quantile of χ²₃.
+            recent records against the estimate (None, the default, disables it; e.g. 25 ≈
+            the 1.5·10⁻⁵ upper quantile of χ²₃); a failed test marks the element suspect and
+            deflates its reported information by ``suspect_deflation`` (see
+            :func:`_score_test`).
         consistency_forgetting: memory λ_c ∈ (0, 1) of the recent-records score, per call
             (0.9: about ten calls).
         lm_damping: initial LM damping, relative to the diagonal of the scoring matrix.
@@ -202,7 +209,8 @@ class EstimatorConfig:
     suspect_deflation: float = 0.1
     recheck_every: int = 5
     recheck_threshold: float = 25.0
-    consistency_threshold: float | None = 25.0
+    recheck_trust: float = 0.1
+    consistency_threshold: float | None = None
     consistency_forgetting: float = 0.9
     lm_damping: float = 1e-3
     nlos_bearing_weight: float = 0.0
@@ -251,7 +259,7 @@ class EstimatorConfig:
             raise ValueError(
                 f"EstimatorConfig.gate_max_fraction: expected a value in [0, 1], found {self.gate_max_fraction!r}"
             )
-        for name in ("suspect_fraction", "suspect_deflation"):
+        for name in ("suspect_fraction", "suspect_deflation", "recheck_trust"):
             value = getattr(self, name)
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"EstimatorConfig.{name}: expected a value in (0, 1], found {value!r}")
@@ -1166,7 +1174,10 @@ def update(
             lam_r, eta_r = _schur_prior(pr_A, pr_b)
             x = np.where(move[..., None], cand, x)
             prior_info = np.where(move[..., None, None], lam_r, prior_info)
-            prior_fisher = np.where(move[..., None, None], lam_r, prior_fisher)
+            # Claimed information after a move: only ``recheck_trust`` of the PL summary (the
+            # squared-range PL solution can be biased, e.g. by NLOS ranges; the records that
+            # follow rebuild the information at the new estimate).
+            prior_fisher = np.where(move[..., None, None], lam_r * config.recheck_trust, prior_fisher)
             prior_vec = np.where(move[..., None], eta_r, prior_vec)
             fresh_start = fresh_start | move
             long_run = long_run | move

@@ -414,6 +414,42 @@ def test_batched_update_equals_per_element_updates(rng: np.random.Generator) -> 
         assert state.observable[idx] == single.observable
 
 
+@pytest.mark.parametrize("window_rows", [0, 4])
+def test_batch_element_is_independent_of_the_other_elements(rng: np.random.Generator, window_rows: int) -> None:
+    """An element's result does not depend on what the rest of the batch does: element 0 is
+    initialised at the first call, element 1 only at the fourth (no records before), element 2
+    is ranging-only (re-checks move it, suspect restarts). Before the per-element iteration
+    counts, element 0 got ``init_iterations`` in the call where element 1 was initialised, so
+    the simulator (batch (trials, drones)) and a planner node (batch ()) differed."""
+    source = np.array([10.0, 20.0, 5.0])
+    config = EstimatorConfig(window_rows=window_rows, recheck_every=2)
+    batch = 3
+    steps = []
+    for call in range(8):
+        positions = ring(rng, source, 5, (40.0, 150.0), (2.0, 40.0))
+        d, az, el = _truth(source, positions)
+        noise = rng.normal(size=(batch, 5, 3))
+        rng_m = d * (1.0 + 0.39 * noise[..., 0])
+        az_m = az + 0.17 * noise[..., 1]
+        el_m = el + 0.17 * noise[..., 2]
+        az_m[2] = np.nan
+        el_m[2] = np.nan
+        pos = np.broadcast_to(positions, (batch, 5, 3)).copy()
+        if call < 3:
+            pos[1] = np.nan
+        steps.append(Measurements(pos, rng_m, az_m, el_m, np.ones((batch, 5), dtype=bool)))
+    state = initial_state((batch,), config)
+    for m in steps:
+        state = update(state, m, CHANNEL, config)
+    for b in range(batch):
+        single = initial_state((), config)
+        for m in steps:
+            single = update(single, Measurements(m.positions_m[b], m.range_m[b], m.azimuth_rad[b], m.elevation_rad[b], m.los[b]), CHANNEL, config)
+        np.testing.assert_allclose(state.estimate_m[b], single.estimate_m, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(state.information[b], single.information, rtol=1e-9, atol=1e-12)
+        assert state.observable[b] == single.observable
+
+
 def test_update_does_not_mutate_its_inputs(rng: np.random.Generator) -> None:
     source = np.array([0.0, 10.0, 0.0])
     positions = ring(rng, source, 5, (50.0, 100.0), (2.0, 30.0))
