@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -32,6 +35,25 @@ def start_router(procs: list[Proc], *connect: str, listen: str = "tcp/127.0.0.1:
     procs.append(p)
     ready = json.loads(p.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
     return p, str(ready["listen"][0]), time.monotonic()
+
+
+def stop_all(procs: Sequence[Proc], grace_s: float = 5.0) -> None:
+    """Stop every process group at once: SIGTERM to all, wait up to ``grace_s`` for all,
+    then :meth:`Proc.stop` (SIGKILL) for whatever lingers."""
+    for p in procs:
+        if p.p.poll() is None:
+            try:
+                os.killpg(p.p.pid, signal.SIGTERM)
+            except (ProcessLookupError, PermissionError):
+                pass
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        try:
+            p.p.wait(max(deadline - time.monotonic(), 0.01))
+        except subprocess.TimeoutExpired:
+            pass
+    for p in procs:
+        p.stop()
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, procs: Sequence[Proc] = (), detail: Callable[[], Any] | None = None) -> float:
@@ -196,3 +218,19 @@ def min_pair_distance(positions: np.ndarray) -> float:
         return math.inf
     d = np.linalg.norm(positions[:, None, :] - positions[None, :, :], axis=-1)
     return float(d[np.triu_indices(n, 1)].min())
+
+
+def min_pair_distance_between(start_m: np.ndarray, end_m: np.ndarray) -> float:
+    """Smallest distance (m) between two drones while each moves on the straight segment
+    from its row of ``start_m`` (n, 3) to its row of ``end_m`` (n, 3) over the same interval:
+    the minimum over t in [0, 1] of |a + t (b − a)|, a and b the pair's offsets at the ends
+    (closed form, t* = −a·(b − a) / |b − a|² clipped to [0, 1])."""
+    n = len(start_m)
+    if n < 2:
+        return math.inf
+    i, j = np.triu_indices(n, 1)
+    a = start_m[i] - start_m[j]
+    d = (end_m[i] - end_m[j]) - a
+    dd = (d * d).sum(-1)
+    t = np.clip(np.divide(-(a * d).sum(-1), dd, out=np.zeros_like(dd), where=dd > 0), 0.0, 1.0)
+    return float(np.linalg.norm(a + t[:, None] * d, axis=-1).min())

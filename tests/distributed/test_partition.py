@@ -35,7 +35,17 @@ from external.helpers import Proc
 
 from missions.loader import load_mission
 
-from .partition_helpers import HalfWatch, ages, min_pair_distance, read_steps, start_router, wait_for, write_partition_mission
+from .partition_helpers import (
+    HalfWatch,
+    ages,
+    min_pair_distance,
+    min_pair_distance_between,
+    read_steps,
+    start_router,
+    stop_all,
+    wait_for,
+    write_partition_mission,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -46,8 +56,7 @@ def procs() -> Iterator[list[Proc]]:
     be left running."""
     started: list[Proc] = []
     yield started
-    for p in reversed(started):
-        p.stop()
+    stop_all(started)
     assert all(p.p.poll() is not None for p in started), [p.args[:3] for p in started if p.p.poll() is None]
 
 
@@ -187,13 +196,16 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
     # -- safety, from the flown positions (each planner's own position at each step) --------------
     c = mission.constraints
     common = sorted(set.intersection(*(set(log[u]) for u in everyone)))
-    min_d = min(min_pair_distance(np.array([log[u][k]["position_m"] for u in everyone])) for k in common)
+    flown_at = {k: np.array([log[u][k]["position_m"] for u in everyone]) for k in common}
+    min_d = min(min_pair_distance(p) for p in flown_at.values())
+    # ... and between steps, each drone on the straight segment between its logged positions.
+    min_d_between = min((min_pair_distance_between(flown_at[k], flown_at[k + 1]) for k in common if k + 1 in flown_at), default=min_d)
     all_pos = np.array([e["position_m"] for u in everyone for e in log[u].values()])
     d_src = float(np.linalg.norm(all_pos - np.array(SOURCE_M), axis=1).min())
     planned = max(float(np.linalg.norm(np.subtract(e["next_position_m"], e["position_m"]))) for u in everyone for e in log[u].values())
     flown = max(float(np.linalg.norm(np.subtract(log[u][k + 1]["position_m"], log[u][k]["position_m"])))
                 for u in everyone for k in log[u] if k + 1 in log[u])
-    figures.update(min_distance_m=min_d, min_source_distance_m=d_src, max_planned_step_m=planned, max_flown_step_m=flown,
+    figures.update(min_distance_m=min_d, min_distance_between_steps_m=min_d_between, min_source_distance_m=d_src, max_planned_step_m=planned, max_flown_step_m=flown,
                    z_min_m=float(all_pos[:, 2].min()), z_max_m=float(all_pos[:, 2].max()))
     figures.update({f"notice_s_{n}": v for n, v in notice.items()})
     figures.update({f"first_record_s_{n}": v for n, v in first_rec.items()})
@@ -226,7 +238,7 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
     assert leaked == {"A": 0, "B": 0}, leaked
     assert alive_in_cut == {"A": set(a), "B": set(b)}, alive_in_cut
     assert alive_merged == {"A": set(everyone), "B": set(everyone)}, alive_merged
-    assert min_d >= c.d_uav_m - POSITION_TOL_M, figures
+    assert min(min_d, min_d_between) >= c.d_uav_m - POSITION_TOL_M, figures
     assert d_src >= c.d_source_m, figures
     assert c.z_min_m - POSITION_TOL_M <= figures["z_min_m"] and figures["z_max_m"] <= c.z_max_m + POSITION_TOL_M, figures
     assert planned <= c.speed_max_mps * mission.dt_s + 1e-6, figures
@@ -250,7 +262,7 @@ MERGE_WITHIN_S = 6.0
 
 def test_a_partitioned_swarm_keeps_flying_safely_and_merges_again(tmp_path: Path, procs: list[Proc]) -> None:
     """2 + 2 drones at ×4: linked, cut (the link router killed), restored (restarted)."""
-    run_partition(tmp_path, procs, Scenario(groups=((1, 2), (3, 4)), speedup=4.0, steps=70, linked_steps=6, cut_steps=10, merged_steps=6))
+    run_partition(tmp_path, procs, Scenario(groups=((1, 2), (3, 4)), speedup=4.0, steps=45, linked_steps=6, cut_steps=10, merged_steps=6))
 
 
 @pytest.mark.slow
@@ -306,3 +318,19 @@ def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[P
     for args, p in bad.items():
         assert p.wait(30.0) == 2 and "fimnav router: error:" in p.err and "Traceback" not in p.err, (args, p.tail())
     assert "cannot open the router" in bad[("--listen", "tcp/127.0.0.1")].err
+
+
+def test_min_pair_distance_between_steps_against_dense_sampling() -> None:
+    """The closed-form closest approach of two straight moves (used for the safety check)
+    against a dense sampling of the moves, and a crossing whose end points are far apart."""
+    crossing = min_pair_distance_between(np.array([[0.0, 0.0, 0.0], [10.0, 1.0, 0.0]]), np.array([[10.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    assert crossing == pytest.approx(1.0)
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 1.0, 20001)[:, None, None]
+    for _ in range(50):
+        start = rng.normal(size=(4, 3)) * 3.0
+        end = start + rng.normal(size=(4, 3))
+        path = start + t * (end - start)  # (T, 4, 3)
+        i, j = np.triu_indices(4, 1)
+        gaps = np.linalg.norm(path[:, i, :] - path[:, j, :], axis=-1)
+        assert min_pair_distance_between(start, end) == pytest.approx(float(gaps.min()), abs=1e-5)
