@@ -59,10 +59,17 @@ Method, per call of :func:`update` and per batch element (vectorised over both):
 3. Safeguards against a frozen wrong linearisation: *suspect* elements (too many records far
    from the estimate) get a deflated prior and Huber iterations; every ``recheck_every``
    calls the squared-range PL solution of all past ranges replaces the estimate when it is
-   much better on the PL cost and on the new records. Optional innovation gate.
+   much better on the PL cost and on the new records, claiming only ``recheck_trust`` of that
+   solution's information (it can be biased by tens of metres). Optional innovation gate;
+   optional score test of the recent records against the estimate (``consistency_threshold``).
 4. Forgetting λ ∈ (0, 1]: every stored contribution (Λ, η, PL equations, window weights)
    is multiplied by λ per call, for a moving source.
 5. Observability: initialised and det J/(tr J/3)³ ≥ ``min_rcond`` (J the information).
+
+Every batch element runs its own number of LM iterations (``iterations``, or
+``init_iterations`` in the call where it is initialised or moved), so an element of a batch
+computes what the same records give with batch shape () (the simulator, batch (trials,
+drones), and a planner node, batch (), agree).
 
 Per-call cost is O(batch × (window_rows + M)), independent of the number of calls. No NaN is
 returned: the estimate is finite everywhere (the origin, or the last value, until the element
