@@ -35,9 +35,12 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:
+    from comms.session import SessionSettings
 
 #: Where a router listens when no ``--listen`` is given (Zenoh's usual router port).
 DEFAULT_LISTEN: str = "tcp/127.0.0.1:7447"
@@ -84,14 +87,14 @@ def check_endpoint(endpoint: str, option: str) -> str:
     return endpoint
 
 
-def router_settings(args: argparse.Namespace) -> Any:
+def router_settings(args: argparse.Namespace) -> SessionSettings:
     """The :class:`comms.session.SessionSettings` of the router from the options (and the
     mission's TLS/auth, if ``--mission`` is given; flags override it).
 
     Raises:
         UsageError: bad endpoints, half a TLS identity, authentication without both parts.
     """
-    from comms.session import SessionSettings
+    from comms.session import SessionSettings  # noqa: F811 - the run-time import (zenoh-free)
 
     listen = tuple(check_endpoint(e, "--listen") for e in (args.listen or [DEFAULT_LISTEN]))
     connect = tuple(check_endpoint(e, "--connect") for e in args.connect)

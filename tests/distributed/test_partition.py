@@ -334,3 +334,33 @@ def test_min_pair_distance_between_steps_against_dense_sampling() -> None:
         i, j = np.triu_indices(4, 1)
         gaps = np.linalg.norm(path[:, i, :] - path[:, j, :], axis=-1)
         assert min_pair_distance_between(start, end) == pytest.approx(float(gaps.min()), abs=1e-5)
+
+
+def test_router_with_a_password_refuses_a_client_without_it(tmp_path: Path, procs: list[Proc]) -> None:
+    """``fimnav router --auth-user --auth-password-file``: a client with the swarm's
+    credential gets through it, a client without is refused."""
+    from comms.session import SessionSettings, open_session
+
+    password = tmp_path / "password"
+    password.write_text("not-a-real-secret\n")
+    password.chmod(0o600)
+    r = Proc(["router", "--listen", "tcp/127.0.0.1:0", "--auth-user", "swarm", "--auth-password-file", str(password)])
+    procs.append(r)
+    endpoint = json.loads(r.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))["listen"][0]
+    member = SessionSettings(mode="client", listen=(), connect=(endpoint,), auth_user="swarm", auth_password_file=password)
+    got: list[bytes] = []
+    a, b = open_session(member), open_session(member)
+    try:
+        b.declare_subscriber("auth-test/**", lambda s: got.append(bytes(s.payload.to_bytes())))
+
+        def crossed() -> bool:
+            a.put("auth-test/x", b"member")
+            return bool(got)
+
+        wait_for(crossed, 10.0, "a message between two clients with the password", [r])
+    finally:
+        a.close()
+        b.close()
+    with pytest.raises(Exception, match="Unable to connect"):
+        open_session(SessionSettings(mode="client", listen=(), connect=(endpoint,))).close()
+    assert "not-a-real-secret" not in r.out + r.err
