@@ -394,6 +394,10 @@ class PlannerNode:
                     if kind == "gone" and uav != self.o.uav:
                         self.left.add(uav)
                         self.left_at[uav] = self.step_now
+                    elif kind == "alive" and uav in self.left and not self.o.lockstep:
+                        # (in lockstep a planner that left counts again from its first record)
+                        self.left.discard(uav)
+                        log.warning("planner %d is back in the swarm", uav)
                         log.warning("planner %d left the swarm", uav)
             try:
                 item = self.inbox.queue.get_nowait()

@@ -216,6 +216,12 @@ class PointMass:
             return
         if cmd.kind == "velocity":
             v_des = limit_velocity(np.asarray(cmd.velocity, dtype=float), lim)
+        elif cmd.kind == "posvel" and cmd.velocity is not None and cmd.position is not None:
+            # Position + velocity (ArduPilot GUIDED, PX4 OFFBOARD): the velocity is a
+            # feed-forward and the position error is corrected on top of it, so a setpoint
+            # moving along a path is tracked without a lag that grows with the speed.
+            delta = np.asarray(cmd.position, dtype=float) - self.position
+            v_des = limit_velocity(np.asarray(cmd.velocity, dtype=float) + POSITION_GAIN_PER_S * delta, lim)
         else:
             target = np.asarray(cmd.position if cmd.position is not None else self.position, dtype=float)
             delta = target - self.position
