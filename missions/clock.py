@@ -143,6 +143,12 @@ class LockstepClock:
             self._drain(max(0.0, min(next_tick - self.wall(), 0.05)))
         return self.dt * (math.floor(self.t / self.dt + 1e-9) + 1)
 
+    def end(self, steps: int, t0: float) -> None:
+        """Publish the end-of-mission tick ``Tick(K, t_K)`` (K = ``steps``), once every live
+        planner has reported step K − 1 done: a planner leaves the swarm only after it, so no
+        planner's last record is overtaken by its liveliness going away (call again to re-send)."""
+        self._tick(steps, t0 + steps * self.dt)
+
     def run_step(self, step: int, t0: float, timeout_s: float, should_stop: Callable[[], bool] = lambda: False) -> StepReport:
         """Tick step ``step`` and wait until every live planner reported it done."""
         t = t0 + step * self.dt

@@ -354,14 +354,22 @@ class Launcher:
                 if self.progress is not None:
                     peb, err = self._live_stats(k)
                     self.progress(k, peb, err, len(report.alive))
-            # The planners end the mission (hold, land or RTL) and exit.
+            # The end tick releases the planners: they end the mission (hold, land or RTL) and
+            # exit. It is re-sent every second for a planner that missed it.
+            clock.end(m.steps, t0)
             deadline = time.monotonic() + 30.0
+            resend = time.monotonic() + 1.0
             for c in list(self.children):
                 if c.name.startswith("planner") and c.proc.pid not in self._handled:
-                    try:
-                        c.proc.wait(max(0.0, deadline - time.monotonic()))
-                    except subprocess.TimeoutExpired:
-                        raise LaunchError(f"{c.name} did not finish its end of mission within 30 s:\n{c.tail()}") from None
+                    while c.proc.poll() is None:
+                        now = time.monotonic()
+                        if now > deadline:
+                            raise LaunchError(f"{c.name} did not finish its end of mission within 30 s:\n{c.tail()}")
+                        if now >= resend:
+                            clock.end(m.steps, t0)
+                            resend = now + 1.0
+                        with contextlib.suppress(subprocess.TimeoutExpired):
+                            c.proc.wait(min(0.2, max(0.0, deadline - now)))
             self._check_children()
         except ClockError as exc:
             if self._stop.is_set():

@@ -541,10 +541,22 @@ class PlannerNode:
                           "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w_meas}
                 self._log_step(k, t_k, own, record, view, state, result, rows, timing)
                 done_steps += 1
+            self._await_end()
             self._end()
             return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped)}
         finally:
             self.close()
+
+    def _await_end(self) -> None:
+        """Lockstep: stay in the swarm until the clock's end tick (step K), i.e. until every
+        planner has done the last step. Leaving at once would let this planner's liveliness
+        token go before its last record reaches a slower peer, which would then fly its last
+        step without it. A clock that sends no end tick only delays the end by the step
+        timeout (with a warning)."""
+        try:
+            self._wait(lambda: self.tick is not None and self.tick.step >= self.steps, self.o.step_timeout_s, "end-of-mission tick")
+        except NodeError as exc:
+            log.warning("%s; ending the mission anyway", exc)
 
     def _start(self) -> int:
         """Pre-flight, then report ready to the clock; the first step is 0."""

@@ -51,6 +51,47 @@ def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
     del frame
 
 
+def test_a_setpoint_sent_before_a_tick_applies_before_it(make_rig, monkeypatch):
+    """The planner sends its setpoint for step k, then reports done; tick k+1 comes by a longer
+    path. When both wait for the vehicle's loop in the same select(), the setpoint must still
+    apply first: here the loop is held while the setpoint datagram and the tick arrive, then
+    released, and the position reported at the tick is the setpoint's."""
+    import threading
+
+    import vehicle_sim.host as host_module
+
+    cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(5.0, 150.0, 8.0), origin=Origin(45, 7, 100))
+    rig = make_rig(cfg, lockstep=True)
+    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    c = rig.client
+    clock.push(Tick(0, 0.0))
+    m = wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 0)
+
+    real_select = host_module.select.select
+    held, release = threading.Event(), threading.Event()
+
+    class Gate:
+        @staticmethod
+        def select(*args):  # noqa: ANN002, ANN205
+            if not release.is_set():
+                held.set()
+                release.wait(10.0)
+            return real_select(*args)
+
+    monkeypatch.setattr(host_module, "select", Gate)
+    assert held.wait(5.0), "the vehicle loop did not reach select()"
+    target = np.array([m.x + 0.6, m.y - 0.3, m.z - 0.2])
+    c.mav.set_position_target_local_ned_send(0, 1, 1, R.MAV_FRAME_LOCAL_NED, 0b110111000000, *target, 0.6, -0.3, -0.2, 0, 0, 0, 0, 0)
+    fds = rig.vehicle.link.filenos()
+    deadline = time.monotonic() + 5.0
+    while not real_select(fds, [], [], 0.05)[0]:
+        assert time.monotonic() < deadline, "the setpoint did not reach the vehicle's socket"
+    clock.push(Tick(1, 1.0))
+    release.set()
+    m = wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 1000)
+    np.testing.assert_array_equal([m.x, m.y, m.z], target.astype(np.float32).astype(float))
+
+
 @pytest.mark.parametrize(
     "payload, fragment",
     [
