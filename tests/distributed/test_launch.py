@@ -205,9 +205,10 @@ def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launche
     sub = hub.declare_subscriber("fimnav/**", lambda sample: heard.append(str(sample.key_expr)))
     try:
         runs = []
-        for name, mission_id in (("ranging_los", "alpha"), ("heterogeneous", "bravo")):
+        for name, mission_id in (("ranging_los", "alpha"), ("joint", "bravo")):
             out = tmp_path / mission_id
-            run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--step-timeout", "60", "--set", f"id={mission_id}", "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]')
+            run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--step-timeout", "60", "--set", f"id={mission_id}",
+                         "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]', "--set", "drones.count=4")
             launches.append(run)
             runs.append((run, out))
         for run, out in runs:
@@ -235,11 +236,11 @@ def test_sigint_stops_every_process(tmp_path: Path, launches: list[Launch]) -> N
     """Ctrl-C (SIGINT) to the launcher mid-mission: it exits with 130 and a clear message, and no
     vehicle or planner process is left."""
     out = tmp_path / "sigint"
-    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "400", "--step-timeout", "60")
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "60", "--set", "drones.count=4")
     launches.append(run)
     log = out / "logs" / "planner_1.jsonl"
     wait_for(lambda: log.exists() and log.read_text().count("\n") >= 3, 120.0, "the mission to fly three steps")
-    assert len(processes_mentioning(str(out))) >= 20
+    assert len(processes_mentioning(str(out))) >= 8  # 4 vehicles, 4 planners (and the launcher)
     run.proc.send_signal(signal.SIGINT)
     code, _, stderr = run.wait(60.0)
     assert code == 130, stderr[-2000:]

@@ -50,7 +50,7 @@ def steps_logged(out: Path, uav: int) -> list[dict]:
 
 def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "dead_vehicle"
-    steps = 40
+    steps = 30
     run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--set", "drones.count=5")
     launches.append(run)
     wait_for(lambda: len(steps_logged(out, 4)) >= 3, 120.0, "the mission to fly three steps")

@@ -38,7 +38,7 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
     key.write_bytes(bytes(range(32)))
     key.chmod(0o600)
     mav_port, zenoh_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
-    steps = 20
+    steps = 14
     mission = tmp_path / "mixed.yaml"
     mission.write_text(yaml.safe_dump({
         "id": "mixed", "dt_s": 1.0, "steps": steps, "seed": 3,
@@ -55,7 +55,7 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
         ready = json.loads(external.expect(r"\{\"event\": \"ready\".*\}", 60.0).group(0))
         assert ready.get("payload") == "realtime"
         out = tmp_path / "run"
-        run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "20")
+        run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "12")
         launches.append(run)
         code, stdout, stderr = run.wait(240.0)
         assert code == 0, stderr[-3000:]
