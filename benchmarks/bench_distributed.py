@@ -94,15 +94,18 @@ def main() -> None:
     het = ROOT / "missions" / "paper" / "heterogeneous.yaml"
     with tempfile.TemporaryDirectory() as tmp:
         walls = []
+        walls_one = []  # same-run baseline: one vehicle per process (the default before)
         lat = np.array([])
         for r in range(args.repeats):
             out = Path(tmp) / f"het{r}"
             walls.append(launch(het, out))
             lat = np.concatenate([lat, step_latencies(out)])
-            print(f"  run {r}: {walls[-1]:.1f} s")
+            walls_one.append(launch(het, Path(tmp) / f"het1_{r}", "--vehicles-per-process", "1"))
+            print(f"  run {r}: {walls[-1]:.1f} s (default: 10 vehicles per process); {walls_one[-1]:.1f} s (1 per process)")
         sim = simulator_time(het, 550)
         print(f"10 drones x 550 steps, launch (start-up included): median {statistics.median(walls):.1f} s "
-              f"(runs {', '.join(f'{w:.1f}' for w in walls)}); in-process simulator, 1 trial: {sim:.2f} s")
+              f"(runs {', '.join(f'{w:.1f}' for w in walls)}); with 1 vehicle per process: median "
+              f"{statistics.median(walls_one):.1f} s; in-process simulator, 1 trial: {sim:.2f} s")
         print(f"measurement -> setpoint on the wire, per planner step ({lat.size} steps): "
               f"median {np.median(lat) * 1e3:.1f} ms, p99 {np.percentile(lat, 99) * 1e3:.1f} ms")
         if not args.skip_100:

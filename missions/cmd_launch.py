@@ -38,7 +38,8 @@ def register(subparsers: Any) -> None:
                     "more only when every vehicle is simulated, or an external SITL runs at the same speed-up)")
     rt.add_argument("--start-delay", type=float, metavar="S", help="real time: wall seconds from the launch to step 0 "
                     "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step")
-    p.add_argument("--vehicles-per-process", type=int, default=1, help="simulated vehicles hosted by one process (default 1; more for large swarms)")
+    p.add_argument("--vehicles-per-process", type=int, default=10, help="simulated vehicles hosted by one process (default 10: "
+                   "fewer interpreters share the cores better; 1 gives every vehicle its own process, e.g. to kill one)")
     p.set_defaults(func=run)
 
 

@@ -132,7 +132,7 @@ class Launcher:
         progress: Callable[[int, float, float, int], None] | None = None,
         preflight_timeout_s: float | None = None,
         step_timeout_s: float = 30.0,
-        vehicles_per_process: int = 1,
+        vehicles_per_process: int = 10,
         on_failure: str = "continue",
         realtime: bool = False,
         speedup: float = 1.0,

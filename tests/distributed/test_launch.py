@@ -240,7 +240,7 @@ def test_sigint_stops_every_process(tmp_path: Path, launches: list[Launch]) -> N
     launches.append(run)
     log = out / "logs" / "planner_1.jsonl"
     wait_for(lambda: log.exists() and log.read_text().count("\n") >= 3, 120.0, "the mission to fly three steps")
-    assert len(processes_mentioning(str(out))) >= 8  # 4 vehicles, 4 planners (and the launcher)
+    assert len(processes_mentioning(str(out))) >= 5  # 4 planners, the vehicles (one process by default)
     run.proc.send_signal(signal.SIGINT)
     code, _, stderr = run.wait(60.0)
     assert code == 130, stderr[-2000:]

@@ -51,7 +51,8 @@ def steps_logged(out: Path, uav: int) -> list[dict]:
 def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "dead_vehicle"
     steps = 30
-    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--set", "drones.count=5")
+    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--set", "drones.count=5",
+                 "--vehicles-per-process", "1")
     launches.append(run)
     wait_for(lambda: len(steps_logged(out, 4)) >= 3, 120.0, "the mission to fly three steps")
     os.kill(pid_of(out, "vehicle", "--sysid 4 "), signal.SIGKILL)
@@ -138,7 +139,8 @@ def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: lis
 
 def test_abort_stops_the_run_at_the_first_failure(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "abort"
-    run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "8", "--on-failure", "abort", "--set", "drones.count=5")
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "8", "--on-failure", "abort", "--set", "drones.count=5",
+                 "--vehicles-per-process", "1")
     launches.append(run)
     wait_for(lambda: len(steps_logged(out, 4)) >= 3, 120.0, "the mission to fly three steps")
     os.kill(pid_of(out, "vehicle", "--sysid 4 "), signal.SIGKILL)
