@@ -13,7 +13,13 @@ Policies fixed here (docs/control.md):
   regain by moving. With the recorded NLOS flag a bearing-only drone in a shadow would have a
   zero gradient and drift away.
 * Source keep-out: d_S* + min(3σ, d_S*) around the estimate, σ the estimate's largest standard
-  deviation; no source constraint while the source is not observable.
+  deviation; no source constraint while the source is not observable. Optional second
+  evidence: when the cap binds (3σ ≥ d_S*) and a lower bound on the drone's own distance to
+  the source (from its own last ranges, :func:`own_range_lower_bound_m`) is below d_S* + the
+  activation margin, the keep-out is raised to just inside the drone's distance to the
+  estimate: it stops approaching (:func:`source_keepout_with_own_range_m`). The caller passes
+  the bound; without it (None, today's simulator and node) the keep-out follows the estimate
+  alone.
 * Not observable yet: treated like a singular FIM (keep moving along the last direction with a
   random perturbation, the paper's fallback).
 * Anti-collision against the peers heard directly (h_ij = 1) only: a peer not heard directly is
@@ -28,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner.control import StepResult, control_step
+from planner.control import StepResult, control_step, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.params import Channel, Criterion, Limits
 
@@ -36,6 +42,13 @@ FloatArray = NDArray[np.float64]
 
 #: Standard deviations of the source estimate added to d_S*.
 SOURCE_SIGMA_FACTOR: float = 3.0
+#: Own ranges (the last ones, the current step's included) a ranging drone combines into a
+#: lower bound on its distance to the source (:func:`own_range_lower_bound_m`).
+OWN_RANGE_WINDOW: int = 10
+#: Standard deviations of that lower bound.
+OWN_RANGE_SIGMA_FACTOR: float = 2.0
+#: How far (m) inside the activation margin a held keep-out sits: active, negligible push.
+HOLD_EPS_M: float = 1e-6
 
 
 def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
@@ -45,6 +58,57 @@ def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
     the estimate (fleeing lengthens the ranges, which grows σ: a runaway seen without the cap).
     """
     return limits.d_source_m + np.minimum(SOURCE_SIGMA_FACTOR * np.asarray(sigma_m, dtype=float), limits.d_source_m)
+
+
+def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel, sigma_factor: float = OWN_RANGE_SIGMA_FACTOR) -> FloatArray:
+    """Lower confidence bound (m) on a drone's distance to the source from its own last ranges.
+
+    Args:
+        range_m: (..., W) the drone's own measured ranges d̂ (eq. 3), m; NaN = no range.
+        los: (..., W) bool, the LOS flag of each.
+        channel: σ_r0 (LOS/NLOS) and γ of eq. 5.
+        sigma_factor: k, standard deviations of the bound.
+
+    Model: the distance d is taken as constant over the window (the drone moves at most
+    v_max Δt per step) and d̂_w = d (1 + s_w n_w), n_w ~ N(0, 1), with the relative standard
+    deviation s_w = σ_r0,w d^(γ/2 − 1) of eq. 5 (exact for γ = 2; for another γ evaluated at
+    the mean). The weighted mean d̄ = Σ w d̂ / Σ w, w = 1/s², has relative standard deviation
+    1/√Σw, so the bound d̄ / (1 + k/√Σw) exceeds d with probability Φ(−k) (2.3 % at k = 2).
+    +inf where no range is given. One NLOS range at d_S* has σ_r = 37 m; ten NLOS ranges give
+    a bound 32 % below their mean (twenty: 25 %).
+    """
+    r = np.asarray(range_m, dtype=float)
+    have = np.isfinite(r)
+    s0 = np.where(np.asarray(los, dtype=bool), channel.sigma_r0_los, channel.sigma_r0_nlos)
+    w0 = np.where(have, 1.0 / s0**2, 0.0)
+    sw0 = w0.sum(-1)
+    dbar = (w0 * np.where(have, r, 0.0)).sum(-1) / np.where(sw0 > 0.0, sw0, 1.0)
+    scale = np.maximum(dbar, 1e-9) ** (2.0 - channel.gamma)  # 1 / d^(γ − 2)
+    rel = 1.0 / np.sqrt(np.where(sw0 > 0.0, sw0 * scale, 1.0))
+    return np.where(sw0 > 0.0, dbar / (1.0 + sigma_factor * rel), np.inf)
+
+
+def source_keepout_with_own_range_m(limits: Limits, sigma_m: ArrayLike, distance_m: ArrayLike, own_lower_m: ArrayLike) -> FloatArray:
+    """Source keep-out radius (m) with the drone's own range evidence.
+
+    The keep-out about the estimate, :func:`source_keepout_m`, covers an error of 3σ until its
+    cap binds (3σ ≥ d_S*). Where it binds and the lower bound ``own_lower_m`` on the drone's
+    distance to the source (:func:`own_range_lower_bound_m`) is below d_S* + a
+    (a = :func:`planner.control.source_activation_margin_m`), the radius becomes
+    max(keep-out, d − a + ε), d = ``distance_m`` to the estimate: the constraint is just active,
+    with no outward push, so the projection of eq. 14 removes the approaching component of the
+    step (the drone may circle the estimate; at worst it creeps in at v_min while turning away).
+    Elsewhere the keep-out is :func:`source_keepout_m`. Aimed at an uncertain estimate that is
+    wrong along the drone's own line of sight (farther than the source, with a small σ in that
+    direction: the remaining violations of issue 7); an accurate estimate (3σ < d_S*) is not
+    second-guessed by ranges with 39-74 % relative noise. Shapes broadcast.
+    """
+    sigma = np.asarray(sigma_m, dtype=float)
+    keepout = source_keepout_m(limits, sigma)
+    a = source_activation_margin_m(limits)
+    hold = np.asarray(distance_m, dtype=float) - a + HOLD_EPS_M
+    close = (np.asarray(own_lower_m, dtype=float) < limits.d_source_m + a) & (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m)
+    return np.where(close, np.maximum(keepout, hold), keepout)
 
 
 def collision_relevant(hops: ArrayLike, d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
@@ -101,6 +165,7 @@ def plan(
     xi: float | None = None,
     perturbation_rad: float = np.radians(20.0),
     oracle_source: ArrayLike | None = None,
+    own_distance_lower_m: ArrayLike | None = None,
 ) -> PlanResult:
     """Drone i's planning step from its view (eqs. 6, 10-17).
 
@@ -118,6 +183,11 @@ def plan(
         xi, perturbation_rad: controller parameters.
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
+        own_distance_lower_m: (...), m, a lower bound on drone i's distance to the source from
+            its own measurements (:func:`own_range_lower_bound_m` of its last
+            :data:`OWN_RANGE_WINDOW` ranges; +inf for a drone that does not range), used by
+            :func:`source_keepout_with_own_range_m`. None: the keep-out follows the estimate
+            alone.
     """
     own = np.asarray(own_mask, dtype=bool)
     valid = np.asarray(view_valid, dtype=bool)
@@ -136,7 +206,12 @@ def plan(
         keepout = np.full(batch, limits.d_source_m)
     else:
         status = np.where(obs, cg.status, np.int8(FimStatus.SINGULAR))
-        keepout = np.where(obs, source_keepout_m(limits, estimate_sigma_m(estimate_information)), -np.inf)
+        sigma = estimate_sigma_m(estimate_information)
+        if own_distance_lower_m is None:
+            keepout = np.where(obs, source_keepout_m(limits, sigma), -np.inf)
+        else:
+            d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
+            keepout = np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
     peers = valid & ~own & collision_relevant(hops, d_hop_m, limits)
     step = control_step(
         own_position, previous_step, cg.gradient, status, view_positions, peers, np.where(valid, view_age_steps, 0),

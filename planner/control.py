@@ -69,6 +69,12 @@ class StepResult:
     infeasible: BoolArray
 
 
+def source_activation_margin_m(limits: Limits) -> float:
+    """Clearance (m) beyond the source keep-out within which its constraint acts: 2 v_max Δt + b
+    with the safe rule (docs/control.md), 0 with the paper's rule (active once violated)."""
+    return 2.0 * limits.step_max_m + limits.turn_buffer_m if limits.activation == "safe" else 0.0
+
+
 def _tilt_buffer(tilt: FloatArray, limits: Limits) -> FloatArray:
     """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0."""
     k = np.arange(1.0, 4.0) * limits.tilt_change_max_rad
@@ -220,7 +226,7 @@ def control_step(
     if safe:
         gt = G.copy()
         gt[..., :-2 - n_alt] -= smax * (2.0 + age) + 2.0 * tb
-        gt[..., -2 - n_alt:] -= 2.0 * smax + tb
+        gt[..., -2 - n_alt:] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
     else:
         gt = G
     active_all = gt < 0.0
