@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import plan
+from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
@@ -240,11 +240,14 @@ def simulate(
         # 4. Planning step from the view (shared with the planner node).
         view_rng = rng_view & have
         view_brg = brg_view & have
+        # Each drone's own last ranges bound its distance to the source (second keep-out).
+        lo = max(0, k - OWN_RANGE_WINDOW + 1)
+        own_lb = own_range_lower_bound_m(np.moveaxis(rec_range[lo:k + 1], 0, -1), np.moveaxis(rec_los[lo:k + 1], 0, -1), channel)
         planned = plan(
             pos, prev_step, eye_b, view_pos, have, view_los, np.where(have, k - saved, 0), hops,
             ranging, bearing, state.estimate_m, state.information, state.observable, channel, limits,
             spec.criterion, bmin, bmax, comms.d_hop_m, ctrl_u[k], xi=xi, perturbation_rad=perturb,
-            oracle_source=src if oracle_estimate else None,
+            oracle_source=src if oracle_estimate else None, own_distance_lower_m=own_lb,
         )
         step = planned.step
         fallback[k] = step.singular

@@ -39,7 +39,7 @@ import os
 import queue
 import select
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,7 +68,7 @@ from comms.messages import Done, MessageError, MessageKind, Observation, Status,
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
 from planner import estimator as est
-from planner.agent import plan
+from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
 from planner.errors import FimnavError
 from planner.randomness import CONTROL_DRAWS, control_rng
 
@@ -308,6 +308,8 @@ class PlannerNode:
         self.step_now = -1
         self.tick: Tick | None = None
         self.measurements: dict[int, Observation] = {}
+        #: This drone's own last ranges and LOS flags (the second source keep-out, planner.agent).
+        self.own_ranges: deque[tuple[float, bool]] = deque(maxlen=OWN_RANGE_WINDOW)
         self.seq = 0
         self._log: TextIO | None = None
 
@@ -511,6 +513,7 @@ class PlannerNode:
                     meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad,
                 )
                 self.view.add(record)
+                self.own_ranges.append((record.range_m, record.los))
                 self._publish(self._pub_record, record, MessageKind.RECORD)
                 # Lockstep barrier: every other planner of the mission, except those that left.
                 # (Waiting only for the planners already seen alive would let a planner whose
@@ -676,6 +679,9 @@ class PlannerNode:
             own, prev_step, own_mask, pos, valid, los, ages, view.hops, self.ranging, self.bearing,
             state.estimate_m, state.information, state.observable, self.channel, self.limits, self.m.criterion,
             bmin, bmax, self.m.comms.d_hop_m, uniforms, xi=mc.xi, perturbation_rad=mc.random_perturbation_rad,
+            own_distance_lower_m=own_range_lower_bound_m(
+                np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
+            ),
         )
 
     def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:
@@ -1000,6 +1006,7 @@ class PlannerNode:
             )
             self.last_record = record
             self.view.add(record)
+            self.own_ranges.append((record.range_m, record.los))
             self._publish(self._pub_record, record, MessageKind.RECORD)
             w_meas = self.unix()
             peers = lambda: not self._missing_peers(k)  # noqa: E731
