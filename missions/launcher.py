@@ -229,7 +229,7 @@ class Launcher:
     def _on_failure(self, c: Child, code: int) -> None:
         """Record a failed child; restart a failed planner if asked and its vehicle lives."""
         drones = [i for i, v in self._vehicle_child.items() if v is c] if c.name.startswith("vehicle") else [int(c.name.split("_")[1])]
-        reason = next((line for line in reversed(c.tail(20).splitlines()) if line.strip()), "")
+        reason = next((line.strip() for line in reversed(c.tail(20).splitlines()) if line.strip()), "")
         step = self._step
         if c.name.startswith("planner"):
             # The step it failed at: the one after the last it logged (the launcher may notice

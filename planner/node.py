@@ -82,9 +82,12 @@ START_TOLERANCE_REALTIME_M: float = 0.3
 POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
-#: Lockstep: a vehicle that sends nothing for this long (wall s) while the planner waits for its
-#: telemetry is lost (it heartbeats every wall second, even when the clock stands still).
-LOCKSTEP_LINK_LOSS_S: float = 2.5
+#: Lockstep: a vehicle whose process is alive (its Zenoh liveliness token stands) but sends
+#: nothing for this long (wall s) while the planner waits for its telemetry is lost: it hangs.
+#: (It heartbeats every wall second even when the clock stands still, but a machine running a
+#: hundred drones on two cores can starve a process for seconds.) A vehicle process that dies
+#: is noticed at once, by its token.
+LOCKSTEP_LINK_LOSS_S: float = 10.0
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
@@ -305,6 +308,8 @@ class PlannerNode:
         #: The step this planner was at when each of them left (its records up to then are late
         #: ones, not a rejoin).
         self.left_at: dict[int, int] = {}
+        #: Lockstep: when this drone's vehicle's liveliness token went (monotonic s), if it did.
+        self.vehicle_gone_at: float | None = None
         self.step_now = -1
         self.tick: Tick | None = None
         self.measurements: dict[int, Observation] = {}
@@ -331,6 +336,9 @@ class PlannerNode:
             s.declare_subscriber(keys.tick(mid), self.inbox.on_sample),
             s.liveliness().declare_subscriber(keys.alive(mid, "planner"), self.inbox.on_liveliness, history=True),
         ]
+        if self.o.lockstep:
+            # The simulated vehicle's bridge holds a token: its process dying is seen at once.
+            self._subs.append(s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True))
         self._token = s.liveliness().declare_token(keys.alive(mid, "planner", self.o.uav))
         self._pub_record = declare_publisher(s, keys.record(mid, self.o.uav))
         self._pub_status = declare_publisher(s, keys.status(mid, self.o.uav))
@@ -389,6 +397,12 @@ class PlannerNode:
                 elif isinstance(msg, Tick):
                     if self.tick is None or msg.step >= self.tick.step:
                         self.tick = msg
+            elif "/alive/vehicle/" in key:
+                if kind == "gone" and self.vehicle_gone_at is None:
+                    self.vehicle_gone_at = self.wall()
+                    log.error("uav %d: the vehicle's process left the swarm (liveliness token gone)", self.o.uav)
+                elif kind == "alive":
+                    self.vehicle_gone_at = None
             else:
                 uav = keys.uav_of(key)
                 if uav is not None and 1 <= uav <= self.n:
@@ -613,15 +627,21 @@ class PlannerNode:
         return link.telemetry.position_enu_m.astype(float)
 
     def _vehicle_alive(self, predicate: Callable[[], bool], what: str) -> Callable[[], bool]:
-        """``predicate`` that raises NodeError once the vehicle has been silent (no heartbeat)
-        for :data:`LOCKSTEP_LINK_LOSS_S` during this wait: a lost vehicle is reported within
-        3 s instead of at the step timeout."""
+        """``predicate`` that raises NodeError when the vehicle is lost during this wait: its
+        process left the swarm (its liveliness token went: noticed at once), or it has sent no
+        heartbeat for :data:`LOCKSTEP_LINK_LOSS_S` (a hung vehicle)."""
         link = self._require_link()
         since = self.wall()
 
         def check() -> bool:
             if predicate():
                 return True
+            if self.vehicle_gone_at is not None:
+                raise NodeError(
+                    f"uav {self.o.uav}: vehicle link lost: the vehicle's process left the swarm "
+                    f"{self.wall() - self.vehicle_gone_at:.1f} s ago, its last heartbeat {link.link_age_s():.1f} s ago, "
+                    f"while waiting for {what}"
+                )
             silent = min(link.link_age_s(), self.wall() - since)
             if silent > LOCKSTEP_LINK_LOSS_S:
                 raise NodeError(f"uav {self.o.uav}: vehicle link lost: no heartbeat for {silent:.1f} s while waiting for {what}")
