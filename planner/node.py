@@ -82,12 +82,6 @@ START_TOLERANCE_REALTIME_M: float = 0.3
 POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
-#: Lockstep: a vehicle whose process is alive (its Zenoh liveliness token stands) but sends
-#: nothing for this long (wall s) while the planner waits for its telemetry is lost: it hangs.
-#: (It heartbeats every wall second even when the clock stands still, but a machine running a
-#: hundred drones on two cores can starve a process for seconds.) A vehicle process that dies
-#: is noticed at once, by its token.
-LOCKSTEP_LINK_LOSS_S: float = 10.0
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
@@ -627,11 +621,12 @@ class PlannerNode:
         return link.telemetry.position_enu_m.astype(float)
 
     def _vehicle_alive(self, predicate: Callable[[], bool], what: str) -> Callable[[], bool]:
-        """``predicate`` that raises NodeError when the vehicle is lost during this wait: its
-        process left the swarm (its liveliness token went: noticed at once), or it has sent no
-        heartbeat for :data:`LOCKSTEP_LINK_LOSS_S` (a hung vehicle)."""
+        """``predicate`` that raises NodeError when the vehicle's process leaves the swarm during
+        this wait (its liveliness token goes: noticed at once). A vehicle that hangs instead
+        fails the wait at the step timeout. (Heartbeat silence is no test here: a machine flying
+        a hundred drones on two cores starves processes for more than 10 s at times, and a
+        vehicle heartbeats on the wall clock.)"""
         link = self._require_link()
-        since = self.wall()
 
         def check() -> bool:
             if predicate():
@@ -642,9 +637,6 @@ class PlannerNode:
                     f"{self.wall() - self.vehicle_gone_at:.1f} s ago, its last heartbeat {link.link_age_s():.1f} s ago, "
                     f"while waiting for {what}"
                 )
-            silent = min(link.link_age_s(), self.wall() - since)
-            if silent > LOCKSTEP_LINK_LOSS_S:
-                raise NodeError(f"uav {self.o.uav}: vehicle link lost: no heartbeat for {silent:.1f} s while waiting for {what}")
             return False
 
         return check
