@@ -59,7 +59,7 @@ def test_heterogeneous_close_to_joint(reduced_run) -> None:
 
     Six of its ten drones sense bearings (ten in the joint swarm): at k = 0, same positions,
     its PEB is already 1.21x the joint swarm's. The paper's "within 25 %" is not reproduced:
-    over the second half of a full run (100 trials) the median ratio is 1.39 (A) and 1.29 (D) with each drone's own
+    over the second half of a full run (100 trials) the median ratio is 1.38 (A) and 1.27 (D) with each drone's own
     estimate (1.08 with the true source), see docs/case-study.md. This reduced test guards
     a 50 % bound against regressions."""
     het = reduced_run("heterogeneous", "A", 3, 300).peb_stats()["mean"]
