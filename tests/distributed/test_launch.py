@@ -193,6 +193,7 @@ def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
     assert late > 0, "the geometry should delay some records"
 
 
+@pytest.mark.slow  # records of another mission are also refused in tests/fuzz/test_zenoh_decode.py and the garbage launch
 def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launches: list[Launch]) -> None:
     """Two missions with different ids on one Zenoh network (both connect to a common peer):
     each completes, neither receives a message of the other, and each matches its simulator."""

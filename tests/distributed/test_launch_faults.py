@@ -139,6 +139,7 @@ def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: lis
     assert max(held) < 0.05, f"the vehicle moved at {max(held):.2f} m/s without its planner"
 
 
+@pytest.mark.slow  # the default run covers the launcher's other failure paths; this one stops at the first
 def test_abort_stops_the_run_at_the_first_failure(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "abort"
     run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "8", "--on-failure", "abort", "--set", "drones.count=5",

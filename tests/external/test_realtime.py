@@ -58,6 +58,7 @@ def stop_and_read(vehicle: Proc, tlog: Path):  # noqa: ANN201
     return read_tlog(tlog)
 
 
+@pytest.mark.slow  # the default run flies both flavours in real time in test_launch_realtime, test_readiness and the link-loss test
 def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list[Proc]) -> None:
     """Drone 1 on an ArduPilot-flavoured vehicle, drone 2 on a PX4-flavoured one, each with its
     own connection string in the mission and its flavour detected from HEARTBEAT.autopilot:

@@ -61,7 +61,8 @@ def keep_gcs_alive(rig: Any, sim_s: float) -> list[str]:
     return texts
 
 
-@pytest.mark.parametrize(("enable", "mode", "text"), [(1, ARDUPILOT_RTL, "GCS Failsafe"), (5, ARDUPILOT_LAND, "GCS Failsafe"), (0, None, None)])
+@pytest.mark.parametrize(("enable", "mode", "text"), [(1, ARDUPILOT_RTL, "GCS Failsafe"), pytest.param(5, ARDUPILOT_LAND, "GCS Failsafe", marks=pytest.mark.slow),
+                                                 (0, None, None)])
 def test_ardupilot_gcs_failsafe(make_rig, enable: int, mode: int | None, text: str | None) -> None:
     rig = make_rig(VehicleConfig(), speedup=SPEEDUP)
     c, v = rig.client, rig.vehicle
@@ -145,7 +146,7 @@ def offboard_flight(rig: Any, alt_m: float = 4.0) -> None:
 @pytest.mark.parametrize(
     ("action", "mode", "text"),
     [(4, PX4_LAND, "Failsafe: offboard lost, landing"), (3, PX4_RTL, "Failsafe: offboard lost, returning"),
-     (0, PX4_LOITER, "Failsafe: offboard lost, holding")],
+     pytest.param(0, PX4_LOITER, "Failsafe: offboard lost, holding", marks=pytest.mark.slow)],
 )
 def test_px4_offboard_loss_timeout_and_action(make_rig, action: int, mode: int, text: str) -> None:
     rig = make_rig(VehicleConfig(flavour="px4"), speedup=SPEEDUP)
