@@ -55,7 +55,7 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
         ready = json.loads(external.expect(r"\{\"event\": \"ready\".*\}", 60.0).group(0))
         assert ready.get("payload") == "realtime"
         out = tmp_path / "run"
-        run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "12")
+        run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "15")
         launches.append(run)
         code, stdout, stderr = run.wait(240.0)
         assert code == 0, stderr[-3000:]
