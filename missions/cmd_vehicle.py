@@ -316,16 +316,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
             try:
                 if mission is not None:
                     # A mission run: fimnav's clock protocol and the payload topics.
-                    from comms.session import SessionSettings
                     from vehicle_sim.bridge import ZenohBridge
 
-                    settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
-                    if args.zenoh_mode == "client":
-                        # A client of the given router(s) only (fimnav launch: the launcher's).
-                        settings = dataclasses.replace(settings, mode="client", listen=(), connect=tuple(args.zenoh_connect))
-                    elif args.zenoh_mode:
-                        settings = dataclasses.replace(settings, mode=args.zenoh_mode)
-                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, settings)
+                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, _bridge_settings(args, mission, listen))
                     on_tick = source.on_tick
                 else:
                     source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
@@ -337,17 +330,11 @@ def run_vehicle(args: argparse.Namespace) -> int:
             if mission is not None and (args.zenoh_connect or args.zenoh_listen):
                 # Real time with Zenoh: the payloads publish their measurements (fimnav launch
                 # --realtime); presence tokens as in lockstep.
-                from comms.session import SessionSettings
                 from vehicle_sim.bridge import ZenohBridge
 
                 listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
                 try:
-                    settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
-                    if args.zenoh_mode == "client":
-                        settings = dataclasses.replace(settings, mode="client", listen=(), connect=tuple(args.zenoh_connect))
-                    elif args.zenoh_mode:
-                        settings = dataclasses.replace(settings, mode=args.zenoh_mode)
-                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, vehicles, settings)
+                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, vehicles, _bridge_settings(args, mission, listen))
                 except Exception as exc:  # zenoh raises its own error type for bad endpoints
                     raise UsageError(f"zenoh: cannot open the session ({exc})") from None
                 source.start_realtime(vehicles, args.speedup)
@@ -381,6 +368,20 @@ def run_vehicle(args: argparse.Namespace) -> int:
         for v in vehicles:
             v.link.close()
     return 0
+
+
+def _bridge_settings(args: argparse.Namespace, mission: Any, listen: Sequence[str]) -> Any:
+    """The Zenoh session of a mission's vehicle bridge: the mission's settings with the CLI's
+    endpoints; ``--zenoh-mode client`` makes it a client of the given router(s) only (fimnav
+    launch: the launcher's)."""
+    from comms.session import SessionSettings
+
+    settings = SessionSettings.from_mission(mission.zenoh, connect=args.zenoh_connect, listen=listen)
+    if args.zenoh_mode == "client":
+        return dataclasses.replace(settings, mode="client", listen=(), connect=tuple(args.zenoh_connect))
+    if args.zenoh_mode:
+        return dataclasses.replace(settings, mode=args.zenoh_mode)
+    return settings
 
 
 def main(argv: Sequence[str] | None = None) -> int:

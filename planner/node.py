@@ -82,6 +82,11 @@ START_TOLERANCE_REALTIME_M: float = 0.3
 POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
+#: Lockstep telemetry rates (message id -> Hz of sim time): a simulated vehicle in lockstep
+#: reports its position on every tick, so the streams only need to be slow (every message is
+#: parsed here and logged by the vehicle). LOCAL_POSITION_NED, GLOBAL_POSITION_INT,
+#: HOME_POSITION, EXTENDED_SYS_STATE, ATTITUDE, VFR_HUD.
+LOCKSTEP_STREAM_HZ: tuple[tuple[int, float], ...] = ((32, 1.0), (33, 0.2), (242, 0.2), (245, 0.2), (30, 0.2), (74, 0.2))
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
@@ -459,9 +464,7 @@ class PlannerNode:
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
         if self.o.lockstep:
-            # A simulated vehicle in lockstep reports its position on every tick: the streams
-            # only need to be slow (every message is parsed here and logged by the vehicle).
-            rates = {32: 1.0, 33: 0.2, 242: 0.2, 245: 0.2, 30: 0.2, 74: 0.2}  # + ATTITUDE, VFR_HUD
+            rates = dict(LOCKSTEP_STREAM_HZ)
         else:
             rates = {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
         for msg_id, hz in rates.items():
@@ -586,7 +589,7 @@ class PlannerNode:
         link = self._require_link()
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
-        for msg_id, hz in {32: 1.0, 33: 0.2, 242: 0.2, 245: 0.2, 30: 0.2, 74: 0.2}.items():
+        for msg_id, hz in LOCKSTEP_STREAM_HZ:
             link.request_interval(msg_id, hz)
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         if not link.telemetry.armed:

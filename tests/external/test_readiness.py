@@ -16,7 +16,6 @@ import json
 import os
 import socket
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,15 +31,6 @@ SPEEDUP = 5.0
 #: connected when the vehicle boots) to request its streams and report what it waits for.
 READY_AFTER_S = 15.0
 MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_NAV_TAKEOFF, MAV_CMD_DO_SET_MODE = 400, 22, 176
-
-
-@pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    """Every process a test starts; each process group is stopped at the end."""
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        p.stop()
 
 
 @dataclass

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,15 +32,6 @@ PX4_OFFBOARD, PX4_LOITER, PX4_LAND = 6 << 16, (4 << 16) | (3 << 24), (4 << 16) |
 GLOBAL_RELATIVE_ALT_INT = 6
 MASK_POS_VEL, MASK_POS = 3520, 3576
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_NAV_TAKEOFF = 511, 22
-
-
-@pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    """Every process a test starts; each process group is stopped at the end."""
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        p.stop()
 
 
 def plan_args(mission: Path, uav: int, peer: SwarmPeer, *extra: str, speedup: float = SPEEDUP) -> list[str]:
