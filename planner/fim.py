@@ -55,18 +55,24 @@ class FimStatus(IntEnum):
 _OK, _ILL, _SINGULAR = int(FimStatus.OK), int(FimStatus.ILL_CONDITIONED), int(FimStatus.SINGULAR)
 
 
-def _term_vectors(r: FloatArray, los: NDArray[np.bool_], channel: Channel) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def _los_weight(los: ArrayLike) -> FloatArray:
+    """LOS flags (bool) or weights in [0, 1] as floats."""
+    return np.asarray(los, dtype=float)
+
+
+def _term_vectors(r: FloatArray, los: FloatArray, channel: Channel) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Vectors and scalars of the FIM terms for relative vectors r = p0 - p_j, shape (..., 3).
 
-    Returns ``(V, rho2, d2, d, s0sq, r)`` where V (..., 3, 3) stacks the rows
+    Returns ``(V, rho2, d2, d, inv_s0sq, r)`` where V (..., 3, 3) stacks the rows
     r (ranging direction times d), b = [-r_y, r_x, 0] (∇φ·ρ²) and
-    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ).
+    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ), and inv_s0sq = q/σ_r0,LOS² + (1 − q)/σ_r0,NLOS² for
+    the LOS weight q (1 LOS, 0 NLOS).
     """
     rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
     rho2 = np.maximum(rx * rx + ry * ry, RHO_FLOOR_M**2)
     d2 = rho2 + rz * rz
     d = np.sqrt(d2)
-    s0sq = np.where(los, channel.sigma_r0_los**2, channel.sigma_r0_nlos**2)
+    inv_s0sq = los / channel.sigma_r0_los**2 + (1.0 - los) / channel.sigma_r0_nlos**2
     V = np.empty(r.shape[:-1] + (3, 3))
     V[..., 0, :] = r
     V[..., 1, 0] = -ry
@@ -75,7 +81,7 @@ def _term_vectors(r: FloatArray, los: NDArray[np.bool_], channel: Channel) -> tu
     V[..., 2, 0] = -rx * rz
     V[..., 2, 1] = -ry * rz
     V[..., 2, 2] = rho2
-    return V, rho2, d2, d, s0sq, r
+    return V, rho2, d2, d, inv_s0sq, r
 
 
 def fisher_information(
@@ -94,21 +100,23 @@ def fisher_information(
         ranging: κ_j, boolean (..., N): the drone measures range.
         bearing: β_j, boolean (..., N): the drone measures azimuth and elevation.
         los: p_j, boolean (..., N): the link is line of sight. An NLOS bearing carries no
-            information; an NLOS range uses σ_sh/γ of NLOS.
+            information; an NLOS range uses σ_sh/γ of NLOS. A weight q in [0, 1] instead of a
+            flag gives the expected FIM q J_LOS + (1 − q) J_NLOS of a link that is LOS with
+            probability q (the planner's predicted own link, :func:`planner.agent.own_los_weight`).
         channel: RSS channel (γ, σ_sh/γ LOS and NLOS, σ_b).
 
     Returns:
         J, shape (..., 3, 3), units 1/m².
     """
     r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
-    los_b = np.asarray(los, dtype=bool)
-    V, rho2, d2, d, s0sq, _ = _term_vectors(r, los_b, channel)
+    los_w = _los_weight(los)
+    V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
     gamma = channel.gamma
     w = np.empty(V.shape[:-1])
     # Ranging: A_r a aᵀ = (A_r / d²) r rᵀ.
-    w[..., 0] = np.asarray(ranging, dtype=bool) * (d ** (-gamma) / s0sq + gamma * gamma / (2.0 * d2)) / d2
+    w[..., 0] = np.asarray(ranging, dtype=bool) * (d ** (-gamma) * inv_s0sq + gamma * gamma / (2.0 * d2)) / d2
     # Bearing (LOS only): ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²).
-    w_b = (np.asarray(bearing, dtype=bool) & los_b) / (channel.sigma_bearing_rad**2 * rho2)
+    w_b = (np.asarray(bearing, dtype=bool) * los_w) / (channel.sigma_bearing_rad**2 * rho2)
     w[..., 1] = w_b / rho2
     w[..., 2] = w_b / (d2 * d2)
     Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
@@ -201,6 +209,7 @@ def cost_gradient(
     own_los: ArrayLike,
     channel: Channel,
     criterion: Criterion,
+    own_los_gradient: ArrayLike | None = None,
 ) -> CostGradient:
     """Cost C(q_i) of eq. 6 and its analytic gradient w.r.t. drone i's own position (eq. 14).
 
@@ -217,14 +226,18 @@ def cost_gradient(
         fim: J of drone i's view (including its own term), shape (..., 3, 3).
         source: the source position J was evaluated at (drone i's estimate), (..., 3), m, ENU.
         own_position: p_i, (..., 3), m, ENU.
-        own_ranging, own_bearing, own_los: drone i's κ_i, β_i and p_i, boolean (...).
+        own_ranging, own_bearing, own_los: drone i's κ_i, β_i and p_i, boolean (...). own_los
+            may be a weight q in [0, 1] (J's own term then is q J_LOS + (1 − q) J_NLOS, see
+            :func:`fisher_information`).
         channel: RSS channel. criterion: ``"A"`` or ``"D"``.
+        own_los_gradient: ∇_{p_i} q (..., 3), 1/m, when q depends on p_i; adds
+            tr(M (J_LOS − J_NLOS)) ∇q to the gradient (J_LOS − J_NLOS: drone i's own term).
 
     One drone (``fim`` (3, 3), ``own_position`` (3,)) takes a scalar fast path with the same
     value, status and (to round-off) gradient; see :func:`_cost_gradient_one`.
     """
     if np.shape(own_position) == (3,) and np.shape(source) == (3,) and np.shape(fim) == (3, 3) and criterion in ("A", "D"):
-        fast = _cost_gradient_one(fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion)
+        fast = _cost_gradient_one(fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion, own_los_gradient)
         if fast is not None:
             return fast
     inv = invert_fim(fim)
@@ -239,16 +252,16 @@ def cost_gradient(
     else:
         raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
     r = np.asarray(source, dtype=float) - np.asarray(own_position, dtype=float)
-    los_b = np.asarray(own_los, dtype=bool)
-    V, rho2, d2, d, s0sq, _ = _term_vectors(r, los_b, channel)
+    los_w = _los_weight(own_los)
+    V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
     rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
     gamma = channel.gamma
     MV = V @ M  # rows: M r, M b, M v (M symmetric)
     q = (V * MV).sum(-1)  # rᵀMr, bᵀMb, vᵀMv
     Mr, Mb, Mv = MV[..., 0, :], MV[..., 1, :], MV[..., 2, :]
     # Ranging term J_r = h r rᵀ, h = d^-γ/(σ_r0² d²) + γ²/(2 d⁴).
-    h = d ** (-gamma) / (s0sq * d2) + gamma * gamma / (2.0 * d2 * d2)
-    dh = (-gamma - 2.0) * d ** (-gamma - 3.0) / s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+    h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
+    dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
     g_r = (dh / d * q[..., 0])[..., None] * r + 2.0 * h[..., None] * Mr
     # Azimuth term w b bᵀ with w = 1/(σ_b² ρ⁴); ∂b/∂r = R, Rᵀx = [x_y, -x_x, 0].
     sb2 = channel.sigma_bearing_rad**2
@@ -269,8 +282,14 @@ def cost_gradient(
     grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
     g_el = (2.0 * c2[..., None] * VtMv + q[..., 2, None] * grad_c2) / sb2
     use_r = np.asarray(own_ranging, dtype=bool)[..., None]
-    use_b = (np.asarray(own_bearing, dtype=bool) & los_b)[..., None]
+    use_b = (np.asarray(own_bearing, dtype=bool) * los_w)[..., None]
     gradient = -(use_r * g_r + use_b * (g_az + g_el))
+    if own_los_gradient is not None:
+        # tr(M (J_LOS − J_NLOS)): the ranging term's LOS/NLOS difference and the bearing terms.
+        dr = d ** (-gamma) * (1.0 / channel.sigma_r0_los**2 - 1.0 / channel.sigma_r0_nlos**2) / d2 * q[..., 0]
+        db = w_az * q[..., 1] + c2 * q[..., 2] / sb2
+        tr = use_r[..., 0] * dr + np.asarray(own_bearing, dtype=bool) * db
+        gradient = gradient + tr[..., None] * np.asarray(own_los_gradient, dtype=float)
     if singular.any():
         gradient = np.where(singular[..., None], 0.0, gradient)
         value = np.where(singular, np.inf, value)
@@ -286,6 +305,7 @@ def _cost_gradient_one(
     own_los: ArrayLike,
     channel: Channel,
     criterion: Criterion,
+    own_los_gradient: ArrayLike | None = None,
 ) -> CostGradient | None:
     """:func:`cost_gradient` for one drone and one 3x3 J, in Python floats (the planner node's
     hot path: ~3x faster than the batched code on 0-d arrays).
@@ -320,19 +340,22 @@ def _cost_gradient_one(
     rho2 = max(rx * rx + ry * ry, RHO_FLOOR_M**2)
     d2 = rho2 + rz * rz
     d = math.sqrt(d2)
-    los = bool(own_los)
+    los = float(own_los)
+    tr = 0.0  # tr(M (J_LOS − J_NLOS)) of the own term
     gx = gy = gz = 0.0
     if bool(own_ranging):
         # Ranging term J_r = h r rᵀ (see cost_gradient).
         gamma = channel.gamma
-        s0sq = channel.sigma_r0_los**2 if los else channel.sigma_r0_nlos**2
+        inv_los, inv_nlos = 1.0 / channel.sigma_r0_los**2, 1.0 / channel.sigma_r0_nlos**2
+        inv_s0sq = los * inv_los + (1.0 - los) * inv_nlos
         mrx, mry, mrz = m00 * rx + m01 * ry + m02 * rz, m10 * rx + m11 * ry + m12 * rz, m20 * rx + m21 * ry + m22 * rz
         q_r = rx * mrx + ry * mry + rz * mrz
-        h = d ** (-gamma) / (s0sq * d2) + gamma * gamma / (2.0 * d2 * d2)
-        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) / s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
+        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
         c = dh / d * q_r
         gx, gy, gz = c * rx + 2.0 * h * mrx, c * ry + 2.0 * h * mry, c * rz + 2.0 * h * mrz
-    if bool(own_bearing) and los:
+        tr += d ** (-gamma) * (inv_los - inv_nlos) / d2 * q_r
+    if bool(own_bearing) and (los > 0.0 or own_los_gradient is not None):
         sb2 = channel.sigma_bearing_rad**2
         # Azimuth term w b bᵀ, b = [-r_y, r_x, 0], w = 1/(σ_b² ρ⁴).
         bx, by = -ry, rx
@@ -340,17 +363,24 @@ def _cost_gradient_one(
         q_b = bx * mbx + by * mby
         w_az = 1.0 / (sb2 * rho2 * rho2)
         k_az = 4.0 * w_az * q_b / rho2
-        gx += 2.0 * w_az * mby - k_az * rx
-        gy += -2.0 * w_az * mbx - k_az * ry
+        bgx = 2.0 * w_az * mby - k_az * rx
+        bgy = -2.0 * w_az * mbx - k_az * ry
+        bgz = 0.0
         # Elevation term c² v vᵀ/σ_b², v = [-r_x r_z, -r_y r_z, ρ²], c = 1/(d² ρ).
         vx, vy, vz = -rx * rz, -ry * rz, rho2
         mvx, mvy, mvz = m00 * vx + m01 * vy + m02 * vz, m10 * vx + m11 * vy + m12 * vz, m20 * vx + m21 * vy + m22 * vz
         q_v = vx * mvx + vy * mvy + vz * mvz
         c2 = 1.0 / (d2 * d2 * rho2)
-        gx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
-        gy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
-        gz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
-    return CostGradient(value=value, gradient=np.array([-gx, -gy, -gz]), status=status)
+        bgx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
+        bgy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
+        bgz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
+        # The bearing terms carry the LOS weight q (an NLOS bearing carries no information).
+        gx, gy, gz = gx + los * bgx, gy + los * bgy, gz + los * bgz
+        tr += w_az * q_b + c2 * q_v / sb2
+    gradient = np.array([-gx, -gy, -gz])
+    if own_los_gradient is not None:
+        gradient = gradient + tr * np.asarray(own_los_gradient, dtype=float)
+    return CostGradient(value=value, gradient=gradient, status=status)
 
 
 def position_error_bound(fim: ArrayLike) -> tuple[FloatArray, NDArray[np.int8]]:

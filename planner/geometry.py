@@ -164,3 +164,97 @@ def distance_to_boxes_with_gradient(
 def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> BoolArray:
     """Whether each point lies inside (or on) any box. Shape (...)."""
     return distance_to_boxes(points, boxes_min, boxes_max) <= 0.0
+
+
+#: Points sampled along a link by :func:`link_clearance_with_gradient`.
+LINK_SAMPLES: int = 16
+
+
+def link_clearance_with_gradient(
+    positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike, samples: int = LINK_SAMPLES,
+    cutoff_m: float | None = None, per_box: bool = False,
+) -> tuple[FloatArray, FloatArray]:
+    """Clearance of the link drone → source from the obstacles, and its gradient w.r.t. the drone.
+
+    The clearance from a box is c = min over t ∈ (0, 1] of the signed distance to the box
+    (as :func:`distance_to_boxes`) of the point x(t) = s + t (p − s) of the segment from the
+    source s to the drone p: positive when the link passes c metres from the box, negative when
+    it crosses it (−c is then how deep the segment runs inside). The signed distance to a convex
+    box is convex, so along the segment it has one minimum; it is located on ``samples`` points
+    t_m = (m + 1)/samples (resolution |p − s|/samples). The gradient is ∇_p c = t* ∇d(x(t*)),
+    t* the sampled minimiser (∂x/∂p = t I): the direction in which the drone moves its link
+    away from the box (out of its shadow).
+
+    Args:
+        positions: drone positions p, shape (..., 3), m, ENU.
+        source: source positions s (true or estimated), shape (..., 3), m, ENU.
+        boxes_min, boxes_max: box corners, shape (B, 3), m, ENU.
+        samples: number of points on the segment.
+        cutoff_m: a link whose bounding box is farther than this from a box is not sampled for
+            that box: its clearance is reported as that distance (a lower bound, ≥ cutoff_m)
+            with a zero gradient. None: every link is sampled.
+        per_box: return the clearance from each box, (..., B) and (..., B, 3), instead of the
+            nearest box's.
+
+    Returns:
+        ``(clearance, gradient)``, shapes (...) m and (..., 3) (per box: (..., B), (..., B, 3));
+        ``+inf`` and zeros without obstacles.
+    """
+    p = np.asarray(positions, dtype=float)
+    s = np.asarray(source, dtype=float)
+    shape = np.broadcast_shapes(p.shape, s.shape)
+    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
+    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    nb = bmin.shape[0]
+    if nb == 0:
+        return (np.full(shape[:-1] + (0,), np.inf), np.zeros(shape[:-1] + (0, 3))) if per_box else (np.full(shape[:-1], np.inf), np.zeros(shape))
+    p, s = np.broadcast_to(p, shape).reshape(-1, 3), np.broadcast_to(s, shape).reshape(-1, 3)
+    if cutoff_m is None:
+        near = np.ones((p.shape[0], nb), dtype=bool)
+        c = np.zeros(near.shape)
+    else:
+        # Distance between the link's bounding box and each box: a lower bound on the clearance.
+        hi_ps, lo_ps = np.maximum(p, s), np.minimum(p, s)
+        c2 = np.zeros((p.shape[0], nb))
+        for a in range(3):  # per axis: reductions over a length-3 last axis are slow in numpy
+            gap = np.maximum(np.maximum(bmin[:, a] - hi_ps[:, a, None], lo_ps[:, a, None] - bmax[:, a]), 0.0)
+            c2 += gap * gap
+        c = np.sqrt(c2)  # (n, B)
+        near = c < cutoff_m
+    g = np.zeros(c.shape + (3,))
+    r, b = np.nonzero(near)
+    if r.size:
+        c[r, b], g[r, b] = _link_sdf_pairs(p[r], s[r], bmin[b], bmax[b], samples)
+    if per_box:
+        return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))
+    nearest = c.argmin(-1)
+    rows = np.arange(c.shape[0])
+    return c[rows, nearest].reshape(shape[:-1]), g[rows, nearest].reshape(shape)
+
+
+def _link_sdf_pairs(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray, samples: int) -> tuple[FloatArray, FloatArray]:
+    """Sampled clearance (K,) and its gradient (K, 3) of links s → p from one box each, all (K, 3)."""
+    t = np.arange(1, samples + 1, dtype=float) / samples
+    # One (K, samples) array per axis: reductions over a length-3 last axis are slow in numpy.
+    below, above, e = [], [], []
+    for a in range(3):
+        x = s[:, a, None] + t * (p[:, a] - s[:, a])[:, None]  # (K, S)
+        lo, hi = bmin[:, a, None] - x, x - bmax[:, a, None]  # > 0: below / above the box on this axis
+        below.append(lo)
+        above.append(hi)
+        e.append(np.maximum(lo, hi))  # > 0 outside by e, ≤ 0 inside by |e|
+    ep = [np.maximum(ea, 0.0) for ea in e]
+    out = np.sqrt(ep[0] * ep[0] + ep[1] * ep[1] + ep[2] * ep[2])
+    sdf = out + np.minimum(np.maximum(np.maximum(e[0], e[1]), e[2]), 0.0)  # signed distance to a box
+    k = sdf.argmin(1)  # the sample nearest the box
+    rows = np.arange(p.shape[0])
+    clearance = sdf[rows, k]
+    e_sel = np.stack([ea[rows, k] for ea in e], -1)  # (K, 3)
+    # Nearer the lower face on an axis: that axis's outward direction is −.
+    sign = np.stack([np.where(below[a][rows, k] >= above[a][rows, k], -1.0, 1.0) for a in range(3)], -1)
+    out_sel = out[rows, k]
+    inside = out_sel <= 0.0
+    unit_out = np.maximum(e_sel, 0.0) / np.where(inside, 1.0, out_sel)[:, None]
+    unit_in = (np.arange(3) == e_sel.argmax(-1)[:, None]).astype(float)
+    grad = sign * np.where(inside[:, None], unit_in, unit_out) * t[k][:, None]
+    return clearance, grad

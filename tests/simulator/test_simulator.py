@@ -54,18 +54,53 @@ def test_peb_decreases(reduced_run, name: str) -> None:
     assert end < 0.5 * start, f"{name}: PEB {start:.1f} m at k=0, {end:.1f} m at the end"
 
 
+def _optimal_peb_at_keepout(name: str, starts: int = 6) -> float:
+    """The smallest PEB (eq. 18, all ten records, LOS) any placement of the mission's ten
+    drones at distance ≥ d_S* from the source can have: every FIM term shrinks with distance, so
+    the optimum has every drone at d_S*; its azimuths and altitudes (z_min..z_max) are optimised
+    by L-BFGS-B from several random starts (an independent reference: no planner involved)."""
+    from scipy.optimize import minimize
+
+    from planner.fim import fisher_information
+
+    m = paper_mission(name)
+    ch = m.channel.to_planner()
+    rng_m, brg_m = m.drones.ranging_mask(), m.drones.bearing_mask()
+    src = np.asarray(m.source.position_m, dtype=float)
+    d_s, n = m.constraints.d_source_m, m.drones.count
+    lim = m.limits()
+
+    def trace_inv(x: np.ndarray) -> float:
+        z = x[n:]
+        rho = np.sqrt(np.maximum(d_s**2 - (z - src[2]) ** 2, 0.0))
+        p = np.stack([src[0] + rho * np.cos(x[:n]), src[1] + rho * np.sin(x[:n]), z], -1)
+        J = fisher_information(src, p, rng_m, brg_m, np.ones(n, dtype=bool), ch)
+        return float(np.trace(np.linalg.inv(J)))
+
+    gen = np.random.default_rng(0)
+    best = np.inf
+    for _ in range(starts):
+        x0 = np.concatenate([gen.uniform(0.0, 2.0 * np.pi, n), gen.uniform(lim.z_min_m, lim.z_max_m, n)])
+        r = minimize(trace_inv, x0, method="L-BFGS-B", bounds=[(None, None)] * n + [(lim.z_min_m, lim.z_max_m)] * n)
+        best = min(best, r.fun)
+    return float(np.sqrt(best))
+
+
 def test_heterogeneous_close_to_joint(reduced_run) -> None:
     """Paper Sec. V: a heterogeneous swarm performs close to a joint one.
 
     Six of its ten drones sense bearings (ten in the joint swarm): at k = 0, same positions,
-    its PEB is already 1.21x the joint swarm's. The paper's "within 25 %" is not reproduced:
-    over the second half of a full run (100 trials) the median ratio is 1.38 (A) and 1.27 (D) with each drone's own
-    estimate (1.08 with the true source), see docs/case-study.md. This reduced test guards
-    a 50 % bound against regressions."""
+    its PEB is already 1.21x the joint swarm's. The paper's "within 25 %" cannot hold with its
+    section V parameters: even the best placement of the heterogeneous swarm at d_S* has a PEB
+    1.28x the best joint placement's (computed here). The simulated swarms reach that ratio
+    (1.28 over the second half of a full run, docs/case-study.md): both end near their optimal
+    placements, with no drone left in a building's shadow."""
     het = reduced_run("heterogeneous", "A", 3, 300).peb_stats()["mean"]
     joint = reduced_run("joint", "A", 3, 300).peb_stats()["mean"]
     ratio = float(np.median(het[150:] / joint[150:]))
-    assert ratio <= 1.50, f"heterogeneous / joint PEB {ratio:.2f}"
+    best = _optimal_peb_at_keepout("heterogeneous") / _optimal_peb_at_keepout("joint")
+    assert best > 1.25, f"the optimum ratio {best:.3f} allows the paper's 25 %: test that claim directly"
+    assert ratio <= 1.05 * best, f"heterogeneous / joint PEB {ratio:.3f}, optimal placements {best:.3f}"
     assert het[0] / joint[0] == pytest.approx(1.21, abs=0.02)
 
 
@@ -78,11 +113,25 @@ def test_a_optimality_beats_d_with_obstacles(reduced_run) -> None:
     assert np.mean(a <= d) > 0.5, f"A <= D on {np.mean(a <= d):.0%} of the steps"
 
 
-def test_bearing_only_survives_singular_fim(reduced_run) -> None:
+def test_bearing_only_survives_singular_fim(tmp_path) -> None:
     """Bearing-only with buildings: J becomes singular (every bearing NLOS) and the drones keep
-    moving (random-perturbation fallback), with no NaN anywhere."""
-    r = reduced_run("bearing", "A", 3, 300)
+    moving (random-perturbation fallback), with no NaN anywhere.
+
+    From the paper's ellipse the planning FIM's predicted LOS (docs/control.md) now keeps the
+    swarm out of a fully shadowed view (no singular step in 10 trials × 300 steps), so the swarm
+    starts here with every drone in B1's shadow, 130 m north of the source."""
+    start = [[x, 130.0, z] for z in (5.0, 15.0) for x in (-30.0, -26.5, -23.0, -19.5, -16.0)]
+    import yaml
+
+    from missions.loader import load_mission
+    from tests.simulator.conftest import PAPER
+
+    doc = yaml.safe_load((PAPER / "bearing.yaml").read_text())
+    doc["drones"]["start"] = {"positions_m": start}
+    (tmp_path / "shadowed.yaml").write_text(yaml.safe_dump(doc))
+    r = simulate(RunSpec(load_mission(tmp_path / "shadowed.yaml"), "A", 3, 300))
     stats = r.peb_stats()
+    assert np.isinf(r.peb_m[0]).all(), "expected every view singular at k = 0"
     assert stats["singular_fraction"].max() > 0.0, "expected singular FIMs in the bearing-only case"
     assert r.singular_fallback.any()
     assert np.isfinite(r.positions_m).all() and np.isfinite(r.estimates_m).all()
