@@ -568,6 +568,15 @@ class VehicleLink:
             missing.append("EKF origin (GPS_GLOBAL_ORIGIN)")
         return missing
 
+    def _poll_heartbeat(self) -> None:
+        """Ask for a HEARTBEAT now (MAV_CMD_REQUEST_MESSAGE, not awaited): an accepted mode change
+        or arming shows in the next heartbeat, which comes once a second otherwise. ArduPilot and
+        PX4 answer the request at once; an autopilot that ignores it costs nothing (the caller
+        still waits for the periodic heartbeat). Its acknowledgement is dropped with the next
+        REQUEST_MESSAGE's (:meth:`command` clears stale acknowledgements)."""
+        m = self.mavutil.mavlink
+        self.mav.command_long_send(self.target_system, AUTOPILOT_COMPONENT, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
+
     def request_message(self, message_id: int) -> bool:
         """MAV_CMD_REQUEST_MESSAGE (one message now); False if refused or unanswered."""
         m = self.mavutil.mavlink
@@ -714,6 +723,8 @@ class VehicleLink:
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
         self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom)
+        if self.telemetry.custom_mode != custom:
+            self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.custom_mode == custom, timeout_s, f"heartbeat in mode {name}")
 
     def mode_name(self) -> str:
@@ -731,6 +742,8 @@ class VehicleLink:
         """Arm and wait until the heartbeat says armed."""
         m = self.mavutil.mavlink
         self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
+        if not self.telemetry.armed:
+            self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.armed, MODE_CONFIRM_TIMEOUT_S, "armed heartbeat")
 
     def takeoff(self, altitude_m: float) -> None:
