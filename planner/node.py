@@ -87,6 +87,12 @@ READY_REPORT_PERIOD_S: float = 5.0
 #: parsed here and logged by the vehicle). LOCAL_POSITION_NED, GLOBAL_POSITION_INT,
 #: HOME_POSITION, EXTENDED_SYS_STATE, ATTITUDE, VFR_HUD.
 LOCKSTEP_STREAM_HZ: tuple[tuple[int, float], ...] = ((32, 1.0), (33, 0.2), (242, 0.2), (245, 0.2), (30, 0.2), (74, 0.2))
+#: Lockstep, once airborne: the health streams the pre-flight reads (SYS_STATUS, GPS_RAW_INT,
+#: SYSTEM_TIME, BATTERY_STATUS, EKF_STATUS_REPORT; ArduPilot's defaults are 0.5-1 Hz) slowed to
+#: 0.2 Hz of sim time. In lockstep the vehicles run ~20x real time and packed, sent and parsed
+#: about 3.5 such messages per drone and step for nothing: the vehicles' process packs the
+#: telemetry of every drone between a tick and the planners' measurements.
+LOCKSTEP_FLIGHT_STREAM_HZ: tuple[tuple[int, float], ...] = ((1, 0.2), (24, 0.2), (2, 0.2), (147, 0.2), (193, 0.2))
 #: What each autopilot's own failsafe does while the planner's link is lost (for the log).
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
@@ -575,9 +581,20 @@ class PlannerNode:
     def _start(self) -> int:
         """Pre-flight, then report ready to the clock; the first step is 0."""
         self.preflight()
+        self._flight_streams()
         self._publish(self._pub_done, Done(self.o.uav, -1))
         log.info("uav %d ready at the start position", self.o.uav)
         return 0
+
+    def _flight_streams(self) -> None:
+        """Lockstep: slow the health streams down for the flight (:data:`LOCKSTEP_FLIGHT_STREAM_HZ`);
+        a message the autopilot refuses (EKF_STATUS_REPORT on PX4) keeps its rate."""
+        link = self._require_link()
+        for msg_id, hz in LOCKSTEP_FLIGHT_STREAM_HZ:
+            try:
+                link.request_interval(msg_id, hz)
+            except LinkError as exc:
+                log.debug("uav %d: message %d keeps its rate (%s)", self.o.uav, msg_id, exc)
 
     def _rejoin(self) -> int:
         """Take over a vehicle in flight from a planner that died; return the first step to fly.
@@ -591,6 +608,7 @@ class PlannerNode:
         link.wait_heartbeat(t)
         for msg_id, hz in LOCKSTEP_STREAM_HZ:
             link.request_interval(msg_id, hz)
+        self._flight_streams()
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         if not link.telemetry.armed:
             raise NodeError(f"uav {self.o.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
