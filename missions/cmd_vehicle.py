@@ -351,7 +351,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
         def _term(_sig: int, _frame: Any) -> None:
             host.stop()
 
-        old = signal.signal(signal.SIGTERM, _term)
+        # SIGINT and SIGTERM both stop the vehicles cleanly (links closed, tlogs flushed), set
+        # explicitly: a process started from a script's background job inherits SIGINT ignored.
+        old = {sig: signal.signal(sig, _term) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
             timer = threading.Timer(args.duration, host.stop) if args.duration is not None else None
             if timer is not None:
@@ -361,7 +363,8 @@ def run_vehicle(args: argparse.Namespace) -> int:
             if timer is not None:
                 timer.cancel()
         finally:
-            signal.signal(signal.SIGTERM, old)
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
     finally:
         if source is not None:
             source.close()
