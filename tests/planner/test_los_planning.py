@@ -21,7 +21,7 @@ BMIN = np.array([[-40.0, 95.0, 0.0], [10.0, 70.0, 0.0], [-18.0, 12.0, 0.0]])
 BMAX = np.array([[-10.0, 115.0, 30.0], [35.0, 90.0, 30.0], [-8.0, 24.0, 30.0]])
 
 
-def _dense_clearance(p: np.ndarray, s: np.ndarray, n: int = 20001) -> np.ndarray:
+def _dense_clearance(p: np.ndarray, s: np.ndarray, n: int = 4001) -> np.ndarray:
     t = np.linspace(0.0, 1.0, n)[1:]
     x = s[..., None, :] + t[:, None] * (p - s)[..., None, :]
     return distance_to_boxes(x, BMIN, BMAX).min(-1)
@@ -29,10 +29,10 @@ def _dense_clearance(p: np.ndarray, s: np.ndarray, n: int = 20001) -> np.ndarray
 
 def test_clearance_matches_dense_sampling_and_sign_is_line_of_sight() -> None:
     rng = np.random.default_rng(3)
-    p = rng.uniform([-80.0, -80.0, 2.0], [80.0, 160.0, 25.0], (400, 3))
-    s = rng.normal([0.0, 0.0, 2.0], 3.0, (400, 3))
+    p = rng.uniform([-80.0, -80.0, 2.0], [80.0, 160.0, 25.0], (200, 3))
+    s = rng.normal([0.0, 0.0, 2.0], 3.0, (200, 3))
     c, _ = link_clearance_with_gradient(p, s, BMIN, BMAX)
-    dense = _dense_clearance(p, s)
+    dense = _dense_clearance(p, s)  # 4000 points: every 5 cm on a 200 m link
     # 16 samples: the sampled minimum is an upper bound, within the sample spacing's reach.
     spacing = np.linalg.norm(p - s, axis=-1) / 16
     assert np.all(c >= dense - 1e-9)
@@ -40,7 +40,7 @@ def test_clearance_matches_dense_sampling_and_sign_is_line_of_sight() -> None:
     los = line_of_sight(p[:, None, :], s, BMIN, BMAX)[:, 0]
     clear = np.abs(dense) > spacing  # away from the shadow edges, the sign is the LOS test
     assert np.array_equal((c > 0)[clear], los[clear])
-    assert (~los).sum() > 50 and los.sum() > 50
+    assert (~los).sum() > 25 and los.sum() > 25
 
 
 def test_cutoff_keeps_near_links_exact() -> None:
