@@ -91,7 +91,10 @@ def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, 
 def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "dead_planner"
     steps = 150
-    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--on-failure", "restart")
+    # A fresh interpreter (--no-fork-server): the replacement then takes ~1 s to start, long
+    # enough (8+ steps) to see the vehicle hold after its guided timeout; forked, it is back
+    # within ~5 steps (the rejoin itself is the same code).
+    run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--on-failure", "restart", "--no-fork-server")
     launches.append(run)
     wait_for(lambda: len(steps_logged(out, 3)) >= 5, 120.0, "the mission to fly five steps")
     os.kill(pid_of(out, " plan ", "--uav 3 "), signal.SIGKILL)
