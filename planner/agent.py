@@ -23,8 +23,8 @@ Policies fixed here (docs/control.md):
   evidence: when the cap binds (3σ ≥ d_S*) and a lower bound on the drone's own distance to
   the source (from its own last ranges, :func:`own_range_lower_bound_m`) is below d_S* + the
   activation margin, the keep-out is raised to just inside the drone's distance to the
-  estimate: it stops approaching (:func:`source_keepout_with_own_range_m`). The caller passes
-  the bound; without it (None, today's simulator and node) the keep-out follows the estimate
+  estimate: it stops approaching (:func:`source_keepout_with_own_range_m`). The simulator
+  and the planner node pass the bound; without it (None) the keep-out follows the estimate
   alone.
 * Not observable yet: treated like a singular FIM (keep moving along the last direction with a
   random perturbation, the paper's fallback).
@@ -115,8 +115,8 @@ def own_los_weight(
         ``(q, grad_q)`` of shapes (...) and (..., 3) (1/m); 1 and zeros without buildings.
     """
     # Links more than 5 s from a building have Φ(c/s) > 1 − 3·10⁻⁷ for it: not sampled (1, ∇ 0).
-    c, gc = link_clearance_with_gradient(position, source, boxes_min, boxes_max, cutoff_m=LOS_CUTOFF_SOFTNESSES * softness_m, per_box=True)
-    u = np.maximum(np.where(np.isfinite(c), c, 1e3) / softness_m, -30.0)  # Φ(−30) > 0: no underflow
+    c, gc = link_clearance_with_gradient(position, source, boxes_min, boxes_max, cutoff_m=LOS_CUTOFF_SOFTNESSES * softness_m)
+    u = np.maximum(c / softness_m, -30.0)  # Φ(−30) > 0: no underflow
     phi_b = _normal_cdf(u)
     q = phi_b.prod(-1)
     mills = np.exp(-0.5 * u * u) / (math.sqrt(2.0 * math.pi) * phi_b)  # φ/Φ per box

@@ -172,9 +172,9 @@ LINK_SAMPLES: int = 16
 
 def link_clearance_with_gradient(
     positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike, samples: int = LINK_SAMPLES,
-    cutoff_m: float | None = None, per_box: bool = False,
+    cutoff_m: float | None = None,
 ) -> tuple[FloatArray, FloatArray]:
-    """Clearance of the link drone → source from the obstacles, and its gradient w.r.t. the drone.
+    """Clearance of the link drone → source from each obstacle, and its gradient w.r.t. the drone.
 
     The clearance from a box is c = min over t ∈ (0, 1] of the signed distance to the box
     (as :func:`distance_to_boxes`) of the point x(t) = s + t (p − s) of the segment from the
@@ -193,12 +193,10 @@ def link_clearance_with_gradient(
         cutoff_m: a link whose bounding box is farther than this from a box is not sampled for
             that box: its clearance is reported as that distance (a lower bound, ≥ cutoff_m)
             with a zero gradient. None: every link is sampled.
-        per_box: return the clearance from each box, (..., B) and (..., B, 3), instead of the
-            nearest box's.
 
     Returns:
-        ``(clearance, gradient)``, shapes (...) m and (..., 3) (per box: (..., B), (..., B, 3));
-        ``+inf`` and zeros without obstacles.
+        ``(clearance, gradient)`` per box, shapes (..., B) m and (..., B, 3); the nearest box's
+        clearance is ``clearance.min(-1)``.
     """
     p = np.asarray(positions, dtype=float)
     s = np.asarray(source, dtype=float)
@@ -207,7 +205,7 @@ def link_clearance_with_gradient(
     bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
     nb = bmin.shape[0]
     if nb == 0:
-        return (np.full(shape[:-1] + (0,), np.inf), np.zeros(shape[:-1] + (0, 3))) if per_box else (np.full(shape[:-1], np.inf), np.zeros(shape))
+        return np.zeros(shape[:-1] + (0,)), np.zeros(shape[:-1] + (0, 3))
     p, s = np.broadcast_to(p, shape).reshape(-1, 3), np.broadcast_to(s, shape).reshape(-1, 3)
     if cutoff_m is None:
         near = np.ones((p.shape[0], nb), dtype=bool)
@@ -225,15 +223,15 @@ def link_clearance_with_gradient(
     r, b = np.nonzero(near)
     if r.size:
         c[r, b], g[r, b] = _link_sdf_pairs(p[r], s[r], bmin[b], bmax[b], samples)
-    if per_box:
-        return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))
-    nearest = c.argmin(-1)
-    rows = np.arange(c.shape[0])
-    return c[rows, nearest].reshape(shape[:-1]), g[rows, nearest].reshape(shape)
+    return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))
 
 
 def _link_sdf_pairs(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray, samples: int) -> tuple[FloatArray, FloatArray]:
-    """Sampled clearance (K,) and its gradient (K, 3) of links s → p from one box each, all (K, 3)."""
+    """Sampled clearance (K,) and its gradient (K, 3) of links s → p from one box each, all (K, 3).
+
+    The signed distance and its gradient are :func:`distance_to_boxes_with_gradient`'s, written
+    for one box per link and axis by axis: called on the simulator's 1000 links × 16 points a
+    step, that function took 6 ms, this form 0.5 ms (with the cutoff of the caller)."""
     t = np.arange(1, samples + 1, dtype=float) / samples
     # One (K, samples) array per axis: reductions over a length-3 last axis are slow in numpy.
     below, above, e = [], [], []

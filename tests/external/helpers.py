@@ -36,8 +36,9 @@ class Proc:
         )
         self._lock = threading.Lock()
         self.text = {"out": "", "err": ""}
-        for name, stream in (("out", self.p.stdout), ("err", self.p.stderr)):
-            threading.Thread(target=self._pump, args=(stream, name), daemon=True).start()
+        self._readers = [threading.Thread(target=self._pump, args=(stream, name), daemon=True) for name, stream in (("out", self.p.stdout), ("err", self.p.stderr))]
+        for t in self._readers:
+            t.start()
 
     def _pump(self, stream: Any, name: str) -> None:
         fd = stream.fileno()
@@ -70,7 +71,8 @@ class Proc:
             if m:
                 return m
             if self.p.poll() is not None:
-                time.sleep(0.05)  # let the reader threads catch up once
+                for t in self._readers:  # the readers end at the pipes' end of file
+                    t.join(5.0)
                 m = rx.search(self.out if stream == "out" else self.err)
                 if m:
                     return m
