@@ -136,11 +136,12 @@ def test_records_of_another_mission_are_refused() -> None:
 FIELDS = {"time": 18, "x": 26, "y": 34, "z": 42, "range": 52, "azimuth": 60, "elevation": 68}
 
 
-@pytest.mark.parametrize("field", sorted(FIELDS))
-@pytest.mark.parametrize("value", [math.inf, -math.inf, 1e300])
+@pytest.mark.parametrize(
+    ("field", "value"),
+    # time is only required finite (sim or wall seconds): 1e300 s is a valid time
+    [(f, v) for f in sorted(FIELDS) for v in (math.inf, -math.inf, 1e300) if not (f == "time" and math.isfinite(v))],
+)
 def test_infinite_or_huge_values_are_refused(field: str, value: float) -> None:
-    if field == "time" and math.isfinite(value):
-        pytest.skip("time is only required finite (sim or wall seconds)")
     raw = bytearray(valid_record())
     struct.pack_into("<d", raw, FIELDS[field], value)
     with pytest.raises(MessageError):

@@ -1,6 +1,6 @@
 """The paper's case-study missions (section V): they load, carry the paper's numbers, start on
 the paper's ellipse, and the chosen buildings give the geometry docs/case-study-scenario.md
-promises (checked with an independent sampling reference and, when present, planner.geometry)."""
+promises (checked with an independent sampling reference and against planner.geometry)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import pytest
 
 from missions.loader import load_mission
 from missions.schema import Ellipse, Mission
+from planner import geometry
 from planner.params import Channel, Limits
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
@@ -285,9 +286,6 @@ def test_scenario_dynamic_source_path_clear_of_buildings() -> None:
 
 
 def test_scenario_against_planner_geometry() -> None:
-    geometry = pytest.importorskip("planner.geometry")
-    if not hasattr(geometry, "line_of_sight") or not hasattr(geometry, "distance_to_boxes"):
-        pytest.skip("planner.geometry has no line_of_sight/distance_to_boxes yet")
     m, starts, src, mins, maxs = _scenario()
     los = np.asarray(geometry.line_of_sight(starts, src, mins, maxs))
     np.testing.assert_array_equal(np.flatnonzero(~los) + 1, [1, 5, 6, 7])

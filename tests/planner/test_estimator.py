@@ -23,6 +23,7 @@ from planner.estimator import (
     update,
 )
 from planner import estimator as est
+from planner.fim import fisher_information
 from planner.observation import observe
 from planner.params import Channel
 
@@ -196,14 +197,11 @@ def test_information_is_the_fisher_information_at_the_estimate(rng: np.random.Ge
 
 
 def test_information_agrees_with_planner_fisher_information(rng: np.random.Generator) -> None:
-    fim = pytest.importorskip("planner.fim")
-    if not hasattr(fim, "fisher_information"):
-        pytest.skip("planner.fim.fisher_information not available")
     source = np.array([-5.0, 15.0, 0.0])
     positions = ring(rng, source, 9, (40.0, 150.0), (2.0, 30.0))
     ranging, bearing = roles("mixed", 9)
     state = update(initial_state(()), records(source, positions, ranging, bearing, np.ones(9, bool)), CHANNEL)
-    J = fim.fisher_information(source, positions, ranging, bearing, np.ones(9, bool), CHANNEL)
+    J = fisher_information(source, positions, ranging, bearing, np.ones(9, bool), CHANNEL)
     np.testing.assert_allclose(state.information, J, rtol=1e-6)
 
 

@@ -29,7 +29,6 @@ from missions.simulator import RunSpec, simulate
 from distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
 from security.certs import Authority
 
-zenoh = pytest.importorskip("zenoh")
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

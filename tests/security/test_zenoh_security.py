@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 
 from comms.messages import Observation, encode
 from comms.session import SessionSettings, open_session, zenoh_config
@@ -28,7 +29,6 @@ from planner.errors import UsageError
 
 from security.certs import Authority, Node
 
-zenoh = pytest.importorskip("zenoh")
 
 pytestmark = pytest.mark.integration
 

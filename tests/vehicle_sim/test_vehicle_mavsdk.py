@@ -1,4 +1,4 @@
-"""MAVSDK (native binding, ``pip install mavsdk`` >= 4; optional, skipped when absent) accepts
+"""MAVSDK (native binding, ``mavsdk`` >= 4, in the ``[test]`` extra) accepts
 the simulated vehicle: discovery, AUTOPILOT_VERSION, parameters, arm, take-off, goto (ArduPilot)
 and OFFBOARD (PX4). Positions are checked with pyproj's geodesic, not the vehicle's code."""
 
@@ -12,8 +12,6 @@ from pyproj import Geod
 from vehicle_sim.config import Origin
 
 from procs import Proc, fimnav
-
-mavsdk = pytest.importorskip("mavsdk", minversion="4")
 
 pytestmark = pytest.mark.integration
 GEOD = Geod(ellps="WGS84")
