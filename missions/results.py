@@ -4,9 +4,9 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
 
     OUT/
       summary.json              every run's summary (list), plus the command and versions
-      figures/peb.png           mean PEB vs step, every run: A solid, D dashed, log scale (Fig. 3)
-      figures/estimate_error.png
-      figures/trajectories_<run>.png   3-D trajectories, obstacles, source, start/end (Fig. 2)
+      figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.figures)
+      figures/estimate_error.png   median source estimate error vs step, every run, log scale
+      figures/trajectories_<run>.png   trial 0: 3-D and top view, obstacles, source, start/end (Fig. 2)
       runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
       runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
       runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
@@ -146,114 +146,7 @@ def write_results(
     }
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
     if figures:
-        plot_peb(results, out / "figures" / "peb.png")
-        plot_estimate_error(results, out / "figures" / "estimate_error.png")
-        for r in results:
-            plot_trajectories(r, out / "figures" / f"trajectories_{run_name(r)}.png")
+        from missions.figures import write_figures  # matplotlib only when figures are wanted
+
+        write_figures(results, out / "figures")
     return summaries
-
-
-def _pyplot():  # noqa: ANN202 - matplotlib is imported lazily, headless
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _style(results: Sequence[SimulationResult]) -> list[tuple[str, str, str]]:
-    """(label, colour, linestyle) per run: one colour per mission, A solid, D dashed."""
-    ids = list(dict.fromkeys(r.spec.mission.id for r in results))
-    cmap = _pyplot().get_cmap("tab10")
-    out = []
-    for r in results:
-        colour = cmap(ids.index(r.spec.mission.id) % 10)
-        ls = "-" if r.spec.criterion == "A" else "--"
-        if r.spec.mission.constraints.activation == "paper":
-            ls = ":" if r.spec.criterion == "A" else "-."
-        out.append((run_name(r), colour, ls))
-    return out
-
-
-def plot_peb(results: Sequence[SimulationResult], path: Path) -> None:
-    """Mean PEB (eq. 18) vs step, every run, log scale: the paper's Fig. 3."""
-    plt = _pyplot()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
-    for r, (label, colour, ls) in zip(results, _style(results)):
-        stats = r.peb_stats()
-        steps = np.arange(len(stats["mean"]))
-        ax.plot(steps, stats["mean"], ls, color=colour, label=label, lw=1.6)
-        if len(results) <= 4:
-            lo = np.where(np.isfinite(stats["p10"]), stats["p10"], np.nan)
-            hi = np.where(np.isfinite(stats["p90"]), stats["p90"], np.nan)
-            ax.fill_between(steps, lo, hi, color=colour, alpha=0.12, lw=0)
-    ax.set_title("Position error bound (A solid, D dashed)")
-    _finish_log_plot(plt, fig, ax, r"$\overline{\mathrm{PEB}}^{(k)}$ [m]", path)
-
-
-def plot_estimate_error(results: Sequence[SimulationResult], path: Path) -> None:
-    """Mean estimate error |p̂0 − p0| vs step, every run, log scale."""
-    plt = _pyplot()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
-    for r, (label, colour, ls) in zip(results, _style(results)):
-        err = r.estimate_error_m.reshape(r.estimate_error_m.shape[0], -1)
-        ax.plot(np.median(err, axis=-1), ls, color=colour, label=label, lw=1.6)
-    _finish_log_plot(plt, fig, ax, "median estimate error [m]", path)
-
-
-def _finish_log_plot(plt: Any, fig: Any, ax: Any, ylabel: str, path: Path) -> None:
-    """Log-scale per-step axes: labels, grid, legend; save to ``path`` and close."""
-    ax.set_yscale("log")
-    ax.set_xlabel("step k")
-    ax.set_ylabel(ylabel)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-
-
-def plot_trajectories(result: SimulationResult, path: Path, trial: int = 0) -> None:
-    """3-D trajectories of one trial with obstacles, source, start and end: the paper's Fig. 2."""
-    plt = _pyplot()
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    m = result.spec.mission
-    pos = result.positions_m[:, trial]
-    fig = plt.figure(figsize=(7.5, 6.5))
-    ax = fig.add_subplot(projection="3d")
-    colours = {"ranging": "tab:red", "bearing": "tab:purple", "joint": "tab:green"}
-    for box in m.obstacles:
-        lo, hi = np.asarray(box.min_m), np.asarray(box.max_m)
-        ax.add_collection3d(Poly3DCollection(_box_faces(lo, hi), facecolor="0.6", edgecolor="0.35", alpha=0.35))
-    for i, role in enumerate(m.drones.roles):
-        c = colours[role]
-        ax.plot(pos[:, i, 0], pos[:, i, 1], pos[:, i, 2], "--", color=c, lw=0.9)
-        ax.scatter(*pos[0, i], marker="s", color=c, s=18)
-        ax.scatter(*pos[-1, i], marker="s", color=c, s=30, edgecolor="k")
-    src = result.source_m
-    ax.plot(src[:, 0], src[:, 1], src[:, 2], "-", color="tab:blue", lw=1.0)
-    ax.scatter(*src[-1], marker="^", color="tab:blue", s=60, label="source")
-    for role, c in colours.items():
-        if role in m.drones.roles:
-            ax.plot([], [], "s--", color=c, label=role)
-    ax.set_xlabel("x east [m]")
-    ax.set_ylabel("y north [m]")
-    ax.set_zlabel("z up [m]")
-    ax.set_title(f"{run_name(result)}: trial {trial}, steps 0..{pos.shape[0] - 1}")
-    ax.legend(fontsize=8, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[list[np.ndarray]]:
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]])
-    idx = [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [0, 3, 7, 4]]
-    return [[v[j] for j in face] for face in idx]
