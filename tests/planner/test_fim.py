@@ -233,3 +233,77 @@ def test_score_covariance_equals_fim_monte_carlo():
         J_wrong -= ch.gamma**2 / (2 * d2) * np.outer(r, r) / d2
     white_w = np.linalg.solve(np.linalg.cholesky(J_wrong), score)
     assert np.abs(white_w @ white_w.T / M - np.eye(3)).max() > 0.1
+
+
+# ---------------------------------------------------------------- eq. 11 as printed
+
+
+def _a(phi: float, theta: float) -> np.ndarray:
+    """The paper's direction vector a(φ, θ) (below eq. 11)."""
+    return np.array([math.cos(phi) * math.cos(theta), math.sin(phi) * math.cos(theta), math.sin(theta)])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    d=st.floats(5.0, 500.0),
+    phi=st.floats(-math.pi, math.pi),
+    theta=st.floats(-1.4, 1.4).filter(lambda t: abs(math.sin(2.0 * t)) > 0.05),
+    sign=st.sampled_from((1.0, -1.0)),
+)
+def test_elevation_gradient_is_a_theta_plus_half_pi_not_the_printed_minus_theta_minus_half_pi(d, phi, theta, sign):
+    """Eq. 11 prints G_el = G_r(φ, −θ − π/2)/d². The elevation's gradient (finite differences of
+    atan2, with respect to the source or, with the opposite sign, the drone) is a(φ, θ + π/2)/d.
+    a(φ, −θ − π/2) differs from it in the sign of its z component only: it is neither the same
+    vector nor its opposite, so its outer product is not ∇θ∇θᵀ d² (they differ by √2 |sin 2θ| in
+    Frobenius norm), and it is not even orthogonal to a(φ, θ) (a · a_printed = −sin 2θ)."""
+    pj = np.array([3.0, -7.0, 11.0])
+    p0 = pj + d * _a(phi, theta)  # source seen from the drone at distance d, azimuth φ, elevation θ
+    dist, phi_m, th_m = _measurement_means(p0, pj)
+    assert math.isclose(dist, d, rel_tol=1e-12) and math.isclose(th_m, theta, abs_tol=1e-12)
+
+    def theta_of_source(p: np.ndarray) -> float:
+        return _measurement_means(p, pj)[2]
+
+    def theta_of_drone(p: np.ndarray) -> float:
+        return _measurement_means(p0, p)[2]
+
+    grad = _fd_grad(theta_of_source, p0, 1e-5 * d) if sign > 0 else -_fd_grad(theta_of_drone, pj, 1e-5 * d)
+    model = _a(phi, theta + math.pi / 2.0)
+    printed = _a(phi, -theta - math.pi / 2.0)
+    np.testing.assert_allclose(grad * d, model, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(printed, model * np.array([1.0, 1.0, -1.0]), rtol=0, atol=1e-12)
+    assert min(np.linalg.norm(grad * d - printed), np.linalg.norm(grad * d + printed)) > 0.04
+    diff = np.linalg.norm(np.outer(printed, printed) - np.outer(grad, grad) * d * d)
+    assert math.isclose(diff, math.sqrt(2.0) * abs(math.sin(2.0 * theta)), rel_tol=1e-4, abs_tol=1e-6)
+    assert math.isclose(float(_a(phi, theta) @ printed), -math.sin(2.0 * theta), abs_tol=1e-12)
+
+
+def test_printed_eq11_changes_the_fim_of_the_paper_geometry_by_up_to_71_percent():
+    """docs/paper-notes.md's figure. A joint LOS drone of the paper's case study (σ_sh/γ = 1.7,
+    σ_b = 10°, γ = 2; source at z = 2 m as in missions/paper) at the steepest elevation the
+    constraints allow: on the d_S* = 50 m keep-out sphere at z_max = 25 m, θ = −asin(23/50) =
+    −27.4°. fisher_information equals eq. 10 assembled from eq. 11 with G_el = G_r(φ, θ+π/2)/d²
+    and differs from the FIM with the printed G_r(φ, −θ−π/2)/d² by 70.6 % (Frobenius, relative);
+    the PEB of the printed FIM is 65 % larger. Ten such drones at one point give the same ratios
+    (every term scales by N)."""
+    ch = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=math.radians(10.0))
+    src = np.array([0.0, 0.0, 2.0])
+    theta = -math.asin(23.0 / 50.0)
+    for phi in (0.3, 1.9, -2.4):
+        pj = src - 50.0 * _a(phi, theta)
+        assert math.isclose(pj[2], 25.0, rel_tol=1e-12)
+        d, phi_m, th_m = _measurement_means(src, pj)
+        s0sq = (LN10_10 * 1.7) ** 2
+        a_r = 1.0 / (s0sq * d**2) * (1.0 + 2.0 * 4.0 * s0sq * d**2 / (4.0 * d**2))  # eq. 12 as printed
+        a_b = 1.0 / ch.sigma_bearing_rad**2
+        g_r = np.outer(_a(phi_m, th_m), _a(phi_m, th_m))
+        g_az = np.outer(_a(phi_m + math.pi / 2, 0.0), _a(phi_m + math.pi / 2, 0.0)) / (d * math.cos(th_m)) ** 2
+        e_model, e_printed = _a(phi_m, th_m + math.pi / 2), _a(phi_m, -th_m - math.pi / 2)
+        j_model = a_r * g_r + a_b * (g_az + np.outer(e_model, e_model) / d**2)
+        j_printed = a_r * g_r + a_b * (g_az + np.outer(e_printed, e_printed) / d**2)
+        got = fisher_information(src, pj[None, :], [True], [True], [True], ch)
+        assert_matrix_close(got, j_model, 1e-12)
+        rel = np.linalg.norm(j_printed - got) / np.linalg.norm(got)
+        assert 0.705 < rel < 0.707, rel
+        peb_ratio = math.sqrt(np.trace(np.linalg.inv(j_printed)) / np.trace(np.linalg.inv(got)))
+        assert 1.64 < peb_ratio < 1.66, peb_ratio
