@@ -6,13 +6,19 @@ key, an impossible value) raises :class:`MissionError`, a :class:`planner.errors
 (exit status 2), whose message names the file, the line when known, the key path
 (``drones.roles[3]``), what was expected and what was found, and for a mistyped key the
 nearest valid key. The YAML is read with PyYAML's safe loader only.
+
+A mission argument is a path when that file exists, else the name of a mission shipped in
+the package (``paper/joint``; see :func:`bundled_missions` and :func:`resolve_mission`).
 """
 
 from __future__ import annotations
 
 import copy
 import difflib
+import importlib.resources
+import os
 import re
+import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -29,6 +35,9 @@ MAX_FILE_BYTES: int = 1 << 20
 MAX_NODES: int = 200_000
 #: At most this many problems are listed in one message.
 MAX_PROBLEMS: int = 10
+#: Folders of the ``missions`` package whose ``*.yaml`` files are bundled missions, named
+#: ``<folder>/<stem>`` (``paper/joint``).
+BUNDLED_FOLDERS: tuple[str, ...] = ("paper",)
 
 _OVERRIDE_LABEL = "override"
 
@@ -57,12 +66,15 @@ class MissionError(UsageError):
 # --- public API ----------------------------------------------------------------------------
 
 
-def load_mission(path: str | Path, overrides: Mapping[str, Any] | None = None) -> Mission:
+def load_mission(path: str | os.PathLike[str], overrides: Mapping[str, Any] | None = None) -> Mission:
     """Read, check and return the mission in ``path``.
 
     Args:
-        path: the mission YAML file. Relative file paths inside it (TLS certificates,
-            signing keys) are resolved against its directory.
+        path: the mission YAML file, or when no such file exists the name of a bundled
+            mission (``paper/joint``, ``paper/joint.yaml``, ``missions/paper/joint.yaml``; see
+            :func:`resolve_mission`). Relative file paths inside the mission (TLS
+            certificates, signing keys) are resolved against its directory. Messages name the
+            mission as given here.
         overrides: values that replace the file's, applied before validation. Keys are
             dotted key paths (``"constraints.activation"``) or nested mappings
             (``{"constraints": {"activation": "paper"}}``); e.g. ``{"criterion": "D"}``.
@@ -71,24 +83,130 @@ def load_mission(path: str | Path, overrides: Mapping[str, Any] | None = None) -
         MissionError: the file is missing or unreadable, not YAML, not a mapping, or not a
             valid mission (see ``docs/mission-format.md``).
     """
-    p = Path(path)
-    label = str(path)
+    label = os.fspath(path)
+    file, text = _read_mission_file(path)
+    return loads_mission(text, file=label, base_dir=file.resolve().parent, overrides=overrides)
+
+
+def read_mission_text(path: str | os.PathLike[str]) -> str:
+    """The text of the mission file (or bundled mission) ``path`` names, unparsed.
+
+    Raises:
+        MissionError: no such file or bundled mission, a directory, a file over
+            :data:`MAX_FILE_BYTES`, an unreadable file, or text that is not UTF-8.
+    """
+    return _read_mission_file(path)[1]
+
+
+def bundled_missions() -> dict[str, Path]:
+    """The missions shipped in the ``missions`` package: name (``paper/joint``) -> file, by name.
+
+    Found with :mod:`importlib.resources`, so they are found for an installed and an editable
+    install alike, from any working directory.
+    """
+    root = importlib.resources.files("missions")
+    found: dict[str, Path] = {}
+    for folder in BUNDLED_FOLDERS:
+        directory = root.joinpath(folder)
+        if not directory.is_dir():
+            continue
+        for entry in directory.iterdir():
+            if entry.name.endswith(".yaml") and entry.is_file() and isinstance(entry, os.PathLike):
+                found[f"{folder}/{entry.name[: -len('.yaml')]}"] = Path(os.fspath(entry))
+    return dict(sorted(found.items()))
+
+
+def resolve_mission(path: str | os.PathLike[str]) -> Path:
+    """The file a mission argument names.
+
+    ``path`` itself when it exists (a file, or anything else, which :func:`load_mission`
+    then refuses); else the bundled mission of that name: ``paper/joint``,
+    ``paper/joint.yaml`` and the source-tree path ``missions/paper/joint.yaml`` all name
+    ``missions/paper/joint.yaml`` inside the installed package. Otherwise ``path`` unchanged
+    (it does not exist).
+    """
+    given = Path(path)
+    try:
+        if given.exists():
+            return given
+    except (OSError, ValueError):  # a name too long, a NUL in the path: not an existing file
+        return given
+    return bundled_missions().get(_bundled_name(os.fspath(path)), given)
+
+
+def suggest_bundled(name: str, limit: int = 3) -> list[str]:
+    """Bundled mission names close to ``name`` (a mistyped name or path), nearest first.
+
+    The file name is compared with the bundled files' names in the same folder (any folder
+    when ``name`` has none, or names a folder with no close match): ``paper/jiont`` ->
+    ``paper/joint``, ``heterogeneous`` -> ``paper/heterogeneous``."""
+    wanted = _bundled_name(name)
+    folder, _, stem = wanted.rpartition("/")
+    by_stem: dict[str, list[str]] = {}
+    for bundled in bundled_missions():
+        bundled_folder, _, bundled_stem = bundled.rpartition("/")
+        if not folder or folder == bundled_folder:
+            by_stem.setdefault(bundled_stem, []).append(bundled)
+    close = difflib.get_close_matches(stem, list(by_stem), n=limit, cutoff=0.6)
+    if not close and folder:  # a folder that does not exist: look in every folder
+        return suggest_bundled(stem, limit)
+    return [n for s in close for n in by_stem[s]][:limit]
+
+
+def _bundled_name(text: str) -> str:
+    """The bundled-mission name a mission argument would be (``./missions/paper/joint.yaml``
+    -> ``paper/joint``)."""
+    name = text.replace("\\", "/")
+    while name.startswith("./"):
+        name = name[2:]
+    if name.startswith("missions/"):
+        name = name[len("missions/"):]
+    for suffix in (".yaml", ".yml"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def _not_found(label: str) -> str:
+    """The one-line problem for a mission argument that is neither a file nor a bundled name."""
+    close = suggest_bundled(label)
+    hint = f"; did you mean {' or '.join(close)}?" if close else ""
+    return (
+        "mission not found: expected an existing YAML file or the name of a bundled mission "
+        f"(fimnav missions list), found neither{hint}"
+    )
+
+
+def _read_mission_file(path: str | os.PathLike[str]) -> tuple[Path, str]:
+    """Resolve ``path`` (:func:`resolve_mission`) and return the file and its UTF-8 text."""
+    label = os.fspath(path)
+    p = resolve_mission(path)
     try:
         if not p.exists():
-            raise MissionError(label, ["mission file not found (expected an existing YAML file)"])
+            raise MissionError(label, [_not_found(label)])
         if not p.is_file():
             raise MissionError(label, ["expected a mission YAML file, found a directory or special file"])
         size = p.stat().st_size
         if size > MAX_FILE_BYTES:
             raise MissionError(label, [f"expected a mission file of at most {MAX_FILE_BYTES} bytes, found {size} bytes"])
         raw = p.read_bytes()
+    except MissionError:
+        raise
     except OSError as exc:
-        raise MissionError(label, [f"cannot read the file: {exc.strerror or exc}"]) from None
+        raise MissionError(label, [f"expected a readable file, found that it cannot be read: {exc.strerror or exc}"]) from None
+    except ValueError as exc:  # e.g. a NUL in the path
+        raise MissionError(label, [f"expected a file path, found one that cannot be used: {exc}"]) from None
     try:
-        text = raw.decode("utf-8")
+        return p, raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise MissionError(label, [f"expected UTF-8 text, found an invalid byte at offset {exc.start}"]) from None
-    return loads_mission(text, file=label, base_dir=p.resolve().parent, overrides=overrides)
+        line_start = raw.rfind(b"\n", 0, exc.start) + 1
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = len(raw[line_start:exc.start].decode("utf-8", errors="replace")) + 1
+        raise MissionError(
+            label,
+            [f"line {line}, column {column}: expected UTF-8 text, found the invalid byte 0x{raw[exc.start]:02x} "
+             f"(byte offset {exc.start}; save the file as UTF-8)"],
+        ) from None
 
 
 def loads_mission(
@@ -128,14 +246,23 @@ def mission_to_yaml(mission: Mission) -> str:
 
 
 class _MissionDumper(yaml.SafeDumper):
-    """Safe YAML dumper writing lists of scalars inline (``[0.0, 150.0, 8.0]``), the rest in block style."""
+    """Safe YAML dumper writing lists of scalars inline (``[0.0, 150.0, 8.0]``), the rest in block
+    style, and text holding a YAML line break other than ``\\n`` double-quoted (escaped)."""
 
     def represent_list(self, data: list[Any]) -> yaml.Node:  # noqa: D102 - PyYAML hook
         flow = all(not isinstance(item, (list, dict)) for item in data)
         return self.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
+    def represent_text(self, data: str) -> yaml.Node:  # noqa: D102 - PyYAML hook
+        # With allow_unicode PyYAML writes NEL, LS and PS raw in plain and single-quoted text,
+        # and reads them back as line breaks (folded to a space): escape them instead.
+        if any(ch in data for ch in "\x85\u2028\u2029"):
+            return self.represent_scalar("tag:yaml.org,2002:str", data, style='"')
+        return self.represent_str(data)
+
 
 _MissionDumper.add_representer(list, _MissionDumper.represent_list)
+_MissionDumper.add_representer(str, _MissionDumper.represent_text)
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
@@ -161,28 +288,61 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
 # --- YAML ----------------------------------------------------------------------------------
 
 
+class _MissionLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, whose value constructors fail with the value's position.
+
+    A scalar with an explicit tag that does not fit it (``!!bool maybe``, ``!!timestamp x``,
+    ``!!int ''``, an integer too long to convert) makes PyYAML's constructors raise plain
+    Python errors without a position; here they become :class:`_UnreadableValue` at the node.
+    """
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:  # noqa: D102 - PyYAML hook
+        try:
+            return super().construct_object(node, deep=deep)
+        except (ValueError, OverflowError, TypeError, KeyError, AttributeError, IndexError) as exc:
+            raise _UnreadableValue(node, exc) from None
+
+
+class _UnreadableValue(yaml.constructor.ConstructorError):
+    """A YAML value its tag's constructor cannot read; :attr:`problem` is the message."""
+
+    def __init__(self, node: yaml.Node, exc: Exception) -> None:
+        tag = node.tag.replace("tag:yaml.org,2002:", "!!")
+        value = node.value if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
+        reason = str(exc).split(";")[0] if isinstance(exc, (ValueError, OverflowError)) else ""
+        found = _short(value) + (f" ({reason})" if reason else "")
+        super().__init__(None, None, f"expected a YAML value that can be read as {tag}, found {found}"[:300], node.start_mark)
+
+
 def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
-    """Compose (for line numbers) and construct one YAML document with the safe loader."""
-    loader = yaml.SafeLoader(text)
+    """Compose (for line numbers) and construct one YAML document with the safe loader.
+
+    Every PyYAML failure (reader, scanner, parser, composer, constructor) and every value
+    that cannot be read becomes one :class:`MissionError` naming the position."""
+    loader: _MissionLoader | None = None
     try:
+        loader = _MissionLoader(text)  # the reader refuses control characters here
         node = loader.get_single_node()
         if node is None:
             raise MissionError(file, ["expected a mapping of mission keys (id, drones, source, ...), found an empty document"])
         _check_nodes(node, file)
         data = loader.construct_document(node)
+    except yaml.reader.ReaderError as exc:
+        raise MissionError(file, [_describe_reader_error(exc, text)]) from None
     except yaml.MarkedYAMLError as exc:
-        raise MissionError(file, [_describe_yaml_error(exc)]) from None
+        raise MissionError(file, [_describe_yaml_error(exc, text)]) from None
     except yaml.YAMLError as exc:
-        raise MissionError(file, [f"invalid YAML: {exc}"]) from None
+        raise MissionError(file, [f"expected valid YAML, found {' '.join(str(exc).split())}"]) from None
     except MissionError:
         raise
-    except (ValueError, OverflowError, TypeError) as exc:  # e.g. an integer of > 4300 digits
+    except (ValueError, OverflowError, TypeError) as exc:  # a value outside any node (safety net)
         reason = str(exc).split(";")[0]
         raise MissionError(file, [f"expected YAML values that can be read, found one that cannot: {reason}"[:300]]) from None
     except RecursionError:
         raise MissionError(file, ["expected a mission, found YAML nested too deeply"]) from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     if not isinstance(data, dict):
         raise MissionError(
             file,
@@ -192,24 +352,131 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
     return node, data
 
 
-def _describe_yaml_error(exc: yaml.MarkedYAMLError) -> str:
-    """``line L, column C: invalid YAML: expected ..., found ...`` from a PyYAML error."""
-    mark = exc.problem_mark or exc.context_mark
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    problem = (exc.problem or "").strip()
-    context = f" ({exc.context.strip()})" if exc.context else ""
+def _line_column(text: str, index: int) -> tuple[int, int]:
+    """1-based line and column of character ``index`` of ``text``, counting line breaks as
+    PyYAML does (``\\n``, ``\\r\\n``, a lone ``\\r``, NEL, LS, PS)."""
+    before = text[:index]
+    line = 1 + len(re.findall("\r\n|[\n\r\x85\u2028\u2029]", before))
+    last_break = max(before.rfind(ch) for ch in "\n\r\x85\u2028\u2029")
+    return line, index - last_break
+
+
+def _describe_reader_error(exc: yaml.reader.ReaderError, text: str) -> str:
+    """``line L, column C: expected printable text, found the control character U+0000 (NUL)``."""
+    line, column = _line_column(text, exc.position)
+    code = exc.character if isinstance(exc.character, int) else ord(str(exc.character)[:1] or "\0")
+    category = unicodedata.category(chr(code))
+    if category == "Cc":
+        names = {0x00: "NUL", 0x07: "BEL", 0x08: "BS", 0x0B: "VT", 0x0C: "FF", 0x1B: "ESC", 0x7F: "DEL"}
+        kind = "the control character"
+        name = f" ({names[code]})" if code in names else ""
+    else:
+        kind, name = "the character", " (not allowed in YAML)"
+    return (
+        f"line {line}, column {column}: invalid YAML: expected printable text (no control characters "
+        f"but tab and line breaks), found {kind} U+{code:04X}{name}"
+    )
+
+
+#: PyYAML errors about a construct that was opened and never closed, by their context: the
+#: position reported is where the construct started, the line of the mistake.
+_UNCLOSED: tuple[tuple[str, str], ...] = (
+    ("while parsing a flow sequence", "the list '[' started here"),
+    ("while parsing a flow mapping", "the mapping '{' started here"),
+    ("while scanning a quoted scalar", "the quoted text started here"),
+    ("while scanning a simple key", "the key"),
+)
+
+
+def _at(mark: yaml.Mark) -> str:
+    return f"line {mark.line + 1}, column {mark.column + 1}"
+
+
+def _token(text: str) -> str:
+    """A PyYAML token name in words: ``'<stream end>'`` -> ``the end of the file``."""
+    words = {
+        "'<stream end>'": "the end of the file",
+        "<stream end>": "the end of the file",
+        "'<block end>'": "the end of the block",
+        "'<block mapping start>'": "a key indented differently",
+        "'<block sequence start>'": "a list item indented differently",
+        "'<scalar>'": "a value",
+        "'<document start>'": "a document separator '---'",
+        "'<document end>'": "a document end '...'",
+    }
+    return words.get(text.strip(), text.strip())
+
+
+def _describe_yaml_error(exc: yaml.MarkedYAMLError, text: str) -> str:
+    """``line L, column C: invalid YAML: ...expected ..., found ...`` from a PyYAML error.
+
+    The position is the line of the mistake: where an unclosed bracket, brace, quote or key
+    started (PyYAML's ``context_mark``) rather than where the parser gave up
+    (``problem_mark``, lines later); for every other error, the problem's position."""
+    problem = " ".join((exc.problem or "").split())
+    context = " ".join((exc.context or "").split())
+    problem_mark, context_mark = exc.problem_mark, exc.context_mark
+    if isinstance(exc, _UnreadableValue):
+        return f"{_at(problem_mark)}: {problem}" if problem_mark is not None else problem
+    for opening, what in _UNCLOSED:
+        if context.startswith(opening) and context_mark is not None and problem_mark is not None:
+            if "quoted" in opening:
+                quote = text[context_mark.index] if 0 <= context_mark.index < len(text) else "quote"
+                if problem.startswith("found unexpected "):
+                    expected = f"a closing {quote}"
+                    found = problem[len("found unexpected "):]
+                    found = {"end of stream": "the end of the file", "document separator": "a document separator"}.get(found, found)
+                    return (f"{_at(context_mark)}: invalid YAML: {what} with {quote} is not closed: expected {expected}, "
+                            f"found {found} at {_at(problem_mark)}")
+                break
+            if "simple key" in opening:
+                return f"{_at(context_mark)}: invalid YAML: expected 'key: value' on this line, found no ':' after the key"
+            for but in (", but got ", ", but found "):
+                if problem.startswith("expected") and but in problem:
+                    head, tail = problem.split(but, 1)
+                    return f"{_at(context_mark)}: invalid YAML: {what} is not closed: {head}, found {_token(tail)} at {_at(problem_mark)}"
+    mark = problem_mark or context_mark
+    where = f"{_at(mark)}: " if mark is not None else ""
     if isinstance(exc, yaml.constructor.ConstructorError) and "tag" in problem:
-        tag = problem.rsplit(" ", 1)[-1]
-        return f"{where}invalid YAML: expected plain data (no language-specific tags), found the tag {tag}"
+        tag = problem.rsplit(" ", 1)[-1].strip("'").replace("tag:yaml.org,2002:", "!!")
+        return f"{where}invalid YAML: expected plain data (standard tags, no language-specific ones), found the tag {tag}"
+    if problem.startswith("found undefined alias"):
+        name = problem.rsplit(" ", 1)[-1].strip("'")
+        return f"{where}invalid YAML: expected an anchor &{name} defined before the alias *{name}, found none"
+    if context.startswith("found duplicate anchor") and context_mark is not None:
+        name = context.split("'")[1] if context.count("'") >= 2 else "?"
+        return f"{where}invalid YAML: expected each anchor once, found &{name} again (first at {_at(context_mark)})"
+    if problem.startswith("found unknown escape character"):
+        char = problem.rsplit(" ", 1)[-1]
+        return (f"{where}invalid YAML: expected an escape sequence such as \\\\ or \\n in double-quoted text "
+                f"(or single quotes, where a backslash is plain), found the unknown escape \\{char.strip(chr(39))}")
+    if problem == "found unhashable key":
+        return f"{where}invalid YAML: expected a text key, found a list or mapping used as a key"
+    if problem.startswith("found character '\\t'"):
+        return f"{where}invalid YAML: expected spaces for indentation (YAML allows no tabs there), found a tab character"
+    if problem == "mapping values are not allowed here":
+        return (f"{where}invalid YAML: expected a key indented like the keys above it (or a value containing ': ' "
+                f"in quotes), found ':' where a mapping is not allowed")
+    in_context = ""
+    if context and context_mark is not None and context_mark is not mark:
+        in_context = f" ({context} started at {_at(context_mark)})"
+    elif context:
+        in_context = f" ({context})"
+    if problem.startswith("expected <block end>, but found ") and context.startswith("while parsing a block"):
+        found = _token(problem[len("expected <block end>, but found "):])
+        if found in ("']'", "'}'"):
+            return f"{where}invalid YAML{in_context}: expected a key, an item or the end of the block, found {found} that closes nothing"
+        return (f"{where}invalid YAML{in_context}: expected a line indented like an enclosing block's keys or items, "
+                f"found {found} (check the indentation)")
     for but in (", but got ", " but got ", ", but found ", " but found "):
         if problem.startswith("expected") and but in problem:
             head, tail = problem.split(but, 1)
-            return f"{where}invalid YAML{context}: {head}, found {tail}"
-    if exc.context and exc.context.startswith("expected") and problem.startswith("but found "):
-        return f"{where}invalid YAML: {exc.context.strip()}, found {problem[len('but found '):]}"
+            return f"{where}invalid YAML{in_context}: {head}, found {_token(tail)}"
+    if context.startswith("expected") and problem.startswith("but found "):
+        return f"{where}invalid YAML: {context}, found {problem[len('but found '):]}"
     if problem.startswith("found "):
         problem = problem[len("found "):]
-    return f"{where}invalid YAML{context}: expected valid YAML syntax, found {problem}"
+    return f"{where}invalid YAML{in_context}: expected valid YAML syntax, found {problem}"
 
 
 def _check_nodes(root: yaml.Node, file: str) -> None:

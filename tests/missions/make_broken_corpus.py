@@ -130,8 +130,8 @@ case("overrides_count_mismatch", "two vehicle overrides for four drones", "vehic
 case("zenoh_unknown_mode", "zenoh mode 'server'", "zenoh.mode", "'peer', 'client' or 'router'", "'server'",
      sub("trials: 2\n", "trials: 2\nzenoh: {mode: server}\n"))
 case("duplicate_key", "steps given twice", "steps", "each key once", "again", sub("trials: 2\n", "trials: 2\nsteps: 30\n"))
-case("bad_yaml_syntax", "an unclosed bracket", "line 22, column", "',' or ']'", "':'", sub("  position_m: [0.0, 0.0, 2.0]", "  position_m: [0.0, 0.0, 2.0"))
-case("bad_yaml_tab", "a tab used for indentation", "line 12, column 1", "valid YAML syntax", "character", sub("  count: 4", "\tcount: 4"))
+case("bad_yaml_syntax", "an unclosed bracket (reported where it opens)", "line 21, column 15", "',' or ']'", "':'", sub("  position_m: [0.0, 0.0, 2.0]", "  position_m: [0.0, 0.0, 2.0"))
+case("bad_yaml_tab", "a tab used for indentation", "line 12, column 1", "spaces for indentation", "a tab character", sub("  count: 4", "\tcount: 4"))
 case("not_a_mapping", "a list at the top level", "line 5", "a mapping of mission keys", "a list", "- id: x\n- drones: 3\n")
 case("scalar_document", "a bare string", "line 5", "a mapping of mission keys", "'just some text'", "just some text\n")
 case("empty_document", "an empty file (comments only)", "", "a mapping of mission keys", "an empty document", "")
@@ -141,9 +141,9 @@ case("alias_bomb", "a billion-laughs alias expansion", "", "at most 200000 YAML 
      "c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b, *b]\nd: &d [*c, *c, *c, *c, *c, *c, *c, *c, *c, *c]\n"
      "e: &e [*d, *d, *d, *d, *d, *d, *d, *d, *d, *d]\nf: &f [*e, *e, *e, *e, *e, *e, *e, *e, *e, *e]\n"
      "g: [*f, *f, *f, *f, *f, *f, *f, *f, *f, *f]\n")
-case("python_tag", "an unsafe YAML tag", "line 5, column", "no language-specific tags", "python/object", "id: !!python/object/apply:os.system ['echo pwned']\n" + BASE[len("id: broken_case\n"):])
+case("python_tag", "an unsafe YAML tag", "line 5, column 5", "no language-specific ones", "!!python/object", "id: !!python/object/apply:os.system ['echo pwned']\n" + BASE[len("id: broken_case\n"):])
 
-case("huge_integer", "an integer too long to read", "", "YAML values that can be read", "4300 digits",
+case("huge_integer", "an integer too long to read", "line 6, column 7", "a YAML value that can be read as !!int", "4300 digits",
      sub("seed: 3", "seed: " + "9" * 5000))
 case("binary_id", "a !!binary (bytes) mission id", "id", "a valid string", "b'x'", sub("id: broken_case", "id: !!binary eA=="))
 case("integer_key", "a number used as a key", "constraints", "text keys", "3 (an integer)",
@@ -155,12 +155,52 @@ case("recursive_alias", "a list that contains itself", "", "at most 200000 YAML 
 case("infinite_value", "an infinite speed", "constraints.speed_max_mps", "a finite number", "inf",
      sub("  speed_max_mps: 1.0", "  speed_max_mps: .inf"))
 
+# Every kind of PyYAML error (reader, scanner, parser, composer, constructor): one line, the
+# position of the mistake (for an unclosed bracket, brace or quote: where it opens).
+case("control_nul", "a NUL byte in otherwise valid UTF-8 (yaml.reader)", "line 10, column 18", "printable text",
+     "U+0000 (NUL)", sub("trials: 2\n", "trials: 2\ndescription: lost\x00byte\n"))
+case("control_escape", "a terminal escape sequence in a text value (yaml.reader)", "line 10, column 14", "printable text",
+     "U+001B (ESC)", sub("trials: 2\n", "trials: 2\ndescription: \x1b[31mred\x1b[0m\n"))
+case("unclosed_double_quote", "a double quote never closed (yaml.scanner)", "line 10, column 14", "a closing \"",
+     "the end of the file", sub("trials: 2\n", "trials: 2\ndescription: \"never closed\n"))
+case("unclosed_single_quote", "a single quote never closed (yaml.scanner)", "line 10, column 14", "a closing '",
+     "the end of the file", sub("trials: 2\n", "trials: 2\ndescription: 'never closed\n"))
+case("bad_escape", "a Windows path in double quotes (yaml.scanner)", "line 10, column 18", "an escape sequence",
+     "unknown escape \\p", sub("trials: 2\n", "trials: 2\ndescription: \"C:\\path\\mission\"\n"))
+case("missing_colon", "a key without ':' (yaml.scanner)", "line 8, column 1", "'key: value'", "no ':'",
+     sub("steps: 20", "steps 20"))
+case("indent_too_deep", "a key indented one space deeper than its siblings (yaml.scanner)", "line 26, column 17",
+     "a key indented like the keys above it", "':'", sub("  speed_max_mps: 1.0", "   speed_max_mps: 1.0"))
+case("indent_too_shallow", "a key indented one space less than its siblings (yaml.parser)", "line 26, column 2",
+     "a line indented like", "a key indented differently", sub("  speed_max_mps: 1.0", " speed_max_mps: 1.0"))
+case("list_item_misaligned", "a start position indented less than the others (yaml.parser)", "line 18, column 6",
+     "a line indented like", "a list item indented differently", sub("      - [20.0, 150.0, 8.0]", "     - [20.0, 150.0, 8.0]"))
+case("unclosed_brace", "an obstacle's '{' never closed (yaml.parser)", "line 23, column 5", "',' or '}'", "a value at line 24",
+     sub("max_m: [20.0, 100.0, 30.0]}", "max_m: [20.0, 100.0, 30.0]"))
+case("unclosed_bracket_at_end", "a '[' never closed at the end of the file (yaml.parser)", "line 29, column 14",
+     "',' or ']'", "the end of the file", BASE.replace("trials: 2\n", "") + "trials: 2\ndescription: [never, closed\n")
+case("stray_bracket", "a ']' that closes nothing (yaml.parser)", "line 13, column 44", "the end of the block",
+     "']' that closes nothing", sub("[ranging, bearing, joint, ranging]", "[ranging, bearing, joint, ranging]]"))
+case("undefined_alias", "an alias with no anchor (yaml.composer)", "line 10, column 14", "an anchor &nope",
+     "none", sub("trials: 2\n", "trials: 2\ndescription: *nope\n"))
+case("duplicate_anchor", "the same anchor twice (yaml.composer)", "line 10, column 7", "each anchor once",
+     "&s again", sub("trials: 2\n", "trials: 2\ndescription: &s one\nseed: &s 4\n").replace("seed: 3\n", ""))
+case("unknown_tag", "a tag YAML does not define (yaml.constructor)", "line 10, column 12", "standard tags",
+     "!!foo", sub("criterion: A", "criterion: !!foo A"))
+case("list_as_key", "a list used as a key (yaml.constructor)", "line 10, column 3", "a text key",
+     "a list or mapping used as a key", sub("trials: 2\n", "trials: 2\n? [x, y]\n: 1\n"))
+case("bad_bool_tag", "!!bool on a value that is not a boolean", "line 9, column 9", "read as !!bool", "'maybe'",
+     sub("trials: 2", "trials: !!bool maybe"))
+case("bad_timestamp_tag", "!!timestamp on a value that is not a date", "line 10, column 14", "read as !!timestamp",
+     "'yesterday'", sub("trials: 2\n", "trials: 2\ndescription: !!timestamp yesterday\n"))
+case("empty_int_tag", "!!int on an empty value", "line 8, column 8", "read as !!int", "''", sub("steps: 20", "steps: !!int ''"))
+
 out = Path(__file__).resolve().parent / "broken"
 for name, (what, path, expected, found, text) in C.items():
     header = (f"# Broken mission: {what}.\n# expect-path: {path}\n# expect-expected: {expected}\n"
               f"# expect-found: {found}\n")
     (out / f"{name}.yaml").write_text(header + text)
 # not UTF-8: header lines, then an invalid byte
-(out / "not_utf8.yaml").write_bytes(b"# Broken mission: not UTF-8 text.\n# expect-path: \n# expect-expected: UTF-8 text\n"
-                                     b"# expect-found: invalid byte\nid: caf\xe9\n")
+(out / "not_utf8.yaml").write_bytes(b"# Broken mission: not UTF-8 text.\n# expect-path: line 5, column 8\n"
+                                     b"# expect-expected: UTF-8 text\n# expect-found: invalid byte 0xe9\nid: caf\xe9\n")
 print(len(C) + 1, "files")

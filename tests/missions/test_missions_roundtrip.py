@@ -86,6 +86,14 @@ def test_round_trip_rich(tmp_path: Path) -> None:
     np.testing.assert_allclose(m.source.position_at(10.0), [1.0, -2.0, 1.0])
 
 
+@pytest.mark.parametrize("text", ["\x85", "a\x85b", "\u2028", "x\u2029y", "tab\tand\nnewline", "café ✓"])
+def test_round_trip_text_with_unicode_line_breaks(text: str) -> None:
+    """NEL, LS and PS are YAML line breaks: the mission as run escapes them, so the text reads back unchanged."""
+    mission = load_mission(PAPER / "joint.yaml", {"description": text})
+    again = loads_mission(mission_to_yaml(mission))
+    assert again.description == text and again == mission
+
+
 def test_mission_is_frozen() -> None:
     m = load_mission(PAPER / "joint.yaml")
     with pytest.raises(pydantic.ValidationError):
