@@ -368,8 +368,9 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
         missions.append(Patch(facecolor=shade, alpha=0.3, label=f"p10–p90 of the {band_of} over {who}"))
     line_styles: list[Any] = []
     if len(styles) > 1:
+        rules = {rule for _, rule in styles}
         for crit, rule in sorted(styles, key=lambda s: (s[1] != "safe", s[0])):
-            label = f"{CRITERION_NAMES[crit]}, {RULE_NAMES[rule]}"
+            label = CRITERION_NAMES[crit] if rules == {"safe"} else f"{CRITERION_NAMES[crit]}, {RULE_NAMES[rule]}"
             line_styles.append(Line2D([], [], color="0.2", ls=LINESTYLES[(crit, rule)], lw=1.6, label=label))
     caption = [f"{centre_name} over {who} per step; at the right end of each curve: its value at the last step."]
     if not spread:

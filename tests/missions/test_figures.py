@@ -259,3 +259,15 @@ def test_write_results_writes_every_figure(a_only: list[SimulationResult], tmp_p
     assert names == sorted(["peb.png", "estimate_error.png", f"trajectories_{run_name(a_only[0])}.png"])
     for p in (tmp_path / "figures").iterdir():
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_degenerate_runs_still_draw(a_only: list[SimulationResult], tmp_path: Path) -> None:
+    """Every view singular at every step, and a drone lost half-way (NaN positions, as a
+    distributed run records them): the figures are still written, without end values."""
+    r = a_only[0]
+    pos = r.positions_m.copy()
+    pos[STEPS // 2 :, :, 3] = np.nan
+    broken = dataclasses.replace(r, peb_m=np.full_like(r.peb_m, np.inf), positions_m=pos)
+    F.write_figures([broken], tmp_path)
+    assert not [t for t in F.make_peb_figure([broken]).axes[0].texts if t.get_gid() == F.END_VALUE_GID]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["peb.png", "estimate_error.png", f"trajectories_{run_name(r)}.png"])
