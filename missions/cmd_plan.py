@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -58,10 +59,13 @@ def run(args: argparse.Namespace) -> int:
     """Load the mission and fly the node; print a JSON summary on stdout."""
     from comms.mavlink_client import read_signing_key
     from comms.session import SessionSettings
+    from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
     from planner.node import NodeOptions, PlannerNode
 
     logging.basicConfig(level=args.log_level, stream=sys.stderr, format=f"%(asctime)s plan[{args.uav}] %(levelname)s %(message)s")
+    watch_launcher()  # started by fimnav launch: stop when the launcher dies
+    logging.getLogger("fimnav.plan").info("pid %d, fimnav code from %s", os.getpid(), Path(__file__).resolve().parent)
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps: expected a positive integer, found {args.steps}")

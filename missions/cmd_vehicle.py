@@ -9,9 +9,10 @@ Examples::
 With ``--count N`` the process hosts N vehicles, system ids I..I+N-1 on ports
 PORT, PORT+stride, ... (``--mavlink`` given once), or one ``--mavlink`` per vehicle.
 Once every socket is open the command prints one JSON line
-``{"event": "ready", "vehicles": [{"sysid": 1, "mavlink": "udpin:127.0.0.1:PORT"}], ...}``
-to stdout (the actual ports when PORT 0 was asked), then runs until SIGINT/SIGTERM or
-``--duration``.
+``{"event": "ready", "pid": PID, "code": DIR, "vehicles": [{"sysid": 1, "mavlink": "udpin:127.0.0.1:PORT"}], ...}``
+to stdout (the actual ports when PORT 0 was asked; ``code``: the directory of the ``missions``
+package it runs), then runs until SIGINT/SIGTERM (exit 0), ``--duration``, or, started by
+``fimnav launch``, the launcher's death (:func:`missions.forkspawn.watch_launcher`).
 """
 
 from __future__ import annotations
@@ -21,10 +22,12 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import signal
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from planner.errors import UsageError
@@ -282,7 +285,10 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
 
 def run_vehicle(args: argparse.Namespace) -> int:
     """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
+    from missions.forkspawn import watch_launcher
+
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    watch_launcher()  # started by fimnav launch: stop when the launcher dies
     mission = None
     if args.mission:
         from missions.loader import load_mission
@@ -342,6 +348,8 @@ def run_vehicle(args: argparse.Namespace) -> int:
         host = VehicleHost(vehicles, clock, on_tick=on_tick)
         ready = {
             "event": "ready",
+            "pid": os.getpid(),
+            "code": str(Path(__file__).resolve().parent),
             "vehicles": [{"sysid": v.sysid, "mavlink": v.link.transport.address} for v in vehicles],
             "clock": "lockstep" if args.lockstep else f"realtime x{args.speedup:g}",
             **zenoh_info,
