@@ -374,7 +374,7 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
             line_styles.append(Line2D([], [], color="0.2", ls=LINESTYLES[(crit, rule)], lw=1.6, label=label))
     caption = [f"{centre_name} over {who} per step; at the right end of each curve: its value at the last step."]
     if not spread:
-        caption.append(f"No p10–p90 band: every drone's {band_of} is the same at each step.")
+        caption.append(f"No p10–p90 band: the drones' {band_of} values coincide at every step (p10 = p90).")
     elif not bands:
         caption.append(f"p10–p90 bands not drawn for more than {MAX_BANDS} runs{band_csv}.")
     if note:
