@@ -21,7 +21,10 @@ def register(subparsers: Any) -> None:
         "over Zenoh (loopback) and MAVLink, step them in lockstep, show progress and write the results.",
     )
     p.add_argument("mission", type=Path, metavar="MISSION.yaml")
-    p.add_argument("--out", type=Path, help="results directory (default: results/<mission id>-<time>)")
+    p.add_argument("--out", type=Path, help="results directory (default: results/<mission id>-<date>-<time>, with -2, -3, ... "
+                   "if taken); one holding a previous run is refused unless --overwrite")
+    p.add_argument("--overwrite", action="store_true", help="--out holds a previous run: remove its files (mission.yaml, "
+                   "summary.json, logs/, tlogs/, runs/, figures/; nothing else) before starting")
     p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
     p.add_argument("--seed", type=int, help="root seed (default: the mission's)")
     p.add_argument("--criterion", choices=("A", "D"), help="design criterion (default: the mission's)")
@@ -46,11 +49,41 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _sig(x: float | None, unit: str = " m") -> str:
+    """``x`` rounded to three significant digits (29.0, 7.46, 0.351; whole from 100 on), with
+    its unit; "undefined" for a missing or infinite value (e.g. every view singular)."""
+    if x is None or not math.isfinite(x):
+        return "undefined"
+    text = f"{x:#.3g}"
+    return (f"{x:.0f}" if abs(x) >= 100 or text.endswith(".") else text) + unit
+
+
+def summary_line(summary: dict[str, Any], out: Path, stream: Any = None) -> str:
+    """The two lines ``fimnav launch`` prints at the end: what the run achieved, each value
+    named by its statistic and rounded, then where the results are. E.g.::
+
+        paper_heterogeneous_A: mean PEB 29.0 m → 7.46 m (step 0 → 99), median estimate error 0.35 m (step 99), safety violations 0, 17.8 s
+        results: results/het
+
+    ``stream``: where it will be printed (an arrow it cannot encode is written ``->``)."""
+    last = int(summary["steps"]) - 1
+    viol = sum(summary["violations"].values())
+    text = (f"{summary['run']}: mean PEB {_sig(summary['initial_peb_mean_m'])} → {_sig(summary['final_peb_mean_m'])} (step 0 → {last}), "
+            f"median estimate error {_sig(summary['final_estimate_error_median_m'])} (step {last}), safety violations {viol}, "
+            f"{summary['runtime_s']:.1f} s\nresults: {out}")
+    encoding = getattr(stream, "encoding", None) or "utf-8"
+    try:
+        text.encode(encoding)
+    except (UnicodeEncodeError, LookupError):
+        text = text.replace("→", "->")
+    return text
+
+
 def run(args: argparse.Namespace) -> int:
     """Validate, launch, report."""
     from tqdm import tqdm
 
-    from missions.launcher import launch
+    from missions.launcher import check_results_dir, launch, unique_results_dir
     from missions.loader import load_mission, parse_overrides
 
     overrides = parse_overrides(args.overrides)
@@ -73,25 +106,27 @@ def run(args: argparse.Namespace) -> int:
     if args.vehicles_per_process < 1:
         raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
     mission = load_mission(args.mission, overrides)
-    out = args.out or Path("results") / f"{mission.id}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if args.out is None:
+        out = unique_results_dir(Path("results"), f"{mission.id}-{time.strftime('%Y%m%d-%H%M%S')}")
+    else:
+        out = args.out
+        check_results_dir(out, args.overwrite)  # before anything shows; the launcher claims it
     bar = tqdm(total=mission.steps, unit="step", desc=f"launch {mission.id}", file=sys.stderr, disable=None)
 
     def progress(k: int, peb: float, err: float, alive: int) -> None:
         bar.set_postfix_str(f"PEB {peb:.3g} m, err {err:.3g} m, alive {alive}/{mission.drones.count}")
         bar.update(1)
 
+    def notice(text: str) -> None:
+        bar.write(text, file=sys.stderr)
+
     try:
         summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
                          on_failure=args.on_failure, realtime=args.realtime, speedup=args.speedup, start_delay_s=args.start_delay,
-                         fork_server=args.fork_server)
+                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice)
     finally:
         bar.close()
-    viol = sum(summary["violations"].values())
-    print(
-        f"{summary['run']}: PEB {summary['initial_peb_mean_m']} -> {summary['final_peb_mean_m']} m, "
-        f"estimate error {summary['final_estimate_error_median_m']} m, violations {viol}, "
-        f"{summary['runtime_s']:.1f} s\nresults: {out}"
-    )
+    print(summary_line(summary, out, sys.stdout))
     for f in summary["failures"]:
         print(f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}", file=sys.stderr)
     if summary["failures"]:

@@ -9,9 +9,19 @@ Networking is loopback only: the launcher's Zenoh session listens on 127.0.0.1 a
 and every child connects to it (peers then find each other by gossip); each vehicle listens
 for its planner's MAVLink on its own free UDP port on 127.0.0.1.
 
-Every child runs in its own process group; on success, on any failure, on Ctrl-C or SIGTERM
-the launcher stops them all (SIGTERM, then SIGKILL after a grace period): no orphan process,
-no port left bound.
+Every child runs in its own process group; on success, on any failure, on Ctrl-C, SIGTERM or
+SIGHUP the launcher stops them all (SIGTERM, then SIGKILL after a grace period): no orphan
+process, no port left bound. A launcher that dies without stopping them (SIGKILL, a crash) is
+noticed by every child through the watchdog pipe it inherits (:mod:`missions.forkspawn`), and
+each child then stops by itself.
+
+Children run the launcher's own code: they get its ``sys.path`` (``PYTHONPATH``, with
+``PYTHONSAFEPATH`` on Python 3.11+ so that ``-m`` puts no working directory in front of it) and
+run in the results' ``logs`` directory, which holds no module; the forked planners have the
+launcher's ``sys.path`` from the fork server.
+
+A results directory holds one run: the launcher refuses a directory that holds a previous run's
+files (:data:`RUN_ENTRIES`) unless asked to overwrite them, which removes them first.
 """
 
 from __future__ import annotations
@@ -22,6 +32,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -36,15 +47,15 @@ from typing import Any
 import numpy as np
 
 from comms import keys
-from comms.messages import MessageError, Observation, Status, decode
+from comms.messages import Done, MessageError, Observation, Status, decode
 from comms.session import SessionSettings, open_session
 from missions.clock import ClockError, LockstepClock
-from missions.forkspawn import ForkedProcess, ForkServer
+from missions.forkspawn import LAUNCHER_FD_ENV, ForkedProcess, ForkServer
 from missions.loader import mission_to_yaml
 from missions.results import write_results
 from missions.schema import Mission
 from missions.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
-from planner.errors import FimnavError
+from planner.errors import FimnavError, UsageError
 from planner.fim import fisher_information, position_error_bound
 
 log = logging.getLogger("fimnav.launch")
@@ -66,9 +77,97 @@ class LaunchError(FimnavError):
 
 
 class Interrupted(FimnavError):
-    """Ctrl-C or SIGTERM: every child was stopped."""
+    """Ctrl-C, SIGTERM or SIGHUP: every child was stopped. The exit status is 128 + the
+    signal's number (130, 143, 129), as a shell reports a command the signal ended."""
 
-    exit_code = 130
+    exit_code = 128 + signal.SIGINT
+
+    def __init__(self, message: str, signum: int = signal.SIGINT) -> None:
+        super().__init__(message)
+        self.signum = int(signum)
+        self.exit_code = 128 + self.signum
+
+
+#: What a run writes at the top of its results directory: a directory holding any of them holds
+#: a run (refused, or with ``overwrite`` these, and only these, are removed first).
+RUN_ENTRIES: tuple[str, ...] = ("mission.yaml", "summary.json", "logs", "tlogs", "runs", "figures")
+
+
+def previous_run(out: Path) -> list[str]:
+    """The entries of :data:`RUN_ENTRIES` present in ``out`` (directories with a trailing
+    ``/``), in that order; empty when ``out`` holds no run (or does not exist)."""
+    found = []
+    for name in RUN_ENTRIES:
+        p = out / name
+        if p.is_symlink() or p.exists():
+            found.append(f"{name}/" if p.is_dir() and not p.is_symlink() else name)
+    return found
+
+
+def check_results_dir(out: Path, overwrite: bool = False) -> list[str]:
+    """Check that ``out`` can take a run; return the previous run's entries there (removed by
+    :func:`claim_results_dir` when ``overwrite``).
+
+    Raises:
+        UsageError: ``out`` is not a directory, or it holds a previous run and ``overwrite`` is
+            false.
+    """
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"results directory {out}: expected a directory, found a file")
+    found = previous_run(out)
+    if found and not overwrite:
+        raise UsageError(f"results directory {out} already holds a run ({', '.join(found)}); choose another --out or pass --overwrite")
+    return found
+
+
+def claim_results_dir(out: Path, overwrite: bool = False) -> None:
+    """Make ``out`` this run's results directory, with empty ``logs/`` and ``tlogs/`` (with
+    ``overwrite``, a previous run's files are removed first; nothing else in ``out`` is).
+
+    Raises:
+        UsageError: see :func:`check_results_dir`; or another launch claimed ``out`` meanwhile.
+    """
+    for name in check_results_dir(out, overwrite):
+        p = out / name.rstrip("/")
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    try:
+        (out / "logs").mkdir(parents=True)  # atomic: two launches cannot both create it
+    except FileExistsError:
+        raise UsageError(f"results directory {out}: another launch started writing it; choose another --out") from None
+    (out / "tlogs").mkdir(exist_ok=True)
+
+
+def unique_results_dir(parent: Path, name: str) -> Path:
+    """Create and return ``parent/name``, or ``parent/name-2``, ``-3``, ... if taken (two
+    launches in the same second get different directories: ``mkdir`` is atomic)."""
+    parent.mkdir(parents=True, exist_ok=True)
+    n = 1
+    while True:
+        path = parent / (name if n == 1 else f"{name}-{n}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            n += 1
+            continue
+        return path
+
+
+def child_environment(base: dict[str, str] | None = None, same_interpreter: bool = True) -> dict[str, str]:
+    """The environment of a ``python -m missions`` child (from ``base``, default this
+    process's): unbuffered output, and this process's ``sys.path`` as ``PYTHONPATH``, so that
+    the child imports the very code the launcher imported wherever it runs, with no working
+    directory put in front of it on Python 3.11+ (``PYTHONSAFEPATH``; on 3.10, ``-m`` puts the
+    child's working directory first: the launcher runs it in the run's ``logs`` directory,
+    which holds no module). ``same_interpreter`` False (another Python): its own ``sys.path``."""
+    env = dict(os.environ if base is None else base, PYTHONUNBUFFERED="1", PYTHONSAFEPATH="1")
+    env.pop(LAUNCHER_FD_ENV, None)
+    if same_interpreter:
+        paths = [os.path.abspath(p) for p in sys.path]
+        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+    return env
 
 
 #: Wall time (s) between two refreshes of the progress bar's mean PEB and estimate error.
@@ -132,6 +231,10 @@ class Launcher:
             (:mod:`missions.forkspawn`; each is still its own process and process group);
             False: ``python -m missions plan`` with ``subprocess`` (about 0.45 s of CPU each
             to import).
+        overwrite: a results directory holding a previous run: remove that run's files
+            (:data:`RUN_ENTRIES`) first; False: refuse it (:func:`claim_results_dir`).
+        notice: called with a one-line message on what the launcher waits for (real time:
+            the start delay); default: logged.
     """
 
     def __init__(
@@ -148,9 +251,15 @@ class Launcher:
         speedup: float = 1.0,
         start_delay_s: float | None = None,
         fork_server: bool = True,
+        overwrite: bool = False,
+        notice: Callable[[str], None] | None = None,
     ) -> None:
         self.mission = mission
         self.out = out
+        # Children get absolute paths: they run in the logs directory (child_environment).
+        self._abs_out = out.absolute()
+        self.overwrite = overwrite
+        self.notice: Callable[[str], None] = notice if notice is not None else log.info
         self.python = python
         self.progress = progress
         # Start-up and pre-flight of 2N processes share two cores: the deadline grows with N.
@@ -182,25 +291,38 @@ class Launcher:
         self.children: list[Child] = []
         self.collected = Collected()
         self._stop = threading.Event()
+        self._signal: int | None = None  # the signal that asked the run to stop
+        self._spawned: set[str] = set()  # names started once (a restart appends to the log)
+        self._watchdog: tuple[int, int] | None = None  # (read, write) ends of the watchdog pipe
+        self._ready: set[int] = set()  # real time: drones that reported ready at their start
         # Planners are forked from a fork server that imported them once (missions.forkspawn),
         # unless another interpreter is asked for.
         self._forks = ForkServer(python) if fork_server and python == sys.executable else None
 
     # -- processes --------------------------------------------------------------------------
     def _spawn(self, name: str, args: Sequence[str]) -> Child:
+        """Start ``python -m missions ARGS`` as ``name``: own session, output in its log (a
+        restarted planner appends to the log of the one it replaces), working directory the
+        logs directory, the read end of the watchdog pipe inherited."""
         log_path = self.out / "logs" / f"{name}.log"
+        cwd = self._abs_out / "logs"
+        first = name not in self._spawned
+        self._spawned.add(name)
+        watch_r = self._watchdog[0] if self._watchdog is not None else None
         if self._forks is not None and name.startswith("planner"):
             # Forked from the pre-imported fork server: a separate process all the same.
-            child = Child(name, self._forks.spawn(args, log_path), log_path)
+            child = Child(name, self._forks.spawn(args, log_path, launcher_fd=watch_r, truncate=first, cwd=cwd), log_path)
             self.children.append(child)
             return child
-        fh = log_path.open("ab")  # a restarted planner appends to the log of the one it replaces
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(
-            [self.python, "-m", "missions", *args],
-            stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, env=env,
-        )
-        fh.close()
+        env = child_environment(same_interpreter=self.python == sys.executable)
+        if watch_r is not None:
+            env[LAUNCHER_FD_ENV] = str(watch_r)
+        with log_path.open("wb" if first else "ab") as fh:
+            proc = subprocess.Popen(
+                [self.python, "-m", "missions", *args],
+                stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, env=env, cwd=cwd,
+                pass_fds=(watch_r,) if watch_r is not None else (),
+            )
         child = Child(name, proc, log_path)
         self.children.append(child)
         return child
@@ -268,9 +390,23 @@ class Launcher:
         self.failures.append(entry)
         log.error("%s failed at step %d (status %s): %s; %s", c.name, self._step, code, reason, entry["action"])
 
-    def request_stop(self) -> None:
-        """Ask the run to stop (signal handlers call this)."""
+    def request_stop(self, signum: int | None = None) -> None:
+        """Ask the run to stop (signal handlers call this with the signal's number)."""
+        if signum is not None and self._signal is None:
+            self._signal = signum
         self._stop.set()
+
+    @property
+    def stop_requested(self) -> bool:
+        """A signal (or :meth:`request_stop`) asked the run to stop."""
+        return self._stop.is_set()
+
+    def interrupted(self) -> Interrupted:
+        """The error that ends a run stopped by a signal (children already stopped or about to
+        be): names the signal and where the partial logs are."""
+        signum = self._signal if self._signal is not None else signal.SIGINT
+        name = signal.Signals(signum).name
+        return Interrupted(f"interrupted by {name}: every process was stopped; partial logs in {self.out / 'logs'}", signum)
 
     # -- zenoh collection -------------------------------------------------------------------
     def _on_record(self, sample: Any) -> None:
@@ -278,6 +414,16 @@ class Launcher:
 
     def _on_status(self, sample: Any) -> None:
         self._collect(sample, "status")
+
+    def _on_done(self, sample: Any) -> None:
+        """Real time: a planner's ``Done(-1)`` says its drone is at its start."""
+        try:
+            _, msg = decode(bytes(sample.payload.to_bytes()), self.mission.id, self.mission.drones.count)
+        except MessageError:
+            return
+        if isinstance(msg, Done) and msg.step == -1 and msg.sender == keys.uav_of(str(sample.key_expr)):
+            with self.collected.lock:
+                self._ready.add(msg.sender)
 
     def _collect(self, sample: Any, kind: str) -> None:
         c = self.collected
@@ -302,11 +448,23 @@ class Launcher:
     def run(self) -> SimulationResult:
         """Start everything, fly the mission, stop everything; return the run's records."""
         m = self.mission
-        n = m.drones.count
-        for sub in ("logs", "tlogs"):
-            (self.out / sub).mkdir(parents=True, exist_ok=True)
-        mission_file = self.out / "mission.yaml"
+        claim_results_dir(self.out, self.overwrite)
+        mission_file = self._abs_out / "mission.yaml"
         mission_file.write_text(mission_to_yaml(m))
+        # The watchdog pipe: the launcher holds the only write end (os.pipe is not inherited);
+        # every child gets the read end and stops when it reads end of file.
+        self._watchdog = os.pipe()
+        try:
+            return self._run(mission_file)
+        finally:
+            for fd in self._watchdog:
+                os.close(fd)  # any child still there reads end of file and stops
+            self._watchdog = None
+
+    def _run(self, mission_file: Path) -> SimulationResult:
+        """:meth:`run` once the results directory and the watchdog pipe are set up."""
+        m = self.mission
+        n = m.drones.count
         if self._forks is not None:
             self._forks.warm_up()  # imports the planners' modules while the vehicles start
         hub = f"tcp/127.0.0.1:{free_port()}"
@@ -324,6 +482,8 @@ class Launcher:
                 session.declare_subscriber(keys.record(m.id), self._on_record),
                 session.declare_subscriber(keys.status(m.id), self._on_status),
             ]
+            if self.realtime:
+                subs.append(session.declare_subscriber(keys.done(m.id), self._on_done))
             clock = None if self.realtime else LockstepClock(session, m.id, n, m.dt_s)
             child_zenoh = dataclasses.replace(SessionSettings.from_mission(m.zenoh), mode="client", listen=(), connect=(hub,))
             vehicle_zenoh = ["--zenoh-connect", hub, "--zenoh-mode", "client"]
@@ -342,7 +502,7 @@ class Launcher:
                 # fifth of the default 50 Hz on the step's critical path.
                 ideal = all(m.vehicles.for_drone(i - 1).profile == "ideal" for i in ids)
                 physics = ["--physics-hz", "10"] if ideal and not self.realtime else []
-                tlog = self.out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
+                tlog = self._abs_out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
                 vc = self._spawn(
                     name,
                     ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
@@ -363,7 +523,7 @@ class Launcher:
                 conn = [] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
                 self._planner_args[i] = [
                     "plan", "--mission", str(mission_file), "--uav", str(i), *conn, *timing,
-                    *child_zenoh.to_cli(), "--log", str(self.out / "logs" / f"planner_{i}.jsonl"),
+                    *child_zenoh.to_cli(), "--log", str(self._abs_out / "logs" / f"planner_{i}.jsonl"),
                     "--step-timeout", str(self.step_timeout_s),
                 ]
                 self._spawn(f"planner_{i}", self._planner_args[i])
@@ -394,6 +554,8 @@ class Launcher:
             for c in list(self.children):
                 if c.name.startswith("planner") and c.proc.pid not in self._handled:
                     while c.proc.poll() is None:
+                        if self._stop.is_set():
+                            raise self.interrupted()
                         now = time.monotonic()
                         if now > deadline:
                             raise LaunchError(f"{c.name} did not finish its end of mission within 30 s:\n{c.tail()}")
@@ -405,7 +567,7 @@ class Launcher:
             self._check_children()
         except ClockError as exc:
             if self._stop.is_set():
-                raise Interrupted("interrupted: every process was stopped") from None
+                raise self.interrupted() from None
             self._raise_child_failure()
             raise LaunchError(str(exc)) from None
         finally:
@@ -417,18 +579,35 @@ class Launcher:
         return self._result(time.perf_counter() - t_start)
 
     def _fly_realtime(self) -> None:
-        """Real time: report progress on the wall clock until every planner has ended."""
+        """Real time: say what the start delay waits for, then report progress on the wall
+        clock until every planner has ended."""
         m = self.mission
         assert self.start_unix is not None
         dtw = m.dt_s / self.speedup
         self._flying = True
         reported = -1
         end_by = self.start_unix + m.steps * dtw + self.preflight_timeout_s + 120.0
+        n = m.drones.count
+        start_text = time.strftime("%H:%M:%S", time.localtime(self.start_unix))
+        self.notice(f"waiting for {n} drone{'s' if n != 1 else ''} to be ready and at their starts: "
+                    f"step 0 at {start_text} (in {max(0.0, self.start_unix - time.time()):.0f} s)")
+        ready_seen = 0
+        started = False
         while True:
             if self._should_stop():
-                raise Interrupted("interrupted: every process was stopped")
+                raise self.interrupted()
             planners = [c for c in self.children if c.name.startswith("planner")]
             now = time.time()
+            if not started:
+                with self.collected.lock:
+                    ready = len(self._ready)
+                if now >= self.start_unix:
+                    started = True
+                    if ready < n:
+                        self.notice(f"step 0: {ready}/{n} drones at their starts; the others join when they get there")
+                elif ready != ready_seen:
+                    ready_seen = ready
+                    self.notice(f"{ready}/{n} drones ready at their starts (step 0 in {self.start_unix - now:.0f} s)")
             done = min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
             while reported < done:
                 reported += 1
@@ -457,7 +636,7 @@ class Launcher:
                 code = c.proc.poll()
                 if code is not None:
                     raise LaunchError(f"{c.name} exited with status {code} while starting:\n{c.tail()}")
-                ready = _ready_line(c.log_path)
+                ready = _ready_line(c.log_path, c.proc.pid)
                 if ready is not None:
                     for v in ready.get("vehicles", []):
                         ports[int(v["sysid"])] = int(str(v["mavlink"]).rsplit(":", 1)[1])
@@ -634,8 +813,9 @@ def _runs(ids: Sequence[int], size: int) -> list[list[int]]:
     return groups
 
 
-def _ready_line(path: Path) -> dict[str, Any] | None:
-    """The ``{"event": "ready", ...}`` JSON line a vehicle process prints, if it has yet."""
+def _ready_line(path: Path, pid: int) -> dict[str, Any] | None:
+    """The ``{"event": "ready", "pid": PID, ...}`` JSON line the vehicle process ``pid`` prints,
+    if it has yet (a line of another process, e.g. of an earlier run, is not it)."""
     try:
         text = path.read_text(errors="replace")
     except OSError:
@@ -646,18 +826,30 @@ def _ready_line(path: Path) -> dict[str, Any] | None:
                 obj = json.loads(line)
             except ValueError:
                 continue
-            if obj.get("event") == "ready":
+            if isinstance(obj, dict) and obj.get("event") == "ready" and obj.get("pid") == pid:
                 return obj
     return None
 
 
+#: The signals that stop a run: Ctrl-C, ``kill``, and the hang-up of the launcher's terminal
+#: (its children, in their own sessions, never see that one).
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 @contextlib.contextmanager
 def stop_on_signals(launcher: Launcher) -> Iterator[None]:
-    """SIGINT and SIGTERM ask the launcher to stop (children are then stopped cleanly)."""
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    """SIGINT, SIGTERM and SIGHUP ask the launcher to stop (children are then stopped cleanly).
+    An ignored SIGHUP stays ignored (``nohup fimnav launch``: the run outlives the terminal);
+    SIGINT is handled even if inherited ignored (a launch started from a background job)."""
+    previous = {}
+    for s in STOP_SIGNALS:
+        current = signal.getsignal(s)
+        if s == signal.SIGHUP and current == signal.SIG_IGN:
+            continue
+        previous[s] = current
 
     def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
-        launcher.request_stop()
+        launcher.request_stop(signum)
 
     for s in previous:
         signal.signal(s, handler)
@@ -669,14 +861,22 @@ def stop_on_signals(launcher: Launcher) -> Iterator[None]:
 
 
 def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, int], None] | None = None, **kwargs: Any) -> dict[str, Any]:
-    """Fly ``mission`` distributed and write the results directory; return the summary."""
+    """Fly ``mission`` distributed and write the results directory; return the summary.
+
+    Raises:
+        UsageError: ``out`` holds a previous run (see :func:`claim_results_dir`).
+        LaunchError: the run failed. Interrupted: a signal stopped it (every child stopped).
+    """
     launcher = Launcher(mission, out, progress=progress, **kwargs)
     with stop_on_signals(launcher):
         try:
             result = launcher.run()
         except KeyboardInterrupt:
             launcher.stop_children()
-            raise Interrupted("interrupted: every process was stopped") from None
+            launcher.request_stop(signal.SIGINT)
+            raise launcher.interrupted() from None
+        if launcher.stop_requested:
+            raise launcher.interrupted()  # a signal while the last records were gathered
     summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
     summary = summaries[0]
     summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]),
