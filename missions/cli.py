@@ -28,7 +28,30 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_plan",
     "missions.cmd_launch",
     "missions.cmd_router",
+    "missions.cmd_missions",
 )
+
+
+def installed_version() -> str:
+    """The version of the installed ``fimnav`` distribution (``importlib.metadata``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fimnav")
+    except PackageNotFoundError:
+        return "(unknown version: the fimnav distribution is not installed; python3 -m pip install .)"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: print ``fimnav X.Y.Z`` on stdout and exit 0 (the version is looked up only then)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        sys.stdout.write(f"fimnav {installed_version()}\n")
+        parser.exit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fimnav",
         description="Fly a drone swarm to localize a radio source (A/D-optimal Fisher navigation).",
     )
+    parser.add_argument("--version", action=_VersionAction, help="print the installed fimnav version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)

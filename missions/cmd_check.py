@@ -1,8 +1,9 @@
 """``fimnav check MISSION.yaml`` and ``fimnav schema``: validate a mission, print the format.
 
 ``check`` prints a one-screen summary and exits 0, or prints one error message (file, line,
-key path, expected, found) and exits 2. ``schema`` prints the JSON Schema (draft 2020-12)
-of the mission format to stdout.
+key path, expected, found) and exits 2. The mission is a file path or, when no such file
+exists, the name of a bundled mission (``paper/joint``; see ``fimnav missions list``).
+``schema`` prints the JSON Schema (draft 2020-12) of the mission format to stdout.
 """
 
 from __future__ import annotations
@@ -22,7 +23,11 @@ def register(subparsers: Any) -> None:
         help="validate a mission file and print a summary",
         description="Validate a mission file; print a one-screen summary (exit 0) or the error (exit 2).",
     )
-    check.add_argument("mission", metavar="MISSION.yaml", help="mission file")
+    check.add_argument(
+        "mission",
+        metavar="MISSION",
+        help="mission file, or the name of a mission shipped with fimnav such as paper/joint (fimnav missions list)",
+    )
     add_override_arguments(check)
     check.add_argument("--yaml", action="store_true", help="print the mission as run (defaults filled) instead")
     check.set_defaults(func=run_check)

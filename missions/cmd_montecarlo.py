@@ -22,7 +22,8 @@ def register(subparsers: Any) -> None:
             "--criterion both put every run in the same figures (comparison)."
         ),
     )
-    p.add_argument("missions", nargs="+", metavar="MISSION.yaml", help="mission file(s)")
+    p.add_argument("missions", nargs="+", metavar="MISSION",
+                   help="mission file(s) or names of missions shipped with fimnav, e.g. paper/joint (fimnav missions list)")
     p.add_argument("--trials", type=int, help="Monte Carlo trials M (default: the mission's)")
     p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
     p.add_argument("--criterion", choices=("A", "D", "both"), help="design criterion (default: the mission's)")
