@@ -87,19 +87,22 @@ def _optimal_peb_at_keepout(name: str, starts: int = 6) -> float:
 
 
 def test_heterogeneous_close_to_joint(reduced_run) -> None:
-    """Paper Sec. V: a heterogeneous swarm performs close to a joint one.
+    """Paper Sec. V: with heterogeneous UAVs "the performance in terms of localization accuracy
+    is similar to that obtainable with UAVs acquiring both ranging and bearing information".
 
-    Six of its ten drones sense bearings (ten in the joint swarm): at k = 0, same positions,
-    its PEB is already 1.21x the joint swarm's. The paper's "within 25 %" cannot hold with its
-    section V parameters: even the best placement of the heterogeneous swarm at d_S* has a PEB
-    1.28x the best joint placement's (computed here). The simulated swarms reach that ratio
-    (1.28 over the second half of a full run, docs/case-study.md): both end near their optimal
-    placements, with no drone left in a building's shadow."""
+    The paper gives no number for "similar"; this test measures it against what the sensors
+    allow. Six of the heterogeneous swarm's ten drones sense bearings (ten in the joint swarm):
+    at k = 0, same positions, its PEB is already 1.21x the joint swarm's, and even its best
+    placement at d_S* has a PEB 1.28x the best joint placement's (computed here; the ratio
+    depends on σ_b = 10°, σ_sh/γ = 1.7 in LOS, d_S* = 50 m, N = 10 and the 6-of-10 bearing
+    mix, and barely on γ). The simulated heterogeneous/joint ratio may exceed that optimum by
+    at most 5 % (the full run gives 1.28 over its second half, docs/case-study.md): both swarms
+    end near their optimal placements, with no drone left in a building's shadow."""
     het = reduced_run("heterogeneous", "A", 3, 300).peb_stats()["mean"]
     joint = reduced_run("joint", "A", 3, 300).peb_stats()["mean"]
     ratio = float(np.median(het[150:] / joint[150:]))
     best = _optimal_peb_at_keepout("heterogeneous") / _optimal_peb_at_keepout("joint")
-    assert best > 1.25, f"the optimum ratio {best:.3f} allows the paper's 25 %: test that claim directly"
+    assert best > 1.25, f"the optimum ratio {best:.3f}, expected 1.28 with the section V parameters (docs/case-study.md)"
     assert ratio <= 1.05 * best, f"heterogeneous / joint PEB {ratio:.3f}, optimal placements {best:.3f}"
     assert het[0] / joint[0] == pytest.approx(1.21, abs=0.02)
 
