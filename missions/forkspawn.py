@@ -27,6 +27,13 @@ child then sends itself SIGTERM (its usual clean stop) and exits by force after
 parent process dies (``prctl(PR_SET_PDEATHSIG)``); a forked child's parent is the fork server,
 which ends with the launcher (its children close their copies of the server's "alive" pipe).
 A process started by hand has no such variable and is not watched.
+
+**The launcher's code.** A child must import the very ``missions`` package the launcher imported,
+not one it happens to find first (``python -m`` and ``-c`` put the working directory in front
+of ``sys.path``: a clone's source would shadow an installed copy). :func:`same_code_environment`
+gives a child the launcher's ``sys.path`` and no working-directory entry; the fork server is
+started with it too (``multiprocessing`` passes it the launcher's ``sys.path`` but its
+``main`` does not use it).
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ import stat
 import subprocess
 import sys
 import threading
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from multiprocessing import reduction
 from pathlib import Path
 from typing import Any
@@ -75,6 +82,18 @@ SERVER_BLOCKED_SIGNALS: frozenset[signal.Signals] = frozenset({signal.SIGHUP, si
 
 #: ``prctl`` option: the signal a process receives when its parent dies (linux/prctl.h).
 _PR_SET_PDEATHSIG: int = 1
+
+
+def same_code_environment(base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``base`` (default: this process's environment) for a child of this interpreter that must
+    import what this process imports: ``PYTHONPATH`` is this process's ``sys.path`` (relative
+    entries made absolute) and ``PYTHONSAFEPATH=1`` keeps ``-m`` and ``-c`` from putting the
+    working directory in front of it (Python 3.11+; on 3.10 start the child in a directory
+    that holds no module)."""
+    env = dict(os.environ if base is None else base)
+    env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(os.path.abspath(p) for p in sys.path))
+    env["PYTHONSAFEPATH"] = "1"
+    return env
 
 
 def set_parent_death_signal(signum: int = signal.SIGTERM) -> bool:
@@ -233,15 +252,31 @@ class ForkServer:
         self.python = python
         self.ctx.set_forkserver_preload(list(PRELOAD))
 
-    def warm_up(self) -> None:
+    def warm_up(self, cwd: Path | None = None) -> None:
         """Start the fork server now (it imports the preload in the background), with
         :data:`SERVER_BLOCKED_SIGNALS` blocked in it (and in ``multiprocessing``'s resource
-        tracker, started with it)."""
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, SERVER_BLOCKED_SIGNALS)
+        tracker, started with it), importing this process's code (:func:`same_code_environment`;
+        on Python 3.10 started in ``cwd``, a directory that holds no module). ``multiprocessing``
+        starts it with this process's environment and working directory, which are set for
+        the few milliseconds that takes (call it before other threads depend on them)."""
+        env = same_code_environment({})
+        saved = {name: os.environ.get(name) for name in env}
+        old_cwd = os.getcwd() if cwd is not None and sys.version_info < (3, 11) else None
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, SERVER_BLOCKED_SIGNALS)
         try:
+            os.environ.update(env)
+            if old_cwd is not None:
+                os.chdir(cwd)  # type: ignore[arg-type]
             multiprocessing.forkserver.ensure_running()
         finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+            if old_cwd is not None:
+                os.chdir(old_cwd)
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
 
     def spawn(self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False,
               cwd: Path | None = None) -> ForkedProcess:

@@ -15,10 +15,10 @@ process, no port left bound. A launcher that dies without stopping them (SIGKILL
 noticed by every child through the watchdog pipe it inherits (:mod:`missions.forkspawn`), and
 each child then stops by itself.
 
-Children run the launcher's own code: they get its ``sys.path`` (``PYTHONPATH``, with
-``PYTHONSAFEPATH`` on Python 3.11+ so that ``-m`` puts no working directory in front of it) and
-run in the results' ``logs`` directory, which holds no module; the forked planners have the
-launcher's ``sys.path`` from the fork server.
+Children run the launcher's own code: they (and the planners' fork server) get its ``sys.path``
+(``PYTHONPATH``, with ``PYTHONSAFEPATH`` on Python 3.11+ so that ``-m`` and ``-c`` put no
+working directory in front of it) and run in the results' ``logs`` directory, which holds no
+module.
 
 A results directory holds one run: the launcher refuses a directory that holds a previous run's
 files (:data:`RUN_ENTRIES`) unless asked to overwrite them, which removes them first.
@@ -50,7 +50,7 @@ from comms import keys
 from comms.messages import Done, MessageError, Observation, Status, decode
 from comms.session import SessionSettings, open_session
 from missions.clock import ClockError, LockstepClock
-from missions.forkspawn import LAUNCHER_FD_ENV, ForkedProcess, ForkServer
+from missions.forkspawn import LAUNCHER_FD_ENV, ForkedProcess, ForkServer, same_code_environment
 from missions.loader import mission_to_yaml
 from missions.results import write_results
 from missions.schema import Mission
@@ -157,17 +157,14 @@ def unique_results_dir(parent: Path, name: str) -> Path:
 
 def child_environment(base: dict[str, str] | None = None, same_interpreter: bool = True) -> dict[str, str]:
     """The environment of a ``python -m missions`` child (from ``base``, default this
-    process's): unbuffered output, and this process's ``sys.path`` as ``PYTHONPATH``, so that
-    the child imports the very code the launcher imported wherever it runs, with no working
-    directory put in front of it on Python 3.11+ (``PYTHONSAFEPATH``; on 3.10, ``-m`` puts the
-    child's working directory first: the launcher runs it in the run's ``logs`` directory,
-    which holds no module). ``same_interpreter`` False (another Python): its own ``sys.path``."""
+    process's): unbuffered output, and this process's ``sys.path`` with no working directory in
+    front of it (:func:`missions.forkspawn.same_code_environment`), so that the child imports the
+    very code the launcher imported (on Python 3.10 ``-m`` still puts the working directory
+    first: the launcher runs its children in the run's ``logs`` directory, which holds no
+    module). ``same_interpreter`` False (another Python): only no working directory in front."""
     env = dict(os.environ if base is None else base, PYTHONUNBUFFERED="1", PYTHONSAFEPATH="1")
     env.pop(LAUNCHER_FD_ENV, None)
-    if same_interpreter:
-        paths = [os.path.abspath(p) for p in sys.path]
-        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
-    return env
+    return same_code_environment(env) if same_interpreter else env
 
 
 #: Wall time (s) between two refreshes of the progress bar's mean PEB and estimate error.
@@ -466,7 +463,7 @@ class Launcher:
         m = self.mission
         n = m.drones.count
         if self._forks is not None:
-            self._forks.warm_up()  # imports the planners' modules while the vehicles start
+            self._forks.warm_up(self._abs_out / "logs")  # imports the planners' modules while the vehicles start
         hub = f"tcp/127.0.0.1:{free_port()}"
         # Topology: a star. The launcher's session is a Zenoh router on a free loopback port and
         # every child (planners, vehicles) a client of it: O(N) links, and every message is

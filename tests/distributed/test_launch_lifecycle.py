@@ -228,11 +228,12 @@ class CommandLaunch(Launch):
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=cwd)
 
 
-def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+@pytest.mark.parametrize("fork_server", [True, False], ids=["forked-planners", "fresh-interpreters"])
+def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
     """The launcher started like the console script of an installed copy (its code found on its
     ``sys.path``, not in the working directory), from a directory that holds another
-    ``missions`` package, as a clone does: the children (fresh interpreters) import the
-    launcher's package, not the working directory's."""
+    ``missions`` package, as a clone does: the vehicles and the planners (forked from the fork
+    server, or fresh interpreters) import the launcher's package, not the working directory's."""
     decoy = tmp_path / "clone"
     (decoy / "missions").mkdir(parents=True)
     marker = tmp_path / "decoy-imported"
@@ -241,10 +242,11 @@ def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch])
     bindir = tmp_path / "bin"
     bindir.mkdir()
     script = bindir / "fimnav"
-    script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\nfrom missions.cli import main\nsys.exit(main())\n")
+    # (as pip writes a console script: multiprocessing imports it again in a forked child)
+    script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\nfrom missions.cli import main\nif __name__ == '__main__':\n    sys.exit(main())\n")
     out = tmp_path / "run"
     run = CommandLaunch([sys.executable, str(script), "launch", str(PAPER / "joint.yaml"), "--steps", "2", "--set", "drones.count=2",
-                         "--no-fork-server", "--out", str(out)], out, cwd=decoy)
+                         *([] if fork_server else ["--no-fork-server"]), "--out", str(out)], out, cwd=decoy)
     launches.append(run)
     code, _, stderr = run.wait(90.0)
     assert code == 0, stderr[-3000:]
