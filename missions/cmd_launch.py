@@ -62,7 +62,7 @@ def summary_line(summary: dict[str, Any], out: Path, stream: Any = None) -> str:
     """The two lines ``fimnav launch`` prints at the end: what the run achieved, each value
     named by its statistic and rounded, then where the results are. E.g.::
 
-        paper_heterogeneous_A: mean PEB 29.0 m → 7.46 m (step 0 → 99), median estimate error 0.35 m (step 99), safety violations 0, 17.8 s
+        paper_heterogeneous_A: mean PEB 29.0 m → 7.46 m (step 0 → 99), median estimate error 0.350 m (step 99), safety violations 0, 17.8 s
         results: results/het
 
     ``stream``: where it will be printed (an arrow it cannot encode is written ``->``)."""
