@@ -71,12 +71,43 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
         "final_estimate_error_median_m": _num(np.median(final_err)),
         "violations": result.violations(),
         "violation_families": list(SAFETY_FAMILIES),
+        "violating_drones": violating_drones(result),
         "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
         "singular_fallback_steps": int(result.singular_fallback.sum()),
         "safety_filter_steps": int(result.filtered.sum()),
         "runtime_s": round(result.runtime_s, 3),
         "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
     } | _faults(result, penalty)
+
+
+#: At most this many violating (trial, drone) pairs are listed per family in a summary.
+MAX_VIOLATING_DRONES: int = 10
+
+
+def violating_drones(result: SimulationResult) -> dict[str, list[dict[str, Any]]]:
+    """Per safety family with violations, the (trial, drone) pairs that crossed it: their first
+    and last violating step, how many steps, the worst margin (m, negative) and, for the source
+    family, the range of the drone's own source-estimate error (m) over those steps (a keep-out
+    is held about the estimate). At most :data:`MAX_VIOLATING_DRONES` pairs per family, worst
+    first; trials and steps count from 0, drones from 1."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    err = result.estimate_error_m  # (K, M, N)
+    for family, margins in result.margins_m.items():
+        bad = margins < 0.0  # (K, M, N) or (K+1, M, N)
+        if not bad.any():
+            continue
+        pairs = []
+        for t, i in sorted({(int(t), int(i)) for _, t, i in np.argwhere(bad)}):
+            steps = np.flatnonzero(bad[:, t, i])
+            entry: dict[str, Any] = {"trial": t, "drone": i + 1, "first_step": int(steps[0]), "last_step": int(steps[-1]),
+                                     "steps": int(steps.size), "worst_margin_m": round(float(margins[steps, t, i].min()), 3)}
+            if family == "source":
+                e = err[steps[steps < err.shape[0]], t, i]
+                if e.size:
+                    entry["estimate_error_m"] = [round(float(e.min()), 1), round(float(e.max()), 1)]
+            pairs.append(entry)
+        out[family] = sorted(pairs, key=lambda d: d["worst_margin_m"])[:MAX_VIOLATING_DRONES]
+    return out
 
 
 def _faults(result: SimulationResult, penalty: dict[str, Any] | None) -> dict[str, Any]:

@@ -1,0 +1,340 @@
+"""Regenerate every result table and figure of the documentation from scratch.
+
+    python docs/regenerate.py                 # the full size the docs quote (about 5 min on 2 cores)
+    python docs/regenerate.py --trials 5 --steps 100 --out /tmp/quick --no-docs   # a quick look
+
+It runs the ``fimnav montecarlo`` commands that the docs name (the same code path, in this
+process, one command after the other), then rewrites the tables between the markers
+
+    <!-- BEGIN regenerate.py: NAME -->
+    ...
+    <!-- END regenerate.py: NAME -->
+
+in ``docs/case-study.md`` (``case-study``) and ``docs/distributed.md`` (``fault-table``), and
+copies the figures into ``docs/figures/``. Each table states the command, the commit it was
+measured at and the package versions. The runs are deterministic for a given mission seed, so
+the same commit gives the same tables; a tree with uncommitted changes is stamped as such.
+
+The per-command results directories are kept under ``--out`` (default ``results/docs``): each
+has the ``summary.json`` the tables are read from, the per-step CSVs and the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parent
+REPO = DOCS.parent
+if str(REPO) not in sys.path[:1]:
+    sys.path.insert(0, str(REPO))  # this clone's code, whatever else is installed
+
+#: Paper missions in the order of the case-study table, with the label the table uses.
+CASE_STUDY_RUNS: tuple[tuple[str, str], ...] = (
+    ("paper_ranging_los", "ranging, LOS"),
+    ("paper_ranging_nlos", "ranging, buildings"),
+    ("paper_dynamic_source", "ranging, moving source"),
+    ("paper_bearing", "bearing, buildings"),
+    ("paper_joint", "joint, buildings"),
+    ("paper_heterogeneous", "heterogeneous, buildings"),
+)
+PAPER_NAMES = ("ranging_los", "ranging_nlos", "dynamic_source", "bearing", "joint", "heterogeneous")
+FIG3_NAMES = ("ranging_nlos", "bearing", "joint", "heterogeneous")
+TRAJECTORY_RUNS = ("paper_heterogeneous_A", "paper_ranging_nlos_A", "paper_joint_A", "paper_bearing_A")
+
+#: (record loss probability, extra delay in steps) of the fault table, first row without faults.
+FAULT_SETTINGS: tuple[tuple[float, int], ...] = ((0.0, 0), (0.1, 0), (0.2, 0), (0.4, 0), (0.0, 3), (0.2, 3))
+FAULT_TRIALS = 20
+
+FAMILIES = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``fimnav montecarlo`` command and the results directory it writes."""
+
+    name: str
+    args: tuple[str, ...]
+    out: Path
+
+    def argv(self) -> list[str]:
+        return ["montecarlo", *self.args, "--out", str(self.out)]
+
+    def shown(self) -> str:
+        """The command as a user types it (results directory left to its default)."""
+        return "fimnav " + " ".join(["montecarlo", *self.args])
+
+
+def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figures: bool) -> dict[str, Command]:
+    """Every command the docs' tables and figures come from."""
+    size = [*(["--trials", str(trials)] if trials else []), *(["--steps", str(steps)] if steps else [])]
+    fig = [] if figures else ["--no-figures"]
+    par = ["--jobs", str(jobs)]
+    cmds = {
+        "case-study": Command(
+            "case-study",
+            (*(f"paper/{n}" for n in PAPER_NAMES), "--criterion", "both", "--activation", "both", *size, *par, *fig),
+            out / "case-study",
+        ),
+        "fig3": Command("fig3", (*(f"paper/{n}" for n in FIG3_NAMES), "--criterion", "both", *size, *par, *fig), out / "fig3"),
+    }
+    fault_size = ["--trials", str(trials or FAULT_TRIALS), *(["--steps", str(steps)] if steps else [])]
+    for loss, delay in FAULT_SETTINGS:
+        name = f"faults-loss{loss:g}-delay{delay}"
+        cmds[name] = Command(
+            name,
+            ("paper/heterogeneous", *fault_size, "--no-figures",
+             "--set", f"comms.faults.loss={loss:g}", "--set", f"comms.faults.extra_delay_steps={delay}"),
+            out / name,
+        )
+    return cmds
+
+
+def stamp() -> str:
+    """Commit, dirty flag and versions, for the tables' provenance line."""
+    from importlib.metadata import version
+
+    import numpy
+    import scipy
+
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+
+    commit = git("rev-parse", "--short=7", "HEAD") or "unknown"
+    dirty = " with uncommitted changes" if git("status", "--porcelain", "--untracked-files=no") else ""
+    return (f"commit {commit}{dirty}, fimnav {version('fimnav')}, Python {sys.version.split()[0]}, "
+            f"numpy {numpy.__version__}, scipy {scipy.__version__}")
+
+
+def run_command(cmd: Command) -> list[dict[str, Any]]:
+    """Run one ``fimnav montecarlo`` command in this process; return its run summaries."""
+    from missions.cli import main
+
+    print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
+    if cmd.out.exists():
+        shutil.rmtree(cmd.out)
+    status = main(cmd.argv())
+    if status != 0:
+        raise SystemExit(f"regenerate: {cmd.shown()} exited with status {status}")
+    return json.loads((cmd.out / "summary.json").read_text())["runs"]
+
+
+# --------------------------------------------------------------------------- formatting
+
+def num(x: float | None, digits: int = 3) -> str:
+    """A value to ``digits`` significant figures, thousands grouped ('—' for undefined)."""
+    if x is None:
+        return "—"
+    if abs(x) >= 10 ** digits:
+        return f"{x:,.0f}".replace(",", " ")
+    return f"{x:.{digits}g}"
+
+
+def violations(s: dict[str, Any]) -> str:
+    """Per family, inter-drone / source / obstacle / altitude / speed / turn rate."""
+    v = s["violations"]
+    text = " / ".join(f"{int(v[f]):,}".replace(",", " ") for f in FAMILIES)
+    if v["source"]:
+        text += f" (worst source margin {s['worst_margins_m']['source']:+.2f} m)".replace("-", "−")
+    return text
+
+
+def case_study_table(runs: Sequence[dict[str, Any]]) -> list[str]:
+    """The case study's table: the default rule beside the paper's literal rule."""
+    by = {r["run"]: r for r in runs}
+    head = runs[0]
+    k_last = head["steps"] - 1
+    lines = [
+        f"| run | PEB k=0 [m] | PEB k={k_last} mean [m] | p10–p90 [m] | estimate error k={k_last}, median [m] | "
+        "violations, safe rule (default) | violations, paper's literal rule | PEB k={k}, literal rule [m] |".replace("{k}", str(k_last)),
+        "|---|---:|---:|---:|---:|---|---|---:|",
+    ]
+    for mission_id, label in CASE_STUDY_RUNS:
+        for crit in ("A", "D"):
+            s, p = by.get(f"{mission_id}_{crit}"), by.get(f"{mission_id}_{crit}_paper")
+            if s is None:
+                continue
+            lines.append(
+                f"| {label}, {crit} | {num(s['initial_peb_mean_m'])} | {num(s['final_peb_mean_m'])} | "
+                f"{num(s['final_peb_p10_m'])}–{num(s['final_peb_p90_m'])} | {s['final_estimate_error_median_m']:.2f} | "
+                f"{violations(s)} | {violations(p) if p else '—'} | {num(p['final_peb_mean_m']) if p else '—'} |"
+            )
+    safe = [r for r in runs if r["activation"] == "safe"]
+    total = sum(sum(r["violations"].values()) for r in safe)
+    drone_steps = sum(r["trials"] * r["steps"] * r["drones"] for r in safe)
+    lines += ["", f"Default (`safe`) rule: **{total} violating drone-steps** of {drone_steps:,}".replace(",", " ")
+              + (" in every family." if total == 0 else ", per run and family as above.")]
+    het = {c: by.get(f"paper_heterogeneous_{c}") for c in "AD"}
+    joint = {c: by.get(f"paper_joint_{c}") for c in "AD"}
+    ratios = [f"{c}: {het[c]['final_peb_mean_m'] / joint[c]['final_peb_mean_m']:.3f}" for c in "AD"
+              if het[c] and joint[c] and het[c]["final_peb_mean_m"] and joint[c]["final_peb_mean_m"]]
+    if ratios:
+        lines.append(f"Heterogeneous / joint final mean PEB: {', '.join(ratios)}.")
+    return lines
+
+
+def peb_curve(out: Path, run: str) -> list[tuple[float | None, float]]:
+    """A run's per-step (mean PEB in m or None if every view is singular, singular fraction)."""
+    with (out / "runs" / run / "peb.csv").open() as fh:
+        return [(float(r["peb_mean_m"]) if r["peb_mean_m"] not in ("inf", "nan") else None, float(r["singular_fraction"]))
+                for r in csv.DictReader(fh)]
+
+
+def case_study_facts(out: Path, runs: Sequence[dict[str, Any]]) -> list[str]:
+    """The derived numbers the case study's text quotes, from the same results directory."""
+    by = {r["run"]: r for r in runs}
+    safe = [r for r in runs if r["activation"] == "safe"]
+    curves = {r["run"]: peb_curve(out, r["run"]) for r in runs}
+    lines = []
+    decades = [np.log10(r["initial_peb_mean_m"] / r["final_peb_mean_m"]) for r in safe if r["final_peb_mean_m"]]
+    lines.append(f"- Mean PEB from step 0 to the last step, default rule: down by {min(decades):.1f} to {max(decades):.1f} "
+                 "orders of magnitude.")
+    lower = [1 - by[r["run"] + "_paper"]["final_peb_mean_m"] / r["final_peb_mean_m"] for r in safe
+             if by.get(r["run"] + "_paper") and by[r["run"] + "_paper"]["final_peb_mean_m"] and r["final_peb_mean_m"]]
+    if lower:
+        lines.append(f"- Final mean PEB of the paper's literal rule against the default rule: {100 * min(lower):.0f} to "
+                     f"{100 * max(lower):.0f} % lower.")
+    for mission_id, label in CASE_STUDY_RUNS:
+        a, d = curves.get(f"{mission_id}_A"), curves.get(f"{mission_id}_D")
+        if a is None or d is None:
+            continue
+        both = [(x, y) for (x, _), (y, _) in zip(a, d) if x is not None and y is not None]
+        share = sum(x <= y for x, y in both) / len(both)
+        lines.append(f"- {label}: A ≤ D on {100 * share:.0f} % of the steps; final mean PEB A {num(by[mission_id + '_A']['final_peb_mean_m'])} m, "
+                     f"D {num(by[mission_id + '_D']['final_peb_mean_m'])} m.")
+    labels = dict(CASE_STUDY_RUNS)
+    for r in safe:
+        for family, pairs in r.get("violating_drones", {}).items():
+            for v in pairs:
+                est = v.get("estimate_error_m")
+                lines.append(
+                    f"- Default-rule violation, {labels.get(r['mission_id'], r['mission_id'])}, {r['criterion']}: {family.replace('_', ' ')}, "
+                    f"trial {v['trial']}, drone {v['drone']}, steps {v['first_step']}–{v['last_step']} ({v['steps']} steps), "
+                    f"at worst {-v['worst_margin_m']:.2f} m inside" + (f"; its source estimate {est[0]:g}–{est[1]:g} m off." if est else ".")
+                )
+    for crit in "AD":
+        curve = curves.get(f"paper_bearing_{crit}")
+        if curve is not None:
+            singular = [f for _, f in curve if f > 0]
+            lines.append(f"- bearing, buildings, {crit}: a view is singular on {len(singular)} of the {len(curve)} steps"
+                         + (f" (at most {100 * max(singular):.0f} % of the views at a step)." if singular else "."))
+    for crit in "AD":
+        het, joint = curves.get(f"paper_heterogeneous_{crit}"), curves.get(f"paper_joint_{crit}")
+        if het is None or joint is None:
+            continue
+        ratios = [h / j for (h, _), (j, _) in zip(het, joint) if h is not None and j]
+        half = sorted(ratios[len(ratios) // 2:])
+        lines.append(f"- heterogeneous / joint mean PEB, {crit}: {ratios[0]:.2f} at step 0, {ratios[-1]:.3f} at the last step, "
+                     f"median {half[len(half) // 2]:.3f} over the second half of the run.")
+    return lines
+
+
+def fault_table(rows: Sequence[tuple[float, int, dict[str, Any]]]) -> list[str]:
+    """The loss and delay table of the heterogeneous mission (PEB penalty against no faults)."""
+    lines = [
+        "| loss | extra delay D | lost | mean record age (steps) | PEB at k=0 (m) | final PEB (m) | final penalty (m) ± SE (ratio) "
+        "| mean PEB over steps (m) | mean penalty (m) ± SE (ratio) | violations (worst source margin) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    base = next((s for loss, delay, s in rows if loss == 0 and delay == 0), None)
+    # The fault-free run's record age and mean over steps: every faulty row's baseline is that
+    # same run (same seeds, trials and steps), re-simulated; check that it is.
+    ref = next((s["faults"] for _, _, s in rows if s.get("faults")), None)
+    if base is not None and ref is not None and ref["baseline_final_peb_mean_m"] != base["final_peb_mean_m"]:
+        raise SystemExit(f"regenerate: the fault-free run ({base['final_peb_mean_m']}) differs from the faulty runs' "
+                         f"baseline ({ref['baseline_final_peb_mean_m']}): the simulator is not deterministic")
+    for loss, delay, s in rows:
+        f = s.get("faults")
+        viol = s["violations"]
+        nviol = sum(viol.values())
+        fam = ", ".join(f"{viol[k]} {k.replace('_', ' ')}" for k in FAMILIES if viol[k])
+        vtext = f"{nviol}{' ' + fam if fam else ''} ({s['worst_margins_m']['source']:+.1f} m)"
+        if f is None:  # the fault-free row
+            age = f"{ref['baseline_mean_record_age_steps']:.2f}" if ref else "—"
+            over = num(ref["baseline_mean_peb_over_steps_m"], 4) if ref else "—"
+            lines.append(f"| 0 | 0 | 0 | {age} | {num(s['initial_peb_mean_m'])} | {num(s['final_peb_mean_m'])} | — | {over} | — | {vtext} |")
+            continue
+        init_ratio = f["initial_peb_mean_m"] / f["baseline_initial_peb_mean_m"] if f.get("baseline_initial_peb_mean_m") else None
+        lines.append(
+            f"| {loss:g} | {delay} | {f.get('lost_fraction', 0.0):.2f} | {f.get('mean_record_age_steps', 0.0):.2f} | "
+            f"{num(f['initial_peb_mean_m'])}{f' (×{init_ratio:.2f})' if init_ratio else ''} | {num(f['final_peb_mean_m'])} | "
+            f"{_signed(f['final_peb_penalty_m'])} ± {f['final_peb_penalty_se_m']:.2f} (×{f['final_peb_penalty_ratio']:.3f}) | "
+            f"{num(f['mean_peb_over_steps_m'], 4)} | {_signed(f['mean_peb_penalty_m'])} ± {f['mean_peb_penalty_se_m']:.2f} "
+            f"(×{f['mean_peb_penalty_ratio']:.3f}) | {vtext} |"
+        )
+    if base is not None:
+        lines += ["", f"Violations: drone-steps of {base['trials'] * base['steps'] * base['drones']:,}.".replace(",", " ")]
+    return lines
+
+
+def _signed(x: float) -> str:
+    return f"{x:+.2f}".replace("-", "−")
+
+
+# --------------------------------------------------------------------------- docs
+
+def replace_block(path: Path, name: str, body: Sequence[str]) -> None:
+    """Replace the text between ``<!-- BEGIN regenerate.py: name -->`` and its END marker."""
+    begin, end = f"<!-- BEGIN regenerate.py: {name} -->", f"<!-- END regenerate.py: {name} -->"
+    text = path.read_text()
+    if text.count(begin) != 1 or text.count(end) != 1:
+        raise SystemExit(f"regenerate: {path.relative_to(REPO)} must hold exactly one {begin!r} and one {end!r}")
+    head, rest = text.split(begin)
+    _, tail = rest.split(end)
+    path.write_text(head + begin + "\n" + "\n".join(body) + "\n" + end + tail)
+
+
+def provenance(cmds: Sequence[Command], when: str) -> list[str]:
+    lines = [f"Generated by `python docs/regenerate.py` at {when}, from:", ""]
+    lines += [f"    {c.shown()}" for c in cmds]
+    return [*lines, ""]
+
+
+def main(argv: Sequence[str] | None = None, run: Callable[[Command], list[dict[str, Any]]] = run_command) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=REPO / "results" / "docs", help="results directories (default results/docs)")
+    parser.add_argument("--trials", type=int, help="trials per run (default: each mission's, 100; the fault table 20)")
+    parser.add_argument("--steps", type=int, help="steps per run (default: each mission's, 550)")
+    parser.add_argument("--jobs", type=int, default=2, help="worker processes per command (default 2)")
+    parser.add_argument("--no-docs", action="store_true", help="run and print the tables, leave docs/ as it is")
+    args = parser.parse_args(argv)
+    full = args.trials is None and args.steps is None
+    cmds = commands(args.out, args.trials, args.steps, args.jobs, figures=True)
+    when = stamp()
+    summaries = {name: run(cmd) for name, cmd in cmds.items()}
+
+    study = case_study_table(summaries["case-study"]) + ["", *case_study_facts(cmds["case-study"].out, summaries["case-study"])]
+    faults = fault_table([(loss, delay, summaries[f"faults-loss{loss:g}-delay{delay}"][0]) for loss, delay in FAULT_SETTINGS])
+    fault_cmds = [c for n, c in cmds.items() if n.startswith("faults-")]
+    study_block = provenance([cmds["case-study"]], when) + study
+    fault_block = provenance(fault_cmds, when) + faults
+    print("\n".join(["", *study_block, "", *fault_block]))
+    if args.no_docs:
+        return 0
+    if not full:
+        raise SystemExit("regenerate: docs/ quote the full size; rerun without --trials/--steps, or pass --no-docs")
+    replace_block(DOCS / "case-study.md", "case-study", study_block)
+    replace_block(DOCS / "distributed.md", "fault-table", fault_block)
+    figures = DOCS / "figures"
+    shutil.copyfile(cmds["fig3"].out / "figures" / "peb.png", figures / "case-study-fig3.png")
+    for run_id in TRAJECTORY_RUNS:
+        shutil.copyfile(cmds["case-study"].out / "figures" / f"trajectories_{run_id}.png", figures / f"trajectories_{run_id}.png")
+    print(f"\nregenerate: docs/case-study.md, docs/distributed.md and docs/figures/ rewritten ({when})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
