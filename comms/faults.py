@@ -1,4 +1,4 @@
-"""Receiving-side loss and delay injection for the peers' records (issue 7).
+"""Receiving-side loss and delay injection for the peers' records.
 
 Deterministic fault emulation shared by the planner node (:class:`comms.latency.DelayedView`)
 and the in-process simulator (:func:`missions.simulator.simulate`), so that both see the same

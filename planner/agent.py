@@ -179,7 +179,7 @@ def source_keepout_with_own_range_m(limits: Limits, sigma_m: ArrayLike, distance
     step (the drone may circle the estimate; at worst it creeps in at v_min while turning away).
     Elsewhere the keep-out is :func:`source_keepout_m`. Aimed at an uncertain estimate that is
     wrong along the drone's own line of sight (farther than the source, with a small σ in that
-    direction: the remaining violations of issue 7); an accurate estimate (3σ < d_S*) is not
+    direction: how a keep-out about the estimate misses the source); an accurate estimate (3σ < d_S*) is not
     second-guessed by ranges with 39-74 % relative noise. Shapes broadcast.
     """
     sigma = np.asarray(sigma_m, dtype=float)

@@ -179,7 +179,7 @@ class EstimatorConfig:
             ``information``) after the estimate moved there; the cost keeps all of it. The
             squared-range PL solution can be biased by tens of metres (NLOS ranges, 74 %
             relative noise), and claiming every range's information there made a wrong estimate
-            a confident one (issue 7: the source keep-out around it then missed the source).
+            a confident one (the source keep-out around it then missed the source).
         consistency_threshold: χ² threshold (3 degrees of freedom) of the score test of the
             recent records against the estimate (None, the default, disables it; e.g. 25 ≈
             the 1.5·10⁻⁵ upper quantile of χ²₃); a failed test marks the element suspect and

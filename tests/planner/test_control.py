@@ -372,7 +372,7 @@ SOAK_HEAD_ON_XFAIL = pytest.mark.xfail(
     strict=False,
     reason=(
         "known limitation of the safety filter found by this soak: in a 4-drone head-on squeeze the filter can "
-        "leave two drones below d_U* (with full knowledge until control 015e608: 0.62 m, 1 seed in 200; since then "
+        "leave two drones below d_U* ("
         "with the delayed view d_hop = 3 m, h_max = 2: 0.26 m, steps flagged filtered/infeasible with age-0 data "
         "of each other). See docs/paper-notes.md, 'Constraint activation'."
     ),

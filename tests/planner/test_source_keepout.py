@@ -9,10 +9,10 @@ true d_S* sphere.
 The recorded case: drone 7 of trial 39 of ``missions/paper/ranging_nlos.yaml`` with D-optimality
 (ranging-only swarm, buildings), the records its estimator received at each of the 550 steps
 (its own and its peers' delayed ranges, positions, LOS flags; float32), recorded in the
-closed loop with the pre-fix estimator (``recheck_trust=1``, no consistency test; 16 source
+closed loop with a full-trust estimator (``recheck_trust=1``, no consistency test; 16 source
 violations by this drone). Replayed open loop through the estimator (a batch element computes
-exactly what batch () computes, so the replay of the pre-fix settings is the recorded run); the
-reference is the true source position, independent of the estimator. Before the fix, the
+exactly what batch () computes, so the replay of those settings is the recorded run); the
+reference is the true source position, independent of the estimator. With full trust, the
 global re-check moved the estimate to the squared-range pseudo-linear solution of all ranges,
 biased 40-50 m by the NLOS ranges, and claimed the full information of every range there
 (σ ≈ 10 m): the error stayed above 3σ for 80 steps while the drone was 47-72 m from the source.
@@ -78,7 +78,7 @@ def _uncovered(err: np.ndarray, sigma: np.ndarray, obs: np.ndarray) -> np.ndarra
 
 
 def test_recorded_gross_error_reproduces_before_the_fix() -> None:
-    """The recording does show the failure with the pre-fix settings (so the next test can fail)."""
+    """The recording does show the failure with the full-trust settings (so the next test can fail)."""
     err, sigma, obs = _replay(PRE_FIX)
     bad = _uncovered(err, sigma, obs)
     assert bad.size >= 30
