@@ -43,7 +43,8 @@ def _positive(name: str, value: int | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load every mission, run every (mission, criterion, activation), write the results."""
-    from concurrent.futures import ProcessPoolExecutor
+    import functools
+    import multiprocessing
 
     from tqdm import tqdm
 
@@ -77,10 +78,11 @@ def run(args: argparse.Namespace) -> int:
                 bar.set_postfix_str(spec.label)
                 results.append(_simulate(spec, args.oracle_estimate, bar.update))
         else:
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-                futures = [pool.submit(_simulate, s, args.oracle_estimate, None) for s in specs]
-                for spec, fut in zip(specs, futures):
-                    results.append(fut.result())
+            # A Pool, not a ProcessPoolExecutor: leaving the block for any reason (an error, a
+            # signal, Ctrl-C) terminates the workers instead of waiting for the queued runs.
+            with multiprocessing.Pool(min(args.jobs, len(specs))) as pool:
+                for spec, result in zip(specs, pool.imap(functools.partial(_simulate, oracle=args.oracle_estimate, progress=None), specs)):
+                    results.append(result)
                     bar.update(spec.steps)
     summaries = write_results(results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures)
     wall = time.perf_counter() - t0

@@ -1,0 +1,67 @@
+"""``fimnav montecarlo --jobs N`` stopped by a signal sent to it alone (not to its process group):
+it exits 128 + signal at once and leaves none of its worker processes behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+pytestmark = pytest.mark.integration
+
+
+def _children(pid: int) -> set[int]:
+    """The direct children of ``pid`` (Linux /proc)."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out.update(int(c) for c in (task / "children").read_text().split())
+        except OSError:
+            continue
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the worker processes")
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Signals, status: int) -> None:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
+         "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 60.0
+        workers: set[int] = set()
+        while len(workers) < 2:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the two workers did not start within 60 s"
+            workers = _children(proc.pid)
+            time.sleep(0.05)  # polling /proc, with the deadline above
+        proc.send_signal(sig)  # to the command alone, not its group
+        _, err = proc.communicate(timeout=15)
+        assert proc.returncode == status, err
+        assert "Traceback" not in err
+        deadline = time.monotonic() + 5.0
+        while any(_alive(w) for w in workers):
+            assert time.monotonic() < deadline, f"workers left behind: {[w for w in workers if _alive(w)]}"
+            time.sleep(0.05)  # polling /proc, with the deadline above
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
