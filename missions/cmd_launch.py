@@ -16,11 +16,11 @@ def register(subparsers: Any) -> None:
     """Add the ``launch`` subcommand."""
     p = subparsers.add_parser(
         "launch",
-        help="fly a mission distributed: one vehicle and one planner process per drone, lockstep clock",
+        help="fly a mission distributed: one planner process per drone, simulated vehicles (10 per process), lockstep clock",
         description="Validate the mission, start N simulated vehicles and N planner processes talking "
         "over Zenoh (loopback) and MAVLink, step them in lockstep, show progress and write the results.",
     )
-    p.add_argument("mission", type=Path, metavar="MISSION.yaml")
+    p.add_argument("mission", type=Path, metavar="MISSION", help="a mission file, or the name of a shipped mission (fimnav missions list)")
     p.add_argument("--out", type=Path, help="results directory (default: results/<mission id>-<date>-<time>, with -2, -3, ... "
                    "if taken); one holding a previous run is refused unless --overwrite")
     p.add_argument("--overwrite", action="store_true", help="--out holds a previous run: remove its files (mission.yaml, "

@@ -22,7 +22,7 @@ def register(subparsers: Any) -> None:
         description="Fly one drone of a mission: share records over Zenoh, estimate the source, "
         "compute the A/D-optimal projected-gradient step and stream setpoints to the vehicle.",
     )
-    p.add_argument("--mission", required=True, type=Path, metavar="MISSION.yaml")
+    p.add_argument("--mission", required=True, type=Path, metavar="MISSION", help="a mission file, or the name of a shipped mission")
     p.add_argument("--uav", required=True, type=int, help="drone id, 1..N")
     p.add_argument("--mavlink", metavar="CONN", help="pymavlink connection string to the vehicle (udpout:HOST:PORT, "
                    "udpin:, tcp:, /dev/ttyUSB0,57600; default: the mission's vehicles.overrides[i].connection)")
@@ -48,6 +48,8 @@ def register(subparsers: Any) -> None:
     rt.add_argument("--start-at", type=float, metavar="UNIX_S", help="UNIX time of step 0 (default: the next multiple of "
                     "dt/speedup once at the start position)")
     rt.add_argument("--stream-hz", type=float, default=5.0, help="setpoint stream rate, mission-time Hz, >= 4 (default 5)")
+    rt.add_argument("--tlog", type=Path, metavar="PATH", help="write the vehicle link to this .tlog (every MAVLink frame "
+                    "in and out; fimnav launch gives one to every drone it does not simulate)")
     rt.add_argument("--measurement-max-age", type=float, metavar="S", help="newest payload measurement used if at most this "
                     "old, mission seconds (default dt)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
@@ -99,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         sysid=args.sysid, log_path=args.log, step_timeout_s=args.step_timeout, preflight_timeout_s=args.preflight_timeout,
         speedup=args.speedup, flavour=args.flavour, setpoint_frame=args.setpoint_frame, signing_key_file=args.signing_key,
         stream_hz=args.stream_hz, measurement_max_age_s=args.measurement_max_age, start_at_unix=args.start_at,
-        rejoin=args.rejoin,
+        rejoin=args.rejoin, tlog_path=args.tlog,
     )
     summary = PlannerNode(mission, options).run()
     print(json.dumps(summary), flush=True)
