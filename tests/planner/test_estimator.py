@@ -536,3 +536,33 @@ def test_search_box_bounds_the_estimate_and_rejects_bad_boxes() -> None:
     assert np.median(errs["boxed"]) < np.median(errs["free"])
     with pytest.raises(ValueError, match="bounds"):
         est.EstimatorConfig(bounds_min_m=(0.0, 0.0, 5.0), bounds_max_m=(1.0, 1.0, 5.0))
+
+
+def _rmse_table() -> None:
+    """Print RMSE / PEB of the Monte Carlo tests above, with the seeds the suite uses (the rng
+    fixture seeds from the test's node id): ``python tests/planner/test_estimator.py``."""
+    import zlib
+
+    def seeded(node: str) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence(zlib.crc32(f"tests/planner/test_estimator.py::{node}".encode())))
+
+    rows = []
+    for kind in ("ranging", "bearing", "joint", "mixed"):
+        node = f"test_rmse_with_los_noise_within_1_5_peb[{kind}]"
+        rows.append((node, _monte_carlo(seeded(node), kind, np.array([20.0, -10.0, 30.0]), steps=5, n=10, z_m=(0.0, 60.0))))
+    for kind in ("joint", "bearing"):
+        for flagged, label in ((True, "flagged-nlos"), (False, "mislabelled-los")):
+            node = f"test_rmse_with_20_percent_bearing_outliers_within_3_peb[{kind}-{label}]"
+            rows.append((node, _monte_carlo(seeded(node), kind, np.array([20.0, -10.0, 0.0]), steps=5, n=10, z_m=(2.0, 40.0), outlier_fraction=0.2, flagged=flagged)))
+        node = f"test_huber_with_innovation_gate_also_handles_mislabelled_outliers[{kind}]"
+        config = EstimatorConfig(loss="huber", gate_sigma=5.0)
+        rows.append((node, _monte_carlo(seeded(node), kind, np.array([20.0, -10.0, 0.0]), steps=5, n=10, z_m=(2.0, 40.0), outlier_fraction=0.2, flagged=False, config=config)))
+    for kind in ("ranging", "mixed"):
+        node = f"test_full_likelihood_range_cost_within_1_5_peb[{kind}]"
+        rows.append((node, _monte_carlo(seeded(node), kind, np.array([20.0, -10.0, 30.0]), steps=5, n=10, z_m=(0.0, 60.0), config=EstimatorConfig(range_cost="ml"))))
+    for node, (rmse, bound) in rows:
+        print(f"{rmse / bound:5.2f}  {node}")
+
+
+if __name__ == "__main__":
+    _rmse_table()

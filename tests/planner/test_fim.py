@@ -22,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from planner import Channel, fisher_information, observe_from_uniforms
+from planner.geometry import line_of_sight
 
 LN10_10 = math.log(10.0) / 10.0
 ROLES = {"r": (True, False), "b": (False, True), "j": (True, True)}
@@ -307,3 +308,48 @@ def test_printed_eq11_changes_the_fim_of_the_paper_geometry_by_up_to_71_percent(
         assert 0.705 < rel < 0.707, rel
         peb_ratio = math.sqrt(np.trace(np.linalg.inv(j_printed)) / np.trace(np.linalg.inv(got)))
         assert 1.64 < peb_ratio < 1.66, peb_ratio
+
+
+def _printed_minus_model_elevation_terms(src, positions, los, ch: Channel) -> np.ndarray:
+    """J_printed − J_model for joint drones: for every LOS drone, A_b (e eᵀ − e' e'ᵀ)/d² with the
+    printed e = a(φ, −θ−π/2) and the model's e' = a(φ, θ+π/2) (eq. 11's elevation term)."""
+    diff = np.zeros((3, 3))
+    for pj, l in zip(positions, los):
+        if not l:
+            continue
+        d, phi, th = _measurement_means(src, pj)
+        e_printed, e_model = _a(phi, -th - math.pi / 2), _a(phi, th + math.pi / 2)
+        diff += (np.outer(e_printed, e_printed) - np.outer(e_model, e_model)) / (ch.sigma_bearing_rad**2 * d * d)
+    return diff
+
+
+def test_printed_eq11_at_the_paper_start_and_for_one_drone_by_elevation():
+    """docs/paper-notes.md's eq. 11 figures other than the maximum. (1) The joint paper mission at
+    k = 0 (missions/paper/joint.yaml: ten joint drones on the start ellipse, centre [0, 150, 8] m,
+    r_x = 20 m, r_z = 5 m; source [0, 0, 2] m; buildings B1-B3 for the LOS flags): the printed
+    G_el changes the FIM by 7.7 % (Frobenius, relative) and the PEB by +0.25 %. (2) One joint LOS
+    drone 50 m from the source at an elevation of 5°, 10°, 20°: 17 %, 33 %, 59 % (with γ = 2 the
+    ratio does not depend on the distance: checked at 50 m and 150 m)."""
+    ch = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=math.radians(10.0))
+    src = np.array([0.0, 0.0, 2.0])
+    alpha = 2.0 * math.pi * np.arange(10) / 10.0
+    starts = np.stack([20.0 * np.cos(alpha), np.full(10, 150.0), 8.0 + 5.0 * np.sin(alpha)], axis=-1)
+    boxes_min = np.array([[-40.0, 95.0, 0.0], [10.0, 70.0, 0.0], [-18.0, 12.0, 0.0]])
+    boxes_max = np.array([[-10.0, 115.0, 30.0], [35.0, 90.0, 30.0], [-8.0, 24.0, 30.0]])
+    los = line_of_sight(starts, src, boxes_min, boxes_max)
+    assert los.tolist() == [False, True, True, True, False, False, False, True, True, True]
+    ones = np.ones(10, dtype=bool)
+    j_model = fisher_information(src, starts, ones, ones, los, ch)
+    j_printed = j_model + _printed_minus_model_elevation_terms(src, starts, los, ch)
+    rel = np.linalg.norm(j_printed - j_model) / np.linalg.norm(j_model)
+    assert 0.0765 < rel < 0.0775, rel
+    peb_change = math.sqrt(np.trace(np.linalg.inv(j_printed)) / np.trace(np.linalg.inv(j_model))) - 1.0
+    assert 0.00245 < peb_change < 0.00255, peb_change
+
+    for elevation_deg, expected in ((5.0, 0.17), (10.0, 0.33), (20.0, 0.59)):
+        for dist in (50.0, 150.0):
+            pj = src - dist * _a(0.3, -math.radians(elevation_deg))
+            j1 = fisher_information(src, pj[None, :], [True], [True], [True], ch)
+            j1p = j1 + _printed_minus_model_elevation_terms(src, pj[None, :], [True], ch)
+            rel1 = np.linalg.norm(j1p - j1) / np.linalg.norm(j1)
+            assert abs(rel1 - expected) < 0.005, (elevation_deg, dist, rel1)
