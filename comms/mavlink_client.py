@@ -33,6 +33,7 @@ import errno
 import math
 import os
 import socket
+import struct
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -71,6 +72,9 @@ MASK_VELOCITY = MASK_POSITION_VELOCITY | 0b0000_0000_0000_0111
 MODE_CONFIRM_TIMEOUT_S: float = 30.0
 #: No autopilot heartbeat for this long (wall s) = the link is lost (noticed within 3 s).
 LINK_LOSS_S: float = 2.0
+#: The autopilot's clock rate is measured over at least this many wall seconds of its
+#: ``time_boot_ms`` stamps (:class:`ClockWatch`).
+CLOCK_WINDOW_S: float = 1.5
 
 # EKF_STATUS_REPORT flags a copter needs for position control (ArduPilot's own pre-arm
 # test: attitude, velocities and absolute horizontal and vertical position), and the
@@ -182,6 +186,50 @@ def flavour_of_autopilot(autopilot: int | None) -> Flavour | None:
     return None
 
 
+class ClockWatch:
+    """The rate of the autopilot's clock against the wall clock: ``time_boot_ms`` of its
+    messages against our wall clock on receipt, over a sliding window.
+
+    The rate is the median of the slopes between pairs of samples at least half the window
+    apart (Theil-Sen): a message delayed by a stalled process or a burst read at once moves
+    a few slopes, not the median. A ``time_boot_ms`` that goes back (a reboot) starts over.
+    ArduPilot SITL's and fimnav's simulated vehicle's ``time_boot_ms`` run on simulated time,
+    so the rate is their speed-up; a real autopilot's is 1."""
+
+    def __init__(self, keep_s: float = 10.0) -> None:
+        self.keep_s = keep_s
+        self.samples: list[tuple[float, float]] = []  # (wall s, boot s)
+
+    def add(self, wall_s: float, time_boot_ms: int) -> None:
+        boot = time_boot_ms * 1e-3
+        if self.samples:
+            last_wall, last_boot = self.samples[-1]
+            if boot < last_boot - 1.0:
+                self.samples.clear()  # the autopilot rebooted
+            elif wall_s - last_wall < 0.02:
+                return  # a burst read at once: one sample of it is enough
+        self.samples.append((wall_s, boot))
+        while self.samples and wall_s - self.samples[0][0] > self.keep_s:
+            self.samples.pop(0)
+
+    def span_s(self) -> float:
+        """Wall seconds covered by the samples."""
+        return self.samples[-1][0] - self.samples[0][0] if len(self.samples) > 1 else 0.0
+
+    def rate(self, min_span_s: float = CLOCK_WINDOW_S) -> float | None:
+        """Autopilot seconds per wall second, or None until ``min_span_s`` wall seconds of
+        samples are in."""
+        if self.span_s() < min_span_s or len(self.samples) < 4:
+            return None
+        pts = self.samples
+        if len(pts) > 40:
+            step = len(pts) / 40.0
+            pts = [pts[int(i * step)] for i in range(40)] + [pts[-1]]
+        half = 0.5 * min_span_s
+        slopes = [(b2 - b1) / (w2 - w1) for i, (w1, b1) in enumerate(pts) for (w2, b2) in pts[i + 1:] if w2 - w1 >= half]
+        return float(np.median(slopes)) if slopes else None
+
+
 @dataclass
 class Telemetry:
     """What the link has heard of the vehicle (updated by :meth:`VehicleLink.pump`).
@@ -229,6 +277,10 @@ class VehicleLink:
         altitude_reference: ``"amsl"`` or ``"relative"`` (global frame only).
         flavour: force ``"ardupilot"`` or ``"px4"``; None: from HEARTBEAT.autopilot.
         connect_timeout_s: how long a ``tcp:`` connection is retried while refused (s).
+        source_component: our component id (default 191, onboard computer; fimnav's
+            simulated payload uses another, so an autopilot tells the two links apart).
+        tlog: write every frame received and sent to this .tlog (MAVProxy's format:
+            big-endian µs UNIX time + frame).
     """
 
     def __init__(
@@ -243,6 +295,8 @@ class VehicleLink:
         altitude_reference: AltitudeReference = "relative",
         flavour: Flavour | None = None,
         connect_timeout_s: float = 30.0,
+        source_component: int = COMPONENT_ID,
+        tlog: str | Path | None = None,
     ) -> None:
         if frame == "global" and mission_frame is None:
             raise ValueError("frame='global' needs the mission frame")
@@ -259,11 +313,15 @@ class VehicleLink:
             raise LinkError(f"signing key: expected 32 bytes, found {len(signing_key)}")
         self._signing_key = signing_key
         self.connect_timeout_s = connect_timeout_s
+        self.source_component = source_component
         self.conn: Any = None
         self.foreign_datagrams = 0
         self.reconnects = 0
+        self.tlog_path = Path(tlog) if tlog is not None else None
+        self._tlog: Any = None
         self._open()
         self.telemetry = Telemetry()
+        self.clock = ClockWatch()
         self._last_gcs_heartbeat = -math.inf
         self.acks: dict[int, int] = {}
         self.statustexts = self.telemetry.statustexts
@@ -280,7 +338,7 @@ class VehicleLink:
                 self.conn = self.mavutil.mavlink_connection(
                     self.connection,
                     source_system=self._source_system,
-                    source_component=COMPONENT_ID,
+                    source_component=self.source_component,
                     dialect="ardupilotmega",
                     **({"retries": 0} if tcp else {}),
                 )
@@ -299,6 +357,25 @@ class VehicleLink:
             self._tcp_transport(self.conn)
         if self._signing_key is not None:
             self.conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
+        if self.tlog_path is not None:
+            self._start_tlog(self.tlog_path)
+
+    def _start_tlog(self, path: Path) -> None:
+        """Log every frame in (each parsed message, stamped on receipt, in :meth:`pump`) and
+        out (our own frames, stamped when written) to ``path``."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._tlog = open(path, "wb")  # noqa: SIM115 - closed by close()
+        write = self.conn.write
+        tlog = self._tlog
+
+        def logged_write(buf: bytes) -> Any:
+            try:
+                tlog.write(struct.pack(">Q", int(time.time() * 1e6)) + bytes(buf))
+            except (ValueError, OSError):
+                pass  # closed
+            return write(buf)
+
+        self.conn.write = logged_write
 
     def _datagram_receiver(self, conn: Any) -> None:
         """Read the UDP socket ourselves: with ``udpout`` only datagrams from the vehicle's
@@ -426,6 +503,11 @@ class VehicleLink:
                 return n  # a transport error is a silent link: the heartbeat timeout reports it
             if msg is None:
                 return n
+            if self._tlog is not None and msg.get_type() != "BAD_DATA":
+                try:
+                    self._tlog.write(struct.pack(">Q", int(getattr(msg, "_timestamp", time.time()) * 1e6)) + msg.get_msgbuf())
+                except (ValueError, OSError):
+                    pass
             if self._handle(msg):
                 n += 1
 
@@ -436,6 +518,9 @@ class VehicleLink:
         if kind == "BAD_DATA":
             return False
         tel = self.telemetry
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None and msg.get_srcComponent() == AUTOPILOT_COMPONENT:
+            self.clock.add(self.wall(), int(boot_ms))
         if self.mav.signing.sig_count:
             tel.signed_seen = True  # (frames with a signature block, checked or not)
         if kind == "HEARTBEAT" and msg.get_srcComponent() == AUTOPILOT_COMPONENT:
@@ -801,3 +886,6 @@ class VehicleLink:
             self.conn.close()
         except (OSError, AttributeError):  # (a TCP connection already dropped has no socket)
             pass
+        if self._tlog is not None:
+            self._tlog.close()
+            self._tlog = None

@@ -48,6 +48,8 @@ def register(subparsers: Any) -> None:
     rt.add_argument("--start-at", type=float, metavar="UNIX_S", help="UNIX time of step 0 (default: the next multiple of "
                     "dt/speedup once at the start position)")
     rt.add_argument("--stream-hz", type=float, default=5.0, help="setpoint stream rate, mission-time Hz, >= 4 (default 5)")
+    rt.add_argument("--tlog", type=Path, metavar="PATH", help="write the vehicle link to this .tlog (every MAVLink frame "
+                    "in and out; fimnav launch gives one to every drone it does not simulate)")
     rt.add_argument("--measurement-max-age", type=float, metavar="S", help="newest payload measurement used if at most this "
                     "old, mission seconds (default dt)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
@@ -99,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         sysid=args.sysid, log_path=args.log, step_timeout_s=args.step_timeout, preflight_timeout_s=args.preflight_timeout,
         speedup=args.speedup, flavour=args.flavour, setpoint_frame=args.setpoint_frame, signing_key_file=args.signing_key,
         stream_hz=args.stream_hz, measurement_max_age_s=args.measurement_max_age, start_at_unix=args.start_at,
-        rejoin=args.rejoin,
+        rejoin=args.rejoin, tlog_path=args.tlog,
     )
     summary = PlannerNode(mission, options).run()
     print(json.dumps(summary), flush=True)

@@ -82,6 +82,11 @@ START_TOLERANCE_REALTIME_M: float = 0.3
 POSITION_MAX_AGE_S: float = 1.0
 #: Real time: how often (wall s) the log repeats what the vehicle still lacks to fly.
 READY_REPORT_PERIOD_S: float = 5.0
+#: Real time: the vehicle's clock (``time_boot_ms`` against the wall clock) may run this far
+#: (relative) from the planner's ``--speedup`` before the planner refuses to take off.
+CLOCK_RATE_TOLERANCE: float = 0.25
+#: Real time: how long (wall s) the clock check may wait for enough ``time_boot_ms`` samples.
+CLOCK_CHECK_TIMEOUT_S: float = 15.0
 #: Lockstep telemetry rates (message id -> Hz of sim time): a simulated vehicle in lockstep
 #: reports its position on every tick, so the streams only need to be slow (every message is
 #: parsed here and logged by the vehicle). LOCAL_POSITION_NED, GLOBAL_POSITION_INT,
@@ -138,6 +143,8 @@ class NodeOptions:
             pre-flight (the vehicle is airborne and armed), answers the clock's current step
             as skipped and flies from the next one, with a fresh estimator; its log is
             appended to, not overwritten.
+        tlog_path: real time: write the MAVLink link to this .tlog (every frame in and out),
+            as ``fimnav launch`` does for an external autopilot.
     """
 
     uav: int
@@ -159,6 +166,7 @@ class NodeOptions:
     start_at_unix: float | None = None
     end_timeout_s: float = 120.0
     rejoin: bool = False
+    tlog_path: Path | None = None
 
     def __post_init__(self) -> None:
         for name in ("speedup", "stream_hz", "step_timeout_s", "preflight_timeout_s", "end_timeout_s"):
@@ -304,6 +312,7 @@ class PlannerNode:
         self.stale_peers: dict[int, int] = {}  # drone id -> last step it said "stale"
         self.position_gaps = 0
         self._reported_mode: str | None = None
+        self.vehicle_clock_rate: float | None = None
         self._session_factory = session_factory
         self.session: Any = None
         self.link: VehicleLink | None = None
@@ -328,6 +337,7 @@ class PlannerNode:
         return VehicleLink(
             conn, sysid, signing_key=self._signing_key, wall=self.wall, frame=self.frame,  # type: ignore[arg-type]
             mission_frame=self.mission_frame, altitude_reference=self.m.altitude_reference, flavour=forced,  # type: ignore[arg-type]
+            tlog=self.o.tlog_path,
         )
 
     # -- plumbing ---------------------------------------------------------------------------
@@ -842,6 +852,27 @@ class PlannerNode:
                     link.request_message(MSG_GPS_GLOBAL_ORIGIN)
             self._sleep_io(min(0.25, deadline - now))
 
+    def _check_clock(self) -> None:
+        """Refuse (NodeError) a vehicle whose clock runs at another rate than this planner's
+        mission clock (``--speedup``): e.g. a SITL at ×1 under a planner at ×5, whose steps
+        would be five times too short for the vehicle. The rate is the vehicle's
+        ``time_boot_ms`` against the wall clock (:class:`comms.mavlink_client.ClockWatch`)
+        over at least 1.5 wall seconds; a real autopilot's is 1."""
+        link = self._require_link()
+        self._wait(lambda: link.clock.rate() is not None, CLOCK_CHECK_TIMEOUT_S, "time_boot_ms stamps to measure the vehicle's clock rate")
+        rate = link.clock.rate()
+        assert rate is not None
+        s = self.o.speedup
+        span = link.clock.span_s()
+        log.info("uav %d: vehicle clock x%.2f of wall time (time_boot_ms over %.1f s); this planner x%g", self.o.uav, rate, span, s)
+        self.vehicle_clock_rate = rate
+        if abs(rate / s - 1.0) > CLOCK_RATE_TOLERANCE:
+            raise NodeError(
+                f"uav {self.o.uav}: the vehicle's clock runs at x{rate:.2f} of wall time (its time_boot_ms over {span:.1f} s) "
+                f"but this planner's mission clock at x{s:g} (--speedup): start the vehicle (SITL --speedup, fimnav vehicle "
+                f"--speedup) and the planner at the same speed-up; not taking off"
+            )
+
     def _preflight_realtime(self) -> None:
         """Heartbeat, flavour, streams, readiness, mode, arm, take-off and flight to the
         start, by the rules of the detected autopilot."""
@@ -859,6 +890,7 @@ class PlannerNode:
         self._request_streams()
         link.request_message(MSG_HOME_POSITION)
         link.request_message(MSG_GPS_GLOBAL_ORIGIN)
+        self._check_clock()
         self._ready_wait()
         origin = link.telemetry.origin_global
         assert origin is not None
@@ -1067,6 +1099,7 @@ class PlannerNode:
             "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
             "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses, "mode_changes": self.mode_changes,
             "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
+            "vehicle_clock_rate": None if self.vehicle_clock_rate is None else round(self.vehicle_clock_rate, 3),
         }
 
     def _end_realtime(self) -> dict[str, Any]:
