@@ -27,7 +27,7 @@ import json
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -119,8 +119,12 @@ def stamp() -> str:
             f"numpy {numpy.__version__}, scipy {scipy.__version__}")
 
 
-def run_command(cmd: Command) -> list[dict[str, Any]]:
-    """Run one ``fimnav montecarlo`` command in this process; return its run summaries."""
+STAMP_FILE = "regenerate-stamp.txt"
+
+
+def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
+    """Run one ``fimnav montecarlo`` command in this process; return its run summaries (the
+    results directory also records ``when``, the commit and versions it ran at)."""
     from missions.cli import main
 
     print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
@@ -129,7 +133,16 @@ def run_command(cmd: Command) -> list[dict[str, Any]]:
     status = main(cmd.argv())
     if status != 0:
         raise SystemExit(f"regenerate: {cmd.shown()} exited with status {status}")
+    (cmd.out / STAMP_FILE).write_text(when + "\n")
     return json.loads((cmd.out / "summary.json").read_text())["runs"]
+
+
+def reuse_command(cmd: Command) -> tuple[list[dict[str, Any]], str]:
+    """The summaries and stamp of an earlier run of ``cmd`` (``--reuse``)."""
+    try:
+        return json.loads((cmd.out / "summary.json").read_text())["runs"], (cmd.out / STAMP_FILE).read_text().strip()
+    except OSError as exc:
+        raise SystemExit(f"regenerate: --reuse: {cmd.out} holds no complete earlier run ({exc.strerror}); run without --reuse") from None
 
 
 # --------------------------------------------------------------------------- formatting
@@ -260,19 +273,19 @@ def fault_table(rows: Sequence[tuple[float, int, dict[str, Any]]]) -> list[str]:
         f = s.get("faults")
         viol = s["violations"]
         nviol = sum(viol.values())
-        fam = ", ".join(f"{viol[k]} {k.replace('_', ' ')}" for k in FAMILIES if viol[k])
-        vtext = f"{nviol}{' ' + fam if fam else ''} ({s['worst_margins_m']['source']:+.1f} m)"
+        fam = ", ".join(f"{viol[k]} {k.replace('_', ' ')}" for k in FAMILIES if viol[k]) or "0"
+        vtext = f"{fam} ({s['worst_margins_m']['source']:+.1f} m)".replace("-", "−")
         if f is None:  # the fault-free row
             age = f"{ref['baseline_mean_record_age_steps']:.2f}" if ref else "—"
-            over = num(ref["baseline_mean_peb_over_steps_m"], 4) if ref else "—"
-            lines.append(f"| 0 | 0 | 0 | {age} | {num(s['initial_peb_mean_m'])} | {num(s['final_peb_mean_m'])} | — | {over} | — | {vtext} |")
+            over = f"{ref['baseline_mean_peb_over_steps_m']:.2f}" if ref else "—"
+            lines.append(f"| 0 | 0 | 0 | {age} | {num(s['initial_peb_mean_m'])} | {s['final_peb_mean_m']:.2f} | — | {over} | — | {vtext} |")
             continue
         init_ratio = f["initial_peb_mean_m"] / f["baseline_initial_peb_mean_m"] if f.get("baseline_initial_peb_mean_m") else None
         lines.append(
             f"| {loss:g} | {delay} | {f.get('lost_fraction', 0.0):.2f} | {f.get('mean_record_age_steps', 0.0):.2f} | "
-            f"{num(f['initial_peb_mean_m'])}{f' (×{init_ratio:.2f})' if init_ratio else ''} | {num(f['final_peb_mean_m'])} | "
+            f"{num(f['initial_peb_mean_m'])}{f' (×{init_ratio:.2f})' if init_ratio else ''} | {f['final_peb_mean_m']:.2f} | "
             f"{_signed(f['final_peb_penalty_m'])} ± {f['final_peb_penalty_se_m']:.2f} (×{f['final_peb_penalty_ratio']:.3f}) | "
-            f"{num(f['mean_peb_over_steps_m'], 4)} | {_signed(f['mean_peb_penalty_m'])} ± {f['mean_peb_penalty_se_m']:.2f} "
+            f"{f['mean_peb_over_steps_m']:.2f} | {_signed(f['mean_peb_penalty_m'])} ± {f['mean_peb_penalty_se_m']:.2f} "
             f"(×{f['mean_peb_penalty_ratio']:.3f}) | {vtext} |"
         )
     if base is not None:
@@ -303,18 +316,28 @@ def provenance(cmds: Sequence[Command], when: str) -> list[str]:
     return [*lines, ""]
 
 
-def main(argv: Sequence[str] | None = None, run: Callable[[Command], list[dict[str, Any]]] = run_command) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "results" / "docs", help="results directories (default results/docs)")
     parser.add_argument("--trials", type=int, help="trials per run (default: each mission's, 100; the fault table 20)")
     parser.add_argument("--steps", type=int, help="steps per run (default: each mission's, 550)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes per command (default 2)")
     parser.add_argument("--no-docs", action="store_true", help="run and print the tables, leave docs/ as it is")
+    parser.add_argument("--reuse", action="store_true", help="rebuild the tables and figures from an earlier run's results "
+                        "directories under --out (stamped with the commit that run was made at) instead of running again")
     args = parser.parse_args(argv)
     full = args.trials is None and args.steps is None
     cmds = commands(args.out, args.trials, args.steps, args.jobs, figures=True)
-    when = stamp()
-    summaries = {name: run(cmd) for name, cmd in cmds.items()}
+    if args.reuse:
+        reused = {name: reuse_command(cmd) for name, cmd in cmds.items()}
+        summaries = {name: runs for name, (runs, _) in reused.items()}
+        stamps = {w for _, w in reused.values()}
+        if len(stamps) != 1:
+            raise SystemExit(f"regenerate: --reuse: the results under {args.out} come from different commits: {sorted(stamps)}")
+        when = stamps.pop()
+    else:
+        when = stamp()
+        summaries = {name: run_command(cmd, when) for name, cmd in cmds.items()}
 
     study = case_study_table(summaries["case-study"]) + ["", *case_study_facts(cmds["case-study"].out, summaries["case-study"])]
     faults = fault_table([(loss, delay, summaries[f"faults-loss{loss:g}-delay{delay}"][0]) for loss, delay in FAULT_SETTINGS])
