@@ -26,6 +26,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_check",
     "missions.cmd_montecarlo",
     "missions.cmd_plan",
+    "missions.cmd_payload",
     "missions.cmd_launch",
     "missions.cmd_router",
     "missions.cmd_missions",

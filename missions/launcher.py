@@ -275,6 +275,16 @@ class Launcher:
             raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
         self.realtime = realtime
         self.speedup = float(speedup)
+        if realtime:
+            for i in range(n):
+                v = mission.vehicles.for_drone(i)
+                if v.connection is not None and v.payload == "simulated" and v.payload_connection is None:
+                    raise UsageError(
+                        f"drone {i + 1} flies the autopilot at {v.connection} and fimnav simulates its payload, which follows "
+                        f"the autopilot over a second MAVLink connection: give vehicles.overrides[{i}].payload_connection "
+                        f"(e.g. SITL's SERIAL1, tcp:127.0.0.1:5762), or payload: external if a real payload publishes its "
+                        "measurements"
+                    )
         self.start_delay_s = start_delay_s if start_delay_s is not None else 30.0 + 1.0 * n
         self.start_unix: float | None = None
         #: Every failure seen: {"process", "drones", "step", "status", "reason", "action"}.
@@ -516,8 +526,17 @@ class Launcher:
                 dtw = m.dt_s / self.speedup
                 self.start_unix = float(np.ceil((time.time() + self.start_delay_s) / dtw) * dtw)
                 timing = [*timing, "--start-at", f"{self.start_unix:.6f}", "--preflight-timeout", str(self.preflight_timeout_s)]
+            for i in sorted(external):
+                # A drone on an external autopilot: fimnav's simulated payload follows it over
+                # its second MAVLink connection, unless a real payload publishes.
+                if m.vehicles.for_drone(i - 1).payload == "simulated":
+                    self._spawn(f"payload_{i}", ["payload", "--mission", str(mission_file), "--uav", str(i),
+                                                 "--speedup", f"{self.speedup:g}", *child_zenoh.to_cli(),
+                                                 "--connect-timeout", str(self.preflight_timeout_s)])
             for i in range(1, n + 1):
-                conn = [] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
+                # An external autopilot's link is logged by its planner (a simulated vehicle
+                # writes its own .tlog).
+                conn = ["--tlog", str(self._abs_out / "tlogs" / f"vehicle_{i}.tlog")] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
                 self._planner_args[i] = [
                     "plan", "--mission", str(mission_file), "--uav", str(i), *conn, *timing,
                     *child_zenoh.to_cli(), "--log", str(self._abs_out / "logs" / f"planner_{i}.jsonl"),

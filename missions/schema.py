@@ -542,6 +542,17 @@ class VehicleOverride(_Section):
     setpoint_frame: Literal["auto", "global", "local_ned"] | None = Field(
         None, description="Setpoint frame of this drone; absent: vehicles.setpoint_frame."
     )
+    payload: Literal["simulated", "external"] | None = Field(
+        None,
+        description="Who publishes the measurements of a drone with a connection under fimnav launch --realtime: "
+        "'simulated' (default): fimnav starts a simulated payload (fimnav payload) that follows the autopilot "
+        "over payload_connection; 'external': a real payload does (fimnav starts none).",
+    )
+    payload_connection: MavlinkConnection | None = Field(
+        None,
+        description="A second MAVLink connection to the autopilot, for the simulated payload (e.g. SITL's "
+        "SERIAL1, tcp:127.0.0.1:5762).",
+    )
 
 
 class ResolvedVehicle(BaseModel):
@@ -558,6 +569,8 @@ class ResolvedVehicle(BaseModel):
     signing_key_file: Path | None
     autopilot: Literal["auto", "ardupilot", "px4"] = "auto"
     setpoint_frame: Literal["auto", "global", "local_ned"] = "auto"
+    payload: Literal["simulated", "external"] = "simulated"
+    payload_connection: str | None = None
 
 
 class Vehicles(_Section):
@@ -586,6 +599,8 @@ class Vehicles(_Section):
             signing_key_file=o.signing_key_file,
             autopilot=forced or "auto",
             setpoint_frame=o.setpoint_frame or self.setpoint_frame,
+            payload=o.payload or "simulated",
+            payload_connection=o.payload_connection,
         )
 
 

@@ -46,7 +46,8 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
                    "start": {"positions_m": [[10.0, 20.0, 8.0], [30.0, 20.0, 8.0], [50.0, 20.0, 8.0]]}},
         "source": {"position_m": [60.0, 90.0, 2.0]},
         "end_action": "land",
-        "vehicles": {"overrides": [{}, {}, {"connection": f"udpout:127.0.0.1:{mav_port}", "flavour": "px4", "signing_key_file": str(key)}]},
+        "vehicles": {"overrides": [{}, {}, {"connection": f"udpout:127.0.0.1:{mav_port}", "flavour": "px4", "signing_key_file": str(key),
+                                                  "payload": "external"}]},
         "zenoh": {"connect": [f"tcp/127.0.0.1:{zenoh_port}"]},
     }))
     external = Proc(["vehicle", "--mission", str(mission), "--sysid", "3", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
@@ -63,10 +64,17 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
     finally:
         external.stop()
 
-    # The launcher started vehicles 1 and 2 only; drone 3 flew the external autopilot.
+    # The launcher started vehicles 1 and 2 only; drone 3 flew the external autopilot, whose
+    # link its planner logged (signed frames both ways), and started no payload for it (the
+    # mission says a real one publishes: here the external vehicle's).
     assert (out / "tlogs" / "vehicle_1.tlog").exists() and (out / "tlogs" / "vehicle_2.tlog").exists()
-    assert not (out / "tlogs" / "vehicle_3.tlog").exists()
     assert sorted(p.name for p in (out / "logs").glob("vehicle*.log")) in (["vehicle_1.log", "vehicle_2.log"], ["vehicles_1-2.log"])
+    assert not list((out / "logs").glob("payload*.log"))
+    from tests.external.helpers import read_tlog  # noqa: PLC0415
+
+    t3 = read_tlog(out / "tlogs" / "vehicle_3.tlog")
+    assert t3.commands.get(400, 0) >= 1 and sum(t3.setpoints.values()) > 20, t3.commands
+    assert any(armed for _, armed in t3.modes) and t3.landed_state == 1, t3.modes
     ends = {}
     for i in (1, 2, 3):
         last = (out / "logs" / f"planner_{i}.log").read_text().strip().splitlines()[-1]
