@@ -3,6 +3,7 @@ it exits 128 + signal at once and leaves none of its worker processes behind."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -62,6 +63,7 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
             assert time.monotonic() < deadline, f"workers left behind: {[w for w in workers if _alive(w)]}"
             time.sleep(0.05)  # polling /proc, with the deadline above
     finally:
-        if proc.poll() is None:
+        # the whole session, even when the command itself has exited (its workers may not have)
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        proc.wait()
