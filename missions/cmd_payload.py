@@ -74,14 +74,12 @@ class FollowedDrone:
         self._payload = payload
         self._link = link
         self._max_age_s = max_age_s
-        self.measured = 0
 
     @property
     def payload(self) -> Any:
         t = self._link.telemetry
         if t.position_enu_m is None or self._link.wall() - t.position_wall_s > self._max_age_s:
             return None
-        self.measured += 1
         return self._payload
 
     @property
@@ -190,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
             if fresh != following:
                 following = fresh
                 log.info("%s", "position fresh: measuring" if fresh else "no fresh position: not measuring")
-        log.info("stopped after %d measurements", drone.measured)
+        log.info("stopped")
         return 0
     finally:
         bridge.close()

@@ -1,6 +1,8 @@
 """``fimnav plan`` against real ArduPilot SITL (copter): one drone flies a short mission at
 speed-up 1 and sped up (SITL ``--speedup S``, the planner ``--speedup S``), and a SITL whose
-clock runs at another rate than the planner's is refused before take-off.
+clock runs at another rate than the planner's is refused before take-off; ``fimnav launch
+--realtime`` flies a mixed fleet of two SITL copters (each with fimnav's simulated payload
+following it over its SERIAL1) and two simulated vehicles.
 
 Measured and printed (``-s``): SITL boot → ready (wall s, from the planner's start to its
 ``ready; EKF origin`` line) and tracking: per step, the distance between the position the
@@ -14,7 +16,10 @@ skipped with a one-line reason otherwise.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import socket
+import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,8 +30,10 @@ import yaml
 
 from tests.external.helpers import Proc, start_vehicle
 
+from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+
 try:
-    from tests.sitl.sitl import sitl_config, start_sitl
+    from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
 except ImportError as exc:  # the helpers are not there: nothing to run against
     _CFG, _REASON = None, f"tests/sitl/sitl.py not importable ({exc})"
 else:
@@ -126,3 +133,75 @@ def test_sitl_at_another_speed_up_is_refused_before_take_off(tmp_path: Path, pro
     err = plan.err
     assert "the vehicle's clock runs at x1.0" in err and "mission clock at x5" in err, err[-2000:]
     assert "ready; EKF origin" not in err and "airborne" not in err and "Traceback" not in err
+
+
+@contextlib.contextmanager
+def sitl_with_serial1(workdir: Path, speedup: float, home: str, sysid: int) -> Iterator[tuple[SitlInstance, str]]:
+    """A SITL copter as :func:`tests.sitl.sitl.start_sitl` starts one, with its SERIAL1 on a
+    free TCP port too (the simulated payload's link); yields (instance, SERIAL1 address)."""
+    assert _CFG is not None
+    workdir.mkdir(parents=True, exist_ok=True)
+    port, port1, rc_port = free_port(), free_port(), free_port(socket.SOCK_DGRAM)
+    argv = [str(_CFG.binary), "--model", "+", "--speedup", f"{speedup:g}", "--defaults", str(_CFG.defaults), "--home", home,
+            "--sysid", str(sysid), "-w", "--serial0", f"tcp:{port}:wait", "--serial1", f"tcp:{port1}", "--serial2", "none:",
+            "--rc-in-port", str(rc_port)]
+    log_path = workdir / "sitl-console.log"
+    with open(log_path, "wb") as out:
+        proc = subprocess.Popen(argv, cwd=workdir, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    inst = SitlInstance(proc, f"tcp:127.0.0.1:{port}", port, speedup, workdir, log_path, argv)
+    try:
+        wait_for_bind(inst, 20.0)
+        yield inst, f"tcp:127.0.0.1:{port1}"
+    finally:
+        inst.stop()
+
+
+def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+    """The paper's heterogeneous mission, four drones, 30 steps, in real time at x{SPEEDUP}:
+    drones 1 and 2 are SITL copters (own system ids, homes 6 m apart below their starts),
+    3 and 4 fimnav's simulated vehicles. Every drone arms, takes off in GUIDED, reaches its
+    start and flies every step, ends with the mission's end action (land); results and every
+    drone's .tlog are written; zero violations; every SITL drone's simulated payload reaches
+    its planner at every step; no process is left."""
+    speedup = 4.0
+    steps = 30
+    base = yaml.safe_load((Path(__file__).resolve().parents[2] / "missions" / "paper" / "heterogeneous.yaml").read_text())
+    starts = [[-3.0, 150.0, 8.0], [3.0, 150.0, 10.0], [-9.0, 150.0, 6.0], [9.0, 150.0, 12.0]]
+    base.update({"id": "sitl_mixed", "steps": steps, "end_action": "land"})
+    base["drones"] = {"count": 4, "roles": ["ranging", "bearing", "joint", "ranging"], "start": {"positions_m": starts}}
+    mission = tmp_path / "mixed.yaml"
+    mission.write_text(yaml.safe_dump(base))
+    with contextlib.ExitStack() as stack:
+        overrides: list[dict] = []
+        for i in (1, 2):
+            sitl, serial1 = stack.enter_context(sitl_with_serial1(tmp_path / f"sitl{i}", speedup, home_below(mission, starts[i - 1]), i))
+            overrides.append({"connection": sitl.address, "payload_connection": serial1})
+        base["vehicles"] = {"overrides": [*overrides, {}, {}]}
+        mission.write_text(yaml.safe_dump(base))
+        out = tmp_path / "run"
+        run = Launch(mission, out, "--realtime", "--speedup", f"{speedup:g}", "--start-delay", "40")
+        launches.append(run)
+        code, stdout, stderr = run.wait(300.0)
+        assert code == 0, stderr[-4000:]
+    assert "Traceback" not in stderr
+    summary = json.loads((out / "summary.json").read_text())["runs"][0]
+    assert summary["clock"] == f"realtime x{speedup:g}" and summary["failures"] == []
+    assert summary["violations"] == {k: 0 for k in summary["violations"]}
+    from tests.external.helpers import read_tlog
+
+    for i in (1, 2, 3, 4):
+        text = (out / "logs" / f"planner_{i}.log").read_text()
+        end = json.loads(text.strip().splitlines()[-1])
+        assert end["end"]["confirmed"] and end["end"]["action"] == "land" and end["end"]["landed_state"] == "ON_GROUND", (i, end)
+        assert "airborne in GUIDED" in text and "ready at the start position" in text
+        rows = [json.loads(line) for line in (out / "logs" / f"planner_{i}.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in rows] == list(range(steps)), (i, [r["step"] for r in rows])
+        t = read_tlog(out / "tlogs" / f"vehicle_{i}.tlog")
+        assert (4, True) in t.modes, (i, t.modes)  # armed in GUIDED
+        if i <= 2:
+            # SITL: the simulated payload measured at every step, a real ArduPilot flew it.
+            assert abs(end["vehicle_clock_rate"] / speedup - 1.0) < 0.25, end
+            assert all(r["measurement"]["range_m" if i == 1 else "azimuth_rad"] is not None for r in rows), i
+            assert any("ArduPilot" in x or "ArduCopter" in x for x in t.texts), t.texts[:5]
+            assert (out / "logs" / f"payload_{i}.log").exists()
+    assert not processes_mentioning(str(out))
