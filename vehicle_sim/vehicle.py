@@ -72,14 +72,19 @@ FS_GCS_ACTIONS: dict[int, str | None] = {0: None, 1: "rtl", 2: "rtl", 3: "rtl", 
 PX4_OBL_ACTIONS: dict[int, str] = {0: "hold", 1: "hold", 2: "hold", 3: "rtl", 4: "land", 5: "hold", 6: "terminate", 7: "terminate"}
 FS_GCS_TIMEOUT_DEFAULT_S = 5.0
 SYSID_MYGCS_DEFAULT = 255
+PREARM_DISPLAY_PERIOD_S = 30.0  # ArduPilot reports a failing pre-arm check this often (sim s)
+#: ArduCopter modes whose HEARTBEAT base_mode carries MAV_MODE_FLAG_GUIDED_ENABLED.
+ARDUPILOT_GUIDED_FLAG_MODES = frozenset({"AUTO", "RTL", "LOITER", "GUIDED", "POSHOLD", "BRAKE"})
 
 # REQUEST_DATA_STREAM groups (ArduPilot's assignment of our messages).
+#: As ArduCopter 4.5's STREAM_*_msgs (GCS_Mavlink.cpp); EXTENDED_SYS_STATE and HOME_POSITION
+#: are in no stream there (SET_MESSAGE_INTERVAL / REQUEST_MESSAGE only): here they keep their rate.
 DATA_STREAMS: dict[int, tuple[str, ...]] = {
-    2: ("SYS_STATUS", "GPS_RAW_INT", "SYSTEM_TIME"),  # EXTENDED_STATUS
+    2: ("SYS_STATUS", "GPS_RAW_INT"),  # EXTENDED_STATUS
     6: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),  # POSITION
     10: ("ATTITUDE",),  # EXTRA1
     11: ("VFR_HUD",),  # EXTRA2
-    12: ("BATTERY_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "EKF_STATUS_REPORT"),  # EXTRA3
+    12: ("SYSTEM_TIME", "BATTERY_STATUS", "EKF_STATUS_REPORT"),  # EXTRA3
 }
 
 
@@ -159,6 +164,7 @@ class SimVehicle:
         self.sysid_mygcs = float(SYSID_MYGCS_DEFAULT)
         self.gcs_last_seen_t: float | None = None  # sim time of the last SYSID_MYGCS heartbeat
         self.gcs_failsafe = False
+        self._prearm_next_t = PREARM_DISPLAY_PERIOD_S
         self.offboard_loss_action = 0.0
         self.takeoff_alt_m = PX4_TAKEOFF_ALT_DEFAULT_M
         self.sysid_param = float(config.sysid)
@@ -388,7 +394,10 @@ class SimVehicle:
         """Switch to ``mode``; return None or the reason for refusing."""
         if mode.behaviour == "mission":
             return "Mode change failed: no mission"
-        if mode.needs_position and not self.ready and mode.custom_mode != self.mode.custom_mode:
+        # ArduPilot copter skips its mode checks while disarmed (Copter::set_mode: "allow
+        # switching to any mode if disarmed; we rely on the arming check"); PX4 does not.
+        checks = self.config.flavour == "px4" or self.armed
+        if checks and mode.needs_position and not self.ready and mode.custom_mode != self.mode.custom_mode:
             if self.config.flavour == "px4":
                 return f"Switching to {mode.name} is currently not possible"
             return f"Mode change to {mode.name} failed: requires position"
@@ -419,7 +428,8 @@ class SimVehicle:
             self._start_rtl()
         elif mode.behaviour == "takeoff":
             self._start_takeoff(max(float(self.position[2]), self.home[2] + self.takeoff_alt_m))
-        self.statustext(6, f"Mode {mode.name}")
+        if self.config.flavour == "px4":
+            self.statustext(6, f"Mode {mode.name}")
         return None
 
     def _start_takeoff(self, z_target: float) -> None:
@@ -447,7 +457,7 @@ class SimVehicle:
         self.pm.set_command(Command("idle"), self.t)
         if self.armed:
             self.armed = False
-            self.statustext(6, "Landed: disarmed")
+            self.statustext(6, "Disarming motors" if self.config.flavour == "ardupilot" else "Landed: disarmed")
 
     def _update_logic(self) -> None:
         """Mode transitions evaluated at every physics step (sim time ``self.t``)."""
@@ -456,7 +466,8 @@ class SimVehicle:
         if self.phase == "takeoff" and abs(float(p[2]) - self.takeoff_target_z) <= ARRIVAL_TOL_M:
             self.phase = ""
             self.landed_state = self.m.MAV_LANDED_STATE_IN_AIR
-            self.statustext(6, "Takeoff complete")
+            if self.config.flavour == "px4":  # ArduPilot's GUIDED take-off ends silently
+                self.statustext(6, "Takeoff complete")
             if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
                 self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
                 target = self.pm.command.position
@@ -486,8 +497,20 @@ class SimVehicle:
                 self.guided_kind = ""
                 self._offboard_failsafe()
         self._check_gcs_failsafe()
+        self._report_prearm()
         if self.flying:
             self.battery = max(0.0, self.battery - self.config.battery_drain_per_s * self.h)
+
+    def _report_prearm(self) -> None:
+        """ArduPilot's periodic pre-arm report (AP_Arming::update): while disarmed and not ready,
+        the failing check as ``PreArm: ...`` every PREARM_DISPLAY_PERIOD (30 s of sim time,
+        the first at 30 s after boot)."""
+        if self.config.flavour != "ardupilot" or self.armed or self.t < self._prearm_next_t:
+            return
+        self._prearm_next_t = self.t + PREARM_DISPLAY_PERIOD_S
+        reason = self._not_ready_reason()
+        if reason:
+            self.statustext(2, reason)
 
     def _offboard_failsafe(self) -> None:
         """PX4 offboard loss (no setpoint for COM_OF_LOSS_T): the COM_OBL_RC_ACT action."""
@@ -670,6 +693,8 @@ class SimVehicle:
         if not_ready:
             return not_ready
         if not self.mode.armable:
+            if self.config.flavour == "ardupilot":
+                return f"PreArm: {self.mode.name} mode not armable"
             return f"PreArm: mode {self.mode.name} not armable"
         if self.config.flavour == "px4" and self.mode.behaviour == "guided" and not self._offboard_stream_ok():
             return "PreArm: no offboard setpoints"
@@ -688,6 +713,10 @@ class SimVehicle:
             if self.armed:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_ACCEPTED)
             reason = None if p[1] == FORCE_ARM_MAGIC else self._prearm_failure()
+            if reason and self.config.flavour == "ardupilot" and reason.startswith("PreArm: "):
+                # ArduPilot runs the same checks on an arming command with the prefix "Arm: "
+                # (AP_Arming::check_failed while arming); "PreArm: " is its periodic report.
+                reason = "Arm: " + reason[len("PreArm: "):]
             if reason:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, reason, 2)
             self.armed = True
@@ -711,20 +740,28 @@ class SimVehicle:
     def _cmd_takeoff(self, msg: Any, p: tuple[float, ...], frame: int | None) -> int:
         m = self.m
         cmd = m.MAV_CMD_NAV_TAKEOFF
+        px4 = self.config.flavour == "px4"
+
+        def refuse(text: str) -> int:
+            # ArduPilot: do_user_takeoff() returns false -> FAILED, no STATUSTEXT (measured on SITL 4.5.5)
+            if px4:
+                return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, text)
+            return self._ack(msg, cmd, m.MAV_RESULT_FAILED)
+
         if not self.armed:
-            return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: vehicle not armed")
+            return refuse("Takeoff: vehicle not armed")
         if self.flying:
-            return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: already flying")
+            return refuse("Takeoff: already flying")
         if not self.ready:
-            return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: no position estimate")
+            return refuse("Takeoff: no position estimate")
         alt = float(p[6])
         if math.isinf(alt):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude is not finite")
-        if self.config.flavour == "px4":
+        if px4:
             z = self.home[2] + self.takeoff_alt_m if math.isnan(alt) else self._alt_to_z(alt, frame, amsl_default=True)
         else:
             if self.mode.behaviour != "guided":
-                return self._ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Takeoff: mode must be GUIDED")
+                return refuse("Takeoff: mode must be GUIDED")
             if not math.isfinite(alt):
                 return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude is not a number")
             z = self._alt_to_z(alt, frame, amsl_default=False)
@@ -785,6 +822,9 @@ class SimVehicle:
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Mode: invalid base mode")
         mode = self._mode_from(p[0], p[1], p[2])
         if mode is None:
+            if self.config.flavour == "ardupilot" and math.isfinite(p[1]) and int(p[0]) & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                # Copter::set_mode -> notify_no_such_mode; _set_mode_common answers FAILED
+                return self._ack(msg, cmd, m.MAV_RESULT_FAILED, f"No such mode {int(p[1]) & 0xFF}")
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, f"Mode: unknown mode {p[1]:g}")
         reason = self.set_mode(mode)
         if reason:
@@ -795,8 +835,12 @@ class SimVehicle:
         m = self.m
         mode = self._mode_from(msg.base_mode, msg.custom_mode, 0)
         if mode is None:
-            result = m.MAV_RESULT_DENIED
-            self.statustext(4, f"Mode: unknown mode {msg.custom_mode}")
+            if self.config.flavour == "ardupilot" and msg.base_mode & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                result = m.MAV_RESULT_FAILED
+                self.statustext(4, f"No such mode {msg.custom_mode & 0xFF}")
+            else:
+                result = m.MAV_RESULT_DENIED
+                self.statustext(4, f"Mode: unknown mode {msg.custom_mode}")
         else:
             reason = self.set_mode(mode)
             result = m.MAV_RESULT_FAILED if reason else m.MAV_RESULT_ACCEPTED
@@ -1473,7 +1517,13 @@ class SimVehicle:
     def _base_mode(self) -> int:
         m = self.m
         base = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.mode.behaviour in ("guided", "takeoff", "land", "rtl", "mission"):
+        if self.config.flavour == "ardupilot":
+            # GCS_MAVLINK_Copter::base_mode: manual input always; GUIDED_ENABLED in the modes
+            # that navigate (AUTO, RTL, LOITER, GUIDED, POSHOLD, BRAKE, ...), not in LAND.
+            base |= m.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+            if self.mode.name in ARDUPILOT_GUIDED_FLAG_MODES:
+                base |= m.MAV_MODE_FLAG_GUIDED_ENABLED
+        elif self.mode.behaviour in ("guided", "takeoff", "land", "rtl", "mission"):
             base |= m.MAV_MODE_FLAG_GUIDED_ENABLED
         if self.armed:
             base |= m.MAV_MODE_FLAG_SAFETY_ARMED
@@ -1484,6 +1534,13 @@ class SimVehicle:
         m = self.m
         if not self.healthy:
             status = m.MAV_STATE_CRITICAL
+        elif self.config.flavour == "ardupilot":
+            # GCS_MAVLINK_Copter::vehicle_system_status: CRITICAL in a failsafe, STANDBY while
+            # landed (armed or not), ACTIVE in the air.
+            if self.gcs_failsafe:
+                status = m.MAV_STATE_CRITICAL
+            else:
+                status = m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY
         else:
             status = m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY
         return m.MAVLink_heartbeat_message(

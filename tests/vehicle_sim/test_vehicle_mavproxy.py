@@ -40,14 +40,14 @@ def test_mavproxy_connects_arms_and_flies_guided():
         gcs.expect(r"ARMED")
         gcs.send("takeoff 5")
         gcs.expect(r"NAV_TAKEOFF: ACCEPTED")
-        gcs.expect(r"Takeoff complete", timeout=30)
+        # independent observer on a second TCP connection; ArduPilot's take-off ends silently
+        observer = connect_client(address, source_system=250)
+        hello(observer, 1)
+        wait_msg(observer, "GLOBAL_POSITION_INT", lambda m: abs(m.relative_alt - 5000) < 150, timeout=30)
         o = Origin()
         lon, lat, _ = Geod(ellps="WGS84").fwd(o.lon_deg, o.lat_deg, 45.0, 25.0)  # 25 m north-east
         gcs.send(f"guided {lat:.7f} {lon:.7f} 8")
         gcs.expect(r"(DO_REPOSITION: ACCEPTED|Got MISSION_ACK: TYPE_MISSION: ACCEPTED)")
-        # independent observer on a second TCP connection
-        observer = connect_client(address, source_system=250)
-        hello(observer, 1)
         gp = wait_msg(
             observer,
             "GLOBAL_POSITION_INT",

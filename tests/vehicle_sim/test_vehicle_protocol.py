@@ -130,18 +130,19 @@ def test_bad_commands_get_the_right_ack(make_rig):
     rig = make_rig()
     # unknown command
     assert rig.command(R.MAV_CMD_DO_SET_SERVO, 1, 1500) == R.MAV_RESULT_UNSUPPORTED
-    # takeoff while disarmed
+    # takeoff while disarmed: FAILED, as ArduCopter (do_user_takeoff refuses)
     assert rig.set_mode("GUIDED") == R.MAV_RESULT_ACCEPTED
-    assert rig.takeoff(5.0) == R.MAV_RESULT_TEMPORARILY_REJECTED
+    assert rig.takeoff(5.0) == R.MAV_RESULT_FAILED
     # AUTO with an empty mission: FAILED + STATUSTEXT
     assert rig.command(R.MAV_CMD_DO_SET_MODE, 1, 3) == R.MAV_RESULT_FAILED
     wait_msg(rig.client, "STATUSTEXT", lambda m: "no mission" in m.text)
-    # unknown mode number
-    assert rig.command(R.MAV_CMD_DO_SET_MODE, 1, 99) == R.MAV_RESULT_DENIED
+    # unknown mode number: FAILED + "No such mode", as ArduCopter
+    assert rig.command(R.MAV_CMD_DO_SET_MODE, 1, 99) == R.MAV_RESULT_FAILED
+    wait_msg(rig.client, "STATUSTEXT", lambda m: m.text == "No such mode 99")
     # arming refused in a non-armable mode (pre-arm check) with a reason
     assert rig.set_mode("BRAKE") == R.MAV_RESULT_ACCEPTED
     assert rig.arm() == R.MAV_RESULT_FAILED
-    wait_msg(rig.client, "STATUSTEXT", lambda m: m.text.startswith("PreArm"))
+    wait_msg(rig.client, "STATUSTEXT", lambda m: m.text == "Arm: BRAKE mode not armable")
     assert not rig.vehicle.armed
     # bad param1 of ARM_DISARM
     assert rig.command(R.MAV_CMD_COMPONENT_ARM_DISARM, 7) == R.MAV_RESULT_DENIED
@@ -152,7 +153,7 @@ def test_bad_commands_get_the_right_ack(make_rig):
     assert rig.set_mode("GUIDED") == 0 and rig.arm() == 0
     assert rig.takeoff(float("nan")) == R.MAV_RESULT_DENIED
     assert rig.set_mode("LOITER") == 0
-    assert rig.takeoff(5.0) == R.MAV_RESULT_TEMPORARILY_REJECTED
+    assert rig.takeoff(5.0) == R.MAV_RESULT_FAILED
     # REQUEST_MESSAGE of something we do not produce
     assert rig.command(R.MAV_CMD_REQUEST_MESSAGE, R.MAVLINK_MSG_ID_CAMERA_INFORMATION) == R.MAV_RESULT_DENIED
     # commands for another system id are ignored (no ACK)

@@ -55,16 +55,24 @@ def test_not_ready_then_ready(make_rig, flavour: str) -> None:
     assert not sys_status.onboard_control_sensors_health & m.MAV_SYS_STATUS_SENSOR_GPS
     assert not sys_status.onboard_control_sensors_health & m.MAV_SYS_STATUS_PREARM_CHECK
 
-    prearm = "PreArm: " if flavour == "ardupilot" else "Preflight Fail: "
+    prearm = "Arm: " if flavour == "ardupilot" else "Preflight Fail: "  # ArduPilot: "Arm: " on the command
     c.mav.command_long_send(v.sysid, 1, m.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
     result, text = text_after(c, m.MAV_CMD_COMPONENT_ARM_DISARM, prearm)
     assert result == m.MAV_RESULT_FAILED
-    expected = {"PreArm: EKF attitude is bad", "PreArm: Need 3D Fix"} if flavour == "ardupilot" else {
+    expected = {"Arm: EKF attitude is bad", "Arm: Need 3D Fix"} if flavour == "ardupilot" else {
         "Preflight Fail: Attitude not valid", "Preflight Fail: GPS fix too low"}
     assert text in expected
-    assert rig.takeoff(5.0) == m.MAV_RESULT_TEMPORARILY_REJECTED
+    assert rig.takeoff(5.0) == (m.MAV_RESULT_FAILED if flavour == "ardupilot" else m.MAV_RESULT_TEMPORARILY_REJECTED)
+    # ArduCopter skips its mode checks while disarmed (arming checks instead): GUIDED is
+    # accepted before ready, and arming in it refused; PX4 refuses OFFBOARD.
     guided = "GUIDED" if flavour == "ardupilot" else "OFFBOARD"
-    assert rig.set_mode(guided) == m.MAV_RESULT_FAILED
+    assert rig.set_mode(guided) == (m.MAV_RESULT_ACCEPTED if flavour == "ardupilot" else m.MAV_RESULT_FAILED)
+    if flavour == "ardupilot":  # armed (forced), the mode checks apply: GUIDED needs a position
+        assert rig.set_mode("STABILIZE") == m.MAV_RESULT_ACCEPTED
+        assert rig.command(m.MAV_CMD_COMPONENT_ARM_DISARM, 1, 2989) == m.MAV_RESULT_ACCEPTED
+        c.mav.command_long_send(v.sysid, 1, m.MAV_CMD_DO_SET_MODE, 0, 1, 4, 0, 0, 0, 0, 0)
+        assert text_after(c, m.MAV_CMD_DO_SET_MODE, "GUIDED") == (m.MAV_RESULT_FAILED, "Mode change to GUIDED failed: requires position")
+        assert rig.command(m.MAV_CMD_COMPONENT_ARM_DISARM, 0) == m.MAV_RESULT_ACCEPTED
 
     # HOME_POSITION / GPS_GLOBAL_ORIGIN not available yet: ArduPilot accepts the request and
     # sends nothing (GET_HOME_POSITION: FAILED); PX4 denies it.
