@@ -5,7 +5,9 @@ flies to a point; an independent pymavlink observer checks where the vehicle end
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
+from pathlib import Path
 
 import pytest
 from pyproj import Geod
@@ -17,7 +19,8 @@ from procs import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
-MAVPROXY = shutil.which("mavproxy.py") or "mavproxy.py"  # the [test] extra installs it
+# The [test] extra installs it beside this interpreter; PATH may name another installation first.
+MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or shutil.which("mavproxy.py") or "mavproxy.py"
 
 
 def test_mavproxy_connects_arms_and_flies_guided():
