@@ -134,6 +134,8 @@ def test_lockstep_process_advances_only_on_zenoh_ticks():
     ],
 )
 def test_bad_input_exits_2_without_traceback(args, fragment):
+    if "--mavlink" not in args:  # never the default port: another program (e.g. SITL) may hold it
+        args = [*args, "--mavlink", "tcpin:127.0.0.1:0"]
     proc = Proc(fimnav("vehicle", *args))
     try:
         rc = proc.wait(30)
