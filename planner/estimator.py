@@ -217,6 +217,7 @@ class EstimatorConfig:
     recheck_every: int = 5
     recheck_threshold: float = 25.0
     recheck_trust: float = 0.1
+    recheck_window_rows: int = 50
     consistency_threshold: float | None = None
     consistency_forgetting: float = 0.9
     lm_damping: float = 1e-3
@@ -235,6 +236,10 @@ class EstimatorConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.window_rows, int) and self.window_rows >= 0):
             raise ValueError(f"EstimatorConfig.window_rows: expected an integer >= 0, found {self.window_rows!r}")
+        if not (isinstance(self.recheck_window_rows, int) and self.recheck_window_rows >= 0):
+            raise ValueError(
+                f"EstimatorConfig.recheck_window_rows: expected an integer >= 0, found {self.recheck_window_rows!r}"
+            )
         if not (isinstance(self.recheck_every, int) and self.recheck_every >= 0):
             raise ValueError(f"EstimatorConfig.recheck_every: expected an integer >= 0, found {self.recheck_every!r}")
         for name in ("iterations", "init_iterations"):
@@ -337,6 +342,8 @@ class EstimatorState:
     pl_dropped_vector: FloatArray
     pl_range_matrix: FloatArray
     pl_range_vector: FloatArray
+    range_window: Measurements
+    range_window_weight: FloatArray
     window: Measurements
     window_weight: FloatArray
     measurement_count: NDArray[np.int64]
@@ -378,6 +385,8 @@ def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | N
         pl_dropped_vector=np.zeros(b + (4,)),
         pl_range_matrix=np.zeros(b + (4, 4)),
         pl_range_vector=np.zeros(b + (4,)),
+        range_window=empty_measurements(b, config.recheck_window_rows),
+        range_window_weight=np.zeros(b + (config.recheck_window_rows,)),
         window=empty_measurements(b, config.window_rows),
         window_weight=np.zeros(b + (config.window_rows,)),
         measurement_count=np.zeros(b, dtype=np.int64),
@@ -824,6 +833,20 @@ def _distance_scale(rows: _Rows, config: EstimatorConfig) -> FloatArray:
     return np.broadcast_to(scale[..., None], rows.zr.shape)
 
 
+def _range_scale(x: FloatArray, initialised: BoolArray, rows: _Rows, config: EstimatorConfig) -> FloatArray:
+    """Distance scale D (..., K) of the re-check's squared-range weights: |x − p| at the
+    estimate x (..., 3) where the element is initialised, else the median measured range of
+    the rows (:func:`_distance_scale`)."""
+    rx = x[..., 0, None] - rows.px
+    ry = x[..., 1, None] - rows.py
+    rz = x[..., 2, None] - rows.pz
+    scale = np.sqrt(np.maximum(rx * rx + ry * ry + rz * rz, 1.0))
+    if not np.all(initialised):
+        scale = scale.copy()
+        scale[~initialised] = _distance_scale(rows.subset(~initialised), config)
+    return scale
+
+
 def _pl_solve(A: FloatArray, b: FloatArray, config: EstimatorConfig) -> tuple[FloatArray, BoolArray]:
     """Solve the pseudo-linear normal equations (n, 4, 4), (n, 4) -> p0 (n, 3), ok (n,).
 
@@ -1096,6 +1119,10 @@ def update(
     W = config.window_rows
     if state.window.count != W:
         raise ValueError(f"EstimatorState: window has {state.window.count} rows, config.window_rows is {W}")
+    if state.range_window.count != config.recheck_window_rows:
+        raise ValueError(
+            f"EstimatorState: range window has {state.range_window.count} rows, config.recheck_window_rows is {config.recheck_window_rows}"
+        )
     new = _check(measurements, bshape)
     lam = config.forgetting
     M = new.count
@@ -1159,12 +1186,21 @@ def update(
     # threshold AND the new records prefer it.
     pr_A = state.pl_range_matrix * lam
     pr_b = state.pl_range_vector * lam
-    recheck = state.initialised & (np.einsum("...ii->...", pr_A) > 0.0)
+    range_weight = state.range_window_weight * lam
+    if config.recheck_every > 0 and M > 0 and (state.calls + 1) % config.recheck_every == 0 and np.any(state.initialised):
+        # The re-check's system: the summary plus the ranges still waiting in the range
+        # window, weighted at the previous estimate.
+        pend = _rows(state.range_window, range_weight, channel, config)
+        A_p, b_p = _pl_range_rows(pend, _range_scale(x_prev, state.initialised, pend, config), channel.gamma)
+        sys_A, sys_b = pr_A + A_p, pr_b + b_p
+    else:
+        sys_A, sys_b = pr_A, pr_b
+    recheck = state.initialised & (np.einsum("...ii->...", sys_A) > 0.0)
     if config.recheck_every > 0 and M > 0 and (state.calls + 1) % config.recheck_every == 0 and np.any(recheck):
-        x_pl, ok = _pl_solve(pr_A[recheck], pr_b[recheck], config)
+        x_pl, ok = _pl_solve(sys_A[recheck], sys_b[recheck], config)
         cand = x_prev.copy()
         cand[recheck] = config.clip(np.where(ok[:, None], x_pl, x_prev[recheck]))
-        drop = _pl_cost(pr_A, pr_b, x_prev) - _pl_cost(pr_A, pr_b, cand)
+        drop = _pl_cost(sys_A, sys_b, x_prev) - _pl_cost(sys_A, sys_b, cand)
         fresh = new_rows.with_weights(
             np.where(initialised[..., None], new_rows.ar, 0.0),
             np.where(initialised[..., None], new_rows.aa, 0.0),
@@ -1178,7 +1214,7 @@ def update(
         if np.any(move):
             # The prior linearised in the other basin is replaced by the PL summary of the
             # ranges (R marginalised out); the past bearings' information is dropped.
-            lam_r, eta_r = _schur_prior(pr_A, pr_b)
+            lam_r, eta_r = _schur_prior(sys_A, sys_b)
             x = np.where(move[..., None], cand, x)
             prior_info = np.where(move[..., None, None], lam_r, prior_info)
             # Claimed information after a move: only ``recheck_trust`` of the PL summary (the
@@ -1188,20 +1224,6 @@ def update(
             prior_vec = np.where(move[..., None], eta_r, prior_vec)
             fresh_start = fresh_start | move
             long_run = long_run | move
-    # Squared-range PL equations of the new records, weighted at the current estimate.
-    if M > 0:
-        rx = x[..., 0, None] - new_rows.px
-        ry = x[..., 1, None] - new_rows.py
-        rz = x[..., 2, None] - new_rows.pz
-        d_est = np.sqrt(rx * rx + ry * ry + rz * rz)
-        scale = np.maximum(d_est, 1.0)
-        if not np.all(initialised):
-            scale = scale.copy()
-            scale[~initialised] = _distance_scale(new_rows.subset(~initialised), config)
-        A_r, b_r = _pl_range_rows(new_rows, scale, channel.gamma)
-        pr_A = pr_A + A_r
-        pr_b = pr_b + b_r
-
     active = initialised
     if not np.all(active):
         act = active[..., None]
@@ -1320,6 +1342,36 @@ def update(
     info = np.where((active & finite)[..., None, None], fisher, 0.0)
     observable = active & finite & (_normalised_det(info) >= config.min_rcond)
 
+    # The new ranges join the range window; the oldest rows leave it and join the re-check's
+    # squared-range summary, weighted at this call's estimate (a record's weight 1/(4D²σ_r²(D))
+    # ∝ D⁻⁴ is frozen when it joins: a window of later estimates, not the first poor ones).
+    if M > 0:
+        P = config.recheck_window_rows
+        new_ranges = Measurements(new.positions_m, new.range_m, np.full(new.range_m.shape, np.nan), np.full(new.range_m.shape, np.nan), new.los)
+        new_weight = np.where(new_row_ok & np.isfinite(new.range_m), 1.0, 0.0)
+        if P > 0:
+            pool = _concat(state.range_window, new_ranges)
+            pool_weight = np.concatenate((range_weight, new_weight), axis=-1)
+            # Valid rows at the end, oldest first (stable sort): the first M rows leave.
+            order = np.argsort(pool_weight > 0.0, axis=-1, kind="stable")
+            pool = _take(pool, order)
+            pool_weight = np.take_along_axis(pool_weight, order, axis=-1)
+            leaving = Measurements(pool.positions_m[..., :M, :], pool.range_m[..., :M], pool.azimuth_rad[..., :M], pool.elevation_rad[..., :M], pool.los[..., :M])
+            leaving_weight = pool_weight[..., :M]
+            range_window = Measurements(pool.positions_m[..., M:, :], pool.range_m[..., M:], pool.azimuth_rad[..., M:], pool.elevation_rad[..., M:], pool.los[..., M:])
+            range_weight = pool_weight[..., M:]
+        else:
+            leaving, leaving_weight = new_ranges, new_weight
+            range_window = state.range_window
+        lrows = _rows(leaving, leaving_weight, channel, config)
+        if np.any(lrows.ar > 0.0):
+            A_r, b_r = _pl_range_rows(lrows, _range_scale(x, initialised, lrows, config), channel.gamma)
+            pr_A = pr_A + A_r
+            pr_b = pr_b + b_r
+    else:
+        range_window = state.range_window
+    range_window_weight = range_weight
+
     if W > 0:
         window = Measurements(
             allm.positions_m[..., K - W :, :],
@@ -1347,6 +1399,8 @@ def update(
         pl_dropped_vector=dr_b,
         pl_range_matrix=pr_A,
         pl_range_vector=pr_b,
+        range_window=range_window,
+        range_window_weight=range_window_weight,
         window=window,
         window_weight=window_weight,
         measurement_count=count,
