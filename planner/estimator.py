@@ -58,7 +58,8 @@ Method, per call of :func:`update` and per batch element (vectorised over both):
    biweight (no influence beyond ``tukey_c``σ); steps capped at half the mean range.
 3. Safeguards against a frozen wrong linearisation: *suspect* elements (too many records far
    from the estimate) get a deflated prior and Huber iterations; every ``recheck_every``
-   calls the squared-range PL solution of all past ranges replaces the estimate when it is
+   calls the squared-range PL solution of all past ranges (each weighted at the estimate of
+   the call it leaves a raw range window, ``recheck_window_rows``) replaces the estimate when it is
    much better on the PL cost and on the new records, claiming only ``recheck_trust`` of that
    solution's information (it can be biased by tens of metres). Optional innovation gate;
    optional score test of the recent records against the estimate (``consistency_threshold``).
@@ -180,6 +181,12 @@ class EstimatorConfig:
             squared-range PL solution can be biased by tens of metres (NLOS ranges, 74 %
             relative noise), and claiming every range's information there made a wrong estimate
             a confident one (the source keep-out around it then missed the source).
+        recheck_window_rows: ranges kept raw before they join the re-check's squared-range
+            summary (0: at once). Each range's weight 1/(4D²σ_r²(D)) ∝ D⁻⁴ is fixed when it
+            joins, D the distance from the estimate of that call: joining later, at a settled
+            estimate, keeps the first ranges (weighted at a poor first estimate, D several
+            times too short) from dominating the summary. The re-check uses the summary plus
+            the ranges still in the window, weighted at the current estimate.
         consistency_threshold: χ² threshold (3 degrees of freedom) of the score test of the
             recent records against the estimate (None, the default, disables it; e.g. 25 ≈
             the 1.5·10⁻⁵ upper quantile of χ²₃); a failed test marks the element suspect and
