@@ -16,8 +16,9 @@ publishes the measurement of step k; the planner waits for telemetry stamped ≥
 that measurement, and publishes ``Done(k)`` once its setpoint is on the wire.
 
 Real time (external autopilots, docs/external-autopilots.md): the planner detects the
-autopilot (HEARTBEAT.autopilot), requests its streams, waits until it is ready to fly (GPS,
-EKF, home, EKF origin; the log says what is missing), takes off by the autopilot's rules
+autopilot (HEARTBEAT.autopilot), requests its streams, checks that the vehicle's clock runs
+at the planner's speed-up (its time_boot_ms against the wall clock), waits until it is ready to
+fly (GPS, EKF, home, EKF origin; the log says what is missing), takes off by the autopilot's rules
 (ArduPilot: GUIDED, arm, NAV_TAKEOFF; PX4: setpoint stream first, OFFBOARD, arm) and flies to
 its start. Step k then begins at wall time ``t0 + k·dt/speedup`` on a grid shared by every
 planner of the mission (UNIX time multiples of dt/speedup, or ``--start-at``); the own
@@ -835,6 +836,7 @@ class PlannerNode:
         last_report = -math.inf
         last_request = self.wall()
         while True:
+            self._clock_verdict()  # a vehicle on another clock is refused at once, not after its readiness
             missing = link.not_ready(require_gps=self.frame == "global")
             if not missing:
                 return
@@ -857,21 +859,30 @@ class PlannerNode:
         mission clock (``--speedup``): e.g. a SITL at ×1 under a planner at ×5, whose steps
         would be five times too short for the vehicle. The rate is the vehicle's
         ``time_boot_ms`` against the wall clock (:class:`comms.mavlink_client.ClockWatch`)
-        over at least 1.5 wall seconds; a real autopilot's is 1."""
+        over at least 1.5 wall seconds; a real autopilot's is 1. Checked as soon as it can be
+        measured (during the readiness wait) and required before take-off."""
+        if self.vehicle_clock_rate is None:
+            self._wait(lambda: self._clock_verdict(), CLOCK_CHECK_TIMEOUT_S, "time_boot_ms stamps to measure the vehicle's clock rate")
+
+    def _clock_verdict(self) -> bool:
+        """Whether the vehicle's clock rate is known (and matches; NodeError if not)."""
+        if self.vehicle_clock_rate is not None:
+            return True
         link = self._require_link()
-        self._wait(lambda: link.clock.rate() is not None, CLOCK_CHECK_TIMEOUT_S, "time_boot_ms stamps to measure the vehicle's clock rate")
         rate = link.clock.rate()
-        assert rate is not None
+        if rate is None:
+            return False
         s = self.o.speedup
         span = link.clock.span_s()
         log.info("uav %d: vehicle clock x%.2f of wall time (time_boot_ms over %.1f s); this planner x%g", self.o.uav, rate, span, s)
-        self.vehicle_clock_rate = rate
         if abs(rate / s - 1.0) > CLOCK_RATE_TOLERANCE:
             raise NodeError(
                 f"uav {self.o.uav}: the vehicle's clock runs at x{rate:.2f} of wall time (its time_boot_ms over {span:.1f} s) "
                 f"but this planner's mission clock at x{s:g} (--speedup): start the vehicle (SITL --speedup, fimnav vehicle "
                 f"--speedup) and the planner at the same speed-up; not taking off"
             )
+        self.vehicle_clock_rate = rate
+        return True
 
     def _preflight_realtime(self) -> None:
         """Heartbeat, flavour, streams, readiness, mode, arm, take-off and flight to the
@@ -890,8 +901,8 @@ class PlannerNode:
         self._request_streams()
         link.request_message(MSG_HOME_POSITION)
         link.request_message(MSG_GPS_GLOBAL_ORIGIN)
-        self._check_clock()
         self._ready_wait()
+        self._check_clock()
         origin = link.telemetry.origin_global
         assert origin is not None
         shared = self.mission_frame.matches(*origin)
