@@ -32,7 +32,8 @@ the smoothed optimum's.
 Solver: SLSQP (scipy.optimize) over the 3N coordinates with analytic gradients of the cost
 (:func:`planner.fim.cost_gradient`, per drone, with the LOS weight's gradient) and of the
 constraints, from ``starts`` random starts drawn from ``numpy.random.default_rng(seed)`` (no
-global RNG): azimuth uniform, altitude uniform in the box, distance uniform in [R_S, 1.1 R_S].
+global RNG): distance uniform in [R_S, 1.1 R_S], uniform on that sphere within the altitude
+box, in LOS where a few draws find it (:func:`_random_start`).
 The A cost is minimised as ln tr J⁻¹ (same minimiser, better scaled). The result is the best
 start whose placement keeps every distance (to :data:`FEASIBILITY_TOL_M`). A local method from
 a few starts: the value is an upper bound on the global optimum, tight in the tested cases
@@ -75,6 +76,8 @@ LOS_SOFTNESS_SCHEDULE_M: tuple[float, ...] = (2.0, 0.5)
 LINK_SAMPLES: int = 64
 #: A placement keeps its distances when no margin is below −this (m).
 FEASIBILITY_TOL_M: float = 1e-6
+#: Draws of a start position before an NLOS one is kept (:func:`_random_start`).
+START_LOS_TRIES: int = 20
 #: SLSQP's iteration cap and tolerance on the (log-scaled) cost, per stage.
 SLSQP_MAXITER: int = 400
 SLSQP_FTOL: float = 1e-10
@@ -327,13 +330,24 @@ class _Problem:
         return float(value), float(peb), los
 
 
-def _random_start(gen: np.random.Generator, source: FloatArray, n: int, bounds: PlacementBounds) -> FloatArray:
-    """N positions at a distance uniform in [R_S, 1.1 R_S], azimuth uniform, z uniform in the box."""
-    az = gen.uniform(0.0, 2.0 * math.pi, n)
-    z = gen.uniform(bounds.z_min_m, bounds.z_max_m, n)
-    d = bounds.source_m * gen.uniform(1.0, 1.1, n)
-    rho = np.sqrt(np.maximum(d * d - (z - source[2]) ** 2, 0.0))
-    return np.stack([source[0] + rho * np.cos(az), source[1] + rho * np.sin(az), z], -1)
+def _random_start(gen: np.random.Generator, source: FloatArray, n: int, bounds: PlacementBounds, bmin: FloatArray, bmax: FloatArray) -> FloatArray:
+    """N positions at a distance d uniform in [R_S, 1.1 R_S] from the source, uniform on the
+    part of that sphere inside the altitude box (azimuth uniform, z uniform), each redrawn up to
+    :data:`START_LOS_TRIES` times while its link is NLOS: deep in a shadow the information a
+    link carries does not depend on where it is (a bearing carries none), so no gradient would
+    lead the drone out."""
+    out = np.empty((n, 3))
+    for j in range(n):
+        for _ in range(START_LOS_TRIES):
+            d = bounds.source_m * gen.uniform(1.0, 1.1)
+            lo, hi = max(bounds.z_min_m, source[2] - d), min(bounds.z_max_m, source[2] + d)
+            z = gen.uniform(lo, hi) if lo <= hi else min(max(source[2], bounds.z_min_m), bounds.z_max_m)
+            az = gen.uniform(0.0, 2.0 * math.pi)
+            rho = math.sqrt(max(d * d - (z - source[2]) ** 2, 0.0))
+            out[j] = (source[0] + rho * math.cos(az), source[1] + rho * math.sin(az), z)
+            if bmin.shape[0] == 0 or bool(line_of_sight(out[j], source, bmin, bmax)):
+                break
+    return out
 
 
 def optimal_placement(
@@ -389,7 +403,7 @@ def optimal_placement(
     cons = {"type": "ineq", "fun": prob.constraints, "jac": prob.constraints_jacobian}
     zb = [(None, None), (None, None), (bounds.z_min_m, bounds.z_max_m)] * n
     gen = np.random.default_rng(seed)
-    x0s = [_random_start(gen, src, n, bounds) for _ in range(starts)]
+    x0s = [_random_start(gen, src, n, bounds, bmin, bmax) for _ in range(starts)]
     if initial_positions is not None:
         x0s.insert(0, np.asarray(initial_positions, dtype=float).reshape(n, 3))
     stages = LOS_SOFTNESS_SCHEDULE_M if bmin.shape[0] else LOS_SOFTNESS_SCHEDULE_M[:1]
