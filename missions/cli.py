@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_vehicle",
     "missions.cmd_check",
     "missions.cmd_montecarlo",
+    "missions.cmd_optimum",
     "missions.cmd_plan",
     "missions.cmd_payload",
     "missions.cmd_launch",
