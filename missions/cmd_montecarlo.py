@@ -32,6 +32,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one run each (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--optimum", action="store_true",
+                   help="add to each run's summary the optimal placement's PEB (fimnav optimum, at the final source "
+                        "position, the safe rule's end-of-step distances) and the ratio final PEB / optimum")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.set_defaults(func=run)
 
@@ -84,14 +87,21 @@ def run(args: argparse.Namespace) -> int:
                 for spec, result in zip(specs, pool.imap(functools.partial(_simulate, oracle=args.oracle_estimate, progress=None), specs)):
                     results.append(result)
                     bar.update(spec.steps)
-    summaries = write_results(results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures)
+    extras = None
+    if args.optimum:
+        from missions.cmd_optimum import run_optimum_summary
+
+        extras = [run_optimum_summary(r) for r in results]
+    summaries = write_results(results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures, extras=extras)
     wall = time.perf_counter() - t0
-    print(f"{'run':<34} {'PEB0 [m]':>9} {'PEB_K [m]':>10} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}")
+    opt_head = f" {'PEB* [m]':>9} {'PEB_K/PEB*':>10}" if args.optimum else ""
+    print(f"{'run':<34} {'PEB0 [m]':>9} {'PEB_K [m]':>10} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}{opt_head}")
     for s in summaries:
         nviol = sum(s["violations"].values())
+        opt = f" {_f(s['optimum']['peb_m']):>9} {_f(s['final_peb_over_optimum']):>10}" if args.optimum else ""
         print(
             f"{s['run']:<34} {_f(s['initial_peb_mean_m']):>9} {_f(s['final_peb_mean_m']):>10} "
-            f"{_f(s['final_estimate_error_median_m']):>10} {nviol:>11} {s['runtime_s']:>9.1f}"
+            f"{_f(s['final_estimate_error_median_m']):>10} {nviol:>11} {s['runtime_s']:>9.1f}{opt}"
         )
     print(f"results: {out}  (wall {wall:.1f} s)")
     return 0

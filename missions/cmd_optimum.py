@@ -86,6 +86,23 @@ def placement_summary(placement: Any) -> dict[str, Any]:
     }
 
 
+def run_optimum_summary(result: Any, starts: int | None = None, seed: int = 0) -> dict[str, Any]:
+    """``{"optimum": ..., "final_peb_over_optimum": ...}`` for a
+    :class:`missions.simulator.SimulationResult` (``fimnav montecarlo --optimum``): the optimum
+    of its mission and criterion at the source's position after the run's last step, with the
+    default rule's distances ("filter"; about the true source for an ``--oracle-estimate`` run),
+    and the run's final mean PEB over it (None when that PEB is undefined). ``starts``: default
+    :data:`DEFAULT_STARTS`."""
+    spec = result.spec
+    starts = DEFAULT_STARTS if starts is None else starts
+    m = spec.mission
+    oracle = bool(result.extra.get("oracle_estimate", 0.0))
+    p = mission_optimum(m, spec.criterion, starts, seed, "filter", oracle, time_s=spec.steps * m.dt_s)
+    final = float(result.peb_stats()["mean"][-1])
+    ratio = final / p.peb_m if math.isfinite(final) and p.peb_m > 0.0 else None
+    return {"optimum": placement_summary(p) | {"oracle_estimate": oracle}, "final_peb_over_optimum": ratio}
+
+
 def run(args: argparse.Namespace) -> int:
     """Load the mission, compute its optimum, print it. Exit status 0."""
     from missions.loader import load_mission, parse_overrides

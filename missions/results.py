@@ -12,7 +12,9 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
       runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
       runs/<run>/summary.json   final PEB, estimate error, violations per constraint, run time
                                 (with injected comms faults: "faults", the PEB penalty against
-                                the same mission without faults)
+                                the same mission without faults; with ``fimnav montecarlo
+                                --optimum``: "optimum", the optimal placement's PEB, and
+                                "final_peb_over_optimum")
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
 was used).
@@ -124,8 +126,9 @@ def _num(x: float) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write ``runs/<run>/`` for one run; return its summary (``penalty``: see :func:`summarize`)."""
+def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``runs/<run>/`` for one run; return its summary (``penalty``: see :func:`summarize`;
+    ``extra``: entries added to the summary, e.g. the optimum of ``fimnav montecarlo --optimum``)."""
     run_dir = out / "runs" / run_name(result)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "mission.yaml").write_text(mission_to_yaml(result.spec.mission))
@@ -146,7 +149,7 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
             for i in range(pos.shape[1]):
                 e = est[min(k, K - 1), i]
                 w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
-    summary = summarize(result, penalty)
+    summary = summarize(result, penalty) | (extra or {})
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -161,14 +164,17 @@ def write_results(
     command: Sequence[str] = (),
     figures: bool = True,
     penalties: Sequence[dict[str, Any] | None] | None = None,
+    extras: Sequence[dict[str, Any] | None] | None = None,
 ) -> list[dict[str, Any]]:
     """Write the whole results directory for one or several runs; return the summaries.
 
     ``penalties``: per run, its fault penalty if already computed (see :func:`summarize`).
+    ``extras``: per run, entries added to its summary (see :func:`write_run`).
     """
     out.mkdir(parents=True, exist_ok=True)
     pens = list(penalties) if penalties is not None else [None] * len(results)
-    summaries = [write_run(r, out, p) for r, p in zip(results, pens, strict=True)]
+    exs = list(extras) if extras is not None else [None] * len(results)
+    summaries = [write_run(r, out, p, e) for r, p, e in zip(results, pens, exs, strict=True)]
     doc = {
         "command": list(command),
         "python": platform.python_version(),

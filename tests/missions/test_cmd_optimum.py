@@ -36,3 +36,21 @@ def test_optimum_bad_starts_exits_2() -> None:
     out = _run("paper/joint", "--starts", "0")
     assert out.returncode == 2
     assert "--starts" in out.stderr
+
+
+def test_montecarlo_optimum_adds_the_ratio_to_each_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    import missions.cmd_optimum
+    from missions.cli import main
+
+    monkeypatch.setattr(missions.cmd_optimum, "DEFAULT_STARTS", 1)
+    out = tmp_path / "mc"
+    assert main(["montecarlo", "paper/joint", "--trials", "1", "--steps", "3", "--no-figures", "--optimum", "--oracle-estimate", "--out", str(out)]) == 0
+    assert "PEB_K/PEB*" in capsys.readouterr().out
+    s = json.loads((out / "runs" / "paper_joint_A" / "summary.json").read_text())
+    opt = s["optimum"]
+    assert opt["oracle_estimate"] is True and opt["margins"] == "filter" and opt["starts"] == 1
+    assert opt["source_distance_min_m"] == pytest.approx(50.0 + 0.6428, abs=1e-3)  # no inflation about the true source
+    assert s["final_peb_over_optimum"] == pytest.approx(s["final_peb_mean_m"] / opt["peb_m"])
+    assert json.loads((out / "summary.json").read_text())["runs"][0]["optimum"]["peb_m"] == opt["peb_m"]
