@@ -32,12 +32,9 @@ from tests.external.helpers import Proc, start_vehicle
 
 from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
 
-try:
-    from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
-except ImportError as exc:  # the helpers are not there: nothing to run against
-    _CFG, _REASON = None, f"tests/sitl/sitl.py not importable ({exc})"
-else:
-    _CFG, _REASON = sitl_config()
+from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
+
+_CFG, _REASON = sitl_config()
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
