@@ -137,7 +137,7 @@ def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path
     assert f"fimnav code from {MISSIONS_DIR}" in (out / "logs" / "planner_1.log").read_text()
 
 
-@pytest.mark.parametrize("fork_server", [True, False], ids=["forked-planners", "fresh-interpreters"])
+@pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
 def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
     """SIGKILL to the launcher: nothing stops the children for it; each notices by itself
     (the watchdog pipe reads end of file) and stops."""
@@ -228,7 +228,7 @@ class CommandLaunch(Launch):
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=cwd)
 
 
-@pytest.mark.parametrize("fork_server", [True, False], ids=["forked-planners", "fresh-interpreters"])
+@pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
 def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
     """The launcher started like the console script of an installed copy (its code found on its
     ``sys.path``, not in the working directory), from a directory that holds another

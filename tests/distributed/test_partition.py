@@ -272,6 +272,7 @@ POSITION_TOL_M = 0.2
 MERGE_WITHIN_S = 6.0
 
 
+@pytest.mark.slow  # 25 s of real time; the router-level cut and merge stays in the default run
 def test_a_partitioned_swarm_keeps_flying_safely_and_merges_again(tmp_path: Path, procs: list[Proc]) -> None:
     """2 + 2 drones at ×4: linked, cut (the link router killed), restored (restarted)."""
     run_partition(tmp_path, procs, Scenario(groups=((1, 2), (3, 4)), speedup=4.0, steps=45, linked_steps=6, cut_steps=10, merged_steps=6))

@@ -111,7 +111,8 @@ def planner_then_vehicle(tmp_path: Path, procs: list[Proc], flavour: str, peer: 
     return planner, tlog
 
 
-@pytest.mark.parametrize("flavour", ["ardupilot", pytest.param("px4", marks=pytest.mark.slow)])
+# ArduPilot readiness is also checked against the recorded SITL transcript (test_vehicle_vs_ardupilot).
+@pytest.mark.parametrize("flavour", [pytest.param("ardupilot", marks=pytest.mark.slow), "px4"])
 def test_planner_waits_for_a_starting_vehicle_then_flies(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
     steps = 3
     mission = write_mission(tmp_path / "m.yaml", f"ready{flavour}", [[10.0, 20.0, 6.0]], steps, "land")

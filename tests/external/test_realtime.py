@@ -48,7 +48,7 @@ def stop_and_read(vehicle: Proc, tlog: Path):  # noqa: ANN201
     return read_tlog(tlog)
 
 
-@pytest.mark.slow  # the default run flies both flavours in real time in test_launch_realtime, test_readiness and the link-loss test
+@pytest.mark.slow  # the default run flies both flavours in real time in test_launch_realtime, test_readiness and test_clock_rate
 def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list[Proc]) -> None:
     """Drone 1 on an ArduPilot-flavoured vehicle, drone 2 on a PX4-flavoured one, each with its
     own connection string in the mission and its flavour detected from HEARTBEAT.autopilot:
@@ -116,7 +116,8 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
     assert MAV_CMD_NAV_TAKEOFF not in t2.commands  # PX4 climbs in OFFBOARD on the stream
 
 
-@pytest.mark.parametrize("flavour", ["px4", pytest.param("ardupilot", marks=pytest.mark.slow)])
+@pytest.mark.slow  # 16 s of real time; link loss against real ArduPilot SITL: tests/sitl/test_sitl_link_loss.py
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
 def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
     """The radio link is cut mid-mission (a UDP relay stops forwarding): the planner notices
     within 3 s, publishes its last record flagged stale, and when the link returns resumes

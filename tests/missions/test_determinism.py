@@ -38,7 +38,7 @@ def _without_timing(obj: Any) -> Any:
     return obj
 
 
-@pytest.mark.parametrize("extra", [(), ("--set", "comms.faults.loss=0.2", "--set", "comms.faults.extra_delay_steps=2")], ids=["no-faults", "faults"])
+@pytest.mark.parametrize("extra", [pytest.param((), marks=pytest.mark.slow), ("--set", "comms.faults.loss=0.2", "--set", "comms.faults.extra_delay_steps=2")], ids=["no-faults", "faults"])
 def test_same_command_twice_gives_identical_summaries(tmp_path: Path, extra: tuple[str, ...]) -> None:
     first = _montecarlo(tmp_path / "first", jobs=2, threads=None, extra=extra)
     second = _montecarlo(tmp_path / "second", jobs=1, threads="1", extra=extra)

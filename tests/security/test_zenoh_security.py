@@ -112,7 +112,7 @@ def tls_spec(pki: dict[str, Any], node: Node) -> ZenohSpec:
     return ZenohSpec(tls=ZenohTls(root_ca_certificate=pki["ca"].certificate, certificate=node.certificate, private_key=node.private_key))
 
 
-@pytest.mark.parametrize("attack", ["plain_tcp", "tls_without_client_certificate", "certificate_of_another_ca"])
+@pytest.mark.parametrize("attack", ["plain_tcp", "tls_without_client_certificate", pytest.param("certificate_of_another_ca", marks=pytest.mark.slow)])
 def test_mutual_tls_keeps_out_a_peer_without_a_valid_certificate(pki: dict[str, Any], attack: str) -> None:
     port = free_port()
     ca = str(pki["ca"].certificate)
@@ -137,7 +137,7 @@ def password_file(tmp_path: Path) -> Path:
     return secret(tmp_path / "zenoh.password", "correct horse battery staple\n")
 
 
-@pytest.mark.parametrize("attack", ["no_credentials", "wrong_password", "wrong_user"])
+@pytest.mark.parametrize("attack", ["no_credentials", "wrong_password", pytest.param("wrong_user", marks=pytest.mark.slow)])
 def test_user_password_keeps_out_a_peer_without_the_credentials(password_file: Path, attack: str) -> None:
     port = free_port()
     spec = ZenohSpec(auth=ZenohAuth(user="swarm", password_file=password_file))
