@@ -327,7 +327,8 @@ def test_a_planner_started_by_hand_exits_128_plus_signal(signum: int) -> None:
         assert "launcher" not in run.text()
         run.proc.send_signal(signum)
         assert run.finish(20.0) == 128 + signum, run.text()[-2000:]
-        assert run.text().strip().splitlines()[-1] == f"fimnav plan: stopped by {signal.Signals(signum).name}"
+        # (on a loaded machine the clean-up can be cut short after its 5 s grace: the line says so)
+        assert run.text().strip().splitlines()[-1].startswith(f"fimnav plan: stopped by {signal.Signals(signum).name}"), run.text()[-2000:]
         assert "Traceback" not in run.text()
     finally:
         run.kill_group()
