@@ -33,6 +33,7 @@ def free_port(kind: int) -> int:
         return int(s.getsockname()[1])
 
 
+@pytest.mark.slow  # 24 s of real time; with real ArduPilot SITL: tests/sitl/test_sitl_flight.py (-m sitl)
 def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     key = tmp_path / "drone3.key"
     key.write_bytes(bytes(range(32)))

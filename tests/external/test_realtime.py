@@ -48,7 +48,7 @@ def stop_and_read(vehicle: Proc, tlog: Path):  # noqa: ANN201
     return read_tlog(tlog)
 
 
-@pytest.mark.slow  # the default run flies both flavours in real time in test_launch_realtime, test_readiness and test_clock_rate
+@pytest.mark.slow  # the default run flies planners in real time in test_readiness, test_clock_rate, test_payload and below
 def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list[Proc]) -> None:
     """Drone 1 on an ArduPilot-flavoured vehicle, drone 2 on a PX4-flavoured one, each with its
     own connection string in the mission and its flavour detected from HEARTBEAT.autopilot:
