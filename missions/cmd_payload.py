@@ -91,17 +91,10 @@ class FollowedDrone:
 def build_payload(mission: Any, uav: int) -> Any:
     """The simulated payload of drone ``uav`` (1-based) of ``mission``: its world, role and
     noise stream, as ``fimnav vehicle --mission`` builds it."""
-    from vehicle_sim.payload import Payload, PayloadWorld, roles_to_flags
+    from missions.process_args import payload_world
+    from vehicle_sim.payload import Payload, roles_to_flags
 
-    mins, maxs = mission.obstacle_bounds()
-    world = PayloadWorld(
-        source_position_m=tuple(float(v) for v in mission.source.position_m),  # type: ignore[arg-type]
-        source_velocity_mps=tuple(float(v) for v in mission.source.velocity_mps),  # type: ignore[arg-type]
-        boxes_min_m=tuple(tuple(float(v) for v in row) for row in mins),  # type: ignore[misc]
-        boxes_max_m=tuple(tuple(float(v) for v in row) for row in maxs),  # type: ignore[misc]
-        channel=mission.channel.to_planner(),
-        seed=int(mission.seed),
-    )
+    world = payload_world(mission)
     ranging, bearing = roles_to_flags(mission.drones.roles[uav - 1])
     return Payload(world, uav - 1, sysid=uav, ranging=ranging, bearing=bearing)
 
@@ -110,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
     from comms.geodesy import MissionFrame
     from comms.mavlink_client import MSG_GLOBAL_POSITION_INT, LinkError, VehicleLink, read_signing_key
-    from comms.session import SessionSettings
+    from missions.process_args import zenoh_settings
     from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
     from vehicle_sim.bridge import ZenohBridge
@@ -133,15 +126,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--mavlink: no connection given and the mission has no vehicles.overrides[{args.uav - 1}].payload_connection")
     key_file = args.signing_key or resolved.signing_key_file
     key = read_signing_key(key_file) if key_file is not None else None
-    if args.zenoh_config:
-        try:
-            settings = SessionSettings.from_json(json.loads(args.zenoh_config))
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise UsageError(f"--zenoh-config: expected the JSON written by fimnav launch ({exc})") from None
-    else:
-        settings = SessionSettings.from_mission(mission.zenoh)
-    if args.zenoh_connect:
-        settings = SessionSettings(**{**settings.__dict__, "connect": settings.connect + tuple(args.zenoh_connect)})
+    settings = zenoh_settings(mission, args.zenoh_config, args.zenoh_connect)
 
     stop = threading.Event()
     old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -60,7 +60,7 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Load the mission and fly the node; print a JSON summary on stdout."""
     from comms.mavlink_client import read_signing_key
-    from comms.session import SessionSettings
+    from missions.process_args import zenoh_settings
     from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
     from planner.node import NodeOptions, PlannerNode
@@ -71,15 +71,7 @@ def run(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps: expected a positive integer, found {args.steps}")
-    if args.zenoh_config:
-        try:
-            settings = SessionSettings.from_json(json.loads(args.zenoh_config))
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise UsageError(f"--zenoh-config: expected the JSON written by fimnav launch ({exc})") from None
-    else:
-        settings = SessionSettings.from_mission(mission.zenoh)
-    if args.zenoh_connect:
-        settings = SessionSettings(**{**settings.__dict__, "connect": settings.connect + tuple(args.zenoh_connect)})
+    settings = zenoh_settings(mission, args.zenoh_config, args.zenoh_connect)
     n = mission.drones.count
     if not 1 <= args.uav <= n:
         raise UsageError(f"--uav: expected a drone id in 1..{n}, found {args.uav}")

@@ -161,7 +161,8 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     Drone ``i`` (0-based) of the mission has system id ``i + 1``.
     """
     from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
-    from vehicle_sim.payload import Payload, PayloadWorld, roles_to_flags
+    from missions.process_args import payload_world
+    from vehicle_sim.payload import Payload, roles_to_flags
 
     if args.count < 1:
         raise UsageError(f"--count: expected >= 1, found {args.count}")
@@ -221,15 +222,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         if last > n:
             raise UsageError(f"--sysid/--count: the mission has {n} drones (system ids 1..{n}), asked up to {last}")
         starts = mission.drones.start_positions_m()
-        mins, maxs = mission.obstacle_bounds()
-        world = PayloadWorld(
-            source_position_m=tuple(float(v) for v in mission.source.position_m),  # type: ignore[arg-type]
-            source_velocity_mps=tuple(float(v) for v in mission.source.velocity_mps),  # type: ignore[arg-type]
-            boxes_min_m=tuple(tuple(float(v) for v in row) for row in mins),  # type: ignore[misc]
-            boxes_max_m=tuple(tuple(float(v) for v in row) for row in maxs),  # type: ignore[misc]
-            channel=mission.channel.to_planner(),
-            seed=int(mission.seed),
-        )
+        world = payload_world(mission)
     for i in range(args.count):
         sysid = args.sysid + i
         drone = sysid - 1

@@ -1,0 +1,49 @@
+"""What the process commands (``fimnav plan``, ``fimnav vehicle``, ``fimnav payload``) build
+alike from their arguments and the mission: the Zenoh session settings and the simulated
+payload's world."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from planner.errors import UsageError
+
+if TYPE_CHECKING:  # pragma: no cover - types only
+    from comms.session import SessionSettings
+    from missions.schema import Mission
+    from vehicle_sim.payload import PayloadWorld
+
+
+def zenoh_settings(mission: Mission, zenoh_config: str | None, zenoh_connect: Sequence[str] | None) -> SessionSettings:
+    """The Zenoh session settings of a process: ``--zenoh-config`` (the JSON ``fimnav launch``
+    writes) if given, else the mission's ``zenoh`` section; ``--zenoh-connect`` endpoints added."""
+    from comms.session import SessionSettings
+
+    if zenoh_config:
+        try:
+            settings = SessionSettings.from_json(json.loads(zenoh_config))
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise UsageError(f"--zenoh-config: expected the JSON written by fimnav launch ({exc})") from None
+    else:
+        settings = SessionSettings.from_mission(mission.zenoh)
+    if zenoh_connect:
+        settings = SessionSettings(**{**settings.__dict__, "connect": settings.connect + tuple(zenoh_connect)})
+    return settings
+
+
+def payload_world(mission: Mission) -> PayloadWorld:
+    """The simulated payload's world of ``mission``: the source (position in m, velocity in
+    m/s, mission frame ENU), the buildings' boxes (m), the channel and the seed."""
+    from vehicle_sim.payload import PayloadWorld
+
+    mins, maxs = mission.obstacle_bounds()
+    return PayloadWorld(
+        source_position_m=tuple(float(v) for v in mission.source.position_m),  # type: ignore[arg-type]
+        source_velocity_mps=tuple(float(v) for v in mission.source.velocity_mps),  # type: ignore[arg-type]
+        boxes_min_m=tuple(tuple(float(v) for v in row) for row in mins),  # type: ignore[misc]
+        boxes_max_m=tuple(tuple(float(v) for v in row) for row in maxs),  # type: ignore[misc]
+        channel=mission.channel.to_planner(),
+        seed=int(mission.seed),
+    )
