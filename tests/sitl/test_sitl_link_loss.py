@@ -87,12 +87,15 @@ class TcpRelay:
                     ready, _, _ = select.select(list(pair), [], [], 0.1)
                     done = False
                     for s in ready:
-                        data = s.recv(65536)
+                        try:
+                            data = s.recv(65536)
+                            if data and not self.cut.is_set():
+                                pair[s].sendall(data)
+                        except OSError:  # a side reset the connection (SITL or the planner ended)
+                            data = b""
                         if not data:
                             done = True
                             break
-                        if not self.cut.is_set():
-                            pair[s].sendall(data)
                     if done:
                         break
 
