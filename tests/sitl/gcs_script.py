@@ -261,7 +261,7 @@ def connect(address: str, deadline_s: float = 30.0) -> Any:
         except OSError:
             if time.monotonic() > end:
                 raise
-            time.sleep(0.1)
+            time.sleep(0.1)  # retrying the connection, with the deadline above
 
 
 def _ready(o: Observer) -> bool:

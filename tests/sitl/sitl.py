@@ -109,7 +109,7 @@ def wait_for_bind(inst: SitlInstance, deadline_s: float) -> None:
             raise RuntimeError(f"SITL exited ({inst.proc.returncode}) before listening on {inst.port}:\n{inst.log_tail()}")
         if time.monotonic() > end:
             raise RuntimeError(f"SITL did not listen on {inst.port} within {deadline_s} s:\n{inst.log_tail()}")
-        time.sleep(0.05)
+        time.sleep(0.05)  # polling SITL's log, with the deadline above
 
 
 @contextlib.contextmanager

@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
 from tests.external.helpers import Proc, start_vehicle
 
 from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
@@ -43,14 +44,6 @@ pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG
 START = [0.0, 150.0, 8.0]
 STEPS = 30
 V_MAX = 1.0
-
-
-@pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        p.stop()
 
 
 def write_mission(path: Path, steps: int = STEPS) -> Path:

@@ -30,14 +30,26 @@ from tests.external.helpers import Proc
 
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, write_mission  # noqa: F401 (fixture)
 
-try:
-    from tests.sitl.sitl import SitlInstance, free_port, wait_for_bind
-except ImportError:  # (skipped below with _REASON)
-    pass
+from tests.sitl.sitl import SitlInstance, free_port, wait_for_bind
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
 SPEEDUP = 5.0
+
+
+def wait_for_step(log: Path, step: int, timeout_s: float) -> None:
+    """Wait until the planner's step log (JSON lines) holds ``step``; fail after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            steps = [json.loads(line)["step"] for line in log.read_text().splitlines() if line.strip()]
+        except (OSError, ValueError, KeyError):
+            steps = []  # not written yet, or a line being written
+        if steps and max(steps) >= step:
+            return
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the planner did not log step {step} within {timeout_s} s (last: {max(steps, default=None)})")
+        time.sleep(0.05)  # polling the log file, with the deadline above
 
 
 def start_sitl_on(workdir: Path, port: int, home: str, wipe: bool = True) -> SitlInstance:
@@ -115,12 +127,12 @@ def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path:
                      "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
-        time.sleep(10 * 1.0 / SPEEDUP)  # ten steps
+        wait_for_step(tmp_path / "p.jsonl", 10, 30.0)
         relay.cut.set()
         cut_at = time.monotonic()
         plan.expect(r"vehicle link lost", 5.0, stream="err")
         noticed_s = time.monotonic() - cut_at
-        time.sleep(max(0.0, 3.0 - (time.monotonic() - cut_at)))
+        time.sleep(max(0.0, 3.0 - (time.monotonic() - cut_at)))  # the cut lasts 3 wall seconds: the scenario, not a wait
         relay.cut.clear()
         plan.expect(r"vehicle link back after", 10.0, stream="err")
         plan.expect(r"resumed in GUIDED", 10.0, stream="err")
@@ -153,10 +165,10 @@ def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp
     sitl = start_sitl_on(tmp_path / "sitl", port, home)
     try:
         plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address,
-                     "--speedup", f"{SPEEDUP:g}", "--preflight-timeout", "180"])
+                     "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
-        time.sleep(1.0)
+        wait_for_step(tmp_path / "p.jsonl", 5, 30.0)  # mid-flight
         sitl.stop(grace_s=0.1)  # SIGTERM then SIGKILL: the autopilot is gone mid-flight
         plan.expect(r"vehicle link lost", 5.0, stream="err")
         sitl = start_sitl_on(tmp_path / "sitl", port, home, wipe=False)  # rebooted, on the ground
