@@ -99,6 +99,12 @@ DATA_STREAM_OF = {MSG_SYS_STATUS: 2, MSG_GPS_RAW_INT: 2, MSG_LOCAL_POSITION_NED:
                   MSG_EKF_STATUS_REPORT: 12, MSG_HOME_POSITION: 12, MSG_EXTENDED_SYS_STATE: 12}
 
 
+#: A vehicle whose frames all fail our signature check for this long (wall s) and at least
+#: :data:`WRONG_KEY_MIN_FRAMES` of them was set up with another key: refused at once.
+WRONG_KEY_AFTER_S = 3.0
+WRONG_KEY_MIN_FRAMES = 5
+
+
 class LinkError(FimnavError):
     """The vehicle refused a command or the link failed."""
 
@@ -589,9 +595,28 @@ class VehicleLink:
         return ""
 
     def wait_heartbeat(self, timeout_s: float = 10.0) -> None:
-        """Wait for the autopilot's heartbeat."""
+        """Wait for the autopilot's heartbeat.
+
+        With a signing key, a vehicle whose every frame for :data:`WRONG_KEY_AFTER_S` carried a
+        signature that does not match ours (and none that does) is refused then, not after
+        ``timeout_s``: its key differs from ours, and waiting longer cannot help.
+        :class:`LinkError` naming the count."""
         start = self.telemetry.heartbeats
-        self.wait_for(lambda: self.telemetry.heartbeats > start, timeout_s, "heartbeat")
+        t0 = self.wall()
+
+        def done() -> bool:
+            if self.telemetry.heartbeats > start:
+                return True
+            sig = self.mav.signing
+            if (self._signing_key is not None and sig.badsig_count >= WRONG_KEY_MIN_FRAMES and sig.goodsig_count == 0
+                    and self.wall() - t0 >= WRONG_KEY_AFTER_S):
+                raise LinkError(
+                    f"vehicle {self.target_system}: every frame from it for {self.wall() - t0:.0f} s "
+                    f"({sig.badsig_count} frames) carried a signature that does not match our signing key: "
+                    "the vehicle was set up with another key (check --signing-key / signing_key_file)")
+            return False
+
+        self.wait_for(done, timeout_s, "heartbeat")
 
     def check_signing(self) -> None:
         """Refuse to go on unsigned with a vehicle that signs its frames (it refuses unsigned

@@ -108,7 +108,9 @@ def run(args: argparse.Namespace) -> int:
     from missions.loader import load_mission, parse_overrides
     from vehicle_sim.bridge import ZenohBridge
 
-    logging.basicConfig(level=args.log_level, stream=sys.stderr, format=f"%(asctime)s payload[{args.uav}] %(levelname)s %(message)s")
+    from missions.process_args import setup_logging
+
+    setup_logging(args.log_level, f"payload[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     n = mission.drones.count

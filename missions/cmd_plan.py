@@ -7,7 +7,6 @@ import json
 import logging
 import math
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +64,9 @@ def run(args: argparse.Namespace) -> int:
     from missions.loader import load_mission, parse_overrides
     from planner.node import NodeOptions, PlannerNode
 
-    logging.basicConfig(level=args.log_level, stream=sys.stderr, format=f"%(asctime)s plan[{args.uav}] %(levelname)s %(message)s")
+    from missions.process_args import setup_logging
+
+    setup_logging(args.log_level, f"plan[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
     logging.getLogger("fimnav.plan").info("pid %d, fimnav code from %s", os.getpid(), Path(__file__).resolve().parent)
     mission = load_mission(args.mission, parse_overrides(args.overrides))

@@ -136,7 +136,9 @@ def listening_endpoints(session: Any, timeout_s: float = LOCATOR_QUERY_TIMEOUT_S
 
 def run_router(args: argparse.Namespace) -> int:
     """Run the router until SIGINT/SIGTERM or ``--duration``; exit status 0."""
-    logging.basicConfig(level=args.log_level, stream=sys.stderr, format="%(asctime)s router %(levelname)s %(message)s")
+    from missions.process_args import setup_logging
+
+    setup_logging(args.log_level, "router")
     log = logging.getLogger("fimnav.router")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration: expected a positive number of seconds, found {args.duration}")

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
 import math
 import os
 import signal
@@ -280,7 +279,9 @@ def run_vehicle(args: argparse.Namespace) -> int:
     """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
     from missions.forkspawn import watch_launcher
 
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from missions.process_args import setup_logging
+
+    setup_logging(args.log_level, "%(name)s")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
     mission = None
     if args.mission:

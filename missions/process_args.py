@@ -1,10 +1,12 @@
-"""What the process commands (``fimnav plan``, ``fimnav vehicle``, ``fimnav payload``) build
-alike from their arguments and the mission: the Zenoh session settings and the simulated
-payload's world."""
+"""What the process commands (``fimnav plan``, ``fimnav vehicle``, ``fimnav payload``,
+``fimnav router``) build alike from their arguments and the mission: the log set-up, the Zenoh
+session settings and the simulated payload's world."""
 
 from __future__ import annotations
 
 import json
+import logging
+import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
@@ -14,6 +16,15 @@ if TYPE_CHECKING:  # pragma: no cover - types only
     from comms.session import SessionSettings
     from missions.schema import Mission
     from vehicle_sim.payload import PayloadWorld
+
+
+def setup_logging(level: str, name: str) -> None:
+    """Log to stderr at ``level``, each line stamped with the time and ``name`` (e.g. ``plan[3]``).
+
+    pymavlink's own loggers stay at WARNING: at INFO they log every frame whose signature does
+    not match (``sig mismatch``), which the MAVLink client counts and reports once instead."""
+    logging.basicConfig(level=level, stream=sys.stderr, format=f"%(asctime)s {name} %(levelname)s %(message)s")
+    logging.getLogger("pymavlink").setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
 
 
 def zenoh_settings(mission: Mission, zenoh_config: str | None, zenoh_connect: Sequence[str] | None) -> SessionSettings:

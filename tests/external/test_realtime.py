@@ -174,7 +174,9 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
 
 def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, procs: list[Proc]) -> None:
     """A vehicle with MAVLink 2 signing on: a planner without the key stops at once with a
-    message that says why; with the key (mode 0600) it flies the mission and ends in RTL."""
+    message that says why; with another key it stops within seconds (every frame fails the
+    signature check), not at its heartbeat timeout; with the key (mode 0600) it flies the
+    mission and ends in RTL."""
     key = tmp_path / "signing.key"
     secret = os.urandom(32)
     key.write_bytes(secret)
@@ -188,6 +190,18 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
         assert unsigned.wait(30.0) == 1, unsigned.tail()
         assert "MAVLink 2 signing" in unsigned.err and "--signing-key" in unsigned.err
         assert "Traceback" not in unsigned.err
+        wrong = tmp_path / "wrong.key"
+        wrong.write_bytes(bytes(b ^ 0xFF for b in secret))
+        wrong.chmod(0o600)
+        t0 = time.monotonic()
+        mismatched = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(wrong),
+                                    "--preflight-timeout", "60"))
+        procs.append(mismatched)
+        # Refused once every frame for 3 s failed the signature check, long before the 60 s timeout.
+        assert mismatched.wait(30.0) == 1, mismatched.tail()
+        assert time.monotonic() - t0 < 20.0
+        assert "does not match our signing key" in mismatched.err and "another key" in mismatched.err, mismatched.tail()
+        assert "Traceback" not in mismatched.err and "sig mismatch" not in mismatched.err
         signed = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(key)))
         procs.append(signed)
         assert signed.wait(60.0) == 0, signed.tail()
@@ -195,7 +209,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
         peer.close()
     s = summary_of(signed)
     assert s["steps"] == 10 and s["end"]["mode"] == "RTL" and s["end"]["confirmed"]
-    for text in (signed.out + signed.err, unsigned.out + unsigned.err):
+    for text in (signed.out + signed.err, unsigned.out + unsigned.err, mismatched.out + mismatched.err):
         assert secret.hex() not in text and secret.hex().upper() not in text
     t = stop_and_read(vehicle, tmp_path / "v.tlog")
     assert t.setpoints.get(("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, MASK_POS_VEL), 0) >= 10
