@@ -559,7 +559,10 @@ class PlannerNode:
                 u = np.asarray(step.displacement, dtype=float)
                 nxt = np.asarray(step.next_position, dtype=float)
                 assert self.link is not None
-                self.link.send_setpoint(nxt, u / self.dt)
+                # One setpoint for the whole step. ArduPilot's GUIDED moves a position+velocity
+                # target along its velocity (from here it reaches nxt after dt); PX4 holds the
+                # point and takes the velocity as a feed-forward.
+                self.link.send_setpoint(nxt if self.link.is_px4 else own, u / self.dt)
                 w_sent = self.wall()
                 prev_step = u
                 active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))

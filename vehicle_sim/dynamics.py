@@ -10,11 +10,13 @@ Two profiles:
     in closed form from the time the command was received (no accumulated rounding):
 
     * velocity ``u``: ``p(t) = p0 + u (t - t0)``;
-    * position ``q`` with speed ``s`` (``|v_ff|`` for position+velocity, else the speed
-      limit): straight line from ``p0`` to ``q`` at speed ``s``; on arrival the position is
-      set to ``q`` *exactly* and held. Hence a position+velocity setpoint ``(p + v dt, v)``
-      received at ``t0`` puts the vehicle at exactly ``p + v dt`` at ``t0 + dt``. "Arrival"
-      tolerates the float32 rounding of MAVLink fields (see :meth:`PointMass._arrival_tol`).
+    * position ``q`` with speed ``s`` (``|v_ff|`` for a fixed position+velocity target, else
+      the speed limit): straight line from ``p0`` to ``q`` at speed ``s``; on arrival the
+      position is set to ``q`` *exactly* and held. Hence a fixed position+velocity setpoint
+      ``(p + v dt, v)`` received at ``t0`` puts the vehicle at exactly ``p + v dt`` at
+      ``t0 + dt``. "Arrival" tolerates the float32 rounding of MAVLink fields (see
+      :meth:`PointMass._arrival_tol`);
+    * a moving target ``(q, v)`` (``Command.moving``): see below.
 
 ``pointmass``
     A velocity loop saturated at the acceleration limit tracks a desired velocity: the
@@ -23,8 +25,11 @@ Two profiles:
     optionally low-passed with a first-order lag ``tau`` and disturbed by wind as the
     acceleration ``drag · wind``. Semi-implicit Euler integration.
 
-Position targets are *fixed* points (unlike ArduPilot, which advances a position+velocity
-target with its velocity); see docs/vehicle_sim.md.
+A position+velocity target is a *fixed* point (PX4 OFFBOARD: the velocity is a feed-forward)
+or, with ``Command.moving`` (ArduPilot GUIDED), a point that moves with the velocity from the
+time it was received, ``q(t) = q + v (t - t0)``, as ArduPilot's position controller advances its
+target between setpoints. The ideal profile then closes its initial offset from ``q`` at the
+speed limit along it and follows ``q(t)`` exactly; see docs/vehicle_sim.md.
 """
 
 from __future__ import annotations
@@ -60,6 +65,8 @@ class Command:
         velocity: velocity command or feed-forward (3,) ENU m/s, or None.
         speed_mps: speed cap of position moves (m/s), None for the limits.
         fence: maps a position into the allowed region (ENU m) or None (no fence).
+        moving: for ``posvel``: the target moves with ``velocity`` from the time the command
+            was received (ArduPilot GUIDED); False: a fixed point reached at ``|velocity|``.
     """
 
     kind: CommandKind
@@ -67,6 +74,7 @@ class Command:
     velocity: FloatArray | None = None
     speed_mps: float | None = None
     fence: Callable[[FloatArray], FloatArray] | None = None
+    moving: bool = False
 
 
 def limit_velocity(v: FloatArray, limits: VehicleLimits) -> FloatArray:
@@ -181,6 +189,9 @@ class PointMass:
             self.position = self._p0 + u * elapsed
             self.velocity = u.copy()
             return
+        if cmd.kind == "posvel" and cmd.moving and cmd.velocity is not None:
+            self._step_ideal_moving(elapsed)
+            return
         target = np.asarray(cmd.position, dtype=float)
         delta = target - self._p0
         dist = float(np.linalg.norm(delta))
@@ -197,6 +208,27 @@ class PointMass:
         else:
             self.position = self._p0 + direction * travelled
             self.velocity = direction * speed
+
+    def _step_ideal_moving(self, elapsed: float) -> None:
+        """Ideal tracking of a moving target ``q(t) = q + v (t - t0)`` (ArduPilot GUIDED
+        position+velocity): the offset ``e0 = p0 - q`` shrinks along itself at the speed limit
+        in that direction, on top of the target's motion; once closed the vehicle is at ``q(t)``.
+        ``v`` is scaled within the limits first."""
+        cmd = self.command
+        v = limit_velocity(np.asarray(cmd.velocity, dtype=float), self.limits)
+        q_t = np.asarray(cmd.position, dtype=float) + v * elapsed
+        e0 = self._p0 - np.asarray(cmd.position, dtype=float)
+        d0 = float(np.linalg.norm(e0))
+        if d0 > 0.0:
+            back = -e0 / d0
+            closing = max_speed_along(back, self.limits)
+            left = d0 - closing * elapsed
+            if left > 0.0:
+                self.position = q_t - back * left
+                self.velocity = v + back * closing
+                return
+        self.position = q_t
+        self.velocity = v
 
     def _arrival_tol(self, target: FloatArray, dist: float) -> float:
         """Distance (m) below which the ideal profile snaps onto its target: covers the float32
@@ -220,7 +252,11 @@ class PointMass:
             # Position + velocity (ArduPilot GUIDED, PX4 OFFBOARD): the velocity is a
             # feed-forward and the position error is corrected on top of it, so a setpoint
             # moving along a path is tracked without a lag that grows with the speed.
-            delta = np.asarray(cmd.position, dtype=float) - self.position
+            # ArduPilot (``moving``) advances the target with the velocity between setpoints.
+            target = np.asarray(cmd.position, dtype=float)
+            if cmd.moving:
+                target = target + np.asarray(cmd.velocity, dtype=float) * (self._t - self._t0)
+            delta = target - self.position
             v_des = limit_velocity(np.asarray(cmd.velocity, dtype=float) + POSITION_GAIN_PER_S * delta, lim)
         else:
             target = np.asarray(cmd.position if cmd.position is not None else self.position, dtype=float)

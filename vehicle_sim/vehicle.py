@@ -489,7 +489,11 @@ class SimVehicle:
                     if self.guided_kind == "velocity":
                         self._hold_here()
                     else:
-                        target = self.pm.command.position
+                        # ArduPilot zeroes the velocity: the moving target stops where it got to.
+                        cmd = self.pm.command
+                        target = cmd.position
+                        if cmd.moving and target is not None and cmd.velocity is not None:
+                            target = target + np.asarray(cmd.velocity, dtype=float) * age
                         self._command(Command("position", position=target, fence=self._motion_fence()))
                     self.guided_kind = "position"
                     self.statustext(4, "Guided: velocity timeout, holding")
@@ -1171,7 +1175,8 @@ class SimVehicle:
         fence = self._motion_fence()
         speed = self.speed_override_mps if source == "reposition" else None
         if pos is not None and vel is not None:
-            cmd = Command("posvel", position=pos, velocity=vel, fence=fence)
+            # ArduPilot's GUIDED moves a position+velocity target along its velocity; PX4 does not.
+            cmd = Command("posvel", position=pos, velocity=vel, fence=fence, moving=self.config.flavour == "ardupilot")
             kind = "posvel"
         elif pos is not None:
             cmd = Command("position", position=pos, speed_mps=speed or self.speed_override_mps, fence=fence)

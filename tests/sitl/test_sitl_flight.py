@@ -152,7 +152,8 @@ def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Pa
     3 and 4 fimnav's simulated vehicles. Every drone arms, takes off in GUIDED, reaches its
     start and flies every step, ends with the mission's end action (land); results and every
     drone's .tlog are written; zero violations; every SITL drone's simulated payload reaches
-    its planner at every step; no process is left."""
+    its planner at every step; no process is left. The swarm's final PEB is that of the same
+    mission flown by simulated vehicles only (three runs) within their run-to-run spread."""
     speedup = 4.0
     steps = 30
     base = yaml.safe_load((Path(__file__).resolve().parents[2] / "missions" / "paper" / "heterogeneous.yaml").read_text())
@@ -195,3 +196,20 @@ def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Pa
             assert any("ArduPilot" in x or "ArduCopter" in x for x in t.texts), t.texts[:5]
             assert (out / "logs" / f"payload_{i}.log").exists()
     assert not processes_mentioning(str(out))
+    # The same mission flown by fimnav's simulated vehicles only, in real time at the same
+    # speed-up, three times: the spread of their final PEBs is the run-to-run noise.
+    del base["vehicles"]
+    mission.write_text(yaml.safe_dump(base))
+    sim_pebs = []
+    for k in range(3):
+        sim = Launch(mission, tmp_path / f"sim{k}", "--realtime", "--speedup", f"{speedup:g}")
+        launches.append(sim)
+        code, _, sim_err = sim.wait(200.0)
+        assert code == 0, sim_err[-3000:]
+        sim_pebs.append(json.loads((tmp_path / f"sim{k}" / "summary.json").read_text())["runs"][0]["final_peb_mean_m"])
+    peb = summary["final_peb_mean_m"]
+    print(f"\nmixed fleet (2 SITL + 2 simulated) x{speedup:g}: final PEB {peb:.3f} m (initial {summary['initial_peb_mean_m']:.3f} m); "
+          f"simulated only: {', '.join(f'{x:.3f}' for x in sim_pebs)} m")
+    # Within run-to-run noise: the spread of the three simulated-only runs, at least 2 %.
+    noise = max(float(np.ptp(sim_pebs)), 0.02 * float(np.median(sim_pebs)))
+    assert abs(peb - float(np.median(sim_pebs))) <= noise, (peb, sim_pebs)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
-from vehicle_sim.dynamics import Command, PointMass, limit_velocity
+from vehicle_sim.dynamics import Command, PointMass, limit_velocity, max_speed_along
 from vehicle_sim.geo import LocalFrame
 
 from memlink import decode_all, gcs_encoder, memory_vehicle
@@ -106,30 +106,38 @@ def _setpoint_frame(enc, sink, sysid, n, e, d, vn, ve, vd):
 
 def test_advance_to_drains_input_then_integrates_then_reports_sim_time():
     """In-process lockstep through real MAVLink frames: setpoint bytes -> advance_to(t) ->
-    the ideal vehicle at exactly the float32 target, LOCAL_POSITION_NED stamped t."""
+    the ideal vehicle at the end of the step, LOCAL_POSITION_NED stamped t. ArduPilot moves a
+    position+velocity target along its velocity: (p, u/dt) carries the vehicle to p + u after
+    dt (float32 rounding of p and u/dt aside), as the lockstep planner sends it. (A fixed
+    target, PX4's, is reached exactly: test_ideal_posvel_lands_exactly_on_target.)"""
+    flavour = "ardupilot"
     cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(10.0, 150.0, 8.0), origin=Origin(45, 7, 100))
     v, mem = memory_vehicle(cfg)
     enc, sink = gcs_encoder()
     rng = np.random.default_rng(5)
     frame = LocalFrame(cfg.origin)
     dt = 1.0
+    f32 = np.float32
     for k in range(30):
         p = v.position.copy()
         step = rng.normal(size=3)
         step *= rng.uniform(0.5, 1.0) / np.linalg.norm(step)
         vel = step / dt
-        n, e, d = frame.enu_to_ned(*(p + step))
+        n, e, d = frame.enu_to_ned(*(p + step if flavour == "px4" else p))
         vn, ve, vd = frame.enu_to_ned(*vel)
         mem.inject(_setpoint_frame(enc, sink, cfg.sysid, n, e, d, vn, ve, vd))
         mem.outbox.clear()
         v.advance_to((k + 1) * dt, report_position=True)
-        # expectation: the float32 NED target, back in ENU (N=y, E=x, D=-z)
-        f32 = np.float32
-        expect = np.array([float(f32(e)), float(f32(n)), -float(f32(d))])
-        np.testing.assert_array_equal(v.position, expect)
+        if flavour == "px4":
+            # expectation: the float32 NED target, back in ENU (N=y, E=x, D=-z)
+            expect = np.array([float(f32(e)), float(f32(n)), -float(f32(d))])
+            np.testing.assert_array_equal(v.position, expect)
+        else:
+            np.testing.assert_allclose(v.position, p + step, rtol=0, atol=2e-5)
         lpn = [m for m in decode_all(mem.outbox) if m.get_type() == "LOCAL_POSITION_NED"]
         assert lpn and lpn[-1].time_boot_ms == (k + 1) * 1000
-        assert (lpn[-1].x, lpn[-1].y, lpn[-1].z) == (float(f32(n)), float(f32(e)), float(f32(d)))
+        pos = v.position
+        assert (lpn[-1].x, lpn[-1].y, lpn[-1].z) == (float(f32(pos[1])), float(f32(pos[0])), float(f32(-pos[2])))
 
 
 def test_advance_off_grid_and_backwards_is_safe():
@@ -220,3 +228,47 @@ def test_pointmass_tracks_a_moving_position_velocity_setpoint_without_lag():
     assert lag < 0.12, f"{lag:.3f} m behind the setpoint"
     # (the setpoint is re-sent every 0.1 s and stands still in between: the speed dips by K·|v|·0.1)
     np.testing.assert_allclose(pm.velocity, v, rtol=0.06, atol=0.0)
+
+
+@given(
+    off=st.tuples(*[st.floats(-0.5, 0.5) for _ in range(3)]),
+    v=st.tuples(*[st.floats(-1, 1) for _ in range(3)]),
+)
+def test_ideal_moving_target_closes_its_offset_at_the_speed_limit_then_rides_the_target(off, v):
+    """ArduPilot's position+velocity target moves with its velocity (q(t) = q + v t): the ideal
+    vehicle's distance to q(t) shrinks at the speed limit along the offset, then is zero and the
+    vehicle is exactly on q(t)."""
+    lim = VehicleLimits()
+    q = np.array([10.0, 150.0, 8.0])
+    p0 = q + np.array(off)
+    vel = np.array(v)
+    pm = PointMass(p0.copy(), lim, "ideal")
+    pm.set_command(Command("posvel", position=q, velocity=vel, moving=True), 0.0)
+    d0 = float(np.linalg.norm(p0 - q))
+    closing = max_speed_along((q - p0) / d0, lim) if d0 > 0 else math.inf
+    for k in range(1, 21):
+        t = k * 0.05
+        pm.step(0.05, t)
+        gap = float(np.linalg.norm(pm.position - (q + vel * t)))
+        assert gap == pytest.approx(max(0.0, d0 - closing * t), abs=1e-9)
+    np.testing.assert_allclose(pm.position, q + vel * 1.0, rtol=0, atol=1e-12)
+
+
+def test_streamed_step_ends_on_its_end_point_with_a_moving_target_and_short_of_it_with_a_fixed_one():
+    """The planner's real-time stream of one 1 m step over 1 s: (p + u f, u) at f = 0, 0.2, ...,
+    0.8. ArduPilot's moving target carries the vehicle to p + u at the end of the step (exactly,
+    ideal; within 6 cm, point mass from rest); a fixed target leaves the ideal vehicle one stream
+    period of motion (0.2 m) short and the point mass (v + k_p·error, no target motion) about
+    0.1 m short."""
+    u = np.array([0.8, 0.6, 0.0])
+    short = {}
+    for profile in ("ideal", "pointmass"):
+        for moving in (True, False):
+            pm = PointMass(np.zeros(3), VehicleLimits(), profile)
+            for k in range(5):
+                pm.set_command(Command("posvel", position=u * (0.2 * k), velocity=u, moving=moving), 0.2 * k)
+                for j in range(1, 11):
+                    pm.step(0.02, 0.2 * k + 0.02 * j)
+            short[profile, moving] = float(np.linalg.norm(pm.position - u))
+    assert short["ideal", True] < 1e-9 and short["pointmass", True] < 0.06, short
+    assert short["ideal", False] > 0.19 and short["pointmass", False] > 0.08, short
