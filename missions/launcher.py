@@ -275,6 +275,11 @@ class Launcher:
             raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
         self.realtime = realtime
         self.speedup = float(speedup)
+        if mission.comms.faults.partition is not None:
+            raise UsageError(
+                "comms.faults.partition_start_step: a partition is simulated by fimnav montecarlo; the planner "
+                "processes of fimnav launch are partitioned by cutting their network (docs/distributed.md, Partitions)"
+            )
         if realtime:
             for i in range(n):
                 v = mission.vehicles.for_drone(i)

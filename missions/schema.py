@@ -433,15 +433,27 @@ class Faults(_Section):
     extra_delay_steps: Int = Field(
         0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late."
     )
+    partition_start_step: Int | None = Field(
+        None, ge=0, description="First step of a network partition (fimnav montecarlo only): drones "
+        "1..ceil(N/2) and the rest exchange no record, whatever their distance."
+    )
+    partition_steps: Int = Field(0, ge=0, le=100000, description="Length of the partition (steps); 0: none.")
 
     @property
     def enabled(self) -> bool:
         """Whether any fault is injected."""
-        return self.loss > 0.0 or self.extra_delay_steps > 0
+        return self.loss > 0.0 or self.extra_delay_steps > 0 or self.partition is not None
+
+    @property
+    def partition(self) -> tuple[int, int] | None:
+        """The partition's steps [start, end), or None when there is none."""
+        if self.partition_start_step is None or self.partition_steps == 0:
+            return None
+        return self.partition_start_step, self.partition_start_step + self.partition_steps
 
     def to_model(self) -> FaultModel | None:
-        """The :class:`comms.faults.FaultModel` of these settings, or None when off."""
-        return FaultModel(self.loss, self.extra_delay_steps) if self.enabled else None
+        """The :class:`comms.faults.FaultModel` of the loss and delay, or None when off."""
+        return FaultModel(self.loss, self.extra_delay_steps) if self.loss > 0.0 or self.extra_delay_steps > 0 else None
 
 
 class Comms(_Section):

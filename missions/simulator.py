@@ -132,6 +132,13 @@ def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
     return history[np.maximum(saved, 0), m_idx, j_idx]
 
 
+def _own_at(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
+    """history[saved[m,i,j], m, i]: drone i's own position (M, N, N, 3) at the step of its
+    newest record of each peer j (step 0 where it has none)."""
+    M, N = saved.shape[0], saved.shape[1]
+    return history[np.maximum(saved, 0), np.arange(M)[:, None, None], np.arange(N)[None, :, None]]
+
+
 def simulate(
     spec: RunSpec,
     progress: Callable[[int], None] | None = None,
@@ -187,6 +194,11 @@ def simulate(
     rec_los = np.zeros((K, M, N), dtype=bool)
     saved = np.full((M, N, N), -1, dtype=np.int64)
     fault_model = comms.faults.to_model()
+    # A partition: drones 1..ceil(N/2) and the rest exchange nothing while it lasts; each drone
+    # knows it has lost them (as a planner node sees their planners leave the liveliness view).
+    partition = comms.faults.partition
+    half = np.arange(N) < (N + 1) // 2
+    partition_links = half[:, None] != half[None, :]
     # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
     faults = FaultBuffer(fault_model, mission.seed, range(M), range(N), N, comms.h_max) if fault_model is not None else None
     used = np.full((M, N, N), -1, dtype=np.int64)
@@ -214,7 +226,8 @@ def simulate(
         rec_range[k], rec_az[k], rec_el[k], rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
 
         # 2. Delayed view (hop latency, memory buffer).
-        hops = hop_counts(pos, comms.d_hop_m, max_hops=comms.h_max + 1)
+        cut = partition_links if partition is not None and partition[0] <= k < partition[1] else None
+        hops = hop_counts(pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
         saved = update_saved_steps(saved, hops, k, comms.h_max) if faults is None else faults.update(saved, hops, k)
         have = saved >= 0
         ages[k] = np.where(have, k - saved, -1)
@@ -248,6 +261,7 @@ def simulate(
             ranging, bearing, state.estimate_m, state.information, state.observable, channel, limits,
             spec.criterion, bmin, bmax, comms.d_hop_m, ctrl_u[k], xi=xi, perturbation_rad=perturb,
             oracle_source=src if oracle_estimate else None, own_distance_lower_m=own_lb,
+            lost_contact=cut, own_then_m=None if cut is None else _own_at(positions, saved),
         )
         step = planned.step
         fallback[k] = step.singular

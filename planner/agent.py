@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner.control import StepResult, control_step, source_activation_margin_m
+from planner.control import lost_contact_planes, StepResult, control_step, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
@@ -266,6 +266,8 @@ def plan(
     perturbation_rad: float = np.radians(20.0),
     oracle_source: ArrayLike | None = None,
     own_distance_lower_m: ArrayLike | None = None,
+    lost_contact: ArrayLike | None = None,
+    own_then_m: ArrayLike | None = None,
 ) -> PlanResult:
     """Drone i's planning step from its view (eqs. 6, 10-17).
 
@@ -288,6 +290,15 @@ def plan(
             :data:`OWN_RANGE_WINDOW` ranges; +inf for a drone that does not range), used by
             :func:`source_keepout_with_own_range_m`. None: the keep-out follows the estimate
             alone.
+        lost_contact: (..., N) bool, peers this drone has lost contact with by a network fault
+            (a partition, their planner gone from the liveliness view), not by distance: the
+            hop argument of :func:`collision_relevant` ("not a neighbour, so farther than
+            d_hop") does not hold for them. The drone keeps to its side of the bisector plane
+            between its own position and the peer's at the step of the peer's last record, at
+            least d_U*/2 from it (:func:`planner.control.lost_contact_planes`); the peer does
+            the same on its side. None: no such peer.
+        own_then_m: (..., N, 3), m, ENU: drone i's own position at the step of each peer's
+            last record (needed with ``lost_contact``).
     """
     own = np.asarray(own_mask, dtype=bool)
     valid = np.asarray(view_valid, dtype=bool)
@@ -310,9 +321,21 @@ def plan(
         else:
             d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
             keepout = np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
-    peers = valid & ~own & collision_relevant(hops, d_hop_m, limits)
+    relevant = collision_relevant(hops, d_hop_m, limits)
+    peer_rows = np.asarray(view_positions, dtype=float)
+    ages = np.where(valid, view_age_steps, 0)
+    planes = None
+    if lost_contact is not None and np.asarray(lost_contact).any():
+        if own_then_m is None:
+            raise ValueError("plan: lost_contact needs own_then_m (the drone's positions at the peers' last records)")
+        lost = np.asarray(lost_contact, dtype=bool) & valid & ~own
+        peer_rows, planes = lost_contact_planes(own_then_m, peer_rows, lost)
+        relevant = relevant | lost
+        ages = np.where(lost, 0, ages)
+    peers = valid & ~own & relevant
     step = control_step(
-        own_position, previous_step, cg.gradient, status, view_positions, peers, np.where(valid, view_age_steps, 0),
+        own_position, previous_step, cg.gradient, status, peer_rows, peers, ages,
         p_hat, keepout, boxes_min, boxes_max, limits, perturbation_uniforms, xi=xi, perturbation_rad=perturbation_rad,
+        peer_planes=planes,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout))

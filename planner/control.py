@@ -95,6 +95,40 @@ def _cartesian(s: FloatArray, psi: FloatArray, theta: FloatArray) -> FloatArray:
     return out
 
 
+def lost_contact_planes(own_then_m: ArrayLike, peer_then_m: ArrayLike, lost: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The planes that keep two drones apart while they cannot hear each other (a partition).
+
+    Drone i last heard peer j at step ℓ (j's record: position b = q_j(ℓ)); drone i was at
+    a = p_i(ℓ) then. Both drones knew both positions of step ℓ: i keeps to its side of the
+    perpendicular bisector of a and b, at least d_U*/2 from it (``control_step`` with
+    ``peer_planes``), and j, applying the same rule to its record of i of the same step, to
+    the other side. Their distance then stays at least d_U* whatever each does, for as long
+    as the partition lasts (the planes do not grow with time as a reachable region would).
+    The bound holds when both last heard each other at the same step ℓ (no record lost or
+    delayed at the cut); each drone may start off its side (it moved since ℓ) and the safety
+    filter then brings it back without ever letting its margin shrink.
+
+    Args:
+        own_then_m: a, (..., N, 3), m, ENU: drone i's own position at the step of each peer's
+            last record.
+        peer_then_m: b, (..., N, 3), m, ENU: each peer's last known position.
+        lost: (..., N) bool, the peers drone i has lost contact with.
+
+    Returns:
+        (points, normals): the midpoint m = (a + b)/2 where ``lost`` (else b) and the unit
+        normal n = (a − b)/|a − b| (zeros where not ``lost``), each (..., N, 3).
+    """
+    a = np.asarray(own_then_m, dtype=float)
+    b = np.asarray(peer_then_m, dtype=float)
+    lost_b = np.asarray(lost, dtype=bool)
+    d = a - b
+    norm = np.sqrt((d * d).sum(-1, keepdims=True))
+    use = lost_b & (norm[..., 0] > 0.0)
+    normals = np.where(use[..., None], d / np.where(norm > 0.0, norm, 1.0), 0.0)
+    points = np.where(use[..., None], 0.5 * (a + b), b)
+    return points, normals
+
+
 def _wrap(a: FloatArray) -> FloatArray:
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
@@ -108,11 +142,30 @@ class _Clearances:
     source: FloatArray  # (..., 3)
     source_required: FloatArray  # (...)
     obstacle_required: float
+    planes: FloatArray | None = None  # (..., N, 3) unit normals of plane rows (zeros: a point peer)
+    d_uav_m: float = 0.0
 
 
 def _subset(c: _Clearances, idx: tuple[NDArray[np.intp], ...]) -> _Clearances:
     keep = np.broadcast_to(c.source_required, c.source.shape[:-1])
-    return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required)
+    planes = None if c.planes is None else c.planes[idx]
+    return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required, planes, c.d_uav_m)
+
+
+def peer_distance(x: FloatArray, peers: FloatArray, planes: FloatArray | None, d_uav_m: float) -> FloatArray:
+    """Distance (m) of positions ``x`` (..., 3) to each peer row (..., N, 3) → (..., N).
+
+    A plane row (non-zero unit normal n in ``planes``) is a peer drone i has lost contact with:
+    the row holds the point m of the plane both keep to their own side of (see
+    :func:`lost_contact_planes`) and the "distance" is ``(x − m)·n + d_U*/2``, the distance to
+    the mirror image of x when the peer keeps to its side at the same distance; it is 1-Lipschitz
+    like a point distance, so the safety filter's margins apply unchanged."""
+    diff = x[..., None, :] - peers
+    dist = np.sqrt((diff * diff).sum(-1))
+    if planes is None:
+        return dist
+    is_plane = (planes != 0.0).any(-1)
+    return np.where(is_plane, (diff * planes).sum(-1) + 0.5 * d_uav_m, dist)
 
 
 def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatArray, boxes_max: FloatArray, limits: Limits) -> FloatArray:
@@ -122,8 +175,8 @@ def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatA
     (with the height still climbed while the tilt swings back, :func:`_tilt_buffer`).
     """
     out = np.empty(cand.shape[:-1] + (4,))
-    diff = cand[..., :, None, :] - c.peers[..., None, :, :]
-    dist = np.sqrt((diff * diff).sum(-1))
+    planes = None if c.planes is None else c.planes[..., None, :, :]
+    dist = peer_distance(cand, c.peers[..., None, :, :], planes, c.d_uav_m)
     out[..., UAV] = (dist - c.peer_required[..., None, :]).min(-1, initial=np.inf)
     ds = cand - c.source[..., None, :]
     out[..., SOURCE] = np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None]
@@ -149,6 +202,7 @@ def control_step(
     perturbation_uniforms: ArrayLike,
     xi: float | None = None,
     perturbation_rad: float = math.radians(20.0),
+    peer_planes: ArrayLike | None = None,
 ) -> StepResult:
     """One drone's control step: eq. 14 under constraints (15-17) and the limits of eq. 2/7.
 
@@ -170,6 +224,9 @@ def control_step(
         xi: spatial step ξ (m per unit of gradient); None = normalised step at v_max Δt.
         perturbation_rad: half-width of the uniform heading and tilt perturbation of the
             singular fallback (rad).
+        peer_planes: (..., N, 3) unit normals for the peers drone i has lost contact with
+            (zeros elsewhere): their row of ``peers`` is then a point of the plane drone i keeps
+            to its side of, with its age 0 (:func:`lost_contact_planes`); None: none.
 
     Returns:
         The :class:`StepResult`.
@@ -183,6 +240,7 @@ def control_step(
             np.asarray(peer_age_steps)[None], np.asarray(source_estimate, dtype=float)[None],
             np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1], boxes_min, boxes_max, limits,
             np.asarray(perturbation_uniforms, dtype=float)[None], xi, perturbation_rad,
+            None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
         )
         return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
     prev = np.asarray(previous_step, dtype=float)
@@ -202,9 +260,12 @@ def control_step(
     tb = limits.turn_buffer_m
 
     # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
+    planes = None if peer_planes is None else np.asarray(peer_planes, dtype=float)
     diff = p[..., None, :] - q
-    dist = np.sqrt((diff * diff).sum(-1))
+    dist = peer_distance(p, q, planes, limits.d_uav_m)
     n_u = diff / np.where(dist > 0.0, dist, 1.0)[..., None]
+    if planes is not None:
+        n_u = np.where((planes != 0.0).any(-1)[..., None], planes, n_u)
     g_u = np.where(mask, dist - limits.d_uav_m, np.inf)
     ds = p - src
     dist_s = np.sqrt((ds * ds).sum(-1))
@@ -316,6 +377,8 @@ def control_step(
             source=src,
             source_required=keepout + tb,
             obstacle_required=limits.d_obstacle_m + 0.5 * smax + tb,
+            planes=planes,
+            d_uav_m=limits.d_uav_m,
         )
         # Margins now, per family, from the constraint values already computed. A step may not
         # make a family's margin negative, nor more negative than it already is.
@@ -339,7 +402,8 @@ def control_step(
         if q.shape[-2] > 32 and (near.any() or bad.any()):
             m_now = dist - clear.peer_required
             cols = (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
-            score_clear = _Clearances(q[..., cols, :], clear.peer_required[..., cols], src, clear.source_required, clear.obstacle_required)
+            score_clear = _Clearances(q[..., cols, :], clear.peer_required[..., cols], src, clear.source_required, clear.obstacle_required,
+                                      None if planes is None else planes[..., cols, :], limits.d_uav_m)
         if near.any():
             idx = np.nonzero(near)
             score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(score_clear, idx), bmin, bmax, limits)

@@ -22,7 +22,7 @@ UNREACHABLE: int = -1
 NEVER: int = -1
 
 
-def hop_counts(positions: ArrayLike, d_hop_m: float, max_hops: int | None = None) -> IntArray:
+def hop_counts(positions: ArrayLike, d_hop_m: float, max_hops: int | None = None, blocked: ArrayLike | None = None) -> IntArray:
     """Hop counts h_ij of the disk graph of radius d_hop (breadth-first search, batched).
 
     Args:
@@ -30,6 +30,7 @@ def hop_counts(positions: ArrayLike, d_hop_m: float, max_hops: int | None = None
         d_hop_m: communication radius d_hop (m): i and j are neighbours when |p_i − p_j| ≤ d_hop.
         max_hops: stop the search after this many hops (pairs farther are UNREACHABLE);
             None searches the whole graph.
+        blocked: (N, N) bool, links cut whatever the distance (a network partition); None: none.
 
     Returns:
         Integer array (..., N, N): 0 on the diagonal, the number of hops of the shortest path,
@@ -38,7 +39,10 @@ def hop_counts(positions: ArrayLike, d_hop_m: float, max_hops: int | None = None
     p = np.asarray(positions, dtype=float)
     n = p.shape[-2]
     diff = p[..., :, None, :] - p[..., None, :, :]
-    adj = ((diff * diff).sum(-1) <= d_hop_m * d_hop_m).astype(np.uint8)
+    near = (diff * diff).sum(-1) <= d_hop_m * d_hop_m
+    if blocked is not None:
+        near = near & ~np.asarray(blocked, dtype=bool)
+    adj = near.astype(np.uint8)
     eye = np.eye(n, dtype=bool)
     reached = np.broadcast_to(eye, adj.shape).copy()
     hops = np.where(reached, 0, UNREACHABLE).astype(np.int64)

@@ -112,6 +112,11 @@ class NodeError(FimnavError):
     """The planner cannot go on (vehicle refused, lost peers beyond the deadline, ...)."""
 
 
+#: Steps of own positions a planner keeps (the partition planes need the step of a peer's
+#: last record; for a peer silent for longer the plane is drawn from the current position).
+OWN_TRACK_STEPS = 5000
+
+
 @dataclass(frozen=True)
 class NodeOptions:
     """How one planner node runs.
@@ -330,6 +335,9 @@ class PlannerNode:
         self.measurements: dict[int, Observation] = {}
         #: This drone's own last ranges and LOS flags (the second source keep-out, planner.agent).
         self.own_ranges: deque[tuple[float, bool]] = deque(maxlen=OWN_RANGE_WINDOW)
+        #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
+        #: when each peer's last record was taken (the partition planes, planner.agent.plan).
+        self.own_track: dict[int, np.ndarray] = {}
         self.seq = 0
         self._log: TextIO | None = None
 
@@ -542,6 +550,7 @@ class PlannerNode:
                 )
                 self.view.add(record)
                 self.own_ranges.append((record.range_m, record.los))
+                self._track(k, own)
                 self._publish(self._pub_record, record, MessageKind.RECORD)
                 # Lockstep barrier: every other planner of the mission, except those that left.
                 # (Waiting only for the planners already seen alive would let a planner whose
@@ -709,6 +718,11 @@ class PlannerNode:
         meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los)
         return est.update(state, meas, self.channel, self.est_config), int(new.sum())
 
+    def _track(self, k: int, own: np.ndarray) -> None:
+        """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""
+        self.own_track[k] = np.array(own, dtype=float)
+        self.own_track.pop(k - OWN_TRACK_STEPS, None)
+
     def _plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, view: Any, state: est.EstimatorState) -> Any:
         pos = np.zeros((self.n, 3))
         valid = np.zeros(self.n, dtype=bool)
@@ -719,6 +733,10 @@ class PlannerNode:
         own_mask = np.zeros(self.n, dtype=bool)
         own_mask[self.i] = True
         ages = np.where(valid, k - view.saved_steps, 0)
+        # Peers whose planner left the liveliness view (a partition, not distance): kept apart
+        # by the bisector planes of the step of their last record (planner.agent.plan).
+        lost = np.array([j + 1 in self.left and valid[j] for j in range(self.n)], dtype=bool)
+        own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own) for j in range(self.n)], dtype=float)
         uniforms = self.ctrl_rng.random(CONTROL_DRAWS)
         mc = self.m.controller
         bmin, bmax = self.boxes
@@ -729,6 +747,7 @@ class PlannerNode:
             own_distance_lower_m=own_range_lower_bound_m(
                 np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
             ),
+            lost_contact=lost if lost.any() else None, own_then_m=own_then,
         )
 
     def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:
@@ -1086,6 +1105,7 @@ class PlannerNode:
             self.last_record = record
             self.view.add(record)
             self.own_ranges.append((record.range_m, record.los))
+            self._track(k, own)
             self._publish(self._pub_record, record, MessageKind.RECORD)
             w_meas = self.unix()
             peers = lambda: not self._missing_peers(k)  # noqa: E731
