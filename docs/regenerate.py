@@ -10,8 +10,9 @@ process, one command after the other), then rewrites the tables between the mark
     ...
     <!-- END regenerate.py: NAME -->
 
-in ``docs/case-study.md`` (``case-study``) and ``docs/distributed.md`` (``fault-table``), and
-copies the figures into ``docs/figures/``. Each table states the command, the commit it was
+in ``docs/case-study.md`` (``case-study``), ``docs/distributed.md`` (``fault-table``) and
+``docs/reliability.md`` (``fault-grid``), and copies the figures into ``docs/figures/``.
+``--only NAME`` (repeatable) runs and rewrites just those blocks. Each table states the command, the commit it was
 measured at and the package versions. The runs are deterministic for a given mission seed, so
 the same commit gives the same tables; a tree with uncommitted changes is stamped as such.
 
@@ -56,6 +57,17 @@ TRAJECTORY_RUNS = ("paper_heterogeneous_A", "paper_ranging_nlos_A", "paper_joint
 FAULT_SETTINGS: tuple[tuple[float, int], ...] = ((0.0, 0), (0.1, 0), (0.2, 0), (0.4, 0), (0.0, 3), (0.2, 3))
 FAULT_TRIALS = 20
 
+#: The fault grid of docs/reliability.md: every paper mission, A and D, 100 trials, under each
+#: of these settings (label, --set overrides).
+GRID_SETTINGS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("no faults", ()),
+    ("20 % loss", ("comms.faults.loss=0.2",)),
+    ("3 steps delay", ("comms.faults.extra_delay_steps=3",)),
+    ("loss and delay", ("comms.faults.loss=0.2", "comms.faults.extra_delay_steps=3")),
+    ("partition, 50 steps", ("comms.faults.partition_start_step=100", "comms.faults.partition_steps=50")),
+)
+GRID_TRIALS = 100
+
 FAMILIES = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
 
 
@@ -97,7 +109,19 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
              "--set", f"comms.faults.loss={loss:g}", "--set", f"comms.faults.extra_delay_steps={delay}"),
             out / name,
         )
+    grid_size = ["--trials", str(trials or GRID_TRIALS), *(["--steps", str(steps)] if steps else [])]
+    for g, (_, sets) in enumerate(GRID_SETTINGS):
+        cmds[f"grid-{g}"] = Command(
+            f"grid-{g}",
+            (*(f"paper/{n}" for n in PAPER_NAMES), "--criterion", "both", *grid_size, *par, "--no-figures",
+             *(a for kv in sets for a in ("--set", kv))),
+            out / f"grid-{g}",
+        )
     return cmds
+
+
+#: Which commands each docs block is made from.
+BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",)}
 
 
 def stamp() -> str:
@@ -272,7 +296,6 @@ def fault_table(rows: Sequence[tuple[float, int, dict[str, Any]]]) -> list[str]:
     for loss, delay, s in rows:
         f = s.get("faults")
         viol = s["violations"]
-        nviol = sum(viol.values())
         fam = ", ".join(f"{viol[k]} {k.replace('_', ' ')}" for k in FAMILIES if viol[k]) or "0"
         vtext = f"{fam} ({s['worst_margins_m']['source']:+.1f} m)".replace("-", "−")
         if f is None:  # the fault-free row
@@ -290,6 +313,39 @@ def fault_table(rows: Sequence[tuple[float, int, dict[str, Any]]]) -> list[str]:
         )
     if base is not None:
         lines += ["", f"Violations: drone-steps of {base['trials'] * base['steps'] * base['drones']:,}.".replace(",", " ")]
+    return lines
+
+
+def fault_grid(per_setting: Sequence[Sequence[dict[str, Any]]]) -> list[str]:
+    """Every paper mission × A/D × fault setting: violating drone-steps (all families) and the
+    final mean PEB."""
+    labels = dict(CASE_STUDY_RUNS)
+    head = "| run | " + " | ".join(label for label, _ in GRID_SETTINGS) + " |"
+    lines = [head, "|---|" + "---:|" * len(GRID_SETTINGS)]
+    by = [{r["run"]: r for r in runs} for runs in per_setting]
+    total = 0
+    worst: dict[str, float] = {}
+    for mission_id, label in CASE_STUDY_RUNS:
+        for crit in "AD":
+            cells = []
+            for setting in by:
+                r = setting.get(f"{mission_id}_{crit}")
+                if r is None:
+                    cells.append("—")
+                    continue
+                v = sum(r["violations"].values())
+                total += v
+                for fam, m in r["worst_margins_m"].items():
+                    if m is not None:
+                        worst[fam] = min(worst.get(fam, np.inf), m)
+                cells.append(f"{v} · {r['final_peb_mean_m']:.2f} m")
+            lines.append(f"| {labels[mission_id]}, {crit} | " + " | ".join(cells) + " |")
+    runs = [r for setting in per_setting for r in setting]
+    drone_steps = sum(r["trials"] * r["steps"] * r["drones"] for r in runs)
+    lines += ["", "Each cell: violating drone-steps over every family (inter-drone, source, obstacle, altitude, speed, "
+              "turn rate) · final mean PEB.",
+              f"Total: **{total} violating drone-steps** of {drone_steps:,}".replace(",", " ") + "; smallest margin per family: "
+              + ", ".join(f"{k.replace('_', ' ')} {v:+.2f} m".replace("-", "−") for k, v in worst.items()) + "."]
     return lines
 
 
@@ -325,9 +381,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-docs", action="store_true", help="run and print the tables, leave docs/ as it is")
     parser.add_argument("--reuse", action="store_true", help="rebuild the tables and figures from an earlier run's results "
                         "directories under --out (stamped with the commit that run was made at) instead of running again")
+    parser.add_argument("--only", action="append", choices=sorted(BLOCKS), help="run and rewrite only this block (repeatable)")
     args = parser.parse_args(argv)
     full = args.trials is None and args.steps is None
     cmds = commands(args.out, args.trials, args.steps, args.jobs, figures=True)
+    blocks = args.only or sorted(BLOCKS)
+    cmds = {n: c for n, c in cmds.items() if any(n.startswith(prefix) for b in blocks for prefix in BLOCKS[b])}
     if args.reuse:
         reused = {name: reuse_command(cmd) for name, cmd in cmds.items()}
         summaries = {name: runs for name, (runs, _) in reused.items()}
@@ -339,23 +398,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         when = stamp()
         summaries = {name: run_command(cmd, when) for name, cmd in cmds.items()}
 
-    study = case_study_table(summaries["case-study"]) + ["", *case_study_facts(cmds["case-study"].out, summaries["case-study"])]
-    faults = fault_table([(loss, delay, summaries[f"faults-loss{loss:g}-delay{delay}"][0]) for loss, delay in FAULT_SETTINGS])
-    fault_cmds = [c for n, c in cmds.items() if n.startswith("faults-")]
-    study_block = provenance([cmds["case-study"]], when) + study
-    fault_block = provenance(fault_cmds, when) + faults
-    print("\n".join(["", *study_block, "", *fault_block]))
+    out_blocks: dict[str, list[str]] = {}
+    if "case-study" in blocks:
+        study = case_study_table(summaries["case-study"]) + ["", *case_study_facts(cmds["case-study"].out, summaries["case-study"])]
+        out_blocks["case-study"] = provenance([cmds["case-study"]], when) + study
+    if "fault-table" in blocks:
+        faults = fault_table([(loss, delay, summaries[f"faults-loss{loss:g}-delay{delay}"][0]) for loss, delay in FAULT_SETTINGS])
+        out_blocks["fault-table"] = provenance([c for n, c in cmds.items() if n.startswith("faults-")], when) + faults
+    if "fault-grid" in blocks:
+        grid = fault_grid([summaries[f"grid-{g}"] for g in range(len(GRID_SETTINGS))])
+        out_blocks["fault-grid"] = provenance([c for n, c in cmds.items() if n.startswith("grid-")], when) + grid
+    print("\n".join(line for body in out_blocks.values() for line in ["", *body]))
     if args.no_docs:
         return 0
     if not full:
         raise SystemExit("regenerate: docs/ quote the full size; rerun without --trials/--steps, or pass --no-docs")
-    replace_block(DOCS / "case-study.md", "case-study", study_block)
-    replace_block(DOCS / "distributed.md", "fault-table", fault_block)
-    figures = DOCS / "figures"
-    shutil.copyfile(cmds["fig3"].out / "figures" / "peb.png", figures / "case-study-fig3.png")
-    for run_id in TRAJECTORY_RUNS:
-        shutil.copyfile(cmds["case-study"].out / "figures" / f"trajectories_{run_id}.png", figures / f"trajectories_{run_id}.png")
-    print(f"\nregenerate: docs/case-study.md, docs/distributed.md and docs/figures/ rewritten ({when})")
+    files = {"case-study": DOCS / "case-study.md", "fault-table": DOCS / "distributed.md", "fault-grid": DOCS / "reliability.md"}
+    for name, body in out_blocks.items():
+        replace_block(files[name], name, body)
+    if "case-study" in blocks:
+        figures = DOCS / "figures"
+        shutil.copyfile(cmds["fig3"].out / "figures" / "peb.png", figures / "case-study-fig3.png")
+        for run_id in TRAJECTORY_RUNS:
+            shutil.copyfile(cmds["case-study"].out / "figures" / f"trajectories_{run_id}.png", figures / f"trajectories_{run_id}.png")
+    print(f"\nregenerate: {', '.join(str(files[b].relative_to(REPO)) for b in out_blocks)} rewritten ({when})")
     return 0
 
 
