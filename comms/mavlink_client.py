@@ -67,6 +67,8 @@ MASK_POSITION_VELOCITY = 0b0000_1100_0000_0000 | 0b0000_0001_1100_0000  # use po
 MASK_POSITION = MASK_POSITION_VELOCITY | 0b0000_0000_0011_1000
 MASK_VELOCITY = MASK_POSITION_VELOCITY | 0b0000_0000_0000_0111
 
+#: Arming attempts on PX4, whose pre-arm result flickers while its EKF settles.
+PX4_ARM_TRIES = 3
 #: Deadline (s) for the heartbeat that confirms a mode change or arming (heartbeats are 1 Hz;
 #: a loaded machine starting dozens of processes can delay them by seconds).
 MODE_CONFIRM_TIMEOUT_S: float = 30.0
@@ -261,6 +263,7 @@ class Telemetry:
     satellites: int | None = None
     sensors_present: int | None = None
     sensors_health: int | None = None
+    sys_status_count: int = 0
     ekf_flags: int | None = None
     landed_state: int | None = None
     signed_seen: bool = False
@@ -563,6 +566,7 @@ class VehicleLink:
             tel.gps_fix_type = msg.fix_type
             tel.satellites = msg.satellites_visible
         elif kind == "SYS_STATUS":
+            tel.sys_status_count += 1
             tel.sensors_present = msg.onboard_control_sensors_present
             tel.sensors_health = msg.onboard_control_sensors_health
         elif kind == "EKF_STATUS_REPORT":
@@ -668,10 +672,17 @@ class VehicleLink:
             missing.append("system status (no SYS_STATUS yet)")
         elif t.sensors_present & MAV_SYS_STATUS_AHRS and not (t.sensors_health or 0) & MAV_SYS_STATUS_AHRS:
             missing.append("EKF/AHRS healthy (SYS_STATUS)")
-        if t.sensors_present is not None and t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK and not t.armed:
+        # PX4 reports its pre-arm result as the PREARM_CHECK health bit alone (never present or
+        # enabled): set while the vehicle could arm in its current mode.
+        prearm_reported = t.sensors_present is not None and (self.is_px4 or bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK))
+        if prearm_reported and not t.armed:
             if not (t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK:
                 reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
                 missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
+        if self.is_px4 and t.position_enu_m is None:
+            # PX4 sends HOME_POSITION before its EKF has aligned, and no GLOBAL_POSITION_INT
+            # (no LOCAL_POSITION_NED with a valid position) until it has.
+            missing.append("position estimate (no GLOBAL_POSITION_INT yet)" if self.frame == "global" else "position estimate (no LOCAL_POSITION_NED yet)")
         if not t.home_known:
             missing.append("home position (HOME_POSITION)")
         if t.origin_global is None:
@@ -851,7 +862,21 @@ class VehicleLink:
     def arm(self) -> None:
         """Arm and wait until the heartbeat says armed."""
         m = self.mavutil.mavlink
-        self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
+        tries = PX4_ARM_TRIES if self.is_px4 else 1
+        for attempt in range(tries):
+            try:
+                self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
+                break
+            except LinkTimeout:
+                raise
+            except LinkError:
+                # PX4's pre-arm result flickers ("Preflight Fail: vertical velocity unstable"
+                # for a moment while its EKF settles): wait for a new pass, then try again.
+                if attempt == tries - 1:
+                    raise
+                seen = self.telemetry.sys_status_count
+                self.wait_for(lambda: self.telemetry.sys_status_count > seen + 1
+                              and bool((self.telemetry.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK), 10.0, "pre-arm checks passing again")
         if not self.telemetry.armed:
             self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.armed, MODE_CONFIRM_TIMEOUT_S, "armed heartbeat")
@@ -901,6 +926,14 @@ class VehicleLink:
             lat_e7, lon_e7 = g.lat_e7, g.lon_e7
             alt = g.alt_amsl_m if self.altitude_reference == "amsl" else z
         frame = m.MAV_FRAME_GLOBAL_INT if self.altitude_reference == "amsl" else m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        home = self.telemetry.home_global
+        if self.is_px4 and frame == m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and home is not None:
+            # PX4 (v1.15 and earlier) converts a GLOBAL_RELATIVE_ALT_INT altitude to local z as
+            # home − alt − EKF-origin altitude, i.e. with the sign of (home − origin altitude)
+            # reversed: off by twice the local z of home (1-4 m on PX4 SITL). The same target
+            # as an AMSL altitude (home's AMSL altitude from HOME_POSITION + z) is converted right.
+            frame = m.MAV_FRAME_GLOBAL_INT
+            alt = home[2] + alt
         self.mav.set_position_target_global_int_send(
             0, self.target_system, AUTOPILOT_COMPONENT, frame, mask, lat_e7, lon_e7, alt, vn, ve, vd, 0, 0, 0, 0, 0
         )
