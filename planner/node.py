@@ -41,7 +41,7 @@ import queue
 import select
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -71,6 +71,7 @@ from comms.session import SessionSettings, open_session
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
 from planner.errors import FimnavError
+from planner.params import Channel
 from planner.randomness import CONTROL_DRAWS, control_rng
 
 log = logging.getLogger("fimnav.plan")
@@ -338,6 +339,8 @@ class PlannerNode:
         #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
         #: when each peer's last record was taken (the partition planes, planner.agent.plan).
         self.own_track: dict[int, np.ndarray] = {}
+        #: A rejoining planner's step logs: its predecessor's and its peers' (drone index → rows).
+        self.predecessor_rows: dict[int, list[dict[str, Any]]] = {}
         self.seq = 0
         self._log: TextIO | None = None
 
@@ -369,6 +372,15 @@ class PlannerNode:
         self._pub_done = declare_publisher(s, keys.done(mid, self.o.uav))
         if self.o.log_path is not None:
             self.o.log_path.parent.mkdir(parents=True, exist_ok=True)
+            if self.o.rejoin:
+                # Its own log (the predecessor's) and, named as a launch names them, its peers'.
+                path = self.o.log_path
+                self.predecessor_rows = {self.i: read_step_log(path)}
+                if path.name == f"planner_{self.o.uav}.jsonl":
+                    for j in range(self.n):
+                        peer = path.with_name(f"planner_{j + 1}.jsonl")
+                        if j != self.i and peer.exists():
+                            self.predecessor_rows[j] = read_step_log(peer)
             self._log = self.o.log_path.open("a" if self.o.rejoin else "w")
         self.link = self._link_factory(self.o.mavlink, self.o.sysid or self.o.uav)
 
@@ -534,6 +546,8 @@ class PlannerNode:
             first = self._rejoin() if self.o.rejoin else self._start()
             state = est.initial_state((), self.est_config)
             used = np.full(self.n, -1, dtype=np.int64)
+            if self.o.rejoin:
+                state = self._rebuild(state, first, used)
             prev_step = np.zeros(3)
             done_steps = 0
             for k in range(first, self.steps):
@@ -643,8 +657,27 @@ class PlannerNode:
         link.set_mode("OFFBOARD" if link.is_px4 else "GUIDED")
         self._publish(self._pub_done, Done(self.o.uav, p))
         self.ctrl_rng.random((p + 1) * CONTROL_DRAWS)
-        log.warning("uav %d rejoined at step %d (flying from step %d with a fresh estimator)", self.o.uav, p, p + 1)
+        log.warning("uav %d rejoined at step %d (flying from step %d)", self.o.uav, p, p + 1)
         return p + 1
+
+    def _rebuild(self, state: est.EstimatorState, first: int, used: np.ndarray) -> est.EstimatorState:
+        """A rejoining planner's estimator, own-range window and own track, from its
+        predecessor's step log and, when they are next to it (a launch's results directory),
+        its peers' logs (:func:`replay_step_logs`). ``used`` (per drone, the newest step fed
+        to the estimator) is updated in place."""
+        state, done = replay_step_logs(state, self.predecessor_rows, self.n, first, self.channel, self.est_config)
+        for step, pos, rng, los in done.get(self.i, []):
+            self.own_ranges.append((rng, los))
+            self._track(step, pos)
+        for j, steps in done.items():
+            if steps:
+                used[j] = steps[-1][0]
+        own = len(done.get(self.i, []))
+        peers = sum(len(v) for j, v in done.items() if j != self.i)
+        where = f"; estimate {tuple(round(float(v), 2) for v in state.estimate_m)}" if state.observable else ""
+        log.warning("uav %d: estimator rebuilt from %d steps of its predecessor's log (steps up to %d) and %d records of %d peers' logs%s",
+                    self.o.uav, own, used[self.i], peers, sum(1 for j, v in done.items() if j != self.i and v), where)
+        return state
 
     def _await_step(self, k: int) -> float:
         if self.o.lockstep:
@@ -1174,6 +1207,65 @@ class PlannerNode:
                "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None}
         log.info("uav %d: mission over (%s): vehicle in %s, %s", self.o.uav, action, end["mode"], "armed" if end["armed"] else "disarmed")
         return end
+
+def replay_step_logs(
+    state: est.EstimatorState, rows_by_drone: dict[int, Sequence[dict[str, Any]]], n: int, first: int, channel: Channel,
+    config: est.EstimatorConfig,
+) -> tuple[est.EstimatorState, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
+    """Feed the records of the steps before ``first`` found in step logs to the estimator, step
+    by step in order (eqs. 3-5 measurements at the logged positions, m, ENU): a rejoining
+    planner's own log (its predecessor's), and its peers' logs when they are at hand (a launch
+    keeps every planner's log in one results directory). A step logged twice (an earlier
+    rejoin) counts once; a torn line is skipped (:func:`read_step_log`).
+
+    Args:
+        rows_by_drone: drone index (0-based) → that drone's logged rows.
+        n: drones in the mission. first: the first step not to replay.
+
+    Returns:
+        The updated state and, per drone index, its replayed steps as (step, position m,
+        range m or NaN, LOS).
+    """
+    nan = np.nan
+    table: dict[int, dict[int, dict[str, Any]]] = {}
+    for j, rows in rows_by_drone.items():
+        for r in rows:
+            if 0 <= r["step"] < first:
+                table.setdefault(int(r["step"]), {}).setdefault(j, r)
+    done: dict[int, list[tuple[int, np.ndarray, float, bool]]] = {j: [] for j in rows_by_drone}
+    for step in sorted(table):
+        pos = np.full((n, 3), nan)
+        rng, az, el = np.full(n, nan), np.full(n, nan), np.full(n, nan)
+        los = np.zeros(n, dtype=bool)
+        for j, r in table[step].items():
+            m = r["measurement"]
+            pos[j] = r["position_m"]
+            rng[j] = nan if m.get("range_m") is None else m["range_m"]
+            az[j] = nan if m.get("azimuth_rad") is None else m["azimuth_rad"]
+            el[j] = nan if m.get("elevation_rad") is None else m["elevation_rad"]
+            los[j] = bool(m.get("los"))
+            done[j].append((step, pos[j].copy(), float(rng[j]), bool(los[j])))
+        state = est.update(state, est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los), channel, config)
+    return state, done
+
+
+def read_step_log(path: Path) -> list[dict[str, Any]]:
+    """The rows of a planner's step log (JSON lines with a ``step``); a missing file or a
+    torn last line (the planner was killed while writing it) gives what could be read."""
+    rows: list[dict[str, Any]] = []
+    try:
+        text = path.read_text()
+    except OSError:
+        return rows
+    for line in text.splitlines():
+        try:
+            row = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(row, dict) and isinstance(row.get("step"), int) and "position_m" in row and "measurement" in row:
+            rows.append(row)
+    return rows
+
 
 def _num(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None

@@ -125,6 +125,20 @@ def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: lis
         assert peer[steps - 1]["saved_steps"][2] == steps - 1
     assert summary["violations"] == {k: 0 for k in summary["violations"]}
 
+    # The replacement rebuilt its estimator from its predecessor's step log and its peers' logs
+    # (not from nothing) and flies with an estimate as good as its predecessor's last one.
+    text = (out / "logs" / "planner_3.log").read_text()
+    m = re.search(r"estimator rebuilt from (\d+) steps of its predecessor's log \(steps up to (\d+)\) and (\d+) records of (\d+) peers' logs", text)
+    assert m and int(m.group(2)) >= killed_after and int(m.group(1)) == int(m.group(2)) + 1, text[-2000:]
+    assert int(m.group(4)) == 9 and int(m.group(3)) >= 9 * (rejoined_at - 1), m.group(0)
+    import yaml
+
+    src = np.array(yaml.safe_load((PAPER / "joint.yaml").read_text())["source"]["position_m"], dtype=float)
+    by_step = {e["step"]: e for e in entries}
+    before = float(np.linalg.norm(np.subtract(by_step[killed_after]["estimate_m"], src)))
+    after = float(np.linalg.norm(np.subtract(by_step[rejoined_at]["estimate_m"], src)))
+    assert after <= max(1.2 * before, before + 0.5), (before, after)
+
     # Its vehicle stopped and held within the guided timeout (3 s) of the last setpoint.
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
