@@ -673,8 +673,13 @@ class VehicleLink:
         elif t.sensors_present & MAV_SYS_STATUS_AHRS and not (t.sensors_health or 0) & MAV_SYS_STATUS_AHRS:
             missing.append("EKF/AHRS healthy (SYS_STATUS)")
         # PX4 reports its pre-arm result as the PREARM_CHECK health bit alone (never present or
-        # enabled): set while the vehicle could arm in its current mode.
-        prearm_reported = t.sensors_present is not None and (self.is_px4 or bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK))
+        # enabled): set while the vehicle could arm in its current mode. Disarmed in OFFBOARD
+        # (PX4 returns to it after landing a flight flown in OFFBOARD) it stays clear until a
+        # setpoint stream runs, which the planner starts only once ready: not awaited there.
+        if self.is_px4:
+            prearm_reported = t.sensors_present is not None and not self.in_mode("OFFBOARD")
+        else:
+            prearm_reported = t.sensors_present is not None and bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK)
         if prearm_reported and not t.armed:
             if not (t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK:
                 reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
