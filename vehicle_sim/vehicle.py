@@ -165,6 +165,8 @@ class SimVehicle:
         self.gcs_last_seen_t: float | None = None  # sim time of the last SYSID_MYGCS heartbeat
         self.gcs_failsafe = False
         self._prearm_next_t = PREARM_DISPLAY_PERIOD_S
+        #: PX4: the mode restored when the vehicle disarms (the last armable mode chosen).
+        self._mode_after_disarm: Mode | None = None
         self.offboard_loss_action = 0.0
         self.takeoff_alt_m = PX4_TAKEOFF_ALT_DEFAULT_M
         self.sysid_param = float(config.sysid)
@@ -411,6 +413,8 @@ class SimVehicle:
             return "Takeoff: arm first"
         previous = self.mode
         self.mode = mode
+        if mode.armable:
+            self._mode_after_disarm = mode
         if mode.custom_mode == previous.custom_mode:
             return None
         self.phase = ""
@@ -458,6 +462,10 @@ class SimVehicle:
         if self.armed:
             self.armed = False
             self.statustext(6, "Disarming motors" if self.config.flavour == "ardupilot" else "Landed: disarmed")
+            if self.config.flavour == "px4" and self._mode_after_disarm is not None:
+                # PX4 (commander's UserModeIntention::onDisarm) returns to the last armable
+                # mode chosen, e.g. OFFBOARD after AUTO.LAND.
+                self.mode = self._mode_after_disarm
 
     def _update_logic(self) -> None:
         """Mode transitions evaluated at every physics step (sim time ``self.t``)."""
@@ -871,7 +879,9 @@ class SimVehicle:
         cmd = m.MAV_CMD_SET_MESSAGE_INTERVAL
         name = self._stream_name(p[0])
         if name is None:
-            return self._ack(msg, cmd, m.MAV_RESULT_DENIED, f"Interval: cannot stream msg {p[0]:g}")
+            # PX4 (1.15) answers FAILED for a message it has no stream for (EKF_STATUS_REPORT).
+            result = m.MAV_RESULT_FAILED if self.config.flavour == "px4" else m.MAV_RESULT_DENIED
+            return self._ack(msg, cmd, result, f"Interval: cannot stream msg {p[0]:g}")
         us = p[1]
         if not math.isfinite(us) or (us < 0 and us != -1):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Interval: bad interval")

@@ -164,8 +164,8 @@ def test_px4_offboard_loss_timeout_and_action(make_rig, action: int, mode: int, 
     fired_after_s = v.t - t_last
     assert loss_s - 0.05 <= fired_after_s <= loss_s + 1.0, fired_after_s
     wait_mode(c, mode)
-    if mode == PX4_LAND:  # landed and disarmed itself
-        wait_msg(c, "HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == mode and not m.base_mode & 128, 20.0)
+    if mode == PX4_LAND:  # landed and disarmed itself, then back in the user's mode (OFFBOARD), as PX4
+        wait_msg(c, "HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 6 << 16 and not m.base_mode & 128, 20.0)
     elif mode == PX4_LOITER:
         hb = wait_msg(c, "HEARTBEAT", lambda m: m.get_srcComponent() == 1)
         assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
