@@ -80,7 +80,7 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
     for s in (s1, s2):
         assert s["frame"] == "global" and s["steps"] == steps and s["link_losses"] == []
         assert s["end"]["confirmed"] and s["end"]["armed"] is False and s["end"]["landed_state"] == "ON_GROUND"
-    assert s1["end"]["mode"] == "LAND" and s2["end"]["mode"] == "AUTO.LAND"
+    assert s1["end"]["mode"] == "LAND" and s2["end"]["mode"] == "OFFBOARD"  # PX4 returns to OFFBOARD on disarming
 
     # The payload's measurements (published on their own schedule) went into the records.
     for uav, rng in ((1, 70.0), (2, 72.0)):
@@ -97,10 +97,11 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
 
     t1 = stop_and_read(v1, tmp_path / "v1.tlog")
     t2 = stop_and_read(v2, tmp_path / "v2.tlog")
-    for t in (t1, t2):
-        # Only global setpoints (relative altitude), position + velocity or position only.
-        assert set(t.setpoints) <= {("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, m) for m in (MASK_POS_VEL, MASK_POS)}, t.setpoints
-        assert t.setpoints.get(("SET_POSITION_TARGET_GLOBAL_INT", GLOBAL_RELATIVE_ALT_INT, MASK_POS_VEL), 0) >= steps
+    for t, frame in ((t1, GLOBAL_RELATIVE_ALT_INT), (t2, 5)):
+        # Only global setpoints, position + velocity or position only: relative altitude to
+        # ArduPilot; to PX4 as AMSL (home + z, MAV_FRAME_GLOBAL_INT = 5), which PX4 converts right.
+        assert set(t.setpoints) <= {("SET_POSITION_TARGET_GLOBAL_INT", frame, m) for m in (MASK_POS_VEL, MASK_POS)}, t.setpoints
+        assert t.setpoints.get(("SET_POSITION_TARGET_GLOBAL_INT", frame, MASK_POS_VEL), 0) >= steps
         assert t.commands.get(MAV_CMD_SET_MESSAGE_INTERVAL, 0) >= 5
         assert not [x for x in t.texts if "timeout" in x.lower() or "failsafe" in x.lower() or "fence" in x.lower()], t.texts
         assert t.landed_state == 1  # MAV_LANDED_STATE_ON_GROUND
@@ -112,7 +113,8 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
         assert np.median(gaps) <= 0.25
     assert (ARDUPILOT_GUIDED, True) in t1.modes and t1.modes[-1] == (ARDUPILOT_LAND, False)
     assert t1.commands.get(MAV_CMD_NAV_TAKEOFF) == 1
-    assert (PX4_OFFBOARD, True) in t2.modes and t2.modes[-1] == (PX4_LAND, False)
+    # PX4 lands armed in AUTO.LAND and, disarmed, returns to OFFBOARD (the user's last armable mode).
+    assert (PX4_OFFBOARD, True) in t2.modes and t2.modes[-2:] == [(PX4_LAND, True), (PX4_OFFBOARD, False)]
     assert MAV_CMD_NAV_TAKEOFF not in t2.commands  # PX4 climbs in OFFBOARD on the stream
 
 
