@@ -12,6 +12,7 @@ key expression                                   what
 ``fimnav/<id>/clock/tick``                       lockstep clock: advance to step k, time t_k
 ``fimnav/<id>/clock/done/<uav>``                 a participant finished step k
 ``fimnav/<id>/alive/<role>/<uav>``               liveliness token (role: planner, vehicle, payload)
+``fimnav/<id>/control/<uav>``                    operator commands to a planner (``fimnav handback``)
 ===============================================  ==========================================
 """
 
@@ -62,6 +63,11 @@ def done(mission_id: str, uav: int | str = "*") -> str:
 def alive(mission_id: str, role: str = "*", uav: int | str = "*") -> str:
     """Liveliness token of a participant (``role`` planner, vehicle or payload)."""
     return f"{root(mission_id)}/alive/{role}/{uav}"
+
+
+def control(mission_id: str, uav: int | str = "*") -> str:
+    """Operator commands to drone ``uav``'s planner (JSON ``{"command": "handback"}``)."""
+    return f"{root(mission_id)}/control/{uav}"
 
 
 def uav_of(key: str) -> int | None:

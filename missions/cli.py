@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_payload",
     "missions.cmd_launch",
     "missions.cmd_router",
+    "missions.cmd_handback",
     "missions.cmd_missions",
 )
 

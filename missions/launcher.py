@@ -488,6 +488,8 @@ class Launcher:
         # another launch) are connected by the router, so the swarm joins a larger network.
         base = SessionSettings.from_mission(m.zenoh, listen=(hub,))
         session = open_session(dataclasses.replace(base, mode="router"))
+        # Where operator tools reach the swarm while it flies (fimnav handback --results OUT).
+        (self._abs_out / "logs" / "zenoh.json").write_text(json.dumps({"connect": [hub]}) + "\n")
         t_start = time.perf_counter()
         try:
             subs = [
@@ -881,6 +883,22 @@ def stop_on_signals(launcher: Launcher) -> Iterator[None]:
             signal.signal(s, h)
 
 
+def taken_over(out: Path, n: int) -> dict[str, list[dict[str, Any]]]:
+    """Drone id → its planner's take-overs (``{"step", "mode", "handed_back_step"?}``), from
+    the summary line that ends each planner's log (a pilot or ground station switched its
+    vehicle out of GUIDED/OFFBOARD; docs/in-the-field.md)."""
+    found: dict[str, list[dict[str, Any]]] = {}
+    for i in range(1, n + 1):
+        try:
+            lines = (out / "logs" / f"planner_{i}.log").read_text().strip().splitlines()
+            last = json.loads(lines[-1]) if lines else None
+        except (OSError, ValueError):
+            continue
+        if isinstance(last, dict) and last.get("taken_over"):
+            found[str(i)] = last["taken_over"]
+    return found
+
+
 def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, int], None] | None = None, **kwargs: Any) -> dict[str, Any]:
     """Fly ``mission`` distributed and write the results directory; return the summary.
 
@@ -901,6 +919,7 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
     summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
     summary = summaries[0]
     summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]),
-                   failures=launcher.failures, clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep")
+                   failures=launcher.failures, clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
+                   taken_over=taken_over(out, mission.drones.count))
     (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
     return summary

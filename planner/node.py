@@ -319,6 +319,12 @@ class PlannerNode:
         self.stale_peers: dict[int, int] = {}  # drone id -> last step it said "stale"
         self.position_gaps = 0
         self._reported_mode: str | None = None
+        #: Real time: the pilot's take-over in force ({"step", "mode"}), or None; every one.
+        self.taken_over: dict[str, Any] | None = None
+        self.takeovers: list[dict[str, Any]] = []
+        self.taken_over_steps = 0
+        #: Operator commands from ``fimnav/<id>/control/<uav>`` (Zenoh thread → main loop).
+        self.control: queue.SimpleQueue[str] = queue.SimpleQueue()
         self.vehicle_clock_rate: float | None = None
         self._session_factory = session_factory
         self.session: Any = None
@@ -366,6 +372,8 @@ class PlannerNode:
         if self.o.lockstep:
             # The simulated vehicle's bridge holds a token: its process dying is seen at once.
             self._subs.append(s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True))
+        if not self.o.lockstep:
+            self._subs.append(s.declare_subscriber(keys.control(mid, self.o.uav), self._on_control))
         self._token = s.liveliness().declare_token(keys.alive(mid, "planner", self.o.uav))
         self._pub_record = declare_publisher(s, keys.record(mid, self.o.uav))
         self._pub_status = declare_publisher(s, keys.status(mid, self.o.uav))
@@ -404,6 +412,33 @@ class PlannerNode:
     def _publish(self, publisher: Any, msg: Any, kind: MessageKind | None = None) -> None:
         self.seq += 1
         publisher.put(encode(msg, self.m.id, self.seq, kind))
+
+    def _on_control(self, sample: Any) -> None:
+        """An operator command (Zenoh callback thread): queued for the main loop, which checks it."""
+        try:
+            self.control.put(bytes(sample.payload.to_bytes()).decode("utf-8", "replace"))
+        except Exception as exc:  # noqa: BLE001 - a bad sample must not kill the callback thread
+            log.warning("uav %d: unreadable control message ignored (%s)", self.o.uav, exc)
+
+    def _handback_requested(self) -> bool:
+        """Whether a valid ``{"command": "handback"}`` arrived since the last call; anything
+        else is logged (naming what was wrong) and ignored."""
+        asked = False
+        while True:
+            try:
+                text = self.control.get_nowait()
+            except queue.Empty:
+                return asked
+            try:
+                msg = json.loads(text)
+            except ValueError:
+                log.warning("uav %d: control message is not JSON, ignored: %.80r", self.o.uav, text)
+                continue
+            if isinstance(msg, dict) and msg.get("command") == "handback":
+                asked = True
+            else:
+                log.warning("uav %d: control message without a known command (expected {\"command\": \"handback\"}), ignored: %.80r",
+                            self.o.uav, text)
 
     def _drain(self, timeout_s: float = 0.0) -> None:
         """Handle queued Zenoh messages (waiting up to ``timeout_s`` for the first)."""
@@ -1040,17 +1075,54 @@ class PlannerNode:
             link.set_mode(mode)
         log.info("uav %d: resumed in %s", self.o.uav, mode)
 
-    def _watch_mode(self) -> None:
-        """Report (once per change) a vehicle that left GUIDED/OFFBOARD while the link is up:
-        a pilot or a failsafe has taken control. The planner does not fight it: it keeps
-        stepping and streaming, which the vehicle ignores outside GUIDED/OFFBOARD."""
+    def _watch_mode(self, k: int) -> None:
+        """A vehicle that left GUIDED/OFFBOARD while the link is up has been taken over (a
+        pilot, a ground station or a failsafe). The planner stops commanding it at once (the
+        setpoint stream ends), says so, and never switches it back on its own: only
+        ``fimnav handback`` does (:meth:`_hand_back`). Mode changes while taken over are
+        reported too."""
         link = self._require_link()
         want = "OFFBOARD" if link.is_px4 else "GUIDED"
         now = link.mode_name()
         if not link.in_mode(want) and now != self._reported_mode:
-            log.warning("uav %d: the vehicle left %s (now %s): a pilot or a failsafe has control; not taking it back", self.o.uav, want, now)
             self.mode_changes.append(now)
+            if self.taken_over is None:
+                link.set_stream(None)
+                self.taken_over = {"step": k, "mode": now}
+                self.takeovers.append(dict(self.taken_over))
+                log.warning("uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
+                            "position without measurements; hand it back with: fimnav handback MISSION --uav %d", self.o.uav, k, want, now, self.o.uav)
+            else:
+                log.warning("uav %d: taken over, the vehicle is now in %s", self.o.uav, now)
         self._reported_mode = now if not link.in_mode(want) else None
+
+    def _hand_back(self, k: int) -> bool:
+        """``fimnav handback``: switch the vehicle back to GUIDED/OFFBOARD at its position and
+        plan again from step ``k``; False (logged) when the vehicle refuses or is not armed."""
+        link = self._require_link()
+        mode = "OFFBOARD" if link.is_px4 else "GUIDED"
+        pos = link.telemetry.position_enu_m
+        if not link.telemetry.armed or pos is None:
+            log.error("uav %d: hand-back refused: the vehicle is %s", self.o.uav, "disarmed" if not link.telemetry.armed else "without a position")
+            return False
+        hold = pos.astype(float)
+        try:
+            if link.is_px4:
+                link.set_stream(lambda _t: (hold, None))  # PX4 enters OFFBOARD only with setpoints flowing
+                link.set_mode(mode)
+            else:
+                link.set_mode(mode)
+                link.set_stream(lambda _t: (hold, None))
+        except LinkError as exc:
+            link.set_stream(None)
+            log.error("uav %d: hand-back refused: %s", self.o.uav, exc)
+            return False
+        assert self.taken_over is not None
+        self.takeovers[-1]["handed_back_step"] = k
+        self.taken_over = None
+        self._reported_mode = None
+        log.warning("uav %d: handed back at step %d: in %s, planning again", self.o.uav, k, mode)
+        return True
 
     def _trajectory(self, own: np.ndarray, u: np.ndarray, t_from: float) -> Callable[[float], tuple[np.ndarray | None, np.ndarray | None]]:
         """The streamed setpoint of one step: from ``own`` along ``u`` (m, ENU) over one
@@ -1109,7 +1181,25 @@ class PlannerNode:
                 stale_steps += 1
                 k += 1
                 continue
-            self._watch_mode()
+            self._watch_mode(k)
+            if self.taken_over is not None and not (self._handback_requested() and self._hand_back(k)):
+                # Taken over: no command. The drone's position from telemetry is published every
+                # step, without a measurement (the pilot's flight is no planned sensing), so the
+                # others keep clear of where it is; without telemetry its last record, as stale.
+                pos = link.telemetry.position_enu_m
+                fresh_pos = pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
+                nan = float("nan")
+                if fresh_pos:
+                    assert pos is not None
+                    rec = Observation(self.o.uav, k, w0, tuple(float(v) for v in pos), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
+                                      True, nan, nan, nan)
+                    self._publish(self._pub_record, rec, MessageKind.RECORD)
+                elif self.last_record is not None:
+                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True), MessageKind.RECORD)
+                self.taken_over_steps += 1
+                prev_step = np.zeros(3)
+                k += 1
+                continue
             pos = link.telemetry.position_enu_m
             assert pos is not None
             age = self.wall() - link.telemetry.position_wall_s
@@ -1165,6 +1255,7 @@ class PlannerNode:
         return {
             "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
             "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses, "mode_changes": self.mode_changes,
+            "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps,
             "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
             "vehicle_clock_rate": None if self.vehicle_clock_rate is None else round(self.vehicle_clock_rate, 3),
         }
@@ -1179,6 +1270,10 @@ class PlannerNode:
         if self.link_down_since is not None:
             log.error("uav %d: mission over with the vehicle link down: its failsafe keeps control", self.o.uav)
             return {"action": action, "confirmed": False, "reason": "link lost"}
+        if self.taken_over is not None:
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
+                        self.o.uav, link.mode_name(), action)
+            return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         pos = link.telemetry.position_enu_m
         try:
             if action == "hold":
