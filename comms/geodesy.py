@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 from pyproj import Transformer
 
 #: Convergence of the horizontal inverse (m); two iterations reach it within 10 km.
@@ -93,6 +94,20 @@ class MissionFrame:
                 break
             t -= h - h0
         return GeoPoint(float(lat), float(lon), h0 + float(z_m))
+
+    def to_global_many(self, enu_m: np.ndarray) -> np.ndarray:
+        """:meth:`to_global` of many points at once: mission ENU (n, 3) m → (n, 3) of (lat deg,
+        lon deg, m AMSL)."""
+        p = np.asarray(enu_m, dtype=float).reshape(-1, 3)
+        h0 = self.origin.alt_amsl_m
+        t = np.zeros(len(p))
+        lat = lon = np.zeros(len(p))
+        for _ in range(5):
+            lat, lon, h = self._geo_enu.transform(p[:, 0], p[:, 1], t, direction="INVERSE")
+            if np.all(np.abs(h - h0) < _HORIZONTAL_TOL_M):
+                break
+            t = t - (h - h0)
+        return np.column_stack([lat, lon, h0 + p[:, 2]])
 
     def to_enu(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> tuple[float, float, float]:
         """WGS-84 (deg, deg, m AMSL) → mission ENU (m): (x, y) of the point at the origin's

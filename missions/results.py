@@ -149,6 +149,9 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
             for i in range(pos.shape[1]):
                 e = est[min(k, K - 1), i]
                 w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
+    from missions.exports import write_exports
+
+    write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
     summary = summarize(result, penalty) | (extra or {})
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

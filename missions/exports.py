@@ -1,0 +1,87 @@
+"""A run's flight in the mission's real coordinates: KML (Google Earth) and GeoJSON (QGIS).
+
+For the first trial of a run (a ``fimnav launch`` has one): each drone's trajectory as a 3-D
+line, its final source estimate as a point, and the true source (its position at the end of
+the run), in WGS-84 longitude, latitude and altitude above mean sea level (the mission
+origin's altitude plus the ENU height, as the planner's setpoints use it,
+:class:`comms.geodesy.MissionFrame`). KML lines are ``absolute`` altitude, extruded to the
+ground; GeoJSON positions are (longitude, latitude, altitude m) as RFC 7946 orders them.
+Written with fastkml and geojson.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover - types only
+    from missions.simulator import SimulationResult
+
+
+def flight_features(result: SimulationResult) -> list[dict]:
+    """The run's features, frame-converted: dicts with ``kind`` (trajectory, estimate,
+    source), ``name``, ``drone`` (1-based or None), ``role`` and ``lonlatalt`` ((n, 3): lon deg,
+    lat deg, m AMSL)."""
+    from comms.geodesy import MissionFrame
+
+    mission = result.spec.mission
+    frame = MissionFrame.of_mission(mission)
+    pos = np.asarray(result.positions_m[:, 0])  # (K+1, N, 3), m, ENU
+    est = np.asarray(result.estimates_m[-1, 0])  # (N, 3)
+    src = np.asarray(result.source_m[-1], dtype=float).reshape(3)
+    roles = mission.drones.roles
+
+    def lonlatalt(enu: np.ndarray) -> np.ndarray:
+        g = frame.to_global_many(enu)
+        return np.column_stack([g[:, 1], g[:, 0], g[:, 2]])
+
+    out = []
+    for i in range(pos.shape[1]):
+        out.append({"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lonlatalt(pos[:, i])})
+    for i in range(pos.shape[1]):
+        out.append({"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lonlatalt(est[i][None])})
+    out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lonlatalt(src[None])})
+    return out
+
+
+def write_kml(result: SimulationResult, path: Path) -> None:
+    """The run's flight as KML (fastkml): a folder of trajectories, one of estimates, the source."""
+    from fastkml import kml
+    from fastkml import geometry as kg
+    from fastkml.containers import Document, Folder
+    from fastkml.enums import AltitudeMode
+    from fastkml.features import Placemark
+    from pygeoif import geometry as geo
+
+    folders: dict[str, list[Placemark]] = {"trajectory": [], "estimate": [], "source": []}
+    for f in flight_features(result):
+        c = [tuple(map(float, row)) for row in f["lonlatalt"]]
+        if f["kind"] == "trajectory":
+            g = kg.LineString(altitude_mode=AltitudeMode.absolute, extrude=True, geometry=geo.LineString(c))
+        else:
+            g = kg.Point(altitude_mode=AltitudeMode.absolute, geometry=geo.Point(*c[0]))
+        folders[f["kind"]].append(Placemark(name=f["name"], kml_geometry=g))
+    names = {"trajectory": "trajectories", "estimate": "source estimates (last step)", "source": "source (true)"}
+    doc = Document(name=f"fimnav {result.spec.mission.id}", features=[Folder(name=names[k], features=v) for k, v in folders.items()])
+    path.write_text(kml.KML(features=[doc]).to_string(prettyprint=True))
+
+
+def write_geojson(result: SimulationResult, path: Path) -> None:
+    """The run's flight as a GeoJSON FeatureCollection (geojson)."""
+    import geojson
+
+    feats = []
+    for f in flight_features(result):
+        c = [tuple(map(float, row)) for row in f["lonlatalt"]]
+        # 9 decimals of a degree (0.1 mm): the library rounds to 6 (11 cm) by default.
+        g = geojson.LineString(c, precision=9) if f["kind"] == "trajectory" else geojson.Point(c[0], precision=9)
+        feats.append(geojson.Feature(geometry=g, properties={"kind": f["kind"], "name": f["name"], "drone": f["drone"], "role": f["role"]}))
+    path.write_text(geojson.dumps(geojson.FeatureCollection(feats), indent=1))
+
+
+def write_exports(result: SimulationResult, run_dir: Path) -> None:
+    """``trajectories.kml`` and ``trajectories.geojson`` in ``run_dir``."""
+    write_kml(result, run_dir / "trajectories.kml")
+    write_geojson(result, run_dir / "trajectories.geojson")
