@@ -39,6 +39,9 @@ def register(subparsers: Any) -> None:
                     "vehicles run in real time; drones with a connection in the mission get no simulated vehicle")
     rt.add_argument("--speedup", type=float, default=1.0, help="real time: mission seconds per wall second (default 1; "
                     "more only when every vehicle is simulated, or an external SITL runs at the same speed-up)")
+    rt.add_argument("--gcs", metavar="ENDPOINT", help="real time: one ground-station port for every simulated vehicle, "
+                    "e.g. udpout:127.0.0.1:14550 (QGroundControl, MAVProxy) or tcpin:127.0.0.1:5760; its commands go to the "
+                    "vehicle they target (docs/in-the-field.md)")
     rt.add_argument("--start-delay", type=float, metavar="S", help="real time: wall seconds from the launch to step 0 "
                     "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step")
     p.add_argument("--vehicles-per-process", type=int, default=10, help="simulated vehicles hosted by one process (default 10: "
@@ -103,6 +106,12 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number of seconds, found {v}")
     if not args.realtime and (args.speedup != 1.0 or args.start_delay is not None):
         raise UsageError("--speedup and --start-delay: only with --realtime (lockstep runs as fast as the machine allows)")
+    if args.gcs is not None:
+        if not args.realtime:
+            raise UsageError("--gcs: only with --realtime (a ground station runs on the wall clock)")
+        from missions.gcs import check_endpoint
+
+        check_endpoint(args.gcs)
     if args.vehicles_per_process < 1:
         raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
     mission = load_mission(args.mission, overrides)
@@ -123,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
                          on_failure=args.on_failure, realtime=args.realtime, speedup=args.speedup, start_delay_s=args.start_delay,
-                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice)
+                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice, gcs=args.gcs)
     finally:
         bar.close()
     print(summary_line(summary, out, sys.stdout))

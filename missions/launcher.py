@@ -232,6 +232,9 @@ class Launcher:
             (:data:`RUN_ENTRIES`) first; False: refuse it (:func:`claim_results_dir`).
         notice: called with a one-line message on what the launcher waits for (real time:
             the start delay); default: logged.
+        gcs: real time: a MAVLink endpoint (``udpout:127.0.0.1:14550``) that every simulated
+            vehicle's MAVLink is forwarded to, its frames routed back by target system
+            (:class:`missions.gcs.GcsRouter`); None: none.
     """
 
     def __init__(
@@ -250,8 +253,12 @@ class Launcher:
         fork_server: bool = True,
         overwrite: bool = False,
         notice: Callable[[str], None] | None = None,
+        gcs: str | None = None,
     ) -> None:
         self.mission = mission
+        #: Real time: the ground-station endpoint every simulated vehicle is forwarded to.
+        self.gcs_endpoint = gcs
+        self._gcs: Any = None
         self.out = out
         # Children get absolute paths: they run in the logs directory (child_environment).
         self._abs_out = out.absolute()
@@ -527,6 +534,15 @@ class Launcher:
                 for i in ids:
                     self._vehicle_child[i] = vc
             ports = self._vehicle_ports(vehicle_children, self.preflight_timeout_s)
+            if self.realtime and self.gcs_endpoint is not None:
+                from missions.gcs import GcsRouter
+
+                try:
+                    self._gcs = GcsRouter(self.gcs_endpoint, ports)
+                except OSError as exc:
+                    raise LaunchError(f"--gcs {self.gcs_endpoint}: cannot open it ({exc})") from None
+                self._gcs.start()
+                self.notice(f"ground station port {self.gcs_endpoint}: vehicles {', '.join(str(i) for i in sorted(ports))} (system id = drone id)")
             if self.realtime:
                 # On the UNIX grid of multiples of Δt/speed-up: the simulated payloads measure
                 # just before each point of it (vehicle_sim.bridge).
@@ -594,6 +610,8 @@ class Launcher:
             self._raise_child_failure()
             raise LaunchError(str(exc)) from None
         finally:
+            if self._gcs is not None:
+                self._gcs.close()
             self.stop_children()
             for s in locals().get("subs", []):
                 with contextlib.suppress(Exception):
