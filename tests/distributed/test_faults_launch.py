@@ -34,6 +34,7 @@ def _node_injects_faults(mission: Mission) -> bool:
     return node.view.faults is not None
 
 
+@pytest.mark.slow  # a lockstep launch with faults (6 s); tests/simulator/test_faults.py checks the fault rule in the default run
 def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     """The paper's heterogeneous mission, shortened, with 20 % of the peer records lost and up to
     2 steps of extra delay: it completes; every planner held exactly the records the brute-force

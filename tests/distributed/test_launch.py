@@ -168,6 +168,7 @@ def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, la
     assert {"HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "COMMAND_ACK"} <= kinds
 
 
+@pytest.mark.slow  # a launch with real latency (5 s)
 def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
     """With a small d_hop the age of every record each planner used is what the hop counts of
     the geometry give (recomputed here with scipy from the recorded positions)."""

@@ -130,7 +130,8 @@ def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: lis
     text = (out / "logs" / "planner_3.log").read_text()
     m = re.search(r"estimator rebuilt from (\d+) steps of its predecessor's log \(steps up to (\d+)\) and (\d+) records of (\d+) peers' logs", text)
     assert m and int(m.group(2)) >= killed_after and int(m.group(1)) == int(m.group(2)) + 1, text[-2000:]
-    assert int(m.group(4)) == 9 and int(m.group(3)) >= 9 * (rejoined_at - 1), m.group(0)
+    # (a peer may not have logged the step in progress when the replacement read its log)
+    assert int(m.group(4)) == 9 and int(m.group(3)) >= 9 * (rejoined_at - 2), m.group(0)
     import yaml
 
     src = np.array(yaml.safe_load((PAPER / "joint.yaml").read_text())["source"]["position_m"], dtype=float)

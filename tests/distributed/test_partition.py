@@ -286,6 +286,7 @@ def test_a_silent_cut_between_two_groups_of_three(tmp_path: Path, procs: list[Pr
                                             merged_steps=10, freeze=True))
 
 
+@pytest.mark.slow  # three routers in real time (5 s)
 def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[Proc]) -> None:
     """``fimnav router``: the ready line gives the OS-chosen endpoint; a client of router A
     receives what a client of router B publishes once a third router links A and B (and not

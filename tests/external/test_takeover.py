@@ -57,7 +57,7 @@ def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: lis
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    steps = 70
+    steps = 45
     mission = write_mission(tmp_path / "m.yaml", "takeover", [[10.0, 20.0, 8.0]], steps, "land")
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP))
     peer = SwarmPeer("takeover", 1, {1: 75.0})

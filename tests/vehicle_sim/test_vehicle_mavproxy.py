@@ -23,6 +23,7 @@ pytestmark = pytest.mark.integration
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or shutil.which("mavproxy.py") or "mavproxy.py"
 
 
+@pytest.mark.slow  # the MAVProxy interoperability flight (7 s); test_vehicle_vs_ardupilot checks the ground-station view in the default run
 def test_mavproxy_connects_arms_and_flies_guided():
     vehicle = Proc(fimnav("vehicle", "--mavlink", "tcpin:127.0.0.1:0", "--speedup", "5"))
     gcs = None

@@ -39,6 +39,7 @@ def test_heartbeat_fields_and_identity(make_rig, kind):
     assert rig.client.WIRE_PROTOCOL_VERSION == "2.0" or hb.get_header().incompat_flags is not None
 
 
+@pytest.mark.slow  # waits out heartbeats in real time (5 s)
 def test_heartbeat_about_one_hertz_and_stops_when_unhealthy(make_rig):
     rig = make_rig()
     c = rig.client
