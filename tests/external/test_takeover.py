@@ -16,26 +16,18 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from .helpers import ENV, Proc, SwarmPeer, start_vehicle, write_mission
+from tests.distributed.test_launch import wait_for
 
 pytestmark = pytest.mark.integration
 
 SPEEDUP = 5.0
 ARDUPILOT_LOITER = 5
 MAV_CMD_DO_SET_MODE = 176
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:  # noqa: ANN001
-    end = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.05)  # polling with the deadline above
 
 
 def tlog_times(path: Path) -> tuple[list[tuple[float, int]], list[float]]:

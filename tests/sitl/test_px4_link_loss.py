@@ -22,20 +22,13 @@ from tests.external.helpers import Proc, SwarmPeer
 from tests.sitl.px4 import px4_config, start_px4
 from tests.sitl.test_px4_flight import home_below
 from tests.sitl.test_sitl_flight import START, write_mission
+from tests.distributed.test_launch import wait_for
 
 _CFG, _REASON = px4_config()
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
 SPEEDUP = 5.0
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:  # noqa: ANN001
-    end = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.05)  # polling with the deadline above
 
 
 def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811

@@ -25,20 +25,13 @@ from pymavlink import mavutil
 
 from tests.external.helpers import ENV, Proc, SwarmPeer
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
+from tests.distributed.test_launch import wait_for
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
 SPEEDUP = 5.0
 COPTER_BRAKE, COPTER_GUIDED = 17, 4
 MAV_CMD_DO_SET_MODE = 176
-
-
-def wait_for(cond, timeout_s: float, what: str) -> None:  # noqa: ANN001
-    end = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.05)  # polling with the deadline above
 
 
 def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
