@@ -82,24 +82,17 @@ class MissionFrame:
 
     def to_global(self, x_m: float, y_m: float, z_m: float) -> GeoPoint:
         """Mission ENU (m) → WGS-84 (deg, deg, m AMSL = origin altitude + z)."""
-        h0 = self.origin.alt_amsl_m
-        # Find the tangent-plane height t of the point at the origin's height above (x, y):
-        # start on the plane, then move t so that the ellipsoidal height is h0 (Newton on a
-        # derivative of ~1; converges in two steps).
-        t = 0.0
-        lat = lon = 0.0
-        for _ in range(5):
-            lat, lon, h = self._geo_enu.transform(x_m, y_m, t, direction="INVERSE")
-            if abs(h - h0) < _HORIZONTAL_TOL_M:
-                break
-            t -= h - h0
-        return GeoPoint(float(lat), float(lon), h0 + float(z_m))
+        lat, lon, alt = self.to_global_many(np.array([[x_m, y_m, z_m]], dtype=float))[0]
+        return GeoPoint(float(lat), float(lon), float(alt))
 
     def to_global_many(self, enu_m: np.ndarray) -> np.ndarray:
-        """:meth:`to_global` of many points at once: mission ENU (n, 3) m → (n, 3) of (lat deg,
-        lon deg, m AMSL)."""
+        """Mission ENU (n, 3) m → WGS-84 (n, 3) of (lat deg, lon deg, m AMSL = origin altitude
+        + z), many points at once."""
         p = np.asarray(enu_m, dtype=float).reshape(-1, 3)
         h0 = self.origin.alt_amsl_m
+        # Find the tangent-plane height t of each point at the origin's height above (x, y):
+        # start on the plane, then move t so that the ellipsoidal height is h0 (Newton on a
+        # derivative of ~1; converges in two steps).
         t = np.zeros(len(p))
         lat = lon = np.zeros(len(p))
         for _ in range(5):

@@ -33,21 +33,23 @@ def flight_features(result: SimulationResult) -> list[dict]:
     src = np.asarray(result.source_m[-1], dtype=float).reshape(3)
     roles = mission.drones.roles
 
-    def lonlatalt(enu: np.ndarray) -> np.ndarray:
-        g = frame.to_global_many(enu)
-        return np.column_stack([g[:, 1], g[:, 0], g[:, 2]])
-
+    n = pos.shape[1]
+    # One conversion for every point: the trajectories, then the estimates, then the source.
+    g = frame.to_global_many(np.concatenate([pos.transpose(1, 0, 2).reshape(-1, 3), est, src[None]]))
+    lla = np.column_stack([g[:, 1], g[:, 0], g[:, 2]])
+    k1 = pos.shape[0]
     out = []
-    for i in range(pos.shape[1]):
-        out.append({"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lonlatalt(pos[:, i])})
-    for i in range(pos.shape[1]):
-        out.append({"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lonlatalt(est[i][None])})
-    out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lonlatalt(src[None])})
+    for i in range(n):
+        out.append({"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1:(i + 1) * k1]})
+    for i in range(n):
+        out.append({"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]})
+    out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lla[-1:]})
     return out
 
 
-def write_kml(result: SimulationResult, path: Path) -> None:
-    """The run's flight as KML (fastkml): a folder of trajectories, one of estimates, the source."""
+def write_kml(features: list[dict], name: str, path: Path) -> None:
+    """The run's flight (:func:`flight_features`) as KML (fastkml) named ``name``: a folder of
+    trajectories, one of estimates, the source."""
     from fastkml import kml
     from fastkml import geometry as kg
     from fastkml.containers import Document, Folder
@@ -56,7 +58,7 @@ def write_kml(result: SimulationResult, path: Path) -> None:
     from pygeoif import geometry as geo
 
     folders: dict[str, list[Placemark]] = {"trajectory": [], "estimate": [], "source": []}
-    for f in flight_features(result):
+    for f in features:
         c = [tuple(map(float, row)) for row in f["lonlatalt"]]
         if f["kind"] == "trajectory":
             g = kg.LineString(altitude_mode=AltitudeMode.absolute, extrude=True, geometry=geo.LineString(c))
@@ -64,16 +66,16 @@ def write_kml(result: SimulationResult, path: Path) -> None:
             g = kg.Point(altitude_mode=AltitudeMode.absolute, geometry=geo.Point(*c[0]))
         folders[f["kind"]].append(Placemark(name=f["name"], kml_geometry=g))
     names = {"trajectory": "trajectories", "estimate": "source estimates (last step)", "source": "source (true)"}
-    doc = Document(name=f"fimnav {result.spec.mission.id}", features=[Folder(name=names[k], features=v) for k, v in folders.items()])
+    doc = Document(name=name, features=[Folder(name=names[k], features=v) for k, v in folders.items()])
     path.write_text(kml.KML(features=[doc]).to_string(prettyprint=True))
 
 
-def write_geojson(result: SimulationResult, path: Path) -> None:
-    """The run's flight as a GeoJSON FeatureCollection (geojson)."""
+def write_geojson(features: list[dict], path: Path) -> None:
+    """The run's flight (:func:`flight_features`) as a GeoJSON FeatureCollection (geojson)."""
     import geojson
 
     feats = []
-    for f in flight_features(result):
+    for f in features:
         c = [tuple(map(float, row)) for row in f["lonlatalt"]]
         # 9 decimals of a degree (0.1 mm): the library rounds to 6 (11 cm) by default.
         g = geojson.LineString(c, precision=9) if f["kind"] == "trajectory" else geojson.Point(c[0], precision=9)
@@ -83,5 +85,6 @@ def write_geojson(result: SimulationResult, path: Path) -> None:
 
 def write_exports(result: SimulationResult, run_dir: Path) -> None:
     """``trajectories.kml`` and ``trajectories.geojson`` in ``run_dir``."""
-    write_kml(result, run_dir / "trajectories.kml")
-    write_geojson(result, run_dir / "trajectories.geojson")
+    features = flight_features(result)
+    write_kml(features, f"fimnav {result.spec.mission.id}", run_dir / "trajectories.kml")
+    write_geojson(features, run_dir / "trajectories.geojson")

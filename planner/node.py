@@ -804,7 +804,9 @@ class PlannerNode:
         # Peers whose planner left the liveliness view (a partition, not distance): kept apart
         # by the bisector planes of the step of their last record (planner.agent.plan).
         lost = np.array([j + 1 in self.left and valid[j] for j in range(self.n)], dtype=bool)
-        own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own) for j in range(self.n)], dtype=float)
+        own_then = None
+        if lost.any():
+            own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own) for j in range(self.n)], dtype=float)
         uniforms = self.ctrl_rng.random(CONTROL_DRAWS)
         mc = self.m.controller
         bmin, bmax = self.boxes
@@ -815,7 +817,7 @@ class PlannerNode:
             own_distance_lower_m=own_range_lower_bound_m(
                 np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
             ),
-            lost_contact=lost if lost.any() else None, own_then_m=own_then,
+            lost_contact=lost if own_then is not None else None, own_then_m=own_then,
         )
 
     def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:

@@ -224,6 +224,12 @@ class SwarmPeer:
         self.session.close()
 
 
+def handback(mission: Path, uav: int, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``fimnav handback MISSION --uav UAV ARGS`` to its end (30 s at most)."""
+    return subprocess.run([sys.executable, "-m", "missions", "handback", str(mission), "--uav", str(uav), *args],
+                          capture_output=True, text=True, env=ENV, timeout=30)
+
+
 def free_tcp_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -14,13 +14,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from .helpers import ENV, Proc, SwarmPeer, start_vehicle, write_mission
+from .helpers import Proc, SwarmPeer, handback, start_vehicle, write_mission
 from tests.distributed.test_launch import wait_for
 
 pytestmark = pytest.mark.integration
@@ -80,8 +78,7 @@ def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: lis
         plan.expect(r"control message without a known command", 10.0, stream="err")
         assert "handed back" not in plan.err
         # Handed back by the documented command.
-        r = subprocess.run([sys.executable, "-m", "missions", "handback", str(mission), "--uav", "1", "--zenoh-connect", peer.endpoint],
-                           capture_output=True, text=True, env=ENV, timeout=30)
+        r = handback(mission, 1, "--zenoh-connect", peer.endpoint)
         assert r.returncode == 0, r.stdout + r.stderr
         plan.expect(r"handed back at step \d+: in GUIDED, planning again", 20.0, stream="err")
         assert plan.wait(90.0) == 0, plan.tail()
@@ -111,7 +108,7 @@ def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: lis
 
 def test_handback_names_what_is_wrong(tmp_path: Path) -> None:
     mission = write_mission(tmp_path / "m.yaml", "takeover", [[10.0, 20.0, 8.0]], 5, "land")
-    for args, fragment in ((["--uav", "2"], "--uav: expected a drone id in 1..1, found 2"),
-                           (["--uav", "1", "--results", str(tmp_path / "nowhere")], "is a fimnav launch running there?")):
-        r = subprocess.run([sys.executable, "-m", "missions", "handback", str(mission), *args], capture_output=True, text=True, env=ENV, timeout=30)
+    for uav, args, fragment in ((2, [], "--uav: expected a drone id in 1..1, found 2"),
+                                (1, ["--results", str(tmp_path / "nowhere")], "is a fimnav launch running there?")):
+        r = handback(mission, uav, *args)
         assert r.returncode == 2 and fragment in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

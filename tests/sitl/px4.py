@@ -32,13 +32,14 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-import signal
 import socket
 import subprocess
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+
+from tests.sitl.sitl import console_tail, stop_group
 
 ENV_BINARY = "FIMNAV_SITL_PX4"
 ENV_ETC = "FIMNAV_SITL_PX4_ETC"
@@ -153,25 +154,11 @@ class Px4Instance:
 
     def log_tail(self, n: int = 3000) -> str:
         """The end of PX4's console output (for failure messages)."""
-        try:
-            return self.log_path.read_text(errors="replace")[-n:]
-        except OSError:
-            return ""
+        return console_tail(self.log_path, n)
 
     def stop(self, grace_s: float = 5.0) -> None:
         """SIGTERM the process group ("PX4 Exiting..."), then SIGKILL it if still there; wait."""
-        for sig in (signal.SIGTERM, signal.SIGKILL):
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(grace_s)
-                break
-            except subprocess.TimeoutExpired:
-                continue
-        if self.proc.poll() is None:
-            self.proc.wait(grace_s)
+        stop_group(self.proc, grace_s)
 
 
 def wait_for_startup(inst: Px4Instance, deadline_s: float) -> None:

@@ -60,6 +60,31 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return int(s.getsockname()[1])
 
 
+def console_tail(path: Path, n: int = 3000) -> str:
+    """The last ``n`` characters of a simulator's console log ("" when there is none)."""
+    try:
+        return path.read_text(errors="replace")[-n:]
+    except OSError:
+        return ""
+
+
+def stop_group(proc: subprocess.Popen[bytes], grace_s: float = 5.0) -> None:
+    """SIGTERM ``proc``'s process group, then SIGKILL it if still there after ``grace_s``; wait
+    for the process."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            proc.wait(grace_s)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+    if proc.poll() is None:
+        proc.wait(grace_s)
+
+
 @dataclass
 class SitlInstance:
     """A running SITL: its process, its SERIAL0 address (``tcp:127.0.0.1:PORT``), its speed-up,
@@ -75,25 +100,11 @@ class SitlInstance:
 
     def log_tail(self, n: int = 3000) -> str:
         """The end of SITL's console output (for failure messages)."""
-        try:
-            return self.log_path.read_text(errors="replace")[-n:]
-        except OSError:
-            return ""
+        return console_tail(self.log_path, n)
 
     def stop(self, grace_s: float = 5.0) -> None:
         """SIGTERM the process group, then SIGKILL it if still there; wait for the process."""
-        for sig in (signal.SIGTERM, signal.SIGKILL):
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(grace_s)
-                break
-            except subprocess.TimeoutExpired:
-                continue
-        if self.proc.poll() is None:
-            self.proc.wait(grace_s)
+        stop_group(self.proc, grace_s)
 
 
 def wait_for_bind(inst: SitlInstance, deadline_s: float) -> None:

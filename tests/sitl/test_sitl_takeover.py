@@ -15,15 +15,13 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from pymavlink import mavutil
 
-from tests.external.helpers import ENV, Proc, SwarmPeer
+from tests.external.helpers import Proc, SwarmPeer, handback
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
 from tests.distributed.test_launch import wait_for
 
@@ -61,8 +59,7 @@ def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_pat
                 pass  # drop what queued up since the mode command: the next heartbeat is current
             hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=5)
             assert hb is not None and hb.custom_mode == COPTER_BRAKE, hb.custom_mode if hb else None  # not switched back
-            r = subprocess.run([sys.executable, "-m", "missions", "handback", str(mission), "--uav", "1", "--zenoh-connect", peer.endpoint],
-                               capture_output=True, text=True, env=ENV, timeout=30)
+            r = handback(mission, 1, "--zenoh-connect", peer.endpoint)
             assert r.returncode == 0, r.stdout + r.stderr
             plan.expect(r"handed back at step \d+: in GUIDED, planning again", 30.0, stream="err")
             assert plan.wait(150.0) == 0, plan.tail()
