@@ -23,6 +23,7 @@ direction with a random heading/tilt perturbation, as the paper does (Sec. V).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -168,6 +169,13 @@ def peer_distance(x: FloatArray, peers: FloatArray, planes: FloatArray | None, d
     return np.where(is_plane, (diff * planes).sum(-1) + 0.5 * d_uav_m, dist)
 
 
+def _peer_margin(cand: FloatArray, c: _Clearances) -> FloatArray:
+    """Smallest peer margin (m) of candidate end positions (..., C, 3): min_j d_j − required_j."""
+    planes = None if c.planes is None else c.planes[..., None, :, :]
+    dist = peer_distance(cand, c.peers[..., None, :, :], planes, c.d_uav_m)
+    return (dist - c.peer_required[..., None, :]).min(-1, initial=np.inf)
+
+
 def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatArray, boxes_max: FloatArray, limits: Limits) -> FloatArray:
     """Clearance margins (m) of candidate end positions (..., C, 3), per family (..., C, 4).
 
@@ -175,9 +183,7 @@ def _score(cand: FloatArray, tilt: FloatArray, c: _Clearances, boxes_min: FloatA
     (with the height still climbed while the tilt swings back, :func:`_tilt_buffer`).
     """
     out = np.empty(cand.shape[:-1] + (4,))
-    planes = None if c.planes is None else c.planes[..., None, :, :]
-    dist = peer_distance(cand, c.peers[..., None, :, :], planes, c.d_uav_m)
-    out[..., UAV] = (dist - c.peer_required[..., None, :]).min(-1, initial=np.inf)
+    out[..., UAV] = _peer_margin(cand, c)
     ds = cand - c.source[..., None, :]
     out[..., SOURCE] = np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None]
     out[..., OBSTACLE] = distance_to_boxes(cand, boxes_min, boxes_max) - c.obstacle_required
@@ -380,14 +386,36 @@ def control_step(
             planes=planes,
             d_uav_m=limits.d_uav_m,
         )
-        # Margins now, per family, from the constraint values already computed. A step may not
-        # make a family's margin negative, nor more negative than it already is.
+        # Margins now, per family, from the constraint values already computed, each against its
+        # end-of-step requirement. A step may not make a family's margin negative, nor more
+        # negative than it already is (``need``).
         now = np.empty(batch + (4,))
-        now[..., UAV] = (G[..., : -2 - n_alt] - (clear.peer_required - limits.d_uav_m)).min(-1, initial=np.inf)
         now[..., SOURCE] = g_s - tb
         now[..., OBSTACLE] = g_o - (clear.obstacle_required - limits.d_obstacle_m)
         now[..., ALTITUDE] = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
+        # Peers, one by one. Peer j's record q_j of age a_j: j is within (a_j + 1) v_max Δt of
+        # q_j at the end of the step, within a_j v_max Δt now, so L_j = |p − q_j| − a_j v_max Δt
+        # bounds the true distance now from below. A step keeps every peer's end-of-step margin
+        # |p' − q_j| − (d_U* + (a_j + 1) v_max Δt + 2b) at least min(0, L_j − d_U* − 2b): L_j
+        # never shrinks below d_U* + 2b, whatever the records' delays (``peer_need``). Measured
+        # against the end-of-step ball instead (``peer_need_loose``, fimnav before: "no nearer
+        # to the old record"), a margin in deficit could lose v_max Δt per step of a record's
+        # age, and drones with records 0-3 steps late met (docs/control.md). Per peer, not over
+        # the family's smallest margin: a deficit with one peer must not license an approach to
+        # another. A plane row (a lost peer, age 0) does not grow: its margin now is against
+        # the same requirement.
+        point = np.ones(q.shape[:-1], dtype=bool) if planes is None else ~(planes != 0.0).any(-1)
+        peer_now = G[..., : -2 - n_alt] - (clear.peer_required - limits.d_uav_m)  # +inf for masked peers
+        peer_need_loose = np.minimum(peer_now, 0.0)
+        peer_need = np.minimum(peer_now + np.where(point, smax, 0.0), 0.0)
+        now[..., UAV] = (peer_now - peer_need).min(-1, initial=np.inf)
         need = np.minimum(now, 0.0)
+        need[..., UAV] = 0.0
+        strict_clear = dataclasses.replace(clear, peer_required=clear.peer_required + peer_need)
+        loose_clear = dataclasses.replace(clear, peer_required=clear.peer_required + peer_need_loose)
+        # Without the turn-away buffers 2b: the reachable ball itself, the end-of-step distance that
+        # still keeps d_U* whatever the peer does (a margin already below it may not shrink).
+        hard_clear = dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now + 2.0 * tb, 0.0))
         # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
         # s_max of a clearance need their step scored; the altitude box is checked for all.
         z_next = p[..., 2] + u[..., 2]
@@ -398,21 +426,27 @@ def control_step(
         # nearest for a position reachable in one step (clearances are 1-Lipschitz, |u| <= s_max):
         # score candidates against the others only. Exact (same minimum), and O(C k) instead of
         # O(C N) for C candidates: at N = 1000 the filtered step went from ~5 ms to ~0.6 ms.
-        score_clear = clear
+        # (Per peer requirement variant, strict, loose and hard: the union of their columns.)
         if q.shape[-2] > 32 and (near.any() or bad.any()):
-            m_now = dist - clear.peer_required
-            cols = (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
-            score_clear = _Clearances(q[..., cols, :], clear.peer_required[..., cols], src, clear.source_required, clear.obstacle_required,
-                                      None if planes is None else planes[..., cols, :], limits.d_uav_m)
+            cols = np.zeros(q.shape[-2], dtype=bool)
+            for c in (strict_clear, loose_clear, hard_clear):
+                m_now = dist - c.peer_required
+                cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
+            strict_clear, loose_clear, hard_clear = (
+                _Clearances(q[..., cols, :], c.peer_required[..., cols], src, c.source_required, c.obstacle_required,
+                            None if planes is None else planes[..., cols, :], limits.d_uav_m)
+                for c in (strict_clear, loose_clear, hard_clear)
+            )
         if near.any():
             idx = np.nonzero(near)
-            score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(score_clear, idx), bmin, bmax, limits)
+            score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(strict_clear, idx), bmin, bmax, limits)
             bad[idx] |= (score[..., 0, :] < need[idx]).any(-1)
         active[..., ALTITUDE] |= alt < 0.0
         if bad.any():
             idx = np.nonzero(bad)
             u_b, margins_b, inf_b = _envelope_search(
-                p[idx], u[idx], prev[idx], has_prev[idx], need[idx], _subset(score_clear, idx), bmin, bmax, limits
+                p[idx], u[idx], prev[idx], has_prev[idx], need[idx], _subset(strict_clear, idx), bmin, bmax, limits,
+                _subset(loose_clear, idx), _subset(hard_clear, idx)
             )
             u = u.copy()
             u[idx] = u_b
@@ -439,15 +473,29 @@ def _envelope_search(
     bmin: FloatArray,
     bmax: FloatArray,
     limits: Limits,
+    loose: _Clearances | None = None,
+    hard: _Clearances | None = None,
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """Best step of the kinematic envelope for the flat batch ``p`` (n, 3).
 
     Candidates: 9 headings × 5 tilts across the allowed turn (a full circle of headings before
     the first step) × {v_min, v_max}·Δt. Among those whose every family margin is at least
     ``need`` (n, 4), the one closest to the desired step ``u``. Without one, constraints are
-    relaxed in order of how little is known of them: first the source keep-out (it follows
-    the estimate), then the peers' clearance (their data age), and only then the
-    recursive-feasibility buffers of the exactly known obstacles and altitude box. Returns the step (n, 3), its margins (n, 4) and infeasibility.
+    relaxed in order of how little is known of them:
+
+    1. the peers' requirements to those of ``loose`` (in :func:`control_step`: a peer's margin
+       in deficit then only may not shrink against its end-of-step ball), taking the step that
+       comes closest to the strict ones of ``clear``;
+    2. the turn-away buffers of the peers (to ``hard``: the reachable balls themselves) and of
+       the source keep-out (b), their safety distances kept;
+    3. the source keep-out (it follows the estimate), the peers kept as in 1;
+    4. the peers' clearance (their data age);
+    5. only then the recursive-feasibility buffers of the exactly known obstacles and
+       altitude box.
+
+    ``loose`` and ``hard`` default to ``clear`` and to ``clear`` without 2b. Returns the step
+    (n, 3), its margins (n, 4, the peers' against ``loose``) and its infeasibility (n,): no
+    step keeps every clearance with ``loose``.
     """
     _, prev_psi, prev_theta = _spherical(prev)
     fr_h = np.linspace(-1.0, 1.0, 9)
@@ -463,7 +511,17 @@ def _envelope_search(
     )
     cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
+    strict = (margins - need[:, None, :] >= 0.0).all(-1)
+    strict_uav = margins[..., UAV] - need[:, None, UAV]
+    if loose is not None:
+        margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
+    # The peers' reachable balls and the source keep-out without their turn-away buffers
+    # (2b, b): still the safety distances (the source's while the estimate's error is within
+    # the keep-out's inflation). A margin already below one of them may not shrink.
+    tb = limits.turn_buffer_m
+    uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
+    src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
     # Physical margins of the exactly known clearances: without the recursive-feasibility
     # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
@@ -475,18 +533,21 @@ def _envelope_search(
     # Tiers, most demanding first; within a tier the pick is the closest to the desired step
     # (tier 1) or the one that best restores what the tier gave up.
     tiers = [
-        ((slack >= 0.0).all(-1), -closeness),  # 1. every clearance with its buffers
-        ((exact >= 0.0) & (slack[..., UAV] >= 0.0), slack[..., SOURCE]),  # 2. source keep-out relaxed
-        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 3. peers relaxed too
-        # 4. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
+        (strict, -closeness),  # 1. every clearance with its buffers, the peers' balls of now
+        ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
+        # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
+        ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
+        ((exact >= 0.0) & (slack[..., UAV] >= 0.0), slack[..., SOURCE]),  # 4. source keep-out relaxed
+        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
+        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
         #    allowances leave real room); the altitude keeps its tilt buffer, which is the
         #    climb that cannot be avoided next step.
         ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
-        (exact_phys >= 0.0, exact),  # 5. every buffer relaxed
+        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
     ]
-    pick = exact_phys.argmax(-1)  # 6. least bad for obstacles and altitude
+    pick = exact_phys.argmax(-1)  # 8. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
-    infeasible = ~tiers[0][0].any(-1)
+    infeasible = ~tiers[1][0].any(-1)
     rows = np.arange(p.shape[0])
     return cand[rows, pick], margins[rows, pick], infeasible
