@@ -182,7 +182,10 @@ def simulate(
     meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
     ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
 
-    pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
+    # Every drone's start position, known to all (a peer not heard of yet is kept clear of there,
+    # planner.agent.plan; the same float64 values as a planner node's).
+    starts = mission.drones.start_positions_m()
+    pos = np.broadcast_to(starts, (M, N, 3)).copy()
     if float32_positions:
         pos = pos.astype(np.float32).astype(np.float64)
     prev_step = np.zeros((M, N, 3))
@@ -262,6 +265,7 @@ def simulate(
             spec.criterion, bmin, bmax, comms.d_hop_m, ctrl_u[k], xi=xi, perturbation_rad=perturb,
             oracle_source=src if oracle_estimate else None, own_distance_lower_m=own_lb,
             lost_contact=cut, own_then_m=None if cut is None else _own_at(positions, saved),
+            start_positions_m=starts, step_index=k,
         )
         step = planned.step
         fallback[k] = step.singular

@@ -268,6 +268,8 @@ def plan(
     own_distance_lower_m: ArrayLike | None = None,
     lost_contact: ArrayLike | None = None,
     own_then_m: ArrayLike | None = None,
+    start_positions_m: ArrayLike | None = None,
+    step_index: int = 0,
 ) -> PlanResult:
     """Drone i's planning step from its view (eqs. 6, 10-17).
 
@@ -299,6 +301,13 @@ def plan(
             the same on its side. None: no such peer.
         own_then_m: (..., N, 3), m, ENU: drone i's own position at the step of each peer's
             last record (needed with ``lost_contact``).
+        start_positions_m: (N, 3) or (..., N, 3), m, ENU: every drone's position at step 0 (the
+            mission's start, known to all). A peer drone i holds no record of yet (its first
+            records are late or lost) is kept clear of as if its start position were its record
+            of step 0, aged ``step_index`` steps: it is within ``step_index + 1`` v_max Δt of it
+            at the end of this step. Its row is used for the anti-collision constraint only (no
+            measurement). None: such a peer is not a constraint.
+        step_index: k, the current step (≥ 0), the age of a start position.
     """
     own = np.asarray(own_mask, dtype=bool)
     valid = np.asarray(view_valid, dtype=bool)
@@ -333,6 +342,12 @@ def plan(
         relevant = relevant | lost
         ages = np.where(lost, 0, ages)
     peers = valid & ~own & relevant
+    if start_positions_m is not None:
+        unheard = ~valid & ~own & relevant
+        start = np.broadcast_to(np.asarray(start_positions_m, dtype=float), peer_rows.shape)
+        peer_rows = np.where(unheard[..., None], start, peer_rows)
+        ages = np.where(unheard, int(step_index), ages)
+        peers = peers | unheard
     step = control_step(
         own_position, previous_step, cg.gradient, status, peer_rows, peers, ages,
         p_hat, keepout, boxes_min, boxes_max, limits, perturbation_uniforms, xi=xi, perturbation_rad=perturbation_rad,

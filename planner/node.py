@@ -291,7 +291,9 @@ class PlannerNode:
         self.boxes = mission.obstacle_bounds()
         self.ranging = mission.drones.ranging_mask()
         self.bearing = mission.drones.bearing_mask()
-        self.start = mission.drones.start_positions_m()[self.i]
+        #: Every drone's start position (m, ENU): a peer not heard of yet is kept clear of there.
+        self.starts = mission.drones.start_positions_m()
+        self.start = self.starts[self.i]
         self.est_config = mission.estimator_config()
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
         self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated",
@@ -818,6 +820,7 @@ class PlannerNode:
                 np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
             ),
             lost_contact=lost if own_then is not None else None, own_then_m=own_then,
+            start_positions_m=self.starts, step_index=k,
         )
 
     def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:

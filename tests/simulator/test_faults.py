@@ -200,3 +200,21 @@ def test_summary_reports_the_penalty_only_with_faults() -> None:
     assert s["faults"]["extra_delay_steps"] == 2
     assert s["faults"]["mean_record_age_steps"] == pytest.approx(mean_record_age(res))
     assert "faults" not in summarize(base)
+
+
+@pytest.mark.parametrize(
+    ("criterion", "trials", "steps", "overrides"),
+    [
+        ("A", 12, 12, {"comms.faults.extra_delay_steps": 3}),
+        ("D", 20, 60, {"comms.faults.extra_delay_steps": 3, "comms.faults.loss": 0.2}),
+    ],
+)
+def test_no_drones_meet_with_late_records(criterion: str, trials: int, steps: int, overrides: dict) -> None:
+    """The fault grid's inter-drone violations, reduced: the bearing swarm with records up to
+    3 steps late (and 20 % lost) starts 4.8 m apart. Before the fix, drones 6 and 7 of trial 10
+    met 0.46 m inside d_U* at step 9 (A), and two drones of the D run 0.45 m inside: each kept
+    only from nearing the other's old record, which let the bound on their true distance shrink
+    by v_max Δt per step of the record's age (docs/control.md, "Which peers"). Seeded, < 1 s."""
+    result = simulate(RunSpec(paper_mission("bearing", **overrides), criterion, trials, steps))
+    assert result.violations()["uav"] == 0, float(result.margins_m["uav"].min())
+    assert float(result.margins_m["uav"].min()) > 1.0
