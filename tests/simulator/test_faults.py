@@ -214,7 +214,8 @@ def test_no_drones_meet_with_late_records(criterion: str, trials: int, steps: in
     3 steps late (and 20 % lost) starts 4.8 m apart. Before the fix, drones 6 and 7 of trial 10
     met 0.46 m inside d_U* at step 9 (A), and two drones of the D run 0.45 m inside: each kept
     only from nearing the other's old record, which let the bound on their true distance shrink
-    by v_max Δt per step of the record's age (docs/control.md, "Which peers"). Seeded, < 1 s."""
+    by v_max Δt per step of the record's age (docs/control.md, "A peer's clearance with old
+    records"). Seeded, < 1 s."""
     result = simulate(RunSpec(paper_mission("bearing", **overrides), criterion, trials, steps))
     assert result.violations()["uav"] == 0, float(result.margins_m["uav"].min())
     assert float(result.margins_m["uav"].min()) > 1.0
