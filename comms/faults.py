@@ -116,6 +116,13 @@ class FaultBuffer:
         self._ready = np.full((self.window, *lead, count), _NEVER_READY, dtype=np.int64)
         self.old_best = np.full((*lead, count), NEVER, dtype=np.int64)
         self._receivers = np.asarray(receivers, dtype=np.int64)
+        # Whether each record of the window has been delivered (usable with 1 <= h <= h_max).
+        self._delivered = np.zeros((self.window, *lead, count), dtype=bool)
+        #: Steps of the peers' records first delivered by the last :meth:`update` that are older
+        #: than the record it saved (overtaken by a newer one while late): (W, T, R, N), NEVER
+        #: elsewhere, window slots oldest first. Old evidence about the source, for the
+        #: estimator (:meth:`late_records`).
+        self.late_steps = np.full((self.window, *lead, count), NEVER, dtype=np.int64)
         self._next = 0
         #: Peer records decided so far, and how many of them were lost (own slots excluded).
         self.decided = 0
@@ -133,6 +140,8 @@ class FaultBuffer:
             self.old_best = np.where(kept, leaving, self.old_best)
         self._ready[:-1] = self._ready[1:]
         self._ready[-1] = np.where(lost & ~own, _NEVER_READY, s + np.where(own, 0, delay))
+        self._delivered[:-1] = self._delivered[1:]
+        self._delivered[-1] = False
         peers = ~np.broadcast_to(own, lost.shape)
         self.decided += int(peers.sum())
         self.lost += int((lost & peers).sum())
@@ -162,4 +171,10 @@ class FaultBuffer:
         delivered = (h >= 1) & (h <= self.h_max)
         new = np.where(delivered, np.maximum(saved, newest), saved)
         own = np.arange(self.count)[None, None, :] == self._receivers[None, :, None]
+        # Records delivered now for the first time; those older than the saved one were
+        # overtaken while late and never enter the view, but they are still evidence.
+        arrived = usable & delivered[None]
+        first = arrived & ~self._delivered
+        self._delivered |= arrived
+        self.late_steps = np.where(first & (s_idx < new[None]) & ~own[None], s_idx, NEVER)
         return np.where(own, step, new)

@@ -33,11 +33,16 @@ class View:
         records: per drone (0-based index), the record in the view, or None.
         saved_steps: (N,) step of each record (−1: none).
         hops: (N,) hop count from drone i (−1: unreachable), or all −1 without emulation.
+        late_records: with injected faults, the peers' records delivered at this step for the
+            first time but older than the one saved (overtaken by a newer record while late):
+            they never enter the view, but they are evidence about the source for the
+            estimator. Oldest first, then by sender (:attr:`comms.faults.FaultBuffer.late_steps`).
     """
 
     records: tuple[Observation | None, ...]
     saved_steps: np.ndarray
     hops: np.ndarray
+    late_records: tuple[Observation, ...] = ()
 
 
 class DelayedView:
@@ -121,9 +126,15 @@ class DelayedView:
                 new[j] = self._saved[j]
                 rec = self._history[j].get(int(new[j])) if new[j] >= 0 else None
             records.append(rec)
+        late: list[Observation] = []
+        if self.faults is not None:
+            for s_, j in zip(*np.nonzero(self.faults.late_steps[:, 0, 0, :] >= 0)):
+                rec = self._history[int(j)].get(int(self.faults.late_steps[s_, 0, 0, j]))
+                if rec is not None:  # else it never arrived over the network
+                    late.append(rec)
         self._saved = new
         self._prune(step)
-        return View(tuple(records), new.copy(), hops)
+        return View(tuple(records), new.copy(), hops, tuple(late))
 
     def _prune(self, step: int) -> None:
         """Forget records that can no longer enter a view (older than the saved ones and

@@ -139,6 +139,34 @@ def _own_at(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
     return history[np.maximum(saved, 0), np.arange(M)[:, None, None], np.arange(N)[None, :, None]]
 
 
+def _with_late_records(
+    meas: est.Measurements, late_steps: NDArray[np.int64], positions: FloatArray, rec_range: FloatArray, rec_az: FloatArray,
+    rec_el: FloatArray, rec_los: NDArray[np.bool_],
+) -> est.Measurements:
+    """The view's new records plus the peers' records delivered late, after a newer one
+    (:attr:`comms.faults.FaultBuffer.late_steps`, (W, M, N, N)): old evidence about the source
+    is still evidence. They follow the view's N rows, oldest window slot first, then by sender
+    (the order of a planner node's rows); rows empty in every batch element are left out."""
+    W, M, N, _ = late_steps.shape
+    steps = np.moveaxis(late_steps, 0, 2).reshape(M, N, W * N)  # (m, i, slot·N + j)
+    have = steps >= 0
+    if not have.any():
+        return meas
+    order = np.argsort(~have, axis=-1, kind="stable")[..., : int(have.sum(-1).max())]
+    steps = np.take_along_axis(steps, order, -1)
+    have = np.take_along_axis(have, order, -1)
+    j = np.broadcast_to(np.arange(N), (W, N)).reshape(-1)[order]
+    idx = (np.maximum(steps, 0), np.arange(M)[:, None, None], j)
+    nan = np.nan
+    return est.Measurements(
+        positions_m=np.concatenate([meas.positions_m, np.where(have[..., None], positions[idx], nan)], axis=-2),
+        range_m=np.concatenate([meas.range_m, np.where(have, rec_range[idx], nan)], axis=-1),
+        azimuth_rad=np.concatenate([meas.azimuth_rad, np.where(have, rec_az[idx], nan)], axis=-1),
+        elevation_rad=np.concatenate([meas.elevation_rad, np.where(have, rec_el[idx], nan)], axis=-1),
+        los=np.concatenate([meas.los, have & rec_los[idx]], axis=-1),
+    )
+
+
 def simulate(
     spec: RunSpec,
     progress: Callable[[int], None] | None = None,
@@ -248,6 +276,8 @@ def simulate(
             elevation_rad=np.where(new, _gather(rec_el, saved), nan),
             los=view_los & new,
         )
+        if faults is not None:
+            meas = _with_late_records(meas, faults.late_steps, positions, rec_range, rec_az, rec_el, rec_los)
         state = est.update(state, meas, channel, estimator_config)
         estimates[k] = state.estimate_m
         est_err[k] = np.linalg.norm(state.estimate_m - src, axis=-1)

@@ -775,18 +775,24 @@ class PlannerNode:
         return view, state, rows, used, self._plan(k, own, prev_step, view, state)
 
     def _estimate(self, state: est.EstimatorState, view: Any, used: np.ndarray) -> tuple[est.EstimatorState, int]:
+        """Feed the estimator the view's records new since ``used`` (one row per drone, in
+        drone order) and then the peers' records that arrived late, after a newer one
+        (``view.late_records``: old evidence about the source is still evidence), in the
+        order of the in-process simulator. Returns the state and the number of rows fed."""
         new = view.saved_steps > used
-        pos = np.full((self.n, 3), np.nan)
-        rng = np.full(self.n, np.nan)
-        az = np.full(self.n, np.nan)
-        el = np.full(self.n, np.nan)
-        los = np.zeros(self.n, dtype=bool)
-        for j, rec in enumerate(view.records):
-            if rec is not None and new[j]:
-                pos[j] = rec.position_m
-                rng[j], az[j], el[j], los[j] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
+        late = view.late_records
+        rows = self.n + len(late)
+        pos = np.full((rows, 3), np.nan)
+        rng = np.full(rows, np.nan)
+        az = np.full(rows, np.nan)
+        el = np.full(rows, np.nan)
+        los = np.zeros(rows, dtype=bool)
+        fed = [(j, rec) for j, rec in enumerate(view.records) if rec is not None and new[j]] + [(self.n + r, rec) for r, rec in enumerate(late)]
+        for row, rec in fed:
+            pos[row] = rec.position_m
+            rng[row], az[row], el[row], los[row] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
         meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los)
-        return est.update(state, meas, self.channel, self.est_config), int(new.sum())
+        return est.update(state, meas, self.channel, self.est_config), int(new.sum()) + len(late)
 
     def _track(self, k: int, own: np.ndarray) -> None:
         """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""

@@ -99,6 +99,37 @@ def test_delayed_view_with_faults_matches_brute_force(h_max: int, loss: float, m
             assert (np.arange(steps)[:, None] - want).max() >= 2
 
 
+@pytest.mark.parametrize(("loss", "max_delay"), [(0.0, 3), (0.2, 3), (0.25, 2)])
+def test_every_delivered_record_reaches_the_estimator_once(loss: float, max_delay: int) -> None:
+    """Records that arrive late are old evidence about the source, not noise: every record not
+    lost reaches the estimator exactly once, as the view's new record (the newest) or, when a
+    newer one overtook it while it was late, among ``View.late_records`` (before: only the
+    newest, 5.8 records per call instead of 9.7 in the fault grid's delay runs). Every peer one
+    hop away (no hop emulation); brute force from the receiver's own decisions."""
+    steps, n, seed = 80, 5, 9
+    positions = random_walk(np.random.default_rng(2), steps, n)
+    for i in (0, 2):
+        lost, delay = ref_decisions(seed, 0, i, steps, n, loss, max_delay)
+        view = DelayedView(i, n, 1e9, 1, emulate=False, faults=FaultModel(loss, max_delay), seed=seed)
+        fed: list[tuple[int, int]] = []
+        late = 0
+        used = np.full(n, -1)
+        for k in range(steps):
+            for j in range(n):
+                view.add(record(j, k, positions[k, j]))
+            v = view.advance(k)
+            fed += [(j, int(v.saved_steps[j])) for j in range(n) if j != i and v.saved_steps[j] > used[j]]
+            used = np.maximum(used, v.saved_steps)
+            for rec in v.late_records:
+                assert rec.step < v.saved_steps[rec.sender - 1]
+                np.testing.assert_array_equal(rec.position_m, positions[rec.step, rec.sender - 1])
+            fed += [(rec.sender - 1, rec.step) for rec in v.late_records]
+            late += len(v.late_records)
+        want = sorted((j, s_) for j in range(n) if j != i for s_ in range(steps) if not lost[s_, j] and s_ + delay[s_, j] <= steps - 1)
+        assert sorted(fed) == want, f"receiver {i}"
+        assert late > 0.1 * len(want), (late, len(want))  # a share of them overtaken while late
+
+
 def test_zero_faults_buffer_equals_the_paper_rule() -> None:
     """loss 0, no delay: the fault buffer is planner.network's ℓ = k − h + 1 rule."""
     from planner.network import hop_counts, update_saved_steps
