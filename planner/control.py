@@ -537,7 +537,7 @@ def _envelope_search(
         ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
         # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
         ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
-        ((exact >= 0.0) & (slack[..., UAV] >= 0.0), slack[..., SOURCE]),  # 4. source keep-out relaxed
+        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
         (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
         # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
         #    allowances leave real room); the altitude keeps its tilt buffer, which is the
