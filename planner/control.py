@@ -406,8 +406,13 @@ def control_step(
         # the same requirement.
         point = np.ones(q.shape[:-1], dtype=bool) if planes is None else ~(planes != 0.0).any(-1)
         peer_now = G[..., : -2 - n_alt] - (clear.peer_required - limits.d_uav_m)  # +inf for masked peers
-        peer_need_loose = np.minimum(peer_now, 0.0)
-        peer_need = np.minimum(peer_now + np.where(point, smax, 0.0), 0.0)
+        # The bisector planes of a partition, together: a drone off its side of several may let
+        # each come back to the worst of them (it started off its sides as it moved since the
+        # cut; held one by one, planes and keep-out boxed drones in and the keep-out gave way).
+        plane_now = np.where(point, np.inf, peer_now).min(-1, keepdims=True, initial=np.inf)
+        peer_now_eff = np.where(point, peer_now, np.minimum(peer_now, plane_now))
+        peer_need_loose = np.minimum(peer_now_eff, 0.0)
+        peer_need = np.minimum(peer_now_eff + np.where(point, smax, 0.0), 0.0)
         now[..., UAV] = (peer_now - peer_need).min(-1, initial=np.inf)
         need = np.minimum(now, 0.0)
         need[..., UAV] = 0.0
@@ -415,7 +420,7 @@ def control_step(
         loose_clear = dataclasses.replace(clear, peer_required=clear.peer_required + peer_need_loose)
         # Without the turn-away buffers 2b: the reachable ball itself, the end-of-step distance that
         # still keeps d_U* whatever the peer does (a margin already below it may not shrink).
-        hard_clear = dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now + 2.0 * tb, 0.0))
+        hard_clear = dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now_eff + 2.0 * tb, 0.0))
         # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
         # s_max of a clearance need their step scored; the altitude box is checked for all.
         z_next = p[..., 2] + u[..., 2]
