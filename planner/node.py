@@ -1194,10 +1194,11 @@ class PlannerNode:
                 if fresh_pos:
                     assert pos is not None
                     rec = Observation(self.o.uav, k, w0, tuple(float(v) for v in pos), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                                      True, nan, nan, nan)
+                                      True, nan, nan, nan, taken_over=True)
                     self._publish(self._pub_record, rec, MessageKind.RECORD)
                 elif self.last_record is not None:
-                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True), MessageKind.RECORD)
+                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True),
+                                  MessageKind.RECORD)
                 self.taken_over_steps += 1
                 prev_step = np.zeros(3)
                 k += 1
