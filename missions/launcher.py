@@ -90,7 +90,7 @@ class Interrupted(FimnavError):
 
 #: What a run writes at the top of its results directory: a directory holding any of them holds
 #: a run (refused, or with ``overwrite`` these, and only these, are removed first).
-RUN_ENTRIES: tuple[str, ...] = ("mission.yaml", "summary.json", "logs", "tlogs", "runs", "figures")
+RUN_ENTRIES: tuple[str, ...] = ("mission.yaml", "summary.json", "logs", "tlogs", "runs", "figures", "view.rrd")
 
 
 def previous_run(out: Path) -> list[str]:
@@ -235,6 +235,8 @@ class Launcher:
         gcs: real time: a MAVLink endpoint (``udpout:127.0.0.1:14550``) that every simulated
             vehicle's MAVLink is forwarded to, its frames routed back by target system
             (:class:`missions.gcs.GcsRouter`); None: none.
+        view: show the run live in a browser (:mod:`missions.liveview`): rerun's web viewer on
+            127.0.0.1 (``view_port``, default a free port), the recording in ``out/view.rrd``.
     """
 
     def __init__(
@@ -254,8 +256,16 @@ class Launcher:
         overwrite: bool = False,
         notice: Callable[[str], None] | None = None,
         gcs: str | None = None,
+        view: bool = False,
+        view_port: int | None = None,
     ) -> None:
         self.mission = mission
+        #: The live view (rerun): asked for, its port, and while running its server and recording.
+        self.view = view
+        self.view_port = view_port
+        self._view_server: Any = None
+        self._swarm_view: Any = None
+        self._view_last: dict[int, tuple[float, float, float]] = {}
         #: Real time: the ground-station endpoint every simulated vehicle is forwarded to.
         self.gcs_endpoint = gcs
         self._gcs: Any = None
@@ -499,6 +509,8 @@ class Launcher:
         (self._abs_out / "logs" / "zenoh.json").write_text(json.dumps({"connect": [hub]}) + "\n")
         t_start = time.perf_counter()
         try:
+            if self.view:
+                self._start_view()
             subs = [
                 session.declare_subscriber(keys.record(m.id), self._on_record),
                 session.declare_subscriber(keys.status(m.id), self._on_status),
@@ -585,6 +597,8 @@ class Launcher:
                         peb, err = self._live_stats(k)
                         stats_at = now
                     self.progress(k, peb, err, len(report.alive))
+                if self._swarm_view is not None:
+                    self._view_step(k)
             # The end tick releases the planners: they end the mission (hold, land or RTL) and
             # exit. It is re-sent every second for a planner that missed it.
             clock.end(m.steps, t0)
@@ -612,6 +626,7 @@ class Launcher:
         finally:
             if self._gcs is not None:
                 self._gcs.close()
+            self._stop_view()
             self.stop_children()
             for s in locals().get("subs", []):
                 with contextlib.suppress(Exception):
@@ -656,6 +671,8 @@ class Launcher:
                 if self.progress is not None:
                     peb, err = self._live_stats(reported)
                     self.progress(reported, peb, err, sum(c.proc.poll() is None for c in planners))
+                if self._swarm_view is not None:
+                    self._view_step(reported)
             if all(c.proc.poll() is not None for c in planners):
                 self._check_children()
                 return
@@ -716,6 +733,63 @@ class Launcher:
             pebs.append(self._peb_of_view(st.saved_steps, recs, src))
         finite = [p for p in pebs if np.isfinite(p)]
         return (float(np.mean(finite)) if finite else float("inf")), (float(np.mean(errs)) if errs else float("nan"))
+
+    # -- the live view --------------------------------------------------------------------------
+    def _start_view(self) -> None:
+        """Start rerun's web viewer (a child bound to 127.0.0.1) and the run's recording."""
+        from missions.liveview import SwarmView, ViewServer
+
+        server = ViewServer(web_port=self.view_port, log_path=self.out / "logs" / "viewer.log")
+        self._view_server = server.start()
+        self._swarm_view = SwarmView(self.mission, self._abs_out / "view.rrd", server.grpc_url, name=self.mission.id)
+        self.notice(f"live view: {server.browser_url}")
+
+    def _stop_view(self) -> None:
+        if self._swarm_view is not None:
+            with contextlib.suppress(Exception):
+                self._swarm_view.close()  # the recording is complete whatever ended the run
+            self._swarm_view = None
+        if self._view_server is not None:
+            self._view_server.close()
+            self._view_server = None
+
+    def _view_step(self, k: int) -> None:
+        """Log step k to the live view from what the launcher heard: each drone's record of
+        step k (its position and state), its status (estimate and view)."""
+        from missions.liveview import swarm_frame
+
+        n = self.mission.drones.count
+        with self.collected.lock:
+            own = {j: self.collected.records.get((k, j)) for j in range(1, n + 1)}
+            stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
+            wanted = {(s, i + 1) for st in stat.values() if st is not None for i, s in enumerate(st.saved_steps) if s >= 0}
+            recs = {key: self.collected.records[key] for key in wanted if key in self.collected.records}
+        positions = np.full((n, 3), np.nan)
+        states = []
+        estimates = np.full((n, 3), np.nan)
+        view_pos = np.zeros((n, n, 3))
+        valid = np.zeros((n, n), dtype=bool)
+        los = np.zeros((n, n), dtype=bool)
+        for j in range(1, n + 1):
+            r = own[j]
+            if r is not None:
+                self._view_last[j] = r.position_m
+                states.append("taken over" if r.taken_over else "stale" if r.stale else "alive")
+            else:
+                states.append("lost")
+            if j in self._view_last:
+                positions[j - 1] = self._view_last[j]
+            st = stat[j]
+            if st is not None:
+                estimates[j - 1] = st.estimate_m
+                for i, s in enumerate(st.saved_steps):
+                    rec = recs.get((s, i + 1)) if s >= 0 else None
+                    if rec is not None:
+                        view_pos[j - 1, i], valid[j - 1, i], los[j - 1, i] = rec.position_m, True, rec.los
+        try:
+            self._swarm_view.log(swarm_frame(self.mission, k, positions, states, estimates, view_pos, valid, los))
+        except Exception as exc:  # the view must never end a flight
+            log.warning("live view: step %d not logged (%s)", k, exc)
 
     def _t(self, k: int) -> float:
         return k * self.mission.dt_s
