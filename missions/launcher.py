@@ -742,6 +742,8 @@ class Launcher:
         server = ViewServer(web_port=self.view_port, log_path=self.out / "logs" / "viewer.log")
         self._view_server = server.start()
         self._swarm_view = SwarmView(self.mission, self._abs_out / "view.rrd", server.grpc_url, name=self.mission.id)
+        # Where tools and tests find the view while the swarm flies.
+        (self._abs_out / "logs" / "view.json").write_text(json.dumps({"url": server.browser_url, "grpc": server.grpc_url}) + "\n")
         self.notice(f"live view: {server.browser_url}")
 
     def _stop_view(self) -> None:
