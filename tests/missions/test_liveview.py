@@ -118,3 +118,28 @@ def test_fimnav_view_names_what_is_missing(tmp_path: Path, arg: str, error: str)
                           timeout=60, cwd=ROOT)
     assert proc.returncode == 2, proc.stderr
     assert error in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_drone_states_show_as_colours_and_events(tmp_path: Path) -> None:
+    """A drone going taken over, stale, lost and back is drawn in each state's colour, labelled,
+    and each change is one event."""
+    mission = load_mission("paper/heterogeneous", {"steps": 5})
+    n = mission.drones.count
+    rrd = tmp_path / "view.rrd"
+    view = SwarmView(mission, rrd, None, name="states")
+    pos = mission.drones.start_positions_m()
+    sequence = ["alive", "taken over", "stale", "lost", "alive"]
+    for k, state in enumerate(sequence):
+        states = ("alive",) * 2 + (state,) + ("alive",) * (n - 3)
+        view.log(swarm_frame(mission, k, pos, states, np.full((n, 3), np.nan), np.zeros((n, n, 3)), np.zeros((n, n), bool),
+                             np.zeros((n, n), bool)))
+    view.close()
+    colours = read_entity(rrd, "/world/drones", "Points3D:colors")
+    labels = read_entity(rrd, "/world/drones", "Points3D:labels")
+    for k, state in enumerate(sequence):
+        r, g, b = STATE_COLOURS[state]
+        assert colours[k][2] == (r << 24) | (g << 16) | (b << 8) | 255
+        assert labels[k][2] == ("UAV 3" if state == "alive" else f"UAV 3 ({state})")
+    events = read_entity(rrd, "/events", "TextLog:text")
+    assert [events[k][0] if isinstance(events[k], list) else events[k] for k in sorted(events)] == [
+        f"step {k}: UAV 3 {s}" for k, s in enumerate(sequence) if k > 0]
