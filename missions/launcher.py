@@ -664,7 +664,11 @@ class Launcher:
                 elif ready != ready_seen:
                     ready_seen = ready
                     self.notice(f"{ready}/{n} drones ready at their starts (step 0 in {self.start_unix - now:.0f} s)")
-            done = min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
+            ended = all(c.proc.poll() is not None for c in planners)
+            if ended:
+                self._check_children()  # failures are dated by the step in progress
+            # Every step once the planners have ended (the last one's records are in by then).
+            done = m.steps - 1 if ended else min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
             while reported < done:
                 reported += 1
                 self._step = reported
@@ -673,8 +677,7 @@ class Launcher:
                     self.progress(reported, peb, err, sum(c.proc.poll() is None for c in planners))
                 if self._swarm_view is not None:
                     self._view_step(reported)
-            if all(c.proc.poll() is not None for c in planners):
-                self._check_children()
+            if ended:
                 return
             if now > end_by:
                 raise LaunchError(f"the planners did not end the mission by {end_by - self.start_unix:.0f} s after step 0")
