@@ -879,6 +879,16 @@ class Launcher:
             ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in saved]
             peb[k, 0, j - 1] = self._peb_of_view(saved, recs, sources[k])
             active[k] += np.asarray(act, dtype=np.int64)
+        # A drone a pilot flies (taken over) has no planner step: its estimate, observability
+        # and view are those of its planner's last step, and its displacements are no command.
+        taken = np.zeros((K + 1, 1, n), dtype=bool)
+        for (k, j), r in self.collected.records.items():
+            if 0 <= k < K and r.taken_over and (k, j) not in logs:
+                taken[k, 0, j - 1] = True
+        for k, _, i in zip(*np.nonzero(taken[1:K]), strict=True):
+            k += 1
+            if (k, i + 1) not in steps and not np.isnan(estimates[k - 1, 0, i]).any():
+                estimates[k, 0, i], observable[k, 0, i], peb[k, 0, i] = estimates[k - 1, 0, i], observable[k - 1, 0, i], peb[k - 1, 0, i]
         missing = np.isnan(positions).any(-1)
         if missing.any():
             # Steps a drone did not fly (it died): hold its last known position for the record.
@@ -888,7 +898,7 @@ class Launcher:
         margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax, MAVLINK_KINEMATIC_TOL)
         # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
         # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
-        not_flown = missing[:K] | missing[1:]
+        not_flown = missing[:K] | missing[1:] | taken[:K] | taken[1:]
         if self.realtime:
             # On the wall clock, positions are sampled at each step's (jittered) start: the
             # kinematic limits apply to the commanded steps, u_k = next_k − p_k (logged).
