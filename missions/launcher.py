@@ -718,15 +718,22 @@ class Launcher:
             if code not in (None, 0) and c.proc.pid not in self._handled:
                 raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
 
-    def _live_stats(self, k: int) -> tuple[float, float]:
-        """Mean PEB and mean estimate error over the drones at step k (for the progress bar)."""
-        m = self.mission
-        n = m.drones.count
+    def _heard_at(self, k: int) -> tuple[dict[int, Observation | None], dict[int, Status | None], dict[tuple[int, int], Observation]]:
+        """What was heard of step k: each drone's record and status (None: not heard), and the
+        records the statuses' views name, by (step, drone)."""
+        n = self.mission.drones.count
         with self.collected.lock:
+            own = {j: self.collected.records.get((k, j)) for j in range(1, n + 1)}
             stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
             # Only the records the views name (copying every record each step is O(K²)).
             wanted = {(s, i + 1) for st in stat.values() if st is not None for i, s in enumerate(st.saved_steps) if s >= 0}
             recs = {key: self.collected.records[key] for key in wanted if key in self.collected.records}
+        return own, stat, recs
+
+    def _live_stats(self, k: int) -> tuple[float, float]:
+        """Mean PEB and mean estimate error over the drones at step k (for the progress bar)."""
+        m = self.mission
+        _, stat, recs = self._heard_at(k)
         src = m.source.position_at(self._t(k))
         pebs, errs = [], []
         for j, st in stat.items():
@@ -764,11 +771,7 @@ class Launcher:
         from missions.liveview import swarm_frame
 
         n = self.mission.drones.count
-        with self.collected.lock:
-            own = {j: self.collected.records.get((k, j)) for j in range(1, n + 1)}
-            stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
-            wanted = {(s, i + 1) for st in stat.values() if st is not None for i, s in enumerate(st.saved_steps) if s >= 0}
-            recs = {key: self.collected.records[key] for key in wanted if key in self.collected.records}
+        own, stat, recs = self._heard_at(k)
         positions = np.full((n, 3), np.nan)
         states = []
         estimates = np.full((n, 3), np.nan)

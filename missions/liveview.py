@@ -130,12 +130,6 @@ def ellipsoid_axes(cov: FloatArray) -> tuple[FloatArray, FloatArray] | None:
     return np.sqrt(vals), Rotation.from_matrix(vecs).as_quat()
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def rerun_binary() -> list[str]:
     """The command of rerun's viewer/server binary shipped by rerun-sdk (``rerun_cli``), run
     directly (not through its Python wrapper) so that signals reach it."""
@@ -159,8 +153,10 @@ class ViewServer:
 
     def __init__(self, web_port: int | None = None, grpc_port: int | None = None, rrds: Sequence[Path] = (),
                  log_path: Path | None = None) -> None:
-        self.web_port = web_port or _free_port()
-        self.grpc_port = grpc_port or _free_port()
+        from missions.launcher import free_port
+
+        self.web_port = web_port or free_port()
+        self.grpc_port = grpc_port or free_port()
         self.rrds = tuple(rrds)
         self.log_path = log_path
         self.proc: subprocess.Popen[bytes] | None = None
