@@ -11,8 +11,8 @@ Every message starts with a 14-byte header::
 
 followed by a fixed body per kind (little endian, IEEE-754 doubles; step is signed: −1 is the pre-flight). A record and a payload
 measurement share one body: step u32, time f64 (s), position 3×f64 (m, mission ENU), role u8
-(bit 0 ranging, bit 1 bearing), flags u8 (bit 0 LOS, bit 1 stale), range f64 (m), azimuth f64,
-elevation f64 (rad); NaN stands for a quantity the role does not measure.
+(bit 0 ranging, bit 1 bearing), flags u8 (bit 0 LOS, bit 1 stale, bit 2 taken over), range f64 (m),
+azimuth f64, elevation f64 (rad); NaN stands for a quantity the role does not measure.
 
 :func:`decode` checks everything a peer could get wrong or forge (length, magic, version, kind,
 mission, finite and plausible values, role bits, angle ranges) and raises :class:`MessageError`
@@ -58,6 +58,8 @@ RANGING_BIT = 1
 BEARING_BIT = 2
 LOS_FLAG = 1
 STALE_FLAG = 2
+#: A pilot flies the drone (it left the planner's mode): the record is its position, no measurement.
+TAKEN_OVER_FLAG = 4
 
 
 def mission_tag(mission_id: str) -> int:
@@ -82,6 +84,8 @@ class Observation:
         position_m: where the measurement was taken, (3,) m, mission ENU.
         ranging, bearing: the drone's sensing role. los: the link was line of sight.
         stale: the sender republishes its last state (its vehicle link is down).
+        taken_over: a pilot flies the drone (its vehicle left the planner's mode); the record
+            is where it is, without a measurement.
         range_m, azimuth_rad, elevation_rad: the measurement (NaN where not measured).
     """
 
@@ -96,6 +100,7 @@ class Observation:
     azimuth_rad: float
     elevation_rad: float
     stale: bool = False
+    taken_over: bool = False
 
 
 @dataclass(frozen=True)
@@ -143,7 +148,7 @@ def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = N
     if isinstance(msg, Observation):
         k = kind or MessageKind.RECORD
         role = (RANGING_BIT if msg.ranging else 0) | (BEARING_BIT if msg.bearing else 0)
-        flags = (LOS_FLAG if msg.los else 0) | (STALE_FLAG if msg.stale else 0)
+        flags = (LOS_FLAG if msg.los else 0) | (STALE_FLAG if msg.stale else 0) | (TAKEN_OVER_FLAG if msg.taken_over else 0)
         body = _OBS.pack(msg.step, msg.time_s, *msg.position_m, role, flags, msg.range_m, msg.azimuth_rad, msg.elevation_rad)
         return _header(k, mission_id, msg.sender, seq) + body
     if isinstance(msg, Tick):
@@ -193,7 +198,7 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
                 raise MessageError(f"position {name} = {v:g} m is outside ±{MAX_COORD_M:g} m")
         if role & ~(RANGING_BIT | BEARING_BIT) or role == 0:
             raise MessageError(f"role bits {role:#x}: expected 1 (ranging), 2 (bearing) or 3 (joint)")
-        if flags & ~(LOS_FLAG | STALE_FLAG):
+        if flags & ~(LOS_FLAG | STALE_FLAG | TAKEN_OVER_FLAG):
             raise MessageError(f"unknown flag bits {flags:#x}")
         ranging, bearing = bool(role & RANGING_BIT), bool(role & BEARING_BIT)
         # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
@@ -208,7 +213,8 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
                     raise MessageError(f"{name} {v!r}: expected an angle in [-{lim:.4f}, {lim:.4f}] rad (or NaN)")
         elif not (math.isnan(az) and math.isnan(el)):
             raise MessageError("bearing given by a drone without the bearing role")
-        return header, Observation(sender, step, t, (x, y, z), ranging, bearing, bool(flags & LOS_FLAG), rng, az, el, bool(flags & STALE_FLAG))
+        return header, Observation(sender, step, t, (x, y, z), ranging, bearing, bool(flags & LOS_FLAG), rng, az, el,
+                                   bool(flags & STALE_FLAG), bool(flags & TAKEN_OVER_FLAG))
     if kind == MessageKind.TICK:
         _need(body, _TICK.size, kind)
         step, t = _TICK.unpack(body)

@@ -31,6 +31,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_launch",
     "missions.cmd_router",
     "missions.cmd_handback",
+    "missions.cmd_view",
     "missions.cmd_missions",
 )
 

@@ -44,6 +44,9 @@ def register(subparsers: Any) -> None:
                     "vehicle they target (docs/in-the-field.md)")
     rt.add_argument("--start-delay", type=float, metavar="S", help="real time: wall seconds from the launch to step 0 "
                     "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step")
+    p.add_argument("--view", action="store_true", help="watch the swarm live in a browser: rerun's web viewer on 127.0.0.1 "
+                   "(the address is printed), recorded to OUT/view.rrd for fimnav view; needs pip install 'fimnav[view]'")
+    p.add_argument("--view-port", type=int, metavar="PORT", help="--view: the web viewer's port (default: a free one)")
     p.add_argument("--vehicles-per-process", type=int, default=10, help="simulated vehicles hosted by one process (default 10: "
                    "fewer interpreters share the cores better; 1 gives every vehicle its own process, e.g. to kill one)")
     p.add_argument("--no-fork-server", dest="fork_server", action="store_false",
@@ -114,6 +117,12 @@ def run(args: argparse.Namespace) -> int:
         check_endpoint(args.gcs)
     if args.vehicles_per_process < 1:
         raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
+    if args.view:
+        from missions.liveview import require_rerun
+
+        require_rerun()
+    elif args.view_port is not None:
+        raise UsageError("--view-port: only with --view")
     mission = load_mission(args.mission, overrides)
     if args.out is None:
         out = unique_results_dir(Path("results"), f"{mission.id}-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -132,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
                          on_failure=args.on_failure, realtime=args.realtime, speedup=args.speedup, start_delay_s=args.start_delay,
-                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice, gcs=args.gcs)
+                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice, gcs=args.gcs,
+                         view=args.view, view_port=args.view_port)
     finally:
         bar.close()
     print(summary_line(summary, out, sys.stdout))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -35,6 +36,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--optimum", action="store_true",
                    help="add to each run's summary the optimal placement's PEB (fimnav optimum, at the final source "
                         "position, the safe rule's end-of-step distances) and the ratio final PEB / optimum")
+    p.add_argument("--view", action="store_true",
+                   help="watch it live in a browser (rerun's web viewer on 127.0.0.1, the URL is printed): trial 1 of each run, "
+                        "recorded to OUT/view/<run>.rrd for fimnav view; needs pip install 'fimnav[view]'")
+    p.add_argument("--view-port", type=int, metavar="PORT", help="--view: the web viewer's port (default: a free one)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.set_defaults(func=run)
 
@@ -75,16 +80,25 @@ def run(args: argparse.Namespace) -> int:
     total = sum(s.steps for s in specs)
     t0 = time.perf_counter()
     results = []
-    with tqdm(total=total, unit="step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
+    with contextlib.ExitStack() as stack, tqdm(total=total, unit="step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
+        view = None
+        if args.view:
+            from missions.liveview import ViewServer, require_rerun
+
+            require_rerun()
+            server = stack.enter_context(ViewServer(web_port=args.view_port))
+            view = (str(server.grpc_url), str(out / "view"))
+            bar.write(f"live view: {server.browser_url}", file=sys.stderr)
         if args.jobs == 1 or len(specs) == 1:
             for spec in specs:
                 bar.set_postfix_str(spec.label)
-                results.append(_simulate(spec, args.oracle_estimate, bar.update))
+                results.append(_simulate(spec, args.oracle_estimate, bar.update, view))
         else:
             # A Pool, not a ProcessPoolExecutor: leaving the block for any reason (an error, a
             # signal, Ctrl-C) terminates the workers instead of waiting for the queued runs.
             with multiprocessing.Pool(min(args.jobs, len(specs))) as pool:
-                for spec, result in zip(specs, pool.imap(functools.partial(_simulate, oracle=args.oracle_estimate, progress=None), specs)):
+                sim = functools.partial(_simulate, oracle=args.oracle_estimate, progress=None, view=view)
+                for spec, result in zip(specs, pool.imap(sim, specs)):
                     results.append(result)
                     bar.update(spec.steps)
     extras = None
@@ -111,7 +125,24 @@ def _f(x: float | None) -> str:
     return "singular" if x is None else f"{x:.3g}"
 
 
-def _simulate(spec: Any, oracle: bool, progress: Any) -> Any:
+def _simulate(spec: Any, oracle: bool, progress: Any, view: tuple[str, str] | None = None) -> Any:
+    """One run; ``view``: (the rerun server's stream, the directory of the recordings), to log
+    trial 1 of the run live (:mod:`missions.liveview`)."""
     from missions.simulator import simulate
 
-    return simulate(spec, progress=progress, oracle_estimate=oracle)
+    if view is None:
+        return simulate(spec, progress=progress, oracle_estimate=oracle)
+    from missions.liveview import SwarmView, swarm_frame
+
+    mission = spec.mission
+    slug = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{mission.id}_{spec.criterion}")
+    sv = SwarmView(mission, Path(view[1]) / f"{slug}.rrd", view[0], name=f"{spec.label}, trial 1")
+    alive = ("alive",) * mission.drones.count
+
+    def observe(s: Any) -> None:
+        sv.log(swarm_frame(mission, s.step, s.positions_m[0], alive, s.estimates_m[0], s.view_positions_m[0], s.view_valid[0], s.view_los[0]))
+
+    try:
+        return simulate(spec, progress=progress, oracle_estimate=oracle, observer=observe)
+    finally:
+        sv.close()

@@ -90,7 +90,7 @@ class Interrupted(FimnavError):
 
 #: What a run writes at the top of its results directory: a directory holding any of them holds
 #: a run (refused, or with ``overwrite`` these, and only these, are removed first).
-RUN_ENTRIES: tuple[str, ...] = ("mission.yaml", "summary.json", "logs", "tlogs", "runs", "figures")
+RUN_ENTRIES: tuple[str, ...] = ("mission.yaml", "summary.json", "logs", "tlogs", "runs", "figures", "view.rrd")
 
 
 def previous_run(out: Path) -> list[str]:
@@ -235,6 +235,8 @@ class Launcher:
         gcs: real time: a MAVLink endpoint (``udpout:127.0.0.1:14550``) that every simulated
             vehicle's MAVLink is forwarded to, its frames routed back by target system
             (:class:`missions.gcs.GcsRouter`); None: none.
+        view: show the run live in a browser (:mod:`missions.liveview`): rerun's web viewer on
+            127.0.0.1 (``view_port``, default a free port), the recording in ``out/view.rrd``.
     """
 
     def __init__(
@@ -254,8 +256,16 @@ class Launcher:
         overwrite: bool = False,
         notice: Callable[[str], None] | None = None,
         gcs: str | None = None,
+        view: bool = False,
+        view_port: int | None = None,
     ) -> None:
         self.mission = mission
+        #: The live view (rerun): asked for, its port, and while running its server and recording.
+        self.view = view
+        self.view_port = view_port
+        self._view_server: Any = None
+        self._swarm_view: Any = None
+        self._view_last: dict[int, tuple[float, float, float]] = {}
         #: Real time: the ground-station endpoint every simulated vehicle is forwarded to.
         self.gcs_endpoint = gcs
         self._gcs: Any = None
@@ -499,6 +509,8 @@ class Launcher:
         (self._abs_out / "logs" / "zenoh.json").write_text(json.dumps({"connect": [hub]}) + "\n")
         t_start = time.perf_counter()
         try:
+            if self.view:
+                self._start_view()
             subs = [
                 session.declare_subscriber(keys.record(m.id), self._on_record),
                 session.declare_subscriber(keys.status(m.id), self._on_status),
@@ -585,6 +597,8 @@ class Launcher:
                         peb, err = self._live_stats(k)
                         stats_at = now
                     self.progress(k, peb, err, len(report.alive))
+                if self._swarm_view is not None:
+                    self._view_step(k)
             # The end tick releases the planners: they end the mission (hold, land or RTL) and
             # exit. It is re-sent every second for a planner that missed it.
             clock.end(m.steps, t0)
@@ -612,6 +626,7 @@ class Launcher:
         finally:
             if self._gcs is not None:
                 self._gcs.close()
+            self._stop_view()
             self.stop_children()
             for s in locals().get("subs", []):
                 with contextlib.suppress(Exception):
@@ -649,15 +664,20 @@ class Launcher:
                 elif ready != ready_seen:
                     ready_seen = ready
                     self.notice(f"{ready}/{n} drones ready at their starts (step 0 in {self.start_unix - now:.0f} s)")
-            done = min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
+            ended = all(c.proc.poll() is not None for c in planners)
+            if ended:
+                self._check_children()  # failures are dated by the step in progress
+            # Every step once the planners have ended (the last one's records are in by then).
+            done = m.steps - 1 if ended else min(int((now - self.start_unix) / dtw) - 1, m.steps - 1)
             while reported < done:
                 reported += 1
                 self._step = reported
                 if self.progress is not None:
                     peb, err = self._live_stats(reported)
                     self.progress(reported, peb, err, sum(c.proc.poll() is None for c in planners))
-            if all(c.proc.poll() is not None for c in planners):
-                self._check_children()
+                if self._swarm_view is not None:
+                    self._view_step(reported)
+            if ended:
                 return
             if now > end_by:
                 raise LaunchError(f"the planners did not end the mission by {end_by - self.start_unix:.0f} s after step 0")
@@ -698,15 +718,22 @@ class Launcher:
             if code not in (None, 0) and c.proc.pid not in self._handled:
                 raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
 
-    def _live_stats(self, k: int) -> tuple[float, float]:
-        """Mean PEB and mean estimate error over the drones at step k (for the progress bar)."""
-        m = self.mission
-        n = m.drones.count
+    def _heard_at(self, k: int) -> tuple[dict[int, Observation | None], dict[int, Status | None], dict[tuple[int, int], Observation]]:
+        """What was heard of step k: each drone's record and status (None: not heard), and the
+        records the statuses' views name, by (step, drone)."""
+        n = self.mission.drones.count
         with self.collected.lock:
+            own = {j: self.collected.records.get((k, j)) for j in range(1, n + 1)}
             stat = {j: self.collected.status.get((k, j)) for j in range(1, n + 1)}
             # Only the records the views name (copying every record each step is O(K²)).
             wanted = {(s, i + 1) for st in stat.values() if st is not None for i, s in enumerate(st.saved_steps) if s >= 0}
             recs = {key: self.collected.records[key] for key in wanted if key in self.collected.records}
+        return own, stat, recs
+
+    def _live_stats(self, k: int) -> tuple[float, float]:
+        """Mean PEB and mean estimate error over the drones at step k (for the progress bar)."""
+        m = self.mission
+        _, stat, recs = self._heard_at(k)
         src = m.source.position_at(self._t(k))
         pebs, errs = [], []
         for j, st in stat.items():
@@ -716,6 +743,61 @@ class Launcher:
             pebs.append(self._peb_of_view(st.saved_steps, recs, src))
         finite = [p for p in pebs if np.isfinite(p)]
         return (float(np.mean(finite)) if finite else float("inf")), (float(np.mean(errs)) if errs else float("nan"))
+
+    # -- the live view --------------------------------------------------------------------------
+    def _start_view(self) -> None:
+        """Start rerun's web viewer (a child bound to 127.0.0.1) and the run's recording."""
+        from missions.liveview import SwarmView, ViewServer
+
+        server = ViewServer(web_port=self.view_port, log_path=self.out / "logs" / "viewer.log")
+        self._view_server = server.start()
+        self._swarm_view = SwarmView(self.mission, self._abs_out / "view.rrd", server.grpc_url, name=self.mission.id)
+        # Where tools and tests find the view while the swarm flies.
+        (self._abs_out / "logs" / "view.json").write_text(json.dumps({"url": server.browser_url, "grpc": server.grpc_url}) + "\n")
+        self.notice(f"live view: {server.browser_url}")
+
+    def _stop_view(self) -> None:
+        if self._swarm_view is not None:
+            with contextlib.suppress(Exception):
+                self._swarm_view.close()  # the recording is complete whatever ended the run
+            self._swarm_view = None
+        if self._view_server is not None:
+            self._view_server.close()
+            self._view_server = None
+
+    def _view_step(self, k: int) -> None:
+        """Log step k to the live view from what the launcher heard: each drone's record of
+        step k (its position and state), its status (estimate and view)."""
+        from missions.liveview import swarm_frame
+
+        n = self.mission.drones.count
+        own, stat, recs = self._heard_at(k)
+        positions = np.full((n, 3), np.nan)
+        states = []
+        estimates = np.full((n, 3), np.nan)
+        view_pos = np.zeros((n, n, 3))
+        valid = np.zeros((n, n), dtype=bool)
+        los = np.zeros((n, n), dtype=bool)
+        for j in range(1, n + 1):
+            r = own[j]
+            if r is not None:
+                self._view_last[j] = r.position_m
+                states.append("taken over" if r.taken_over else "stale" if r.stale else "alive")
+            else:
+                states.append("lost")
+            if j in self._view_last:
+                positions[j - 1] = self._view_last[j]
+            st = stat[j]
+            if st is not None:
+                estimates[j - 1] = st.estimate_m
+                for i, s in enumerate(st.saved_steps):
+                    rec = recs.get((s, i + 1)) if s >= 0 else None
+                    if rec is not None:
+                        view_pos[j - 1, i], valid[j - 1, i], los[j - 1, i] = rec.position_m, True, rec.los
+        try:
+            self._swarm_view.log(swarm_frame(self.mission, k, positions, states, estimates, view_pos, valid, los))
+        except Exception as exc:  # the view must never end a flight
+            log.warning("live view: step %d not logged (%s)", k, exc)
 
     def _t(self, k: int) -> float:
         return k * self.mission.dt_s
@@ -800,6 +882,16 @@ class Launcher:
             ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in saved]
             peb[k, 0, j - 1] = self._peb_of_view(saved, recs, sources[k])
             active[k] += np.asarray(act, dtype=np.int64)
+        # A drone a pilot flies (taken over) has no planner step: its estimate, observability
+        # and view are those of its planner's last step, and its displacements are no command.
+        taken = np.zeros((K + 1, 1, n), dtype=bool)
+        for (k, j), r in self.collected.records.items():
+            if 0 <= k < K and r.taken_over and (k, j) not in logs:
+                taken[k, 0, j - 1] = True
+        for k, _, i in zip(*np.nonzero(taken[1:K]), strict=True):
+            k += 1
+            if (k, i + 1) not in steps and not np.isnan(estimates[k - 1, 0, i]).any():
+                estimates[k, 0, i], observable[k, 0, i], peb[k, 0, i] = estimates[k - 1, 0, i], observable[k - 1, 0, i], peb[k - 1, 0, i]
         missing = np.isnan(positions).any(-1)
         if missing.any():
             # Steps a drone did not fly (it died): hold its last known position for the record.
@@ -809,7 +901,7 @@ class Launcher:
         margins = safety_margins(np.nan_to_num(positions), sources, m.limits(), bmin, bmax, MAVLINK_KINEMATIC_TOL)
         # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
         # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
-        not_flown = missing[:K] | missing[1:]
+        not_flown = missing[:K] | missing[1:] | taken[:K] | taken[1:]
         if self.realtime:
             # On the wall clock, positions are sampled at each step's (jittered) start: the
             # kinematic limits apply to the commanded steps, u_k = next_k − p_k (logged).

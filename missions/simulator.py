@@ -167,12 +167,32 @@ def _with_late_records(
     )
 
 
+@dataclass(frozen=True)
+class SimStep:
+    """What :func:`simulate` shows an observer at step k (every trial; mission ENU, m).
+
+    Attributes:
+        step: k. positions_m: (M, N, 3) where the drones took their records of step k.
+        estimates_m: (M, N, 3) each drone's source estimate after step k's records.
+        view_positions_m: (M, N, N, 3) drone i's record of drone j's position.
+        view_valid: (M, N, N) drone i holds a record of drone j. view_los: (M, N, N) it was LOS.
+    """
+
+    step: int
+    positions_m: FloatArray
+    estimates_m: FloatArray
+    view_positions_m: FloatArray
+    view_valid: NDArray[np.bool_]
+    view_los: NDArray[np.bool_]
+
+
 def simulate(
     spec: RunSpec,
     progress: Callable[[int], None] | None = None,
     estimator_config: est.EstimatorConfig | None = None,
     oracle_estimate: bool = False,
     float32_positions: bool = False,
+    observer: Callable[[SimStep], None] | None = None,
 ) -> SimulationResult:
     """Run ``spec.trials`` trials of ``spec.steps`` steps of a mission in this process.
 
@@ -187,6 +207,8 @@ def simulate(
         float32_positions: round every new position to float32, as a MAVLink position setpoint
             is (the ideal simulated vehicle lands exactly on it): a lockstep distributed run
             then computes the same numbers (docs/distributed.md).
+        observer: called at every step with a :class:`SimStep` (the live view); it must not
+            change the arrays.
 
     Returns:
         The :class:`SimulationResult`.
@@ -305,6 +327,8 @@ def simulate(
         # 5. Accuracy at the true source with the positions known to each drone (eq. 18).
         J_true = fisher_information(src, view_pos, view_rng, view_brg, view_los, channel)
         peb[k] = position_error_bound(J_true)[0]
+        if observer is not None:
+            observer(SimStep(k, positions[k], state.estimate_m, view_pos, have, view_los))
 
         u = step.displacement
         pos = step.next_position

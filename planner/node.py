@@ -28,6 +28,14 @@ short trajectory towards the planned position, re-sent at ≥ 4 Hz of mission ti
 next step replaces it, so a late step never leaves the vehicle without a setpoint. A lost
 vehicle link (no heartbeat for 2 s) is reported; the planner keeps publishing its last record
 flagged stale, and resumes (back into GUIDED/OFFBOARD) when the heartbeat returns.
+
+Pilot take-over, in both clocks (docs/in-the-field.md): a vehicle that leaves GUIDED/OFFBOARD
+(a ground station or the RC switched it to LOITER, LAND, RTL, ...) is no longer commanded from
+the moment the planner sees the mode; every step the planner publishes the drone's telemetry
+position as a record flagged ``taken_over`` without a measurement (the others keep clear of
+it) and, in lockstep, still answers the step (``Done(k)``: the clock never waits for a drone a
+pilot flies). It never switches the vehicle back on its own: ``fimnav handback`` does, and the
+planner plans again from where the drone is.
 """
 
 from __future__ import annotations
@@ -321,7 +329,7 @@ class PlannerNode:
         self.stale_peers: dict[int, int] = {}  # drone id -> last step it said "stale"
         self.position_gaps = 0
         self._reported_mode: str | None = None
-        #: Real time: the pilot's take-over in force ({"step", "mode"}), or None; every one.
+        #: The pilot's take-over in force ({"step", "mode"}), or None; every one.
         self.taken_over: dict[str, Any] | None = None
         self.takeovers: list[dict[str, Any]] = []
         self.taken_over_steps = 0
@@ -374,8 +382,7 @@ class PlannerNode:
         if self.o.lockstep:
             # The simulated vehicle's bridge holds a token: its process dying is seen at once.
             self._subs.append(s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True))
-        if not self.o.lockstep:
-            self._subs.append(s.declare_subscriber(keys.control(mid, self.o.uav), self._on_control))
+        self._subs.append(s.declare_subscriber(keys.control(mid, self.o.uav), self._on_control))
         self._token = s.liveliness().declare_token(keys.alive(mid, "planner", self.o.uav))
         self._pub_record = declare_publisher(s, keys.record(mid, self.o.uav))
         self._pub_status = declare_publisher(s, keys.status(mid, self.o.uav))
@@ -593,6 +600,13 @@ class PlannerNode:
                 t_k = self._await_step(k)
                 w_tick = self.wall()
                 own = self._own_position(t_k)
+                # The vehicle's mode comes with the tick's position (vehicle_sim sends a heartbeat
+                # with the first tick report after a mode change).
+                self._watch_mode(k)
+                if self.taken_over is not None and not (self._handback_requested() and self._hand_back(k)):
+                    self._taken_over_step(k, t_k, own)
+                    prev_step = np.zeros(3)
+                    continue
                 meas = self._measurement(k)
                 w_meas = self.wall()
                 record = Observation(
@@ -619,6 +633,15 @@ class PlannerNode:
                 u = np.asarray(step.displacement, dtype=float)
                 nxt = np.asarray(step.next_position, dtype=float)
                 assert self.link is not None
+                # A heartbeat read while the step was planned (the 1 Hz one) may say the vehicle
+                # was taken over meanwhile: then this step's setpoint is not sent.
+                self.link.pump(0.0)
+                self._watch_mode(k)
+                if self.taken_over is not None:
+                    self.taken_over_steps += 1
+                    self._publish(self._pub_done, Done(self.o.uav, k))
+                    prev_step = np.zeros(3)
+                    continue
                 # One setpoint for the whole step. ArduPilot's GUIDED moves a position+velocity
                 # target along its velocity (from here it reaches nxt after dt); PX4 holds the
                 # point and takes the velocity as a feed-forward.
@@ -636,8 +659,9 @@ class PlannerNode:
                 self._log_step(k, t_k, own, record, view, state, result, rows, timing)
                 done_steps += 1
             self._await_end()
-            self._end()
-            return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped)}
+            end = self._end()
+            return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped), "mode_changes": self.mode_changes,
+                    "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps, "end": end}
         finally:
             self.close()
 
@@ -853,12 +877,33 @@ class PlannerNode:
         self._log.write(json.dumps(entry) + "\n")
         self._log.flush()  # the step log is the record of what was flown: it must survive a kill
 
-    def _end(self) -> None:
+    def _taken_over_step(self, k: int, t_k: float, own: np.ndarray) -> None:
+        """Lockstep step ``k`` of a drone a pilot flies: no command; its telemetry position at
+        t_k published as a record flagged taken over, without a measurement (the payload's of
+        this step is dropped); the step answered (``Done``) so the clock goes on. The control
+        draws of the step are skipped, so a handed-back planner draws those of its step."""
+        for s in [s for s in self.measurements if s <= k]:
+            del self.measurements[s]
+        nan = float("nan")
+        rec = Observation(self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
+                          True, nan, nan, nan, taken_over=True)
+        self._track(k, own)
+        self._publish(self._pub_record, rec, MessageKind.RECORD)
+        self.ctrl_rng.random(CONTROL_DRAWS)
+        self.taken_over_steps += 1
+        self._publish(self._pub_done, Done(self.o.uav, k))
+
+    def _end(self) -> dict[str, Any]:
         """End of mission as the mission says: hold (stay in GUIDED at the last setpoint),
-        land or return to launch, confirmed by the vehicle's mode."""
+        land or return to launch, confirmed by the vehicle's mode; left to the pilot of a
+        drone taken over."""
         link = self.link
         assert link is not None
         action = self.m.end_action
+        if self.taken_over is not None:
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
+                        self.o.uav, link.mode_name(), action)
+            return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         try:
             if action == "land":
                 link.set_mode("AUTO.LAND" if link.is_px4 else "LAND")
@@ -873,6 +918,7 @@ class PlannerNode:
         except LinkError as exc:
             raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
         log.info("uav %d: mission over (%s)", self.o.uav, action)
+        return {"action": action, "confirmed": True, "mode": link.mode_name()}
 
 
     # -- real time --------------------------------------------------------------------------
@@ -1109,7 +1155,10 @@ class PlannerNode:
 
     def _hand_back(self, k: int) -> bool:
         """``fimnav handback``: switch the vehicle back to GUIDED/OFFBOARD at its position and
-        plan again from step ``k``; False (logged) when the vehicle refuses or is not armed."""
+        plan again from step ``k``; False (logged) when the vehicle refuses or is not armed.
+        Real time holds the position with the setpoint stream until the step's trajectory;
+        lockstep streams nothing (step k's setpoint follows at once): PX4 gets a few hold
+        setpoints first, as it enters OFFBOARD only with setpoints flowing."""
         link = self._require_link()
         mode = "OFFBOARD" if link.is_px4 else "GUIDED"
         pos = link.telemetry.position_enu_m
@@ -1119,11 +1168,16 @@ class PlannerNode:
         hold = pos.astype(float)
         try:
             if link.is_px4:
-                link.set_stream(lambda _t: (hold, None))  # PX4 enters OFFBOARD only with setpoints flowing
+                if self.o.lockstep:
+                    for _ in range(5):
+                        link.send_setpoint(hold, None)
+                else:
+                    link.set_stream(lambda _t: (hold, None))  # PX4 enters OFFBOARD only with setpoints flowing
                 link.set_mode(mode)
             else:
                 link.set_mode(mode)
-                link.set_stream(lambda _t: (hold, None))
+                if not self.o.lockstep:
+                    link.set_stream(lambda _t: (hold, None))
         except LinkError as exc:
             link.set_stream(None)
             log.error("uav %d: hand-back refused: %s", self.o.uav, exc)
@@ -1203,10 +1257,11 @@ class PlannerNode:
                 if fresh_pos:
                     assert pos is not None
                     rec = Observation(self.o.uav, k, w0, tuple(float(v) for v in pos), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                                      True, nan, nan, nan)
+                                      True, nan, nan, nan, taken_over=True)
                     self._publish(self._pub_record, rec, MessageKind.RECORD)
                 elif self.last_record is not None:
-                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True), MessageKind.RECORD)
+                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True),
+                                  MessageKind.RECORD)
                 self.taken_over_steps += 1
                 prev_step = np.zeros(3)
                 k += 1

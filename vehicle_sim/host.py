@@ -10,7 +10,8 @@ fixed grid (:meth:`SimVehicle.advance_to` integrates every missed physics step).
   every vehicle to the tick's ``t_s`` and reports its position (GLOBAL_POSITION_INT and
   LOCAL_POSITION_NED stamped with the tick time).
 * HEARTBEAT: 1 Hz of *wall* time in both modes (link liveness for ground stations), sent
-  only by a loop that is running and only for healthy vehicles.
+  only by a loop that is running and only for healthy vehicles; in lockstep also with the first
+  tick report after a mode or arming change (a planner sees a take-over before it commands).
 """
 
 from __future__ import annotations

@@ -211,6 +211,9 @@ class SimVehicle:
             self.defaults["EKF_STATUS_REPORT"] = 1.0 / config.ekf_status_hz if config.ekf_status_hz > 0 else None
         self.intervals = dict(self.defaults)
         self._due: dict[str, float] = {name: 0.0 for name in self.intervals}
+        #: (custom mode, armed) of the last HEARTBEAT built: a lockstep tick report repeats the
+        #: heartbeat when the state changed since (:meth:`emit_due`).
+        self._heartbeat_state: tuple[int, bool] | None = None
         self.params = self._build_params()
         for name, value in config.params:
             self._boot_param(name, value)
@@ -1506,8 +1509,15 @@ class SimVehicle:
             self.link.send(self.msg_heartbeat())
 
     def emit_due(self, *, report_position: bool = False) -> None:
-        """Send every telemetry message whose interval has elapsed (sim time)."""
+        """Send every telemetry message whose interval has elapsed (sim time).
+
+        A lockstep tick report (``report_position``) starts with a HEARTBEAT when the mode or
+        the armed state changed since the last one: the 1 Hz wall-clock heartbeat spans many
+        lockstep steps, and a planner must see a pilot's take-over (a ground station switching
+        the mode between two ticks) with the position of the next tick, before it commands."""
         t = self.t
+        if report_position and self.healthy and self._heartbeat_state not in (None, (self.mode.custom_mode, self.armed)):
+            self.heartbeat()
         forced = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED") if report_position else ()
         for name, iv in self.intervals.items():
             if iv is None:
@@ -1558,6 +1568,7 @@ class SimVehicle:
                 status = m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY
         else:
             status = m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY
+        self._heartbeat_state = (self.mode.custom_mode, self.armed)
         return m.MAVLink_heartbeat_message(
             m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), self.mode.custom_mode, status, 3
         )

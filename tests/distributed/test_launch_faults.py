@@ -88,6 +88,9 @@ def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, 
     assert summary["violations"] == {k: 0 for k in summary["violations"]}
 
 
+# 10-15 s: in the slow set to keep the default run under 5 minutes; the default run rebuilds a
+# restarted planner's state from the logs in tests/planner/test_replay_own_log.py.
+@pytest.mark.slow
 def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     out = tmp_path / "dead_planner"
     steps = 150

@@ -1,29 +1,40 @@
 """One ground-station port for a launched swarm (``fimnav launch --realtime --gcs ENDPOINT``),
-real processes on 127.0.0.1.
+with a real ground station: MAVProxy (from PyPI, the [test] extra), headless, real processes on
+127.0.0.1.
 
-A ground station (pymavlink, system 255, component 190, the way MAVProxy and QGroundControl
-talk) listens on a free UDP port; the launch forwards its three simulated vehicles there. The
-ground station sees three systems (1, 2, 3) with positions that move as the swarm flies; a
-command it addresses to system 2 is answered by system 2 and reaches only vehicle 2 (its
-.tlog has it, the others' do not).
+MAVProxy listens on a free UDP port (``--master udpin:``) and the launch forwards its three
+simulated vehicles there. MAVProxy reports every vehicle it detects ("Detected vehicle N:1");
+what it receives it forwards unchanged (``--out udpout:``) to the test's pymavlink socket, where
+the positions of systems 1, 2 and 3 are seen to move as the swarm flies (MAVProxy's own
+``status`` keeps only the last message of each type, whichever system sent it, so the positions
+per system are read from its output rather than its console). Driven through its stdin, MAVProxy
+selects system 2 (``vehicle 2``) and sends it a command (``long REQUEST_MESSAGE 148``, a harmless
+one: the swarm flies on): system 2 answers MAVProxy, and only vehicle 2's .tlog holds the command.
 """
 
 from __future__ import annotations
 
-import pytest
-
 import os
+import re
 import socket
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
+
+from tests.vehicle_sim.procs import MAVPROXY
+from tests.vehicle_sim.procs import Proc as Tool
 
 from .test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
 
-SPEEDUP = 8.0
+pytestmark = pytest.mark.integration
+
+SPEEDUP = 10.0
+STEPS = 20
 MAV_CMD_REQUEST_MESSAGE, AUTOPILOT_VERSION = 512, 148
+MAVPROXY_SYSID, MAVPROXY_COMPID = 255, 230
 
 
 def free_udp_port() -> int:
@@ -33,64 +44,79 @@ def free_udp_port() -> int:
 
 
 def commands_in(tlog: Path, command: int) -> int:
-    """COMMAND_LONGs of ``command`` from system 255 in a vehicle's .tlog."""
+    """COMMAND_LONGs of ``command`` from MAVProxy (system 255, component 230) in a vehicle's .tlog."""
     from pymavlink import mavutil
 
     log = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     n = 0
     while (m := log.recv_match(type="COMMAND_LONG")) is not None:
-        n += m.get_srcSystem() == 255 and int(m.command) == command
+        n += (m.get_srcSystem(), m.get_srcComponent()) == (MAVPROXY_SYSID, MAVPROXY_COMPID) and int(m.command) == command
+    log.close()
     return n
 
 
-@pytest.mark.slow  # a real-time launch (17 s); the default run keeps under 5 minutes
-def test_one_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def horizontal_m(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Distance (m) between two (lat, lon) in degrees, a few tens of metres apart."""
+    return float(np.hypot((b[0] - a[0]) * 111_320.0, (b[1] - a[1]) * 111_320.0 * np.cos(np.radians(a[0]))))
+
+
+def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    port = free_udp_port()
-    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    gcs_port, tap_port = free_udp_port(), free_udp_port()
+    tap = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tap_port}", source_system=254)
+    mavproxy = Tool([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
+                     "--streamrate=-1", "--default-modules=cmdlong"], stdin=True, cwd=str(tmp_path))
     mission = tmp_path / "gcs.yaml"
     mission.write_text(yaml.safe_dump({
-        "id": "gcs", "dt_s": 1.0, "steps": 30, "seed": 3, "end_action": "land",
+        "id": "gcs", "dt_s": 1.0, "steps": STEPS, "seed": 3, "end_action": "hold",
         "drones": {"count": 3, "roles": ["ranging", "bearing", "joint"],
                    "start": {"positions_m": [[10.0, 20.0, 8.0], [30.0, 20.0, 8.0], [50.0, 20.0, 8.0]]}},
         "source": {"position_m": [60.0, 90.0, 2.0]},
     }))
     out = tmp_path / "run"
-    run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "8", "--gcs", f"udpout:127.0.0.1:{port}")
+    run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "3", "--gcs", f"udpout:127.0.0.1:{gcs_port}")
     launches.append(run)
     try:
-        seen: dict[int, list[tuple[float, float, float]]] = {1: [], 2: [], 3: []}
+        # (lat, lon) of each system once airborne at its start altitude (7 m of 8).
+        flown: dict[int, list[tuple[float, float]]] = {1: [], 2: [], 3: []}
         acks: dict[int, int] = {}
         asked = False
-        deadline = time.monotonic() + 180.0
+        deadline = time.monotonic() + 90.0
         while time.monotonic() < deadline and run.proc.poll() is None:  # the whole flight
-            m = gcs.recv_match(blocking=True, timeout=0.5)
+            m = tap.recv_match(blocking=True, timeout=0.5)
             if m is None:
                 continue
             sysid = m.get_srcSystem()
-            if m.get_type() == "GLOBAL_POSITION_INT" and sysid in seen:
-                seen[sysid].append((m.lat * 1e-7, m.lon * 1e-7, m.relative_alt * 1e-3))
-            elif m.get_type() == "COMMAND_ACK" and int(m.command) == MAV_CMD_REQUEST_MESSAGE and m.target_system == 255:
+            if m.get_type() == "GLOBAL_POSITION_INT" and sysid in flown and m.relative_alt > 7000:
+                flown[sysid].append((m.lat * 1e-7, m.lon * 1e-7))
+            elif m.get_type() == "COMMAND_ACK" and int(m.command) == MAV_CMD_REQUEST_MESSAGE and m.target_system == MAVPROXY_SYSID:
                 acks[sysid] = acks.get(sysid, 0) + 1
-            if not asked and min(len(v) for v in seen.values()) >= 5:
-                gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
-                gcs.mav.command_long_send(2, 1, MAV_CMD_REQUEST_MESSAGE, 0, AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
+            if not asked and all(flown.values()):
+                mavproxy.send("vehicle 2")
+                mavproxy.send(f"long REQUEST_MESSAGE {AUTOPILOT_VERSION}")
                 asked = True
-        code, stdout, stderr = run.wait(240.0)
+        code, stdout, stderr = run.wait(60.0)
+        # End of input ends MAVProxy's console (SIGTERM alone waits for the next line: 3 s lost in kill()).
+        assert mavproxy.p.stdin is not None
+        mavproxy.p.stdin.close()
+        mavproxy.wait(10.0)
     finally:
-        gcs.close()
+        tap.close()
+        mavproxy.kill()
     assert code == 0, stderr[-3000:]
     assert "ground station port udpout:127.0.0.1" in stderr and "Traceback" not in stderr
-    # Three systems, each moving (the swarm flew: metres between its first and last report).
-    for sysid, track in seen.items():
-        assert len(track) >= 30, (sysid, len(track))
-        a, b = np.array(track[0]), np.array(track[-1])
-        moved_m = float(np.hypot((b[0] - a[0]) * 111_320.0, (b[1] - a[1]) * 111_320.0 * np.cos(np.radians(a[0]))) + abs(b[2] - a[2]))
+    # MAVProxy detected the three vehicles and selected system 2.
+    assert set(re.findall(r"Detected vehicle (\d+):1 on link 0", mavproxy.out)) == {"1", "2", "3"}, mavproxy.out[-3000:]
+    assert "Set vehicle 2 (link 1)" in mavproxy.out, mavproxy.out[-3000:]
+    # Three systems, each moving while it flies the mission.
+    for sysid, track in flown.items():
+        assert len(track) >= 20, (sysid, len(track))
+        moved_m = horizontal_m(track[0], track[-1])
         assert moved_m > 3.0, (sysid, moved_m)
-    # The command to system 2 reached vehicle 2 only, and only system 2 answered.
-    assert acks == {2: 1}, acks
+    # The command to system 2 reached vehicle 2 only, and only system 2 answered MAVProxy.
+    assert asked and acks == {2: 1}, acks
     counts = {i: commands_in(out / "tlogs" / f"vehicle_{i}.tlog", MAV_CMD_REQUEST_MESSAGE) for i in (1, 2, 3)}
     assert counts == {1: 0, 2: 1, 3: 0}, counts
     assert not processes_mentioning(str(out))

@@ -51,6 +51,7 @@ def observations(draw: st.DrawFn) -> Observation:
         azimuth_rad=draw(angle) if bearing else math.nan,
         elevation_rad=draw(st.floats(min_value=-1.5, max_value=1.5)) if bearing else math.nan,
         stale=draw(st.booleans()),
+        taken_over=draw(st.booleans()),
     )
 
 
@@ -172,7 +173,7 @@ def test_sender_out_of_range_is_refused(sender: int) -> None:
         decode(bytes(raw), MISSION, N)
 
 
-@pytest.mark.parametrize("role,flags", [(0, 1), (4, 1), (255, 1), (3, 4), (3, 255)])
+@pytest.mark.parametrize("role,flags", [(0, 1), (4, 1), (255, 1), (3, 8), (3, 255)])
 def test_unknown_role_or_flag_bits_are_refused(role: int, flags: int) -> None:
     raw = bytearray(valid_record())
     raw[50], raw[51] = role, flags

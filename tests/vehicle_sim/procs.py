@@ -5,14 +5,20 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 ENV = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
+
+#: MAVProxy's script: the [test] extra installs it beside this interpreter; PATH may name another
+#: installation first.
+MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or shutil.which("mavproxy.py") or "mavproxy.py"
 
 
 class Proc:

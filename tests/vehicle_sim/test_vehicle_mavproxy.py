@@ -5,9 +5,7 @@ flies to a point; an independent pymavlink observer checks where the vehicle end
 from __future__ import annotations
 
 import shutil
-import sys
 import tempfile
-from pathlib import Path
 
 import pytest
 from pyproj import Geod
@@ -15,12 +13,9 @@ from pyproj import Geod
 from vehicle_sim.config import Origin
 
 from conftest import connect_client, hello, wait_msg
-from procs import Proc, fimnav
+from procs import MAVPROXY, Proc, fimnav
 
 pytestmark = pytest.mark.integration
-
-# The [test] extra installs it beside this interpreter; PATH may name another installation first.
-MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or shutil.which("mavproxy.py") or "mavproxy.py"
 
 
 @pytest.mark.slow  # the MAVProxy interoperability flight (7 s); test_vehicle_vs_ardupilot checks the ground-station view in the default run
