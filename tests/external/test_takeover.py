@@ -52,6 +52,7 @@ def tlog_times(path: Path) -> tuple[list[tuple[float, int]], list[float]]:
     return modes, setpoints
 
 
+@pytest.mark.slow  # about 18 s of wall time; the lockstep take-over below is in the default run
 def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: list[Proc]) -> None:
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
