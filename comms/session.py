@@ -96,7 +96,12 @@ class SessionSettings:
         return ["--zenoh-config", json.dumps(self.to_json())]
 
     def to_json(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"mode": self.mode, "listen": list(self.listen), "connect": list(self.connect), "multicast_scouting": self.multicast_scouting}
+        d: dict[str, Any] = {
+            "mode": self.mode,
+            "listen": list(self.listen),
+            "connect": list(self.connect),
+            "multicast_scouting": self.multicast_scouting,
+        }
         for name in ("tls_root_ca", "tls_certificate", "tls_private_key", "auth_user", "auth_password_file"):
             value = getattr(self, name)
             if value is not None:

@@ -45,8 +45,7 @@ def register(subparsers: Any) -> None:
         action="append",
         default=[],
         metavar="CONN",
-        help="connection: udpin:|udpout:|tcpin:|tcp:HOST:PORT (repeat once per vehicle; "
-        "default tcpin:127.0.0.1:5760+10*(sysid-1), as SITL)",
+        help="connection: udpin:|udpout:|tcpin:|tcp:HOST:PORT (repeat once per vehicle; default tcpin:127.0.0.1:5760+10*(sysid-1), as SITL)",
     )
     p.add_argument("--count", type=int, default=1, help="number of vehicles hosted by this process (default 1)")
     p.add_argument("--port-stride", type=int, default=1, help="port increment between vehicles (default 1)")
@@ -89,8 +88,7 @@ def register(subparsers: Any) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="set a parameter at boot, in the flavour's names and units (repeatable), "
-        "e.g. FS_GCS_ENABLE=1 or COM_OBL_RC_ACT=4",
+        help="set a parameter at boot, in the flavour's names and units (repeatable), e.g. FS_GCS_ENABLE=1 or COM_OBL_RC_ACT=4",
     )
     p.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file (32 bytes or 64 hex digits)")
     p.add_argument("--tlog", metavar="PATH", help="write a .tlog; '{sysid}' in PATH is replaced per vehicle")
@@ -200,8 +198,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         fence_kw: dict[str, Any] = {}
         if mission is not None:
             c, f = mission.constraints, mission.fence
-            fence_kw = dict(z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m,
-                            y_min_m=f.y_min_m, y_max_m=f.y_max_m)
+            fence_kw = dict(z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m, y_min_m=f.y_min_m, y_max_m=f.y_max_m)
         if fence_z is not None:
             fence_kw.update(z_min_m=fence_z[0], z_max_m=fence_z[1])
         if fence_box is not None:

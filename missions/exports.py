@@ -40,9 +40,13 @@ def flight_features(result: SimulationResult) -> list[dict]:
     k1 = pos.shape[0]
     out = []
     for i in range(n):
-        out.append({"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1:(i + 1) * k1]})
+        out.append(
+            {"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1 : (i + 1) * k1]}
+        )
     for i in range(n):
-        out.append({"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]})
+        out.append(
+            {"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]}
+        )
     out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lla[-1:]})
     return out
 

@@ -384,8 +384,15 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
     handles = missions + [blank] * (rows - len(missions))
     if line_styles:
         handles += line_styles + [blank] * (rows - len(line_styles))
-    fig.legend(handles=handles, loc="outside lower center", ncol=2 if line_styles else 1, fontsize=8.5, frameon=True,
-               title="\n".join(line for sentence in caption for line in textwrap.wrap(sentence, 120)), title_fontsize=8)
+    fig.legend(
+        handles=handles,
+        loc="outside lower center",
+        ncol=2 if line_styles else 1,
+        fontsize=8.5,
+        frameon=True,
+        title="\n".join(line for sentence in caption for line in textwrap.wrap(sentence, 120)),
+        title_fontsize=8,
+    )
 
     _annotate_ends(fig, ax, curves, colours)
     return fig
@@ -518,8 +525,15 @@ def make_trajectories_figure(result: SimulationResult, trial: int = 0) -> Any:
     handles += [
         Line2D([], [], ls="", marker="s", markersize=6, markerfacecolor="white", markeredgecolor="0.2", label="start, k = 0"),
         Line2D([], [], ls="", marker="s", markersize=6, color="0.5", markeredgecolor="k", label=f"end, k = {last_k}"),
-        Line2D([], [], ls="-" if moving else "", marker="^", markersize=8, color=SOURCE_COLOUR,
-               label="source (track; triangle: last position)" if moving else "source (true position)"),
+        Line2D(
+            [],
+            [],
+            ls="-" if moving else "",
+            marker="^",
+            markersize=8,
+            color=SOURCE_COLOUR,
+            label="source (track; triangle: last position)" if moving else "source (true position)",
+        ),
     ]
     if d_s > 0:
         handles.append(Line2D([], [], ls=":", color=SOURCE_COLOUR, label=f"source keep-out $d_S^*$ = {d_s:g} m (top view)"))

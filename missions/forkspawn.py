@@ -180,8 +180,7 @@ def _leave_fork_server() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, SERVER_BLOCKED_SIGNALS)
 
 
-def _run_cli(argv: list[str], log_path: str, title: str, launcher_fd: int | None = None, truncate: bool = False,
-             cwd: str | None = None) -> None:
+def _run_cli(argv: list[str], log_path: str, title: str, launcher_fd: int | None = None, truncate: bool = False, cwd: str | None = None) -> None:
     """Fork-server child: become ``python -m missions ARGV`` with its output in ``log_path``
     (truncated first if ``truncate``, else appended to), in directory ``cwd``, watching the
     launcher through ``launcher_fd``."""
@@ -278,14 +277,16 @@ class ForkServer:
                 else:
                     os.environ[name] = value
 
-    def spawn(self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False,
-              cwd: Path | None = None) -> ForkedProcess:
+    def spawn(
+        self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False, cwd: Path | None = None
+    ) -> ForkedProcess:
         """Fork ``python -m missions ARGS`` with stdout/stderr in ``log_path`` (truncated first
         if ``truncate``, else appended to), in directory ``cwd`` (default: the server's), given
         the read end ``launcher_fd`` of the launcher's watchdog pipe (:func:`watch_launcher`)."""
         title = " ".join([self.python, "-m", "missions", *args])
         inherited = _InheritedFd(launcher_fd) if launcher_fd is not None else None
-        p = self.ctx.Process(target=_run_cli, args=(list(args), str(log_path), title, inherited, truncate,
-                                                     str(cwd) if cwd is not None else None), daemon=True)
+        p = self.ctx.Process(
+            target=_run_cli, args=(list(args), str(log_path), title, inherited, truncate, str(cwd) if cwd is not None else None), daemon=True
+        )
         p.start()
         return ForkedProcess(p, [self.python, "-m", "missions", *args])

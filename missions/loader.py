@@ -160,7 +160,7 @@ def _bundled_name(text: str) -> str:
     while name.startswith("./"):
         name = name[2:]
     if name.startswith("missions/"):
-        name = name[len("missions/"):]
+        name = name[len("missions/") :]
     for suffix in (".yaml", ".yml"):
         if name.endswith(suffix):
             return name[: -len(suffix)]
@@ -171,10 +171,7 @@ def _not_found(label: str) -> str:
     """The one-line problem for a mission argument that is neither a file nor a bundled name."""
     close = suggest_bundled(label)
     hint = f"; did you mean {' or '.join(close)}?" if close else ""
-    return (
-        "mission not found: expected an existing YAML file or the name of a bundled mission "
-        f"(fimnav missions list), found neither{hint}"
-    )
+    return f"mission not found: expected an existing YAML file or the name of a bundled mission (fimnav missions list), found neither{hint}"
 
 
 def _read_mission_file(path: str | os.PathLike[str]) -> tuple[Path, str]:
@@ -201,11 +198,13 @@ def _read_mission_file(path: str | os.PathLike[str]) -> tuple[Path, str]:
     except UnicodeDecodeError as exc:
         line_start = raw.rfind(b"\n", 0, exc.start) + 1
         line = raw.count(b"\n", 0, exc.start) + 1
-        column = len(raw[line_start:exc.start].decode("utf-8", errors="replace")) + 1
+        column = len(raw[line_start : exc.start].decode("utf-8", errors="replace")) + 1
         raise MissionError(
             label,
-            [f"line {line}, column {column}: expected UTF-8 text, found the invalid byte 0x{raw[exc.start]:02x} "
-             f"(byte offset {exc.start}; save the file as UTF-8)"],
+            [
+                f"line {line}, column {column}: expected UTF-8 text, found the invalid byte 0x{raw[exc.start]:02x} "
+                f"(byte offset {exc.start}; save the file as UTF-8)"
+            ],
         ) from None
 
 
@@ -238,10 +237,7 @@ def mission_to_yaml(mission: Mission) -> str:
     # Exactly one start form is present in a valid mission; write only that one.
     data["drones"]["start"] = {k: v for k, v in data["drones"]["start"].items() if v is not None}
     body = yaml.dump(data, Dumper=_MissionDumper, sort_keys=False, allow_unicode=True, width=100)
-    header = (
-        f"# fimnav mission {mission.id!r} as run (format version {mission.schema_version}); "
-        "every default filled in.\n"
-    )
+    header = f"# fimnav mission {mission.id!r} as run (format version {mission.schema_version}); every default filled in.\n"
     return header + body
 
 
@@ -346,8 +342,7 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
     if not isinstance(data, dict):
         raise MissionError(
             file,
-            [f"line {node.start_mark.line + 1}: expected a mapping of mission keys (id, drones, source, ...) "
-             f"at the top level, found {_kind(data)}"],
+            [f"line {node.start_mark.line + 1}: expected a mapping of mission keys (id, drones, source, ...) at the top level, found {_kind(data)}"],
         )
     return node, data
 
@@ -424,10 +419,12 @@ def _describe_yaml_error(exc: yaml.MarkedYAMLError, text: str) -> str:
                 quote = text[context_mark.index] if 0 <= context_mark.index < len(text) else "quote"
                 if problem.startswith("found unexpected "):
                     expected = f"a closing {quote}"
-                    found = problem[len("found unexpected "):]
+                    found = problem[len("found unexpected ") :]
                     found = {"end of stream": "the end of the file", "document separator": "a document separator"}.get(found, found)
-                    return (f"{_at(context_mark)}: invalid YAML: {what} with {quote} is not closed: expected {expected}, "
-                            f"found {found} at {_at(problem_mark)}")
+                    return (
+                        f"{_at(context_mark)}: invalid YAML: {what} with {quote} is not closed: expected {expected}, "
+                        f"found {found} at {_at(problem_mark)}"
+                    )
                 break
             if "simple key" in opening:
                 return f"{_at(context_mark)}: invalid YAML: expected 'key: value' on this line, found no ':' after the key"
@@ -448,34 +445,40 @@ def _describe_yaml_error(exc: yaml.MarkedYAMLError, text: str) -> str:
         return f"{where}invalid YAML: expected each anchor once, found &{name} again (first at {_at(context_mark)})"
     if problem.startswith("found unknown escape character"):
         char = problem.rsplit(" ", 1)[-1]
-        return (f"{where}invalid YAML: expected an escape sequence such as \\\\ or \\n in double-quoted text "
-                f"(or single quotes, where a backslash is plain), found the unknown escape \\{char.strip(chr(39))}")
+        return (
+            f"{where}invalid YAML: expected an escape sequence such as \\\\ or \\n in double-quoted text "
+            f"(or single quotes, where a backslash is plain), found the unknown escape \\{char.strip(chr(39))}"
+        )
     if problem == "found unhashable key":
         return f"{where}invalid YAML: expected a text key, found a list or mapping used as a key"
     if problem.startswith("found character '\\t'"):
         return f"{where}invalid YAML: expected spaces for indentation (YAML allows no tabs there), found a tab character"
     if problem == "mapping values are not allowed here":
-        return (f"{where}invalid YAML: expected a key indented like the keys above it (or a value containing ': ' "
-                f"in quotes), found ':' where a mapping is not allowed")
+        return (
+            f"{where}invalid YAML: expected a key indented like the keys above it (or a value containing ': ' "
+            f"in quotes), found ':' where a mapping is not allowed"
+        )
     in_context = ""
     if context and context_mark is not None and context_mark is not mark:
         in_context = f" ({context} started at {_at(context_mark)})"
     elif context:
         in_context = f" ({context})"
     if problem.startswith("expected <block end>, but found ") and context.startswith("while parsing a block"):
-        found = _token(problem[len("expected <block end>, but found "):])
+        found = _token(problem[len("expected <block end>, but found ") :])
         if found in ("']'", "'}'"):
             return f"{where}invalid YAML{in_context}: expected a key, an item or the end of the block, found {found} that closes nothing"
-        return (f"{where}invalid YAML{in_context}: expected a line indented like an enclosing block's keys or items, "
-                f"found {found} (check the indentation)")
+        return (
+            f"{where}invalid YAML{in_context}: expected a line indented like an enclosing block's keys or items, "
+            f"found {found} (check the indentation)"
+        )
     for but in (", but got ", " but got ", ", but found ", " but found "):
         if problem.startswith("expected") and but in problem:
             head, tail = problem.split(but, 1)
             return f"{where}invalid YAML{in_context}: {head}, found {_token(tail)}"
     if context.startswith("expected") and problem.startswith("but found "):
-        return f"{where}invalid YAML: {context}, found {problem[len('but found '):]}"
+        return f"{where}invalid YAML: {context}, found {problem[len('but found ') :]}"
     if problem.startswith("found "):
-        problem = problem[len("found "):]
+        problem = problem[len("found ") :]
     return f"{where}invalid YAML{in_context}: expected valid YAML syntax, found {problem}"
 
 
@@ -495,8 +498,10 @@ def _check_nodes(root: yaml.Node, file: str) -> None:
                     if key.value in seen:
                         raise MissionError(
                             file,
-                            [f"line {key.start_mark.line + 1}: {key.value}: expected each key once in a mapping, "
-                             f"found it again (first at line {seen[key.value]})"],
+                            [
+                                f"line {key.start_mark.line + 1}: {key.value}: expected each key once in a mapping, "
+                                f"found it again (first at line {seen[key.value]})"
+                            ],
                         )
                     seen[key.value] = key.start_mark.line + 1
                 stack.append(key)
@@ -528,9 +533,7 @@ def _node_at(root: yaml.Node, parts: Sequence[str | int]) -> tuple[yaml.Node, bo
 # --- overrides -----------------------------------------------------------------------------
 
 
-def _apply_overrides(
-    data: dict[str, Any], overrides: Mapping[str, Any], file: str, paths: list[tuple[str | int, ...]]
-) -> dict[str, Any]:
+def _apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], file: str, paths: list[tuple[str | int, ...]]) -> dict[str, Any]:
     """Deep-merge ``overrides`` (dotted keys or nested mappings) into a copy of ``data``."""
     out = copy.deepcopy(data)
 
@@ -629,7 +632,7 @@ def _inner_model(annotation: Any) -> Any:
 def _expected_from_msg(msg: str) -> str:
     for prefix in ("Input should be ", "Value should be "):
         if msg.startswith(prefix):
-            rest = msg[len(prefix):]
+            rest = msg[len(prefix) :]
             if rest.startswith(("greater", "less")):
                 rest = "a number " + rest
             return rest.replace("a valid tuple", "a list").replace("a valid dictionary", "a mapping")

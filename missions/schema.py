@@ -119,8 +119,7 @@ def _check_connection(value: str) -> str:
     if not _CONNECTION_RE.match(value):
         raise PydanticCustomError(
             "mavlink_connection",
-            "expected a pymavlink connection string such as 'udpin:127.0.0.1:14550', "
-            "'tcp:HOST:PORT' or '/dev/ttyUSB0,57600', found {found}",
+            "expected a pymavlink connection string such as 'udpin:127.0.0.1:14550', 'tcp:HOST:PORT' or '/dev/ttyUSB0,57600', found {found}",
             {"found": repr(value)},
         )
     return value
@@ -177,22 +176,16 @@ class Ellipse(_Section):
         """Start positions of ``count`` drones, shape (count, 3), metres ENU, drone 1 first."""
         alpha = math.radians(self.phase_deg) + 2.0 * np.pi * np.arange(count) / count
         center = np.asarray(self.center_m, dtype=float)
-        offsets = np.stack(
-            [self.radius_x_m * np.cos(alpha), np.zeros(count), self.radius_z_m * np.sin(alpha)], axis=-1
-        )
+        offsets = np.stack([self.radius_x_m * np.cos(alpha), np.zeros(count), self.radius_z_m * np.sin(alpha)], axis=-1)
         return center + offsets
 
 
 class Start(_Section):
     """Initial positions: exactly one of ``positions_m`` (explicit) or ``ellipse``."""
 
-    model_config = ConfigDict(
-        json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}]}
-    )
+    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}]})
 
-    positions_m: tuple[Vec3, ...] | None = Field(
-        None, description="Explicit start positions, one [x, y, z] per drone (m, ENU), drone 1 first."
-    )
+    positions_m: tuple[Vec3, ...] | None = Field(None, description="Explicit start positions, one [x, y, z] per drone (m, ENU), drone 1 first.")
     ellipse: Ellipse | None = Field(None, description="Start on the paper's XZ-plane ellipse.")
 
     @model_validator(mode="after")
@@ -208,9 +201,7 @@ def _expand_roles(data: Any) -> Any:
     if isinstance(data, dict) and isinstance(data.get("roles"), str):
         role = data["roles"]
         if role not in ROLES:
-            raise fail(
-                "roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role)
-            )
+            raise fail("roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role))
         count = data.get("count")
         valid_count = isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES
         data = {**data, "roles": [role] * (count if valid_count else 1)}
@@ -334,9 +325,7 @@ class Box(_Section):
     def _ordered(self) -> Box:
         for axis, (lo, hi) in enumerate(zip(self.min_m, self.max_m)):
             if not lo < hi:
-                raise fail(
-                    f"max_m[{axis}]", f"max_m[{axis}] > min_m[{axis}] = {lo:g} ({'xyz'[axis]} axis)", hi
-                )
+                raise fail(f"max_m[{axis}]", f"max_m[{axis}] > min_m[{axis}] = {lo:g} ({'xyz'[axis]} axis)", hi)
         return self
 
 
@@ -379,16 +368,12 @@ class Constraints(_Section):
     tilt_change_max_deg: Float = Field(50.0, gt=0.0, le=180.0, description="θ_max, per step (deg).")
     z_min_m: Float = Field(2.0, description="Lowest altitude z_min (m, ENU up).")
     z_max_m: Float = Field(25.0, description="Highest altitude z_max (m, ENU up).")
-    activation: Literal["safe", "paper"] = Field(
-        "safe", description="'safe': constraints act before violation; 'paper': eqs. 15-17 literally."
-    )
+    activation: Literal["safe", "paper"] = Field("safe", description="'safe': constraints act before violation; 'paper': eqs. 15-17 literally.")
 
     @model_validator(mode="after")
     def _ordered(self) -> Constraints:
         if self.speed_min_mps > self.speed_max_mps:
-            raise fail(
-                "speed_min_mps", f"speed_min_mps <= speed_max_mps = {self.speed_max_mps:g}", self.speed_min_mps
-            )
+            raise fail("speed_min_mps", f"speed_min_mps <= speed_max_mps = {self.speed_max_mps:g}", self.speed_min_mps)
         if self.z_min_m > self.z_max_m:
             raise fail("z_min_m", f"z_min_m <= z_max_m = {self.z_max_m:g}", self.z_min_m)
         return self
@@ -427,15 +412,13 @@ class Faults(_Section):
     Off by default.
     """
 
-    loss: Float = Field(
-        0.0, ge=0.0, lt=1.0, description="Probability that a peer's record is lost at a receiver, in [0, 1)."
-    )
-    extra_delay_steps: Int = Field(
-        0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late."
-    )
+    loss: Float = Field(0.0, ge=0.0, lt=1.0, description="Probability that a peer's record is lost at a receiver, in [0, 1).")
+    extra_delay_steps: Int = Field(0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late.")
     partition_start_step: Int | None = Field(
-        None, ge=0, description="First step of a network partition (fimnav montecarlo only): drones "
-        "1..ceil(N/2) and the rest exchange no record, whatever their distance."
+        None,
+        ge=0,
+        description="First step of a network partition (fimnav montecarlo only): drones "
+        "1..ceil(N/2) and the rest exchange no record, whatever their distance.",
     )
     partition_steps: Int = Field(0, ge=0, le=100000, description="Length of the partition (steps); 0: none.")
 
@@ -473,12 +456,9 @@ class Controller(_Section):
     xi: Float | None = Field(
         None,
         gt=0.0,
-        description="Spatial step ξ (m per unit gradient). None: normalized step, the gradient "
-        "direction scaled to v_max·Δt.",
+        description="Spatial step ξ (m per unit gradient). None: normalized step, the gradient direction scaled to v_max·Δt.",
     )
-    random_perturbation_deg: Float = Field(
-        20.0, ge=0.0, le=180.0, description="Random heading perturbation used when the FIM is singular (deg)."
-    )
+    random_perturbation_deg: Float = Field(20.0, ge=0.0, le=180.0, description="Random heading perturbation used when the FIM is singular (deg).")
 
     @property
     def random_perturbation_rad(self) -> float:
@@ -505,12 +485,7 @@ class Fence(_Section):
     def contains(self, xy: NDArray[np.float64]) -> NDArray[np.bool_]:
         """True where points (..., ≥2) lie inside the fence (edges included)."""
         xy = np.asarray(xy, dtype=float)
-        return (
-            (xy[..., 0] >= self.x_min_m)
-            & (xy[..., 0] <= self.x_max_m)
-            & (xy[..., 1] >= self.y_min_m)
-            & (xy[..., 1] <= self.y_max_m)
-        )
+        return (xy[..., 0] >= self.x_min_m) & (xy[..., 0] <= self.x_max_m) & (xy[..., 1] >= self.y_min_m) & (xy[..., 1] <= self.y_max_m)
 
 
 class ZenohTls(_Section):
@@ -542,9 +517,7 @@ class ZenohSpec(_Section):
 class VehicleOverride(_Section):
     """Per-drone vehicle settings; absent keys take the ``vehicles`` defaults."""
 
-    connection: MavlinkConnection | None = Field(
-        None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle."
-    )
+    connection: MavlinkConnection | None = Field(None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle.")
     flavour: Literal["auto", "ardupilot", "px4"] | None = Field(
         None,
         description="Autopilot flavour. 'ardupilot' or 'px4' forces it for the planner (and sets the "
@@ -562,8 +535,7 @@ class VehicleOverride(_Section):
     )
     payload_connection: MavlinkConnection | None = Field(
         None,
-        description="A second MAVLink connection to the autopilot, for the simulated payload (e.g. SITL's "
-        "SERIAL1, tcp:127.0.0.1:5762).",
+        description="A second MAVLink connection to the autopilot, for the simulated payload (e.g. SITL's SERIAL1, tcp:127.0.0.1:5762).",
     )
 
 
@@ -589,9 +561,7 @@ class Vehicles(_Section):
     """Autopilots: defaults and an optional per-drone override list (empty, or one per drone)."""
 
     flavour: Literal["ardupilot", "px4"] = Field("ardupilot", description="Autopilot dialect.")
-    profile: Literal["ideal", "pointmass"] = Field(
-        "ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper)."
-    )
+    profile: Literal["ideal", "pointmass"] = Field("ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper).")
     overrides: tuple[VehicleOverride, ...] = Field((), description="One entry per drone, drone 1 first.")
     setpoint_frame: Literal["auto", "global", "local_ned"] = Field(
         "auto",
@@ -717,9 +687,7 @@ class Mission(_Section):
         else:
             f = self.fence
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
-        return EstimatorConfig(
-            forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi
-        )
+        return EstimatorConfig(forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi)
 
     def obstacle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Obstacle corners (mins, maxs), each shape (B, 3), metres ENU; B may be 0."""

@@ -244,9 +244,7 @@ class EstimatorConfig:
         if not (isinstance(self.window_rows, int) and self.window_rows >= 0):
             raise ValueError(f"EstimatorConfig.window_rows: expected an integer >= 0, found {self.window_rows!r}")
         if not (isinstance(self.recheck_window_rows, int) and self.recheck_window_rows >= 0):
-            raise ValueError(
-                f"EstimatorConfig.recheck_window_rows: expected an integer >= 0, found {self.recheck_window_rows!r}"
-            )
+            raise ValueError(f"EstimatorConfig.recheck_window_rows: expected an integer >= 0, found {self.recheck_window_rows!r}")
         if not (isinstance(self.recheck_every, int) and self.recheck_every >= 0):
             raise ValueError(f"EstimatorConfig.recheck_every: expected an integer >= 0, found {self.recheck_every!r}")
         for name in ("iterations", "init_iterations"):
@@ -262,30 +260,20 @@ class EstimatorConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"EstimatorConfig.{name}: expected a finite positive number, found {value!r}")
-        if self.consistency_threshold is not None and not (
-            math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0
-        ):
-            raise ValueError(
-                f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}"
-            )
+        if self.consistency_threshold is not None and not (math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0):
+            raise ValueError(f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}")
         if not 0.0 < self.consistency_forgetting < 1.0:
-            raise ValueError(
-                f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}"
-            )
+            raise ValueError(f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}")
         if self.gate_sigma is not None and not (math.isfinite(self.gate_sigma) and self.gate_sigma > 0.0):
             raise ValueError(f"EstimatorConfig.gate_sigma: expected None or a positive number, found {self.gate_sigma!r}")
         if not 0.0 <= self.gate_max_fraction <= 1.0:
-            raise ValueError(
-                f"EstimatorConfig.gate_max_fraction: expected a value in [0, 1], found {self.gate_max_fraction!r}"
-            )
+            raise ValueError(f"EstimatorConfig.gate_max_fraction: expected a value in [0, 1], found {self.gate_max_fraction!r}")
         for name in ("suspect_fraction", "suspect_deflation", "recheck_trust"):
             value = getattr(self, name)
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"EstimatorConfig.{name}: expected a value in (0, 1], found {value!r}")
         if not 0.0 <= self.nlos_bearing_weight <= 1.0:
-            raise ValueError(
-                f"EstimatorConfig.nlos_bearing_weight: expected a value in [0, 1], found {self.nlos_bearing_weight!r}"
-            )
+            raise ValueError(f"EstimatorConfig.nlos_bearing_weight: expected a value in [0, 1], found {self.nlos_bearing_weight!r}")
         if self.range_cost not in ("gls", "ml"):
             raise ValueError(f"EstimatorConfig.range_cost: expected 'gls' or 'ml', found {self.range_cost!r}")
         lo, hi = np.asarray(self.bounds_min_m, dtype=float), np.asarray(self.bounds_max_m, dtype=float)
@@ -683,6 +671,7 @@ def _loss(e: FloatArray, k: float, c: float, redescend: bool | BoolArray) -> tup
     Tukey's biweight (threshold c), where ``redescend`` ((...,) or scalar): with
     u = min(e²/c², 1), ρ = c²/6 (1 − (1 − u)³), w = (1 − u)², ψ = w e (no influence beyond c).
     """
+
     def huber() -> tuple[FloatArray, FloatArray, FloatArray]:
         ae = np.abs(e)
         m = np.minimum(ae, k)
@@ -940,9 +929,7 @@ def _schur_prior(A: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
 def _check(measurements: Measurements, batch_shape: tuple[int, ...]) -> Measurements:
     p = np.asarray(measurements.positions_m, dtype=float)
     if p.ndim < 2 or p.shape[-1] != 3 or p.shape[:-2] != batch_shape:
-        raise ValueError(
-            f"Measurements.positions_m: expected shape {batch_shape + ('M', 3)}, found {p.shape}"
-        )
+        raise ValueError(f"Measurements.positions_m: expected shape {batch_shape + ('M', 3)}, found {p.shape}")
     rows = p.shape[:-1]
     fields = {}
     for name in ("range_m", "azimuth_rad", "elevation_rad"):
@@ -1243,9 +1230,12 @@ def update(
         det = _det3(J)
         # tr(J⁻¹) = tr(adj J)/det J ≥ the variance of the estimate along any direction.
         tr_adj = (
-            J[..., 1, 1] * J[..., 2, 2] - J[..., 1, 2] ** 2
-            + J[..., 0, 0] * J[..., 2, 2] - J[..., 0, 2] ** 2
-            + J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] ** 2
+            J[..., 1, 1] * J[..., 2, 2]
+            - J[..., 1, 2] ** 2
+            + J[..., 0, 0] * J[..., 2, 2]
+            - J[..., 0, 2] ** 2
+            + J[..., 0, 0] * J[..., 1, 1]
+            - J[..., 0, 1] ** 2
         )
         use = state.observable & state.initialised & (det > 0.0)
         var_bound = np.where(use, tr_adj / np.where(use, det, 1.0), 0.0)
@@ -1277,7 +1267,14 @@ def update(
 
     n_elem = np.where(long_run, n_long, n_short)
     ev = _evaluate(
-        x, rows, channel, k, ml, gate=gate, redescend=redescend(0, fresh_start, init_before, n_elem), tukey_c=c,
+        x,
+        rows,
+        channel,
+        k,
+        ml,
+        gate=gate,
+        redescend=redescend(0, fresh_start, init_before, n_elem),
+        tukey_c=c,
         suspect_sigma=config.suspect_sigma,
     )
     assert isinstance(ev, _Eval)
@@ -1285,16 +1282,34 @@ def update(
     if run:
         mu = np.full(bshape, config.lm_damping)
         x, mu, ev, g, H, F, x_lin = _lm_iterations(
-            x, mu, rows, ev, prior_info, prior_vec, active, range(n_short),
-            lambda it: redescend(it, fresh_start, init_before, n_elem), channel, config,
+            x,
+            mu,
+            rows,
+            ev,
+            prior_info,
+            prior_vec,
+            active,
+            range(n_short),
+            lambda it: redescend(it, fresh_start, init_before, n_elem),
+            channel,
+            config,
         )
         sel = active & (n_elem > n_short)
         if n_long > n_short and np.any(sel):
             # The elements that need more iterations continue alone (batch subset).
             fs, ib, ne = fresh_start[sel], init_before[sel], n_elem[sel]
             xs, _, evs, gs, Hs, Fs, xls = _lm_iterations(
-                x[sel], mu[sel], rows.subset(sel), None, prior_info[sel], prior_vec[sel], np.ones(ne.shape, dtype=bool),
-                range(n_short, n_long), lambda it: redescend(it, fs, ib, ne), channel, config,
+                x[sel],
+                mu[sel],
+                rows.subset(sel),
+                None,
+                prior_info[sel],
+                prior_vec[sel],
+                np.ones(ne.shape, dtype=bool),
+                range(n_short, n_long),
+                lambda it: redescend(it, fs, ib, ne),
+                channel,
+                config,
             )
             x, g, H, F, x_lin = (_scatter(a, b, sel) for a, b in ((x, xs), (g, gs), (H, Hs), (F, Fs), (x_lin, xls)))
             ev = _Eval(**{f: _scatter(getattr(ev, f), getattr(evs, f), sel) for f in _Eval.__dataclass_fields__})
@@ -1363,9 +1378,13 @@ def update(
             order = np.argsort(pool_weight > 0.0, axis=-1, kind="stable")
             pool = _take(pool, order)
             pool_weight = np.take_along_axis(pool_weight, order, axis=-1)
-            leaving = Measurements(pool.positions_m[..., :M, :], pool.range_m[..., :M], pool.azimuth_rad[..., :M], pool.elevation_rad[..., :M], pool.los[..., :M])
+            leaving = Measurements(
+                pool.positions_m[..., :M, :], pool.range_m[..., :M], pool.azimuth_rad[..., :M], pool.elevation_rad[..., :M], pool.los[..., :M]
+            )
             leaving_weight = pool_weight[..., :M]
-            range_window = Measurements(pool.positions_m[..., M:, :], pool.range_m[..., M:], pool.azimuth_rad[..., M:], pool.elevation_rad[..., M:], pool.los[..., M:])
+            range_window = Measurements(
+                pool.positions_m[..., M:, :], pool.range_m[..., M:], pool.azimuth_rad[..., M:], pool.elevation_rad[..., M:], pool.los[..., M:]
+            )
             range_weight = pool_weight[..., M:]
         else:
             leaving, leaving_weight = new_ranges, new_weight

@@ -109,9 +109,7 @@ def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayL
     return _box_distances(p, bmin, bmax)[0].min(-1)
 
 
-def distance_to_boxes_with_gradient(
-    points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike
-) -> tuple[FloatArray, FloatArray]:
+def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Signed distance to the nearest box and its gradient with respect to the point.
 
     Outside a box the distance is ``|p - clip(p, min, max)|`` and its gradient the unit vector
@@ -171,7 +169,11 @@ LINK_SAMPLES: int = 16
 
 
 def link_clearance_with_gradient(
-    positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike, samples: int = LINK_SAMPLES,
+    positions: ArrayLike,
+    source: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+    samples: int = LINK_SAMPLES,
     cutoff_m: float | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Clearance of the link drone → source from each obstacle, and its gradient w.r.t. the drone.

@@ -112,8 +112,7 @@ LOCKSTEP_FLIGHT_STREAM_HZ: tuple[tuple[int, float], ...] = ((1, 0.2), (24, 0.2),
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
     "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
-    "px4": "PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); "
-    "a data-link loss (NAV_DLL_ACT) may follow",
+    "px4": "PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); a data-link loss (NAV_DLL_ACT) may follow",
 }
 
 
@@ -304,8 +303,15 @@ class PlannerNode:
         self.start = self.starts[self.i]
         self.est_config = mission.estimator_config()
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
-        self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated",
-                                faults=mission.comms.faults.to_model(), seed=mission.seed)
+        self.view = DelayedView(
+            self.i,
+            n,
+            mission.comms.d_hop_m,
+            mission.comms.h_max,
+            emulate=mission.comms.latency == "emulated",
+            faults=mission.comms.faults.to_model(),
+            seed=mission.seed,
+        )
         self.inbox = _Inbox(mission.id, n)
         resolved = mission.vehicles.for_drone(self.i)
         self.flavour_setting = options.flavour or resolved.autopilot
@@ -363,8 +369,14 @@ class PlannerNode:
     def _default_link(self, conn: str, sysid: int) -> VehicleLink:
         forced = None if self.flavour_setting == "auto" else self.flavour_setting
         return VehicleLink(
-            conn, sysid, signing_key=self._signing_key, wall=self.wall, frame=self.frame,  # type: ignore[arg-type]
-            mission_frame=self.mission_frame, altitude_reference=self.m.altitude_reference, flavour=forced,  # type: ignore[arg-type]
+            conn,
+            sysid,
+            signing_key=self._signing_key,
+            wall=self.wall,
+            frame=self.frame,  # type: ignore[arg-type]
+            mission_frame=self.mission_frame,
+            altitude_reference=self.m.altitude_reference,
+            flavour=forced,  # type: ignore[arg-type]
             tlog=self.o.tlog_path,
         )
 
@@ -381,7 +393,9 @@ class PlannerNode:
         ]
         if self.o.lockstep:
             # The simulated vehicle's bridge holds a token: its process dying is seen at once.
-            self._subs.append(s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True))
+            self._subs.append(
+                s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True)
+            )
         self._subs.append(s.declare_subscriber(keys.control(mid, self.o.uav), self._on_control))
         self._token = s.liveliness().declare_token(keys.alive(mid, "planner", self.o.uav))
         self._pub_record = declare_publisher(s, keys.record(mid, self.o.uav))
@@ -446,8 +460,7 @@ class PlannerNode:
             if isinstance(msg, dict) and msg.get("command") == "handback":
                 asked = True
             else:
-                log.warning("uav %d: control message without a known command (expected {\"command\": \"handback\"}), ignored: %.80r",
-                            self.o.uav, text)
+                log.warning('uav %d: control message without a known command (expected {"command": "handback"}), ignored: %.80r', self.o.uav, text)
 
     def _drain(self, timeout_s: float = 0.0) -> None:
         """Handle queued Zenoh messages (waiting up to ``timeout_s`` for the first)."""
@@ -610,8 +623,16 @@ class PlannerNode:
                 meas = self._measurement(k)
                 w_meas = self.wall()
                 record = Observation(
-                    self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                    meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad,
+                    self.o.uav,
+                    k,
+                    t_k,
+                    tuple(float(v) for v in own),
+                    bool(self.ranging[self.i]),
+                    bool(self.bearing[self.i]),
+                    meas.los,
+                    meas.range_m,
+                    meas.azimuth_rad,
+                    meas.elevation_rad,
                 )
                 self.view.add(record)
                 self.own_ranges.append((record.range_m, record.los))
@@ -651,17 +672,38 @@ class PlannerNode:
                 active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
                 self._publish(
                     self._pub_status,
-                    Status(self.o.uav, k, t_k, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
+                    Status(
+                        self.o.uav,
+                        k,
+                        t_k,
+                        tuple(float(v) for v in state.estimate_m),
+                        bool(state.observable),
+                        bool(step.singular),
+                        active_mask,
+                        tuple(int(s) for s in view.saved_steps),
+                    ),
                 )
                 self._publish(self._pub_done, Done(self.o.uav, k))
-                timing = {"wait_tick_s": w_tick - w0, "wait_measurement_s": w_meas - w_tick, "wait_peers_s": w_peers - w_meas,
-                          "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w_meas}
+                timing = {
+                    "wait_tick_s": w_tick - w0,
+                    "wait_measurement_s": w_meas - w_tick,
+                    "wait_peers_s": w_peers - w_meas,
+                    "compute_s": w_sent - w_peers,
+                    "measurement_to_setpoint_s": w_sent - w_meas,
+                }
                 self._log_step(k, t_k, own, record, view, state, result, rows, timing)
                 done_steps += 1
             self._await_end()
             end = self._end()
-            return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped), "mode_changes": self.mode_changes,
-                    "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps, "end": end}
+            return {
+                "uav": self.o.uav,
+                "steps": done_steps,
+                "dropped": dict(self.inbox.dropped),
+                "mode_changes": self.mode_changes,
+                "taken_over": self.takeovers,
+                "taken_over_steps": self.taken_over_steps,
+                "end": end,
+            }
         finally:
             self.close()
 
@@ -736,8 +778,15 @@ class PlannerNode:
         own = len(done.get(self.i, []))
         peers = sum(len(v) for j, v in done.items() if j != self.i)
         where = f"; estimate {tuple(round(float(v), 2) for v in state.estimate_m)}" if state.observable else ""
-        log.warning("uav %d: estimator rebuilt from %d steps of its predecessor's log (steps up to %d) and %d records of %d peers' logs%s",
-                    self.o.uav, own, used[self.i], peers, sum(1 for j, v in done.items() if j != self.i and v), where)
+        log.warning(
+            "uav %d: estimator rebuilt from %d steps of its predecessor's log (steps up to %d) and %d records of %d peers' logs%s",
+            self.o.uav,
+            own,
+            used[self.i],
+            peers,
+            sum(1 for j, v in done.items() if j != self.i and v),
+            where,
+        )
         return state
 
     def _await_step(self, k: int) -> float:
@@ -753,8 +802,11 @@ class PlannerNode:
         link = self.link
         assert link is not None
         stamp = int(round(t_k * 1000.0))
-        self._wait(self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
-                   self.o.step_timeout_s, f"position telemetry at t = {t_k:g} s")
+        self._wait(
+            self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
+            self.o.step_timeout_s,
+            f"position telemetry at t = {t_k:g} s",
+        )
         assert link.telemetry.position_enu_m is not None
         return link.telemetry.position_enu_m.astype(float)
 
@@ -780,8 +832,11 @@ class PlannerNode:
         return check
 
     def _measurement(self, k: int) -> Observation:
-        self._wait(self._vehicle_alive(lambda: k in self.measurements, f"payload measurement of step {k}"),
-                   self.o.step_timeout_s, f"payload measurement of step {k}")
+        self._wait(
+            self._vehicle_alive(lambda: k in self.measurements, f"payload measurement of step {k}"),
+            self.o.step_timeout_s,
+            f"payload measurement of step {k}",
+        )
         for s in [s for s in self.measurements if s <= k]:
             meas = self.measurements.pop(s)
         return meas
@@ -790,7 +845,9 @@ class PlannerNode:
         """Live peers (1-based ids) whose record of step k has not arrived."""
         return sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k) and self.stale_peers.get(j) != k)
 
-    def _view_estimate_plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
+    def _view_estimate_plan(
+        self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray
+    ) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
         """Step k after the records are in: delayed view, source estimate (with the records
         not used before), control step. Returns (view, state, new rows, used steps, plan)."""
         view = self.view.advance(k)
@@ -843,17 +900,40 @@ class PlannerNode:
         mc = self.m.controller
         bmin, bmax = self.boxes
         return plan(
-            own, prev_step, own_mask, pos, valid, los, ages, view.hops, self.ranging, self.bearing,
-            state.estimate_m, state.information, state.observable, self.channel, self.limits, self.m.criterion,
-            bmin, bmax, self.m.comms.d_hop_m, uniforms, xi=mc.xi, perturbation_rad=mc.random_perturbation_rad,
+            own,
+            prev_step,
+            own_mask,
+            pos,
+            valid,
+            los,
+            ages,
+            view.hops,
+            self.ranging,
+            self.bearing,
+            state.estimate_m,
+            state.information,
+            state.observable,
+            self.channel,
+            self.limits,
+            self.m.criterion,
+            bmin,
+            bmax,
+            self.m.comms.d_hop_m,
+            uniforms,
+            xi=mc.xi,
+            perturbation_rad=mc.random_perturbation_rad,
             own_distance_lower_m=own_range_lower_bound_m(
                 np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
             ),
-            lost_contact=lost if own_then is not None else None, own_then_m=own_then,
-            start_positions_m=self.starts, step_index=k,
+            lost_contact=lost if own_then is not None else None,
+            own_then_m=own_then,
+            start_positions_m=self.starts,
+            step_index=k,
         )
 
-    def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:
+    def _log_step(
+        self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]
+    ) -> None:
         if self._log is None:
             return
         step = result.step
@@ -861,7 +941,12 @@ class PlannerNode:
             "step": k,
             "t_s": t_k,
             "position_m": [float(v) for v in own],
-            "measurement": {"range_m": _num(record.range_m), "azimuth_rad": _num(record.azimuth_rad), "elevation_rad": _num(record.elevation_rad), "los": record.los},
+            "measurement": {
+                "range_m": _num(record.range_m),
+                "azimuth_rad": _num(record.azimuth_rad),
+                "elevation_rad": _num(record.elevation_rad),
+                "los": record.los,
+            },
             "saved_steps": [int(s) for s in view.saved_steps],
             "hops": [int(h) for h in view.hops],
             "new_records": rows,
@@ -885,8 +970,19 @@ class PlannerNode:
         for s in [s for s in self.measurements if s <= k]:
             del self.measurements[s]
         nan = float("nan")
-        rec = Observation(self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                          True, nan, nan, nan, taken_over=True)
+        rec = Observation(
+            self.o.uav,
+            k,
+            t_k,
+            tuple(float(v) for v in own),
+            bool(self.ranging[self.i]),
+            bool(self.bearing[self.i]),
+            True,
+            nan,
+            nan,
+            nan,
+            taken_over=True,
+        )
         self._track(k, own)
         self._publish(self._pub_record, rec, MessageKind.RECORD)
         self.ctrl_rng.random(CONTROL_DRAWS)
@@ -901,8 +997,7 @@ class PlannerNode:
         assert link is not None
         action = self.m.end_action
         if self.taken_over is not None:
-            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
-                        self.o.uav, link.mode_name(), action)
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot", self.o.uav, link.mode_name(), action)
             return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         try:
             if action == "land":
@@ -919,7 +1014,6 @@ class PlannerNode:
             raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
         log.info("uav %d: mission over (%s)", self.o.uav, action)
         return {"action": action, "confirmed": True, "mode": link.mode_name()}
-
 
     # -- real time --------------------------------------------------------------------------
     def _add_realtime_record(self, rec: Observation) -> None:
@@ -945,8 +1039,10 @@ class PlannerNode:
         if link.lost and self.link_down_since is None:
             self.link_down_since = self.wall()
             log.error(
-                "uav %d: vehicle link lost (no heartbeat for %.1f s): publishing the last record as stale "
-                "until it returns; meanwhile %s", self.o.uav, link.link_age_s(), FAILSAFE_NOTE[link.flavour],
+                "uav %d: vehicle link lost (no heartbeat for %.1f s): publishing the last record as stale until it returns; meanwhile %s",
+                self.o.uav,
+                link.link_age_s(),
+                FAILSAFE_NOTE[link.flavour],
             )
         elif self.link_down_since is not None and not link.lost:
             down = self.wall() - self.link_down_since
@@ -989,7 +1085,9 @@ class PlannerNode:
                 return
             now = self.wall()
             if now >= deadline:
-                raise NodeError(f"uav {self.o.uav}: vehicle not ready to fly after {self.o.preflight_timeout_s:g} s; still waiting for: {'; '.join(missing)}")
+                raise NodeError(
+                    f"uav {self.o.uav}: vehicle not ready to fly after {self.o.preflight_timeout_s:g} s; still waiting for: {'; '.join(missing)}"
+                )
             if now - last_report >= READY_REPORT_PERIOD_S:
                 log.info("uav %d: waiting for the vehicle: %s", self.o.uav, "; ".join(missing))
                 last_report = now
@@ -1053,8 +1151,13 @@ class PlannerNode:
         origin = link.telemetry.origin_global
         assert origin is not None
         shared = self.mission_frame.matches(*origin)
-        log.info("uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
-                 self.o.uav, *origin, "is" if shared else "is not", "SET_POSITION_TARGET_GLOBAL_INT" if self.frame == "global" else "LOCAL_NED")
+        log.info(
+            "uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
+            self.o.uav,
+            *origin,
+            "is" if shared else "is not",
+            "SET_POSITION_TARGET_GLOBAL_INT" if self.frame == "global" else "LOCAL_NED",
+        )
         if self.frame == "local_ned" and not shared:
             raise NodeError(
                 f"uav {self.o.uav}: setpoint_frame local_ned needs the vehicle's EKF origin at the mission origin "
@@ -1147,8 +1250,15 @@ class PlannerNode:
                 link.set_stream(None)
                 self.taken_over = {"step": k, "mode": now}
                 self.takeovers.append(dict(self.taken_over))
-                log.warning("uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
-                            "position without measurements; hand it back with: fimnav handback MISSION --uav %d", self.o.uav, k, want, now, self.o.uav)
+                log.warning(
+                    "uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
+                    "position without measurements; hand it back with: fimnav handback MISSION --uav %d",
+                    self.o.uav,
+                    k,
+                    want,
+                    now,
+                    self.o.uav,
+                )
             else:
                 log.warning("uav %d: taken over, the vehicle is now in %s", self.o.uav, now)
         self._reported_mode = now if not link.in_mode(want) else None
@@ -1230,7 +1340,9 @@ class PlannerNode:
             if w0 - t_k > dtw:
                 skip = int((w0 - t_k) // dtw)
                 self.late_steps += skip
-                log.warning("uav %d: step %d is %.3f s late; skipping %d step(s), the vehicle follows the last setpoint", self.o.uav, k, w0 - t_k, skip)
+                log.warning(
+                    "uav %d: step %d is %.3f s late; skipping %d step(s), the vehicle follows the last setpoint", self.o.uav, k, w0 - t_k, skip
+                )
                 k += skip
                 continue
             if self.resume_needed and self.link_down_since is None:
@@ -1256,12 +1368,24 @@ class PlannerNode:
                 nan = float("nan")
                 if fresh_pos:
                     assert pos is not None
-                    rec = Observation(self.o.uav, k, w0, tuple(float(v) for v in pos), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                                      True, nan, nan, nan, taken_over=True)
+                    rec = Observation(
+                        self.o.uav,
+                        k,
+                        w0,
+                        tuple(float(v) for v in pos),
+                        bool(self.ranging[self.i]),
+                        bool(self.bearing[self.i]),
+                        True,
+                        nan,
+                        nan,
+                        nan,
+                        taken_over=True,
+                    )
                     self._publish(self._pub_record, rec, MessageKind.RECORD)
                 elif self.last_record is not None:
-                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True),
-                                  MessageKind.RECORD)
+                    self._publish(
+                        self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True), MessageKind.RECORD
+                    )
                 self.taken_over_steps += 1
                 prev_step = np.zeros(3)
                 k += 1
@@ -1285,7 +1409,12 @@ class PlannerNode:
                 log.warning("uav %d: step %d without a payload measurement newer than %.3g s", self.o.uav, k, max_age_wall)
             nan = float("nan")
             record = Observation(
-                self.o.uav, k, w0, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
+                self.o.uav,
+                k,
+                w0,
+                tuple(float(v) for v in own),
+                bool(self.ranging[self.i]),
+                bool(self.bearing[self.i]),
                 bool(meas.los) if fresh and meas else True,
                 meas.range_m if fresh and meas and self.ranging[self.i] else nan,
                 meas.azimuth_rad if fresh and meas and self.bearing[self.i] else nan,
@@ -1310,7 +1439,16 @@ class PlannerNode:
             active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
             self._publish(
                 self._pub_status,
-                Status(self.o.uav, k, w0, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
+                Status(
+                    self.o.uav,
+                    k,
+                    w0,
+                    tuple(float(v) for v in state.estimate_m),
+                    bool(state.observable),
+                    bool(step.singular),
+                    active_mask,
+                    tuple(int(s) for s in view.saved_steps),
+                ),
             )
             self._publish(self._pub_done, Done(self.o.uav, k))
             timing = {"late_s": w0 - t_k, "wait_peers_s": w_peers - w_meas, "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w0}
@@ -1319,10 +1457,19 @@ class PlannerNode:
             k += 1
         end = self._end_realtime()
         return {
-            "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
-            "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses, "mode_changes": self.mode_changes,
-            "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps,
-            "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
+            "uav": self.o.uav,
+            "steps": done_steps,
+            "stale_steps": stale_steps,
+            "late_steps": self.late_steps,
+            "flavour": link.flavour,
+            "frame": self.frame,
+            "link_losses": self.link_losses,
+            "mode_changes": self.mode_changes,
+            "taken_over": self.takeovers,
+            "taken_over_steps": self.taken_over_steps,
+            "setpoints_sent": link.setpoints_sent,
+            "dropped": dict(self.inbox.dropped),
+            "end": end,
             "vehicle_clock_rate": None if self.vehicle_clock_rate is None else round(self.vehicle_clock_rate, 3),
         }
 
@@ -1337,8 +1484,7 @@ class PlannerNode:
             log.error("uav %d: mission over with the vehicle link down: its failsafe keeps control", self.o.uav)
             return {"action": action, "confirmed": False, "reason": "link lost"}
         if self.taken_over is not None:
-            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
-                        self.o.uav, link.mode_name(), action)
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot", self.o.uav, link.mode_name(), action)
             return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         pos = link.telemetry.position_enu_m
         try:
@@ -1353,7 +1499,9 @@ class PlannerNode:
             elif action == "land":
                 link.set_mode("AUTO.LAND" if link.is_px4 else "LAND")
                 link.set_stream(None)
-                self._wait(lambda: not link.telemetry.armed and link.telemetry.landed_state in (None, 1), self.o.end_timeout_s, "landed and disarmed vehicle")
+                self._wait(
+                    lambda: not link.telemetry.armed and link.telemetry.landed_state in (None, 1), self.o.end_timeout_s, "landed and disarmed vehicle"
+                )
             else:
                 link.set_mode("AUTO.RTL" if link.is_px4 else "RTL")
                 link.set_stream(None)
@@ -1364,13 +1512,23 @@ class PlannerNode:
             # GUIDED without one, PX4 holds in AUTO.LOITER.
             link.set_stream(None)
         landed = link.telemetry.landed_state
-        end = {"action": action, "confirmed": True, "mode": link.mode_name(), "armed": link.telemetry.armed,
-               "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None}
+        end = {
+            "action": action,
+            "confirmed": True,
+            "mode": link.mode_name(),
+            "armed": link.telemetry.armed,
+            "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None,
+        }
         log.info("uav %d: mission over (%s): vehicle in %s, %s", self.o.uav, action, end["mode"], "armed" if end["armed"] else "disarmed")
         return end
 
+
 def replay_step_logs(
-    state: est.EstimatorState, rows_by_drone: dict[int, Sequence[dict[str, Any]]], n: int, first: int, channel: Channel,
+    state: est.EstimatorState,
+    rows_by_drone: dict[int, Sequence[dict[str, Any]]],
+    n: int,
+    first: int,
+    channel: Channel,
     config: est.EstimatorConfig,
 ) -> tuple[est.EstimatorState, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
     """Feed the records of the steps before ``first`` found in step logs to the estimator, step

@@ -47,7 +47,9 @@ class ZenohBridge:
         settings: the Zenoh session settings.
     """
 
-    def __init__(self, mission_id: str, count: int, dt_s: float, clock: LockstepClock | None, vehicles: Sequence[Any], settings: SessionSettings) -> None:
+    def __init__(
+        self, mission_id: str, count: int, dt_s: float, clock: LockstepClock | None, vehicles: Sequence[Any], settings: SessionSettings
+    ) -> None:
         self.mission_id = mission_id
         self.count = count
         self.dt = dt_s
@@ -94,8 +96,13 @@ class ZenohBridge:
         m = vehicle.payload.measure(position_m, step, step * self.dt)
         nan = math.nan
         obs = Observation(
-            sender=vehicle.sysid, step=step, time_s=time_s, position_m=m.position_enu_m,
-            ranging=bool(vehicle.payload.ranging[0]), bearing=bool(vehicle.payload.bearing[0]), los=m.los,
+            sender=vehicle.sysid,
+            step=step,
+            time_s=time_s,
+            position_m=m.position_enu_m,
+            ranging=bool(vehicle.payload.ranging[0]),
+            bearing=bool(vehicle.payload.bearing[0]),
+            los=m.los,
             range_m=nan if m.range_m is None else m.range_m,
             azimuth_rad=nan if m.azimuth_rad is None else m.azimuth_rad,
             elevation_rad=nan if m.elevation_rad is None else m.elevation_rad,

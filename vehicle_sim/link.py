@@ -99,9 +99,7 @@ def parse_connection(conn: str) -> tuple[str, str, int]:
     parts = conn.split(":")
     kinds = ("udpin", "udp", "udpout", "tcpin", "tcp")
     if len(parts) != 3 or parts[0] not in kinds:
-        raise UsageError(
-            f"MAVLink connection {conn!r}: expected KIND:HOST:PORT with KIND one of {', '.join(kinds)}"
-        )
+        raise UsageError(f"MAVLink connection {conn!r}: expected KIND:HOST:PORT with KIND one of {', '.join(kinds)}")
     kind, host, port_s = parts
     try:
         port = int(port_s)

@@ -59,8 +59,14 @@ EKF_PRED_POS_HORIZ_ABS = 512
 EKF_FLAGS_ALIGNED = EKF_ATTITUDE | EKF_CONST_POS_MODE
 #: Flags of an EKF using GPS on the ground (no terrain height: no POS_VERT_AGL).
 EKF_FLAGS_READY = (
-    EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_REL | EKF_POS_HORIZ_ABS
-    | EKF_POS_VERT_ABS | EKF_PRED_POS_HORIZ_REL | EKF_PRED_POS_HORIZ_ABS
+    EKF_ATTITUDE
+    | EKF_VELOCITY_HORIZ
+    | EKF_VELOCITY_VERT
+    | EKF_POS_HORIZ_REL
+    | EKF_POS_HORIZ_ABS
+    | EKF_POS_VERT_ABS
+    | EKF_PRED_POS_HORIZ_REL
+    | EKF_PRED_POS_HORIZ_ABS
 )
 #: Start-up stages: EKF initialising, attitude aligned (no GPS fix), ready (GPS, home, origin).
 STAGES: tuple[str, ...] = ("init", "aligned", "ready")
@@ -263,11 +269,7 @@ class SimVehicle:
     def _ack(self, msg: Any, command: int, result: int, text: str | None = None, severity: int = 4) -> int:
         """COMMAND_ACK to the sender, then the STATUSTEXT reason if any."""
         self.acks_sent += 1
-        self.link.send(
-            self.m.MAVLink_command_ack_message(
-                command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            )
-        )
+        self.link.send(self.m.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
         if text:
             self.statustext(severity, text)
         return result
@@ -676,12 +678,8 @@ class SimVehicle:
             m.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_interval,
             m.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_interval,
             m.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._reply_with(
-                m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, self.msg_autopilot_version
-            ),
-            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(
-                m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version
-            ),
+            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._reply_with(m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, self.msg_autopilot_version),
+            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version),
             m.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home_position,
             m.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
             m.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
@@ -731,7 +729,7 @@ class SimVehicle:
             if reason and self.config.flavour == "ardupilot" and reason.startswith("PreArm: "):
                 # ArduPilot runs the same checks on an arming command with the prefix "Arm: "
                 # (AP_Arming::check_failed while arming); "PreArm: " is its periodic report.
-                reason = "Arm: " + reason[len("PreArm: "):]
+                reason = "Arm: " + reason[len("PreArm: ") :]
             if reason:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, reason, 2)
             self.armed = True
@@ -741,9 +739,7 @@ class SimVehicle:
             if not self.armed:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_ACCEPTED)
             if self.flying and p[1] != FORCE_MAGIC:
-                return self._ack(
-                    msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, "Disarm: vehicle is flying", 3
-                )
+                return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, "Disarm: vehicle is flying", 3)
             self.armed = False
             if self.flying:  # forced disarm in flight: the motors stop, the mass drops
                 self.position[2] = self.config.ground_z_m
@@ -862,11 +858,7 @@ class SimVehicle:
             if reason:
                 self.statustext(3, reason)
         # ArduPilot acknowledges SET_MODE with COMMAND_ACK whose command is the message id (11).
-        self.link.send(
-            m.MAVLink_command_ack_message(
-                m.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            )
-        )
+        self.link.send(m.MAVLink_command_ack_message(m.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
 
     def _stream_name(self, msg_id: float) -> str | None:
         if not math.isfinite(msg_id):
@@ -1143,9 +1135,7 @@ class SimVehicle:
             return
         vals = [msg.alt] if use_pos else []
         vals += [msg.vx, msg.vy, msg.vz] if use_vel else []
-        if not all(math.isfinite(v) for v in vals) or (
-            use_pos and not (abs(msg.lat_int) <= 900_000_000 and abs(msg.lon_int) <= 1_800_000_000)
-        ):
+        if not all(math.isfinite(v) for v in vals) or (use_pos and not (abs(msg.lat_int) <= 900_000_000 and abs(msg.lon_int) <= 1_800_000_000)):
             self.statustext(4, "Setpoint: invalid values ignored", key="sp_nan")
             return
         pos = vel = None
@@ -1219,41 +1209,27 @@ class SimVehicle:
                 result = m.MAV_MISSION_ACCEPTED if ok else m.MAV_MISSION_ERROR
             else:
                 result = m.MAV_MISSION_INVALID
-        self.link.send(
-            m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type)
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
 
     # ------------------------------------------------------------------ mission protocol
 
     def _on_mission_request_list(self, msg: Any) -> None:
-        self.link.send(
-            self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type)
-        )
+        self.link.send(self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
 
     def _on_mission_request_int(self, msg: Any) -> None:
         m = self.m
-        self.link.send(
-            m.MAVLink_mission_ack_message(
-                msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_INVALID_SEQUENCE, msg.mission_type
-            )
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_INVALID_SEQUENCE, msg.mission_type))
 
     _on_mission_request = _on_mission_request_int
 
     def _on_mission_count(self, msg: Any) -> None:
         m = self.m
         result = m.MAV_MISSION_ACCEPTED if msg.count == 0 else m.MAV_MISSION_UNSUPPORTED
-        self.link.send(
-            m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type)
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
 
     def _on_mission_clear_all(self, msg: Any) -> None:
         m = self.m
-        self.link.send(
-            m.MAVLink_mission_ack_message(
-                msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_ACCEPTED, msg.mission_type
-            )
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_ACCEPTED, msg.mission_type))
 
     # ------------------------------------------------------------------ streams, timesync
 
@@ -1297,9 +1273,7 @@ class SimVehicle:
         body = ((seq + 1) & 0xFFFF).to_bytes(2, "little") + bytes([session, reply_op, size, opcode, 0, 0])
         body += bytes(4) + data
         payload = list(body + bytes(251 - len(body)))
-        self.link.send(
-            self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload)
-        )
+        self.link.send(self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload))
 
     # ------------------------------------------------------------------ parameters
 
@@ -1465,9 +1439,7 @@ class SimVehicle:
     def _send_param(self, p: _Param) -> None:
         names = list(self.params)
         value, ptype = self._encode_param(p)
-        self.link.send(
-            self.m.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name))
-        )
+        self.link.send(self.m.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name)))
 
     @staticmethod
     def _param_id(raw: Any) -> str:
@@ -1569,9 +1541,7 @@ class SimVehicle:
         else:
             status = m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY
         self._heartbeat_state = (self.mode.custom_mode, self.armed)
-        return m.MAVLink_heartbeat_message(
-            m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), self.mode.custom_mode, status, 3
-        )
+        return m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), self.mode.custom_mode, status, 3)
 
     def msg_sys_status(self) -> Any:
         """SYS_STATUS: sensors present/enabled/healthy, battery."""
@@ -1598,9 +1568,7 @@ class SimVehicle:
         if not self.healthy:
             health = 0
         volt_mv = int(self._voltage() * 1000)
-        return m.MAVLink_sys_status_message(
-            present, present, health, 100, volt_mv, self._current_ca(), int(self.battery * 100), 0, 0, 0, 0, 0, 0
-        )
+        return m.MAVLink_sys_status_message(present, present, health, 100, volt_mv, self._current_ca(), int(self.battery * 100), 0, 0, 0, 0, 0, 0)
 
     def _voltage(self) -> float:
         return 16.8 * (0.85 + 0.15 * self.battery)
@@ -1738,11 +1706,7 @@ class SimVehicle:
             | m.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
             | m.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
             | m.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-            | (
-                m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-                if self.info.param_bytewise
-                else m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
-            )
+            | (m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.info.param_bytewise else m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
         )
         return m.MAVLink_autopilot_version_message(
             caps,
