@@ -703,10 +703,9 @@ class VehicleLink:
             prearm_reported = t.sensors_present is not None and not self.in_mode("OFFBOARD")
         else:
             prearm_reported = t.sensors_present is not None and bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK)
-        if prearm_reported and not t.armed:
-            if not (t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK:
-                reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
-                missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
+        if prearm_reported and not t.armed and not ((t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK):
+            reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
+            missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
         if self.is_px4 and t.position_enu_m is None:
             # PX4 sends HOME_POSITION before its EKF has aligned, and no GLOBAL_POSITION_INT
             # (no LOCAL_POSITION_NED with a valid position) until it has.
@@ -816,16 +815,20 @@ class VehicleLink:
             if attempt > 0 and done_already is not None and done_already():
                 return m.MAV_RESULT_ACCEPTED
             if len(self.statustexts) == texts_before:  # an autopilot sends its reason after the ACK
-                try:
-                    self.wait_for(lambda: len(self.statustexts) > texts_before, 0.3, "reason")
-                except LinkTimeout:
-                    pass
+                self._wait_for_statustext_after(texts_before)
             reason = "; ".join(self.statustexts[texts_before:]) or "no reason given"
             name = m.enums["MAV_RESULT"][result].name if result in m.enums["MAV_RESULT"] else str(result)
             raise LinkError(f"vehicle {self.target_system} refused {label}: {name} ({reason})")
         raise LinkTimeout(
             f"vehicle {self.target_system}: no acknowledgement of {label} after {retries} tries in {timeout_s:g} s{self._signing_hint()}"
         )
+
+    def _wait_for_statustext_after(self, count: int) -> None:
+        """Wait briefly (0.3 s) for a STATUSTEXT beyond the first ``count``: a refusal's reason."""
+        try:
+            self.wait_for(lambda: len(self.statustexts) > count, 0.3, "reason")
+        except LinkTimeout:
+            pass
 
     def request_interval(self, message_id: int, rate_hz: float) -> None:
         """SET_MESSAGE_INTERVAL for one message (rate in the autopilot's time, Hz)."""
@@ -908,15 +911,19 @@ class VehicleLink:
                 # for a moment while its EKF settles): wait for a new pass, then try again.
                 if attempt == tries - 1:
                     raise
-                seen = self.telemetry.sys_status_count
-                self.wait_for(
-                    lambda: self.telemetry.sys_status_count > seen + 1 and bool((self.telemetry.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK),
-                    10.0,
-                    "pre-arm checks passing again",
-                )
+                self._wait_for_prearm_pass()
         if not self.telemetry.armed:
             self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.armed, MODE_CONFIRM_TIMEOUT_S, "armed heartbeat")
+
+    def _wait_for_prearm_pass(self) -> None:
+        """Wait (10 s) for a SYS_STATUS, after the next one, whose pre-arm check passes."""
+        seen = self.telemetry.sys_status_count
+        self.wait_for(
+            lambda: self.telemetry.sys_status_count > seen + 1 and bool((self.telemetry.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK),
+            10.0,
+            "pre-arm checks passing again",
+        )
 
     def takeoff(self, altitude_m: float) -> None:
         """MAV_CMD_NAV_TAKEOFF to ``altitude_m`` above home (acknowledged, not awaited)."""

@@ -38,9 +38,12 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:  # zenoh is imported when a session is made
+    import zenoh
 
 #: Zenoh transport lease (ms): a silent peer is declared gone after this.
 LEASE_MS: int = 2000
@@ -174,7 +177,7 @@ def tls_endpoints(endpoints: Sequence[str], what: str) -> list[str]:
     return out
 
 
-def zenoh_config(settings: SessionSettings, dictionary_file: Path | None = None):  # noqa: ANN201 - zenoh.Config
+def zenoh_config(settings: SessionSettings, dictionary_file: Path | None = None) -> zenoh.Config:
     """The ``zenoh.Config`` of these settings.
 
     Args:
@@ -244,7 +247,7 @@ def _swarm_dictionary(settings: SessionSettings) -> Iterator[Path | None]:
         yield path
 
 
-def open_session(settings: SessionSettings):  # noqa: ANN201 - zenoh.Session
+def open_session(settings: SessionSettings) -> zenoh.Session:
     """Open a Zenoh session with these settings."""
     import zenoh
 

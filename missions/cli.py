@@ -110,7 +110,7 @@ def _terminate_on_signals(command: str) -> Iterator[None]:
     owner = os.getpid()
     previous: dict[signal.Signals, object] = {}
 
-    def terminate(signum: int, frame: FrameType | None) -> None:  # noqa: ARG001
+    def terminate(signum: int, frame: FrameType | None) -> None:
         if os.getpid() != owner:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)

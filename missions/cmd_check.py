@@ -118,10 +118,10 @@ def summary(mission: Any, file: str) -> str:
     lines.append(f"source     {_v(src.position_m)} m, {motion}; {dist.min():.1f}..{dist.max():.1f} m from the starts")
     if m.obstacles:
         lines.append(f"obstacles  {len(m.obstacles)}:")
-        for b in m.obstacles:
-            lines.append(
-                f"           {b.name}: x {b.min_m[0]:g}..{b.max_m[0]:g}, y {b.min_m[1]:g}..{b.max_m[1]:g}, z {b.min_m[2]:g}..{b.max_m[2]:g} m"
-            )
+        lines.extend(
+            f"           {b.name}: x {b.min_m[0]:g}..{b.max_m[0]:g}, y {b.min_m[1]:g}..{b.max_m[1]:g}, z {b.min_m[2]:g}..{b.max_m[2]:g} m"
+            for b in m.obstacles
+        )
     else:
         lines.append("obstacles  none (line of sight everywhere)")
     ch = m.channel

@@ -107,12 +107,10 @@ def run(args: argparse.Namespace) -> int:
     """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
     from comms.geodesy import MissionFrame
     from comms.mavlink_client import MSG_GLOBAL_POSITION_INT, LinkError, VehicleLink, read_signing_key
-    from missions.process_args import zenoh_settings
     from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
+    from missions.process_args import setup_logging, zenoh_settings
     from vehicle_sim.bridge import ZenohBridge
-
-    from missions.process_args import setup_logging
 
     setup_logging(args.log_level, f"payload[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies

@@ -86,12 +86,10 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Load the mission and fly the node; print a JSON summary on stdout."""
     from comms.mavlink_client import read_signing_key
-    from missions.process_args import zenoh_settings
     from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
+    from missions.process_args import setup_logging, zenoh_settings
     from planner.node import NodeOptions, PlannerNode
-
-    from missions.process_args import setup_logging
 
     setup_logging(args.log_level, f"plan[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies

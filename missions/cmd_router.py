@@ -105,7 +105,7 @@ def router_settings(args: argparse.Namespace) -> SessionSettings:
     Raises:
         UsageError: bad endpoints, half a TLS identity, authentication without both parts.
     """
-    from comms.session import SessionSettings  # noqa: F811 - the run-time import (zenoh-free)
+    from comms.session import SessionSettings  # the run-time import (zenoh-free)
 
     listen = tuple(check_endpoint(e, "--listen") for e in (args.listen or [DEFAULT_LISTEN]))
     connect = tuple(check_endpoint(e, "--connect") for e in args.connect)

@@ -157,8 +157,8 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
 
     Drone ``i`` (0-based) of the mission has system id ``i + 1``.
     """
-    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
     from missions.process_args import payload_world
+    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
     from vehicle_sim.payload import Payload, roles_to_flags
 
     if args.count < 1:
@@ -198,7 +198,14 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         fence_kw: dict[str, Any] = {}
         if mission is not None:
             c, f = mission.constraints, mission.fence
-            fence_kw = dict(z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m, y_min_m=f.y_min_m, y_max_m=f.y_max_m)
+            fence_kw = {
+                "z_min_m": c.z_min_m,
+                "z_max_m": c.z_max_m,
+                "x_min_m": f.x_min_m,
+                "x_max_m": f.x_max_m,
+                "y_min_m": f.y_min_m,
+                "y_max_m": f.y_max_m,
+            }
         if fence_z is not None:
             fence_kw.update(z_min_m=fence_z[0], z_max_m=fence_z[1])
         if fence_box is not None:
@@ -275,7 +282,6 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
 def run_vehicle(args: argparse.Namespace) -> int:
     """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
     from missions.forkspawn import watch_launcher
-
     from missions.process_args import setup_logging
 
     setup_logging(args.log_level, "%(name)s")

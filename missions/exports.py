@@ -38,15 +38,14 @@ def flight_features(result: SimulationResult) -> list[dict]:
     g = frame.to_global_many(np.concatenate([pos.transpose(1, 0, 2).reshape(-1, 3), est, src[None]]))
     lla = np.column_stack([g[:, 1], g[:, 0], g[:, 2]])
     k1 = pos.shape[0]
-    out = []
-    for i in range(n):
-        out.append(
-            {"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1 : (i + 1) * k1]}
-        )
-    for i in range(n):
-        out.append(
-            {"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]}
-        )
+    out = [
+        {"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1 : (i + 1) * k1]}
+        for i in range(n)
+    ]
+    out.extend(
+        {"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]}
+        for i in range(n)
+    )
     out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lla[-1:]})
     return out
 
@@ -54,8 +53,8 @@ def flight_features(result: SimulationResult) -> list[dict]:
 def write_kml(features: list[dict], name: str, path: Path) -> None:
     """The run's flight (:func:`flight_features`) as KML (fastkml) named ``name``: a folder of
     trajectories, one of estimates, the source."""
-    from fastkml import kml
     from fastkml import geometry as kg
+    from fastkml import kml
     from fastkml.containers import Document, Folder
     from fastkml.enums import AltitudeMode
     from fastkml.features import Placemark

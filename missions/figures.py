@@ -18,6 +18,7 @@ import math
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -46,7 +47,8 @@ _MAX_DECADE_TICKS = 8
 _MAX_END_GAP = 0.2
 
 
-def _pyplot():  # noqa: ANN202 - matplotlib is imported lazily, headless
+def _pyplot() -> ModuleType:
+    """matplotlib.pyplot on the Agg backend (headless), imported only when a figure is made."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,7 +200,7 @@ def _set_log_axis(ax: Any, lo: float, hi: float) -> None:
     """Log y axis over the data range [lo, hi] (padded), plain-number major ticks, 1..9 minor."""
     from matplotlib.ticker import FixedFormatter, FixedLocator, LogLocator, NullFormatter
 
-    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo):
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo > 0):
         lo, hi = 1.0, 10.0
     if hi <= lo * 1.001:
         lo, hi = lo / 1.05, hi * 1.05
@@ -358,10 +360,11 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
 
     # legend: one colour per mission (first column), one line style per (criterion, rule)
     # (second column, when there are several), the band
-    missions: list[Any] = []
     one_style = LINESTYLES[styles[0]] if len(styles) == 1 else "-"
-    for r in dict((r.spec.mission.id, r) for r in results).values():
-        missions.append(Line2D([], [], color=colours[r.spec.mission.id], ls=one_style, lw=2.0, label=f"{r.spec.mission.id} ({_roles_text(r)})"))
+    missions: list[Any] = [
+        Line2D([], [], color=colours[r.spec.mission.id], ls=one_style, lw=2.0, label=f"{r.spec.mission.id} ({_roles_text(r)})")
+        for r in {r.spec.mission.id: r for r in results}.values()
+    ]
     who = f"{_count([r.spec.trials for r in results], 'trial')} × {_count([r.spec.mission.drones.count for r in results], 'drone')}"
     if bands:
         shade = next(iter(colours.values())) if len(colours) == 1 else "0.5"

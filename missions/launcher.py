@@ -785,7 +785,7 @@ class Launcher:
         _, stat, recs = self._heard_at(k)
         src = m.source.position_at(self._t(k))
         pebs, errs = [], []
-        for j, st in stat.items():
+        for st in stat.values():
             if st is None:
                 continue
             errs.append(float(np.linalg.norm(np.asarray(st.estimate_m) - src)))
@@ -1046,7 +1046,7 @@ def stop_on_signals(launcher: Launcher) -> Iterator[None]:
             continue
         previous[s] = current
 
-    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
+    def handler(signum: int, frame: Any) -> None:
         launcher.request_stop(signum)
 
     for s in previous:

@@ -214,7 +214,7 @@ class ViewServer:
             if time.monotonic() > deadline:
                 self.close()
                 raise ViewError(f"rerun's viewer did not listen on 127.0.0.1:{min(pending)} within {SERVER_START_TIMEOUT_S:g} s")
-            for port in list(pending):
+            for port in list(pending):  # noqa: PERF101 - the loop discards from pending: it iterates a copy
                 with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.2):
                     pending.discard(port)
             if pending:

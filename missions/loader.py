@@ -245,11 +245,11 @@ class _MissionDumper(yaml.SafeDumper):
     """Safe YAML dumper writing lists of scalars inline (``[0.0, 150.0, 8.0]``), the rest in block
     style, and text holding a YAML line break other than ``\\n`` double-quoted (escaped)."""
 
-    def represent_list(self, data: list[Any]) -> yaml.Node:  # noqa: D102 - PyYAML hook
+    def represent_list(self, data: list[Any]) -> yaml.Node:  # PyYAML hook
         flow = all(not isinstance(item, (list, dict)) for item in data)
         return self.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
-    def represent_text(self, data: str) -> yaml.Node:  # noqa: D102 - PyYAML hook
+    def represent_text(self, data: str) -> yaml.Node:  # PyYAML hook
         # With allow_unicode PyYAML writes NEL, LS and PS raw in plain and single-quoted text,
         # and reads them back as line breaks (folded to a space): escape them instead.
         if any(ch in data for ch in "\x85\u2028\u2029"):
@@ -292,7 +292,7 @@ class _MissionLoader(yaml.SafeLoader):
     Python errors without a position; here they become :class:`_UnreadableValue` at the node.
     """
 
-    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:  # noqa: D102 - PyYAML hook
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:  # PyYAML hook
         try:
             return super().construct_object(node, deep=deep)
         except (ValueError, OverflowError, TypeError, KeyError, AttributeError, IndexError) as exc:
@@ -654,7 +654,7 @@ def _merge_typos(errors: Sequence[Any]) -> list[Any]:
 
 def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[tuple[str | int, ...]]) -> str:
     """One line for one pydantic error: ``line N: key.path: expected ..., found ...``."""
-    loc: list[str | int] = [p for p in err["loc"]]
+    loc: list[str | int] = list(err["loc"])
     kind = err["type"]
     ctx = err.get("ctx") or {}
     if kind == "mission_invalid" and ctx.get("path"):

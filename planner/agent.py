@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner.control import lost_contact_planes, StepResult, control_step, source_activation_margin_m
+from planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
@@ -78,7 +78,7 @@ def _normal_cdf(u: FloatArray) -> FloatArray:
     import and numpy's per-call overhead."""
     if u.size <= 8:
         return np.array([0.5 * math.erfc(-x / math.sqrt(2.0)) for x in u.ravel().tolist()]).reshape(u.shape)
-    from scipy.special import ndtr  # noqa: PLC0415 - see above
+    from scipy.special import ndtr  # imported here: see above
 
     return ndtr(u)
 

@@ -343,10 +343,7 @@ def control_step(
     g_norm = np.sqrt((grad * grad).sum(-1))
     pg = np.where((pg_norm <= PG_REL_TOL * g_norm)[..., None], 0.0, pg)
     pg_norm = np.where(pg_norm <= PG_REL_TOL * g_norm, 0.0, pg_norm)
-    if xi is None:
-        descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None]
-    else:
-        descent = -float(xi) * pg
+    descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None] if xi is None else -float(xi) * pg
     prev_s, prev_psi, prev_theta = _spherical(prev)
     has_prev = prev_s > 0.0
     if singular.any():

@@ -80,8 +80,8 @@ is initialised), and ``observable`` says when it can be trusted.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -92,7 +92,7 @@ from planner.params import Channel
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["Measurements", "EstimatorConfig", "EstimatorState", "initial_state", "update", "empty_measurements"]
+__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update"]
 
 #: Floors (m) keeping the model finite when a drone sits on the source or right above it.
 _RHO2_FLOOR_M2: float = 1e-12
@@ -465,13 +465,13 @@ class _Rows:
     ae: FloatArray
     s0: FloatArray
 
-    def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> "_Rows":
+    def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> _Rows:
         return _Rows(self.px, self.py, self.pz, self.zr, self.za, self.ze, ar, aa, ae, self.s0)
 
-    def sliced(self, sl: slice) -> "_Rows":
+    def sliced(self, sl: slice) -> _Rows:
         return _Rows(*(getattr(self, f)[..., sl] for f in self.__dataclass_fields__))
 
-    def subset(self, mask: BoolArray) -> "_Rows":
+    def subset(self, mask: BoolArray) -> _Rows:
         return _Rows(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
 
 
@@ -483,9 +483,7 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     row_ok = np.isfinite(px + py + pz)  # NaN/inf in any coordinate
     los = meas.los
     wb = row_weight * np.where(los, 1.0, config.nlos_bearing_weight)
-    out = []
-    for arr in (px, py, pz):
-        out.append(np.where(row_ok, arr, 0.0))
+    out = [np.where(row_ok, arr, 0.0) for arr in (px, py, pz)]
     weights = []
     for z, w in ((meas.range_m, row_weight), (meas.azimuth_rad, wb), (meas.elevation_rad, wb)):
         ok = row_ok & np.isfinite(z)
@@ -1081,7 +1079,7 @@ def _score_test(
     S_t = np.where(keep, S_H, np.where(eye, tr[..., None, None], 0.0))
     S_inv, ok = _inv3_spd(S_t)
     T = np.where(ok & active, np.einsum("...i,...ij,...j->...", s, S_inv, s), 0.0)
-    fail = active & (T > threshold)
+    fail = active & (T > threshold)  # noqa: SIM300 - T is the test statistic (an array), not a constant
     S_H = np.where(fail[..., None, None], 0.0, S_H)
     S_v = np.where(fail[..., None], 0.0, S_v)
     return S_H, S_v, T, fail

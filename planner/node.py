@@ -57,8 +57,8 @@ from typing import Any, TextIO
 import numpy as np
 
 from comms import keys
-from comms.latency import DelayedView
 from comms.geodesy import MissionFrame
+from comms.latency import DelayedView
 from comms.mavlink_client import (
     MAV_LANDED_STATE_NAMES,
     MSG_EKF_STATUS_REPORT,
@@ -423,7 +423,7 @@ class PlannerNode:
         if self.session is not None:
             try:
                 self._token.undeclare()
-            except Exception:  # noqa: BLE001 - closing anyway
+            except Exception:  # closing anyway
                 pass
             self.session.close()
             self.session = None
@@ -440,7 +440,7 @@ class PlannerNode:
         """An operator command (Zenoh callback thread): queued for the main loop, which checks it."""
         try:
             self.control.put(bytes(sample.payload.to_bytes()).decode("utf-8", "replace"))
-        except Exception as exc:  # noqa: BLE001 - a bad sample must not kill the callback thread
+        except Exception as exc:  # a bad sample must not kill the callback thread
             log.warning("uav %d: unreadable control message ignored (%s)", self.o.uav, exc)
 
     def _handback_requested(self) -> bool:
@@ -487,9 +487,8 @@ class PlannerNode:
                         self.view.add(msg)
                     else:
                         self._add_realtime_record(msg)
-                elif isinstance(msg, Tick):
-                    if self.tick is None or msg.step >= self.tick.step:
-                        self.tick = msg
+                elif isinstance(msg, Tick) and (self.tick is None or msg.step >= self.tick.step):
+                    self.tick = msg
             elif "/alive/vehicle/" in key:
                 if kind == "gone" and self.vehicle_gone_at is None:
                     self.vehicle_gone_at = self.wall()
@@ -557,10 +556,7 @@ class PlannerNode:
         assert link is not None
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
-        if self.o.lockstep:
-            rates = dict(LOCKSTEP_STREAM_HZ)
-        else:
-            rates = {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
+        rates = dict(LOCKSTEP_STREAM_HZ) if self.o.lockstep else {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
         for msg_id, hz in rates.items():
             link.request_interval(msg_id, hz)
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
@@ -638,16 +634,7 @@ class PlannerNode:
                 self.own_ranges.append((record.range_m, record.los))
                 self._track(k, own)
                 self._publish(self._pub_record, record, MessageKind.RECORD)
-                # Lockstep barrier: every other planner of the mission, except those that left.
-                # (Waiting only for the planners already seen alive would let a planner whose
-                # liveliness has not reached us yet be skipped, and the views would differ.)
-                expected = [j for j in range(1, self.n + 1) if j != self.o.uav]
-                self._wait(
-                    lambda: all(self.view.has(j, k) for j in expected if j not in self.left),
-                    self.o.step_timeout_s,
-                    f"records of step {k} from the planners",
-                    missing=lambda: sorted(j for j in expected if j not in self.left and not self.view.has(j, k)),
-                )
+                self._wait_for_peer_records(k)
                 w_peers = self.wall()
                 view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
                 step = result.step
@@ -840,6 +827,23 @@ class PlannerNode:
         for s in [s for s in self.measurements if s <= k]:
             meas = self.measurements.pop(s)
         return meas
+
+    def _wait_for_peer_records(self, k: int) -> None:
+        """Lockstep barrier of step k: the records of every other planner of the mission,
+        except those that left. (Waiting only for the planners already seen alive would let a
+        planner whose liveliness has not reached us yet be skipped, and the views would differ.)"""
+        expected = [j for j in range(1, self.n + 1) if j != self.o.uav]
+        self._wait(
+            lambda: all(self.view.has(j, k) for j in expected if j not in self.left),
+            self.o.step_timeout_s,
+            f"records of step {k} from the planners",
+            missing=lambda: sorted(j for j in expected if j not in self.left and not self.view.has(j, k)),
+        )
+
+    def _serve_until_peers(self, k: int, t_unix: float) -> bool:
+        """:meth:`_serve_until_unix` until the records of step k from the live peers are in
+        (:meth:`_missing_peers`) or UNIX time ``t_unix``; return whether they are all in."""
+        return self._serve_until_unix(t_unix, lambda: not self._missing_peers(k))
 
     def _missing_peers(self, k: int) -> list[int]:
         """Live peers (1-based ids) whose record of step k has not arrived."""
@@ -1426,8 +1430,7 @@ class PlannerNode:
             self._track(k, own)
             self._publish(self._pub_record, record, MessageKind.RECORD)
             w_meas = self.unix()
-            peers = lambda: not self._missing_peers(k)  # noqa: E731
-            if not self._serve_until_unix(t_k + self.o.peer_wait_fraction * dtw, peers):
+            if not self._serve_until_peers(k, t_k + self.o.peer_wait_fraction * dtw):
                 log.info("uav %d: step %d without the records of %s (deadline)", self.o.uav, k, self._missing_peers(k))
             w_peers = self.unix()
             view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)

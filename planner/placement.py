@@ -83,6 +83,8 @@ SLSQP_MAXITER: int = 400
 SLSQP_FTOL: float = 1e-10
 #: Cost of a placement whose J is singular (the solver must leave it; never returned as optimal).
 _SINGULAR_PENALTY: float = 1e6
+#: No buildings: the default obstacle boxes of :func:`optimal_placement`, shape (0, 3).
+_NO_BOXES = np.zeros((0, 3))
 
 
 @dataclass(frozen=True)
@@ -369,8 +371,8 @@ def optimal_placement(
     bearing: ArrayLike,
     channel: Channel,
     bounds: PlacementBounds,
-    boxes_min: ArrayLike = np.zeros((0, 3)),
-    boxes_max: ArrayLike = np.zeros((0, 3)),
+    boxes_min: ArrayLike = _NO_BOXES,
+    boxes_max: ArrayLike = _NO_BOXES,
     criterion: Criterion = "A",
     starts: int = 8,
     seed: int = 0,

@@ -148,6 +148,6 @@ class ZenohBridge:
         for t in self._tokens:
             try:
                 t.undeclare()
-            except Exception:  # noqa: BLE001 - closing anyway
+            except Exception:  # closing anyway
                 pass
         self.session.close()

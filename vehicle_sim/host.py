@@ -98,7 +98,7 @@ class VehicleHost:
             return
         try:
             vehicle.advance_to(t_s, report_position=report)
-        except Exception:  # noqa: BLE001 - one broken vehicle must not stop the others
+        except Exception:  # one broken vehicle must not stop the others
             vehicle.healthy = False
             log.exception("sysid %d: vehicle failed; heartbeats stop", vehicle.sysid)
 
@@ -121,7 +121,7 @@ class VehicleHost:
                         if self.on_tick is not None:
                             try:
                                 self.on_tick(v, tick)
-                            except Exception:  # noqa: BLE001 - a hook must not stop the loop
+                            except Exception:  # a hook must not stop the loop
                                 log.exception("sysid %d: on_tick hook failed", v.sysid)
                 for v in self.vehicles:
                     if v.poll():

@@ -470,7 +470,7 @@ class MavlinkLink:
         self._tlog: BinaryIO | None = None
         if tlog_path is not None:
             try:
-                self._tlog = open(tlog_path, "ab")
+                self._tlog = open(tlog_path, "ab")  # noqa: SIM115 - closed by close()
             except OSError as exc:
                 raise UsageError(f"tlog {tlog_path!r}: {exc.strerror or exc}") from None
 
@@ -528,7 +528,7 @@ class MavlinkLink:
         parser = self._parser(peer)
         try:
             msgs = parser.parse_buffer(data) or []
-        except Exception as exc:  # noqa: BLE001 - any parser failure is a bad frame, not a crash
+        except Exception as exc:  # any parser failure is a bad frame, not a crash
             log.debug("parser reset after %s", exc)
             self.bad_frames += 1
             self._parsers.pop(peer, None)

@@ -216,7 +216,7 @@ class SimVehicle:
         if config.flavour == "ardupilot":  # ArduPilot's EXTRA3 stream; PX4 has no such message
             self.defaults["EKF_STATUS_REPORT"] = 1.0 / config.ekf_status_hz if config.ekf_status_hz > 0 else None
         self.intervals = dict(self.defaults)
-        self._due: dict[str, float] = {name: 0.0 for name in self.intervals}
+        self._due: dict[str, float] = dict.fromkeys(self.intervals, 0.0)
         #: (custom mode, armed) of the last HEARTBEAT built: a lockstep tick report repeats the
         #: heartbeat when the state changed since (:meth:`emit_due`).
         self._heartbeat_state: tuple[int, bool] | None = None
@@ -410,10 +410,9 @@ class SimVehicle:
             return f"Mode change to {mode.name} failed: requires position"
         if mode.behaviour == "guided" and self.config.flavour == "px4" and not self._offboard_stream_ok():
             return "Offboard: no setpoint stream >2Hz"
-        if mode.behaviour in ("land", "rtl") and not self.flying:
-            if not self.armed:
-                self.mode = mode
-                return None
+        if mode.behaviour in ("land", "rtl") and not self.flying and not self.armed:
+            self.mode = mode
+            return None
         if mode.behaviour == "takeoff" and not self.armed:
             return "Takeoff: arm first"
         previous = self.mode
@@ -492,9 +491,8 @@ class SimVehicle:
             if target is not None and abs(float(p[2] - target[2])) <= ARRIVAL_TOL_M:
                 self.phase = "rtl_return"
                 self._command(Command("position", position=np.array([self.home[0], self.home[1], float(p[2])])))
-        elif self.phase == "rtl_return":
-            if math.hypot(float(p[0] - self.home[0]), float(p[1] - self.home[1])) <= ARRIVAL_TOL_M:
-                self._start_land()
+        elif self.phase == "rtl_return" and math.hypot(float(p[0] - self.home[0]), float(p[1] - self.home[1])) <= ARRIVAL_TOL_M:
+            self._start_land()
         if beh == "guided" and self.flying and self.phase == "":
             age = self.t - self.last_setpoint_t
             if self.config.flavour == "ardupilot":
@@ -636,7 +634,7 @@ class SimVehicle:
         """Handle one decoded MAVLink message (never raises)."""
         try:
             self._dispatch(msg)
-        except Exception:  # noqa: BLE001 - a bad message must never take the vehicle down
+        except Exception:  # a bad message must never take the vehicle down
             self.ignored_messages += 1
             log.exception("sysid %d: error handling %s", self.sysid, msg.get_type())
 
@@ -693,7 +691,7 @@ class SimVehicle:
         acks_before = self.acks_sent
         try:
             handler(msg, p, frame)
-        except Exception:  # noqa: BLE001 - a handler bug must still answer the command
+        except Exception:  # a handler bug must still answer the command
             # Handlers validate their parameters and answer; reaching this is a bug in the
             # vehicle: logged and counted, and the sender still gets its COMMAND_ACK.
             self.ignored_messages += 1
@@ -1235,11 +1233,7 @@ class SimVehicle:
 
     def _on_request_data_stream(self, msg: Any) -> None:
         sid = msg.req_stream_id
-        names: tuple[str, ...]
-        if sid == 0:
-            names = tuple(n for group in DATA_STREAMS.values() for n in group)
-        else:
-            names = DATA_STREAMS.get(sid, ())
+        names: tuple[str, ...] = tuple(n for group in DATA_STREAMS.values() for n in group) if sid == 0 else DATA_STREAMS.get(sid, ())
         for name in names:
             if name not in self.intervals:
                 continue
@@ -1357,9 +1351,15 @@ class SimVehicle:
 
             return _set
 
-        home_z = lambda: float(self.home[2])  # noqa: E731
-        z_max_get = lambda: self.fence.z_max_m - home_z()  # noqa: E731
-        z_min_get = lambda: self.fence.z_min_m - home_z()  # noqa: E731
+        def home_z() -> float:
+            return float(self.home[2])
+
+        def z_max_get() -> float:
+            return self.fence.z_max_m - home_z()
+
+        def z_min_get() -> float:
+            return self.fence.z_min_m - home_z()
+
         P = _Param
         common = [P("FENCE_ENABLE", True, lambda: float(self.fence.enabled), fence_enable)]
         if self.fence.has_box:  # the mission's horizontal box (read-only, ENU m)
@@ -1534,10 +1534,7 @@ class SimVehicle:
         elif self.config.flavour == "ardupilot":
             # GCS_MAVLINK_Copter::vehicle_system_status: CRITICAL in a failsafe, STANDBY while
             # landed (armed or not), ACTIVE in the air.
-            if self.gcs_failsafe:
-                status = m.MAV_STATE_CRITICAL
-            else:
-                status = m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY
+            status = m.MAV_STATE_CRITICAL if self.gcs_failsafe else (m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY)
         else:
             status = m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY
         self._heartbeat_state = (self.mode.custom_mode, self.armed)
