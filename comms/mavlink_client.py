@@ -563,7 +563,8 @@ class VehicleLink:
                 pass  # no position yet (ArduPilot reports 0, 0 before its first fix)
             elif self.frame == "global" and (msg.time_boot_ms >= tel.position_time_ms or msg.time_boot_ms < tel.position_time_ms - 10_000):
                 # (a time_boot_ms far behind the last one: the autopilot rebooted)
-                assert self.mission_frame is not None
+                if self.mission_frame is None:
+                    raise RuntimeError("frame 'global' without a mission frame (checked when the link is made)")
                 x, y, z = self.mission_frame.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
                 if self.altitude_reference == "relative":
                     z = msg.relative_alt * 1e-3
@@ -965,7 +966,8 @@ class VehicleLink:
                 0, self.target_system, AUTOPILOT_COMPONENT, m.MAV_FRAME_LOCAL_NED, mask, n, e, d, vn, ve, vd, 0, 0, 0, 0, 0
             )
             return
-        assert self.mission_frame is not None
+        if self.mission_frame is None:
+            raise RuntimeError("frame 'global' without a mission frame (checked when the link is made)")
         lat_e7 = lon_e7 = 0
         alt = 0.0
         if position_enu_m is not None:

@@ -685,7 +685,8 @@ class Launcher:
         """Real time: say what the start delay waits for, then report progress on the wall
         clock until every planner has ended."""
         m = self.mission
-        assert self.start_unix is not None
+        if self.start_unix is None:
+            raise RuntimeError("real-time flight without a start time (start_unix is set when the planners are started)")
         dtw = m.dt_s / self.speedup
         self._flying = True
         reported = -1

@@ -82,7 +82,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -535,6 +535,36 @@ class _Gate:
     max_fraction: float
 
 
+# The evaluation (cost_only False) or the cost alone (cost_only True): the return type follows.
+@overload
+def _evaluate(
+    x: FloatArray,
+    rows: _Rows,
+    channel: Channel,
+    k: float,
+    ml: bool,
+    d_var: FloatArray | None = None,
+    gate: _Gate | None = None,
+    cost_only: Literal[False] = False,
+    redescend: bool | BoolArray = False,
+    tukey_c: float = 4.685,
+    suspect_sigma: float = 2.5,
+) -> _Eval: ...
+@overload
+def _evaluate(
+    x: FloatArray,
+    rows: _Rows,
+    channel: Channel,
+    k: float,
+    ml: bool,
+    d_var: FloatArray | None = None,
+    gate: _Gate | None = None,
+    *,
+    cost_only: Literal[True],
+    redescend: bool | BoolArray = False,
+    tukey_c: float = 4.685,
+    suspect_sigma: float = 2.5,
+) -> FloatArray: ...
 def _evaluate(
     x: FloatArray,
     rows: _Rows,
@@ -1002,7 +1032,6 @@ def _lm_iterations(
         rd = redescend(it)
         if ev is None:
             ev = _evaluate(x, rows, channel, k, ml, redescend=rd, tukey_c=c, suspect_sigma=config.suspect_sigma)
-            assert isinstance(ev, _Eval)
         x_lin = x
         g, H, F = _accumulate(ev)
         g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
@@ -1027,7 +1056,8 @@ def _lm_iterations(
         x = np.where(accept[..., None], cand, x)
         mu = np.where(accept, mu / 3.0, mu * 4.0)
         last, ev = ev, None
-    assert g is not None and H is not None and F is not None
+    if g is None or H is None or F is None:
+        raise ValueError(f"its: expected at least one iteration, found {its!r}")
     return x, mu, last, g, H, F, x_lin
 
 
@@ -1275,7 +1305,6 @@ def update(
         tukey_c=c,
         suspect_sigma=config.suspect_sigma,
     )
-    assert isinstance(ev, _Eval)
     rows = rows.with_weights(ev.ar, ev.aa, ev.ae)
     if run:
         mu = np.full(bshape, config.lm_damping)

@@ -552,8 +552,7 @@ class PlannerNode:
     # -- flight -----------------------------------------------------------------------------
     def preflight(self) -> None:
         """Heartbeat, streams, GUIDED, arm, take-off and flight to the start position."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
         rates = dict(LOCKSTEP_STREAM_HZ) if self.o.lockstep else {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
@@ -578,8 +577,7 @@ class PlannerNode:
 
     def _hold_start(self) -> float:
         """Send the start position as setpoint; return the distance to it (m)."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         link.send_setpoint(self.start, None)
         pos = link.telemetry.position_enu_m
         return math.inf if pos is None else float(np.linalg.norm(pos - self.start))
@@ -640,7 +638,8 @@ class PlannerNode:
                 step = result.step
                 u = np.asarray(step.displacement, dtype=float)
                 nxt = np.asarray(step.next_position, dtype=float)
-                assert self.link is not None
+                if self.link is None:
+                    raise NodeError(f"uav {self.o.uav}: the vehicle link is closed")
                 # A heartbeat read while the step was planned (the 1 Hz one) may say the vehicle
                 # was taken over meanwhile: then this step's setpoint is not sent.
                 self.link.pump(0.0)
@@ -740,7 +739,8 @@ class PlannerNode:
         if not link.telemetry.armed:
             raise NodeError(f"uav {self.o.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
         self._wait(lambda: self.tick is not None and self.tick.step >= 0, t, "a clock tick of the mission to rejoin at")
-        assert self.tick is not None
+        if self.tick is None:
+            raise NodeError(f"uav {self.o.uav}: internal: no clock tick after waiting for one")
         p = self.tick.step
         if p >= self.steps - 1:
             raise NodeError(f"uav {self.o.uav}: cannot rejoin at step {p}: the mission has {self.steps} steps")
@@ -781,20 +781,21 @@ class PlannerNode:
             # Step 0 starts when the whole swarm is at its start positions: pre-flight deadline.
             timeout = self.o.preflight_timeout_s if k == 0 else self.o.step_timeout_s
             self._wait(lambda: self.tick is not None and self.tick.step >= k, timeout, f"clock tick of step {k}")
-            assert self.tick is not None
+            if self.tick is None:
+                raise NodeError(f"uav {self.o.uav}: internal: no clock tick after waiting for the one of step {k}")
             return self.tick.time_s if self.tick.step == k else self.tick.time_s - (self.tick.step - k) * self.dt
         raise NodeError("internal: _await_step is the lockstep clock; real time steps in _run_realtime")
 
     def _own_position(self, t_k: float) -> np.ndarray:
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         stamp = int(round(t_k * 1000.0))
         self._wait(
             self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
             self.o.step_timeout_s,
             f"position telemetry at t = {t_k:g} s",
         )
-        assert link.telemetry.position_enu_m is not None
+        if link.telemetry.position_enu_m is None:
+            raise NodeError(f"uav {self.o.uav}: no position telemetry at t = {t_k:g} s")
         return link.telemetry.position_enu_m.astype(float)
 
     def _vehicle_alive(self, predicate: Callable[[], bool], what: str) -> Callable[[], bool]:
@@ -997,8 +998,7 @@ class PlannerNode:
         """End of mission as the mission says: hold (stay in GUIDED at the last setpoint),
         land or return to launch, confirmed by the vehicle's mode; left to the pilot of a
         drone taken over."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         action = self.m.end_action
         if self.taken_over is not None:
             log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot", self.o.uav, link.mode_name(), action)
@@ -1153,7 +1153,8 @@ class PlannerNode:
         self._ready_wait()
         self._check_clock()
         origin = link.telemetry.origin_global
-        assert origin is not None
+        if origin is None:
+            raise NodeError(f"uav {self.o.uav}: the vehicle is ready but sent no EKF origin (GPS_GLOBAL_ORIGIN)")
         shared = self.mission_frame.matches(*origin)
         log.info(
             "uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
@@ -1170,7 +1171,8 @@ class PlannerNode:
             )
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         pos = link.telemetry.position_enu_m
-        assert pos is not None
+        if pos is None:
+            raise NodeError(f"uav {self.o.uav}: no position telemetry after waiting for it")
         climb_to = float(self.m.takeoff_alt_m if self.m.takeoff_alt_m is not None else self.start[2])
         tol = START_TOLERANCE_REALTIME_M
         # Take-off done at 95 % of the climb (an autopilot's altitude settles slowly at the end).
@@ -1296,7 +1298,8 @@ class PlannerNode:
             link.set_stream(None)
             log.error("uav %d: hand-back refused: %s", self.o.uav, exc)
             return False
-        assert self.taken_over is not None
+        if self.taken_over is None:
+            raise NodeError(f"uav {self.o.uav}: internal: hand-back at step {k} of a drone not taken over")
         self.takeovers[-1]["handed_back_step"] = k
         self.taken_over = None
         self._reported_mode = None
@@ -1368,10 +1371,8 @@ class PlannerNode:
                 # step, without a measurement (the pilot's flight is no planned sensing), so the
                 # others keep clear of where it is; without telemetry its last record, as stale.
                 pos = link.telemetry.position_enu_m
-                fresh_pos = pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
                 nan = float("nan")
-                if fresh_pos:
-                    assert pos is not None
+                if pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S:  # a fresh position
                     rec = Observation(
                         self.o.uav,
                         k,
@@ -1395,7 +1396,8 @@ class PlannerNode:
                 k += 1
                 continue
             pos = link.telemetry.position_enu_m
-            assert pos is not None
+            if pos is None:
+                raise NodeError(f"uav {self.o.uav}: step {k}: no position telemetry from the vehicle")
             age = self.wall() - link.telemetry.position_wall_s
             if age > POSITION_MAX_AGE_S:
                 # Heartbeats but no position: plan nothing on an old position.

@@ -100,6 +100,13 @@ class Geofence:
         """True when the horizontal box is set."""
         return self.x_min_m is not None and self.y_min_m is not None
 
+    @property
+    def box(self) -> tuple[float, float, float, float] | None:
+        """``(x_min_m, x_max_m, y_min_m, y_max_m)`` when the horizontal box is set (:attr:`has_box`), else None."""
+        if self.x_min_m is None or self.x_max_m is None or self.y_min_m is None or self.y_max_m is None:
+            return None
+        return self.x_min_m, self.x_max_m, self.y_min_m, self.y_max_m
+
 
 @dataclass(frozen=True)
 class VehicleLimits:

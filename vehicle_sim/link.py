@@ -207,7 +207,8 @@ class UdpTransport(Transport):
         if self.kind == "udpin":
             host, port = self.sock.getsockname()[:2]
             return f"udpin:{host}:{port}"
-        assert self.dest is not None
+        if self.dest is None:
+            raise RuntimeError(f"UDP transport {self.kind}: no destination address")
         return f"udpout:{self.dest[0]}:{self.dest[1]}"
 
     def peers(self) -> int:
@@ -544,7 +545,7 @@ class MavlinkLink:
                 if m.get_msgId() == MAVLINK_MSG_ID_SETUP_SIGNING:
                     self.frames_not_logged += 1
                 else:
-                    self._log(m.get_msgbuf())
+                    self._log(self._tlog, m.get_msgbuf())
         return good
 
     def receive(self) -> list[Any]:
@@ -569,12 +570,13 @@ class MavlinkLink:
             if _frame_msg_id(buf) == MAVLINK_MSG_ID_SETUP_SIGNING:
                 self.frames_not_logged += 1
             else:
-                self._log(buf)
+                self._log(self._tlog, buf)
 
-    def _log(self, buf: bytes) -> None:
-        assert self._tlog is not None
+    @staticmethod
+    def _log(tlog: BinaryIO, buf: bytes) -> None:
+        """One .tlog entry: the big-endian UNIX time in microseconds, then the frame."""
         usec = int(time.time() * 1e6) & ~3
-        self._tlog.write(struct.pack(">Q", usec) + bytes(buf))
+        tlog.write(struct.pack(">Q", usec) + bytes(buf))
 
     def flush(self) -> None:
         """Flush the .tlog."""

@@ -196,7 +196,7 @@ class SimVehicle:
         self.yaw_rad = 0.0
         self.armed = bool(config.airborne)
         self.flying = bool(config.airborne)
-        self.mode: Mode = self.info.mode(self.info.air_boot_mode if config.airborne else self.info.boot_mode)  # type: ignore[assignment]
+        self.mode: Mode = self.info.require_mode(self.info.air_boot_mode if config.airborne else self.info.boot_mode)
         self.landed_state = self.m.MAV_LANDED_STATE_IN_AIR if config.airborne else self.m.MAV_LANDED_STATE_ON_GROUND
         if config.airborne:
             self._hold_here()
@@ -357,11 +357,10 @@ class SimVehicle:
 
         zlo, zhi = lim(f.z_min_m, f.z_max_m, 2)
         q[2] = min(max(q[2], zlo), zhi)
-        if f.has_box:
-            assert f.x_min_m is not None and f.x_max_m is not None
-            assert f.y_min_m is not None and f.y_max_m is not None
-            xlo, xhi = lim(f.x_min_m, f.x_max_m, 0)
-            ylo, yhi = lim(f.y_min_m, f.y_max_m, 1)
+        box = f.box
+        if box is not None:
+            xlo, xhi = lim(box[0], box[1], 0)
+            ylo, yhi = lim(box[2], box[3], 1)
             q[0] = min(max(q[0], xlo), xhi)
             q[1] = min(max(q[1], ylo), yhi)
         if f.radius_m is not None:
@@ -481,7 +480,7 @@ class SimVehicle:
             if self.config.flavour == "px4":  # ArduPilot's GUIDED take-off ends silently
                 self.statustext(6, "Takeoff complete")
             if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
-                self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
+                self.mode = self.info.require_mode(self.info.hold_mode)
                 target = self.pm.command.position
                 self._command(Command("hold", position=None if target is None else target.copy()))
         elif self.phase == "land" and self.flying and float(p[2]) <= self.config.ground_z_m + 1e-6:
@@ -531,7 +530,7 @@ class SimVehicle:
         """PX4 offboard loss (no setpoint for COM_OF_LOSS_T): the COM_OBL_RC_ACT action."""
         action = PX4_OBL_ACTIONS.get(int(self.offboard_loss_action), "hold")
         if action == "hold":
-            self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
+            self.mode = self.info.require_mode(self.info.hold_mode)
             self._hold_here()
             self.statustext(2, "Failsafe: offboard lost, holding")
         elif action == "terminate":
@@ -539,7 +538,7 @@ class SimVehicle:
             self._motors_off()
         else:
             self.statustext(2, f"Failsafe: offboard lost, {'returning' if action == 'rtl' else 'landing'}")
-            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
+            self.set_mode(self.info.require_mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))
 
     def _motors_off(self) -> None:
         """Disarm now, in the air too (flight termination): the mass drops to the ground."""
@@ -577,7 +576,7 @@ class SimVehicle:
             self.statustext(4, "GCS Failsafe - Continuing Landing")
         else:
             self.statustext(4, "GCS Failsafe")
-            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
+            self.set_mode(self.info.require_mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))
 
     def _physics_to(self, t_next: float) -> None:
         h = t_next - self.t
@@ -779,7 +778,7 @@ class SimVehicle:
         if self.fence.enabled and z > self.fence.z_max_m:
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude above fence")
         if self.config.flavour == "px4" and self.info.takeoff_mode is not None:
-            self.mode = self.info.mode(self.info.takeoff_mode)  # type: ignore[assignment]
+            self.mode = self.info.require_mode(self.info.takeoff_mode)
         self._start_takeoff(z)
         return self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
 
@@ -796,8 +795,7 @@ class SimVehicle:
 
     def _cmd_land(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
         m = self.m
-        mode = self.info.mode(self.info.land_mode)
-        assert mode is not None
+        mode = self.info.require_mode(self.info.land_mode)
         if not self.flying:
             return self._ack(msg, m.MAV_CMD_NAV_LAND, m.MAV_RESULT_TEMPORARILY_REJECTED, "Land: not flying")
         self.set_mode(mode)
@@ -805,8 +803,7 @@ class SimVehicle:
 
     def _cmd_rtl(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
         m = self.m
-        mode = self.info.mode(self.info.rtl_mode)
-        assert mode is not None
+        mode = self.info.require_mode(self.info.rtl_mode)
         if not self.flying:
             return self._ack(msg, m.MAV_CMD_NAV_RETURN_TO_LAUNCH, m.MAV_RESULT_TEMPORARILY_REJECTED, "RTL: not flying")
         self.set_mode(mode)
@@ -983,7 +980,7 @@ class SimVehicle:
         if self.fence.action == "reject" and not self.inside_fence(target):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Fence: target outside fence, refused")
         if self.mode.behaviour != "guided":
-            reason = self.set_mode(self.info.mode(self.info.guided_mode))  # type: ignore[arg-type]
+            reason = self.set_mode(self.info.require_mode(self.info.guided_mode))
             if reason:
                 return self._ack(msg, cmd, m.MAV_RESULT_FAILED, reason, 3)
         previous_speed = self.speed_override_mps
