@@ -53,14 +53,20 @@ KEEP_ALIVE: int = 4
 
 class ZenohSection(Protocol):
     """What this module reads of ``missions.schema.ZenohSpec`` (duck-typed: comms does not
-    import missions)."""
+    import missions). Read-only: the mission's sections are frozen."""
 
-    mode: str
-    listen: Sequence[str]
-    connect: Sequence[str]
-    multicast_scouting: bool
-    tls: Any
-    auth: Any
+    @property
+    def mode(self) -> str: ...
+    @property
+    def listen(self) -> Sequence[str]: ...
+    @property
+    def connect(self) -> Sequence[str]: ...
+    @property
+    def multicast_scouting(self) -> bool: ...
+    @property
+    def tls(self) -> Any: ...
+    @property
+    def auth(self) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -113,14 +119,19 @@ class SessionSettings:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SessionSettings:
-        paths = {k: Path(d[k]) for k in ("tls_root_ca", "tls_certificate", "tls_private_key", "auth_password_file") if d.get(k)}
+        def path(key: str) -> Path | None:
+            return Path(d[key]) if d.get(key) else None
+
         return cls(
             mode=str(d.get("mode", "peer")),
             listen=tuple(d.get("listen", ("tcp/127.0.0.1:0",))),
             connect=tuple(d.get("connect", ())),
             multicast_scouting=bool(d.get("multicast_scouting", False)),
+            tls_root_ca=path("tls_root_ca"),
+            tls_certificate=path("tls_certificate"),
+            tls_private_key=path("tls_private_key"),
             auth_user=d.get("auth_user"),
-            **paths,
+            auth_password_file=path("auth_password_file"),
         )
 
 

@@ -15,8 +15,9 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from types import FrameType
+from typing import Any
 
 from planner.errors import FimnavError
 
@@ -108,7 +109,8 @@ def _terminate_on_signals(command: str) -> Iterator[None]:
         yield
         return
     owner = os.getpid()
-    previous: dict[signal.Signals, object] = {}
+    # (what signal.signal returns: a handler, SIG_DFL/SIG_IGN, or None if not set from Python)
+    previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int | None] = {}
 
     def terminate(signum: int, frame: FrameType | None) -> None:
         if os.getpid() != owner:
@@ -129,7 +131,7 @@ def _terminate_on_signals(command: str) -> Iterator[None]:
         yield
     finally:
         for s, handler in previous.items():
-            signal.signal(s, handler)  # type: ignore[arg-type]
+            signal.signal(s, handler)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -7,9 +7,12 @@ import contextlib
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:
+    from planner.params import Criterion
 
 
 def register(subparsers: Any) -> None:
@@ -84,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             if activation is not None:
                 ov["constraints.activation"] = activation
             mission = load_mission(path, ov)
-            criteria = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
+            criteria: tuple[Criterion, ...] = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
             for crit in criteria:
                 m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
                 specs.append(RunSpec(m, crit, args.trials or m.trials, args.steps or m.steps))

@@ -12,9 +12,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:
+    from planner.params import Criterion
+    from planner.placement import MarginRule
 
 #: Random starts of the optimisation by default (each a few tenths of a second for ten drones).
 DEFAULT_STARTS: int = 8
@@ -61,10 +65,10 @@ def register(subparsers: Any) -> None:
 
 def mission_optimum(
     mission: Any,
-    criterion: str | None = None,
+    criterion: Criterion | None = None,
     starts: int = DEFAULT_STARTS,
     seed: int = 0,
-    margins: str = "filter",
+    margins: MarginRule = "filter",
     oracle_estimate: bool = False,
     time_s: float | None = None,
 ) -> Any:
@@ -83,7 +87,7 @@ def mission_optimum(
         mission.channel.to_planner(),
         placement_bounds(mission.limits(), margins, oracle_estimate),
         bmin,
-        bmax,  # type: ignore[arg-type]
+        bmax,
         criterion or mission.criterion,
         starts=starts,
         seed=seed,

@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
             frame="global",
             mission_frame=MissionFrame.of_mission(mission),
             altitude_reference=mission.altitude_reference,
-            flavour=None if resolved.autopilot == "auto" else resolved.autopilot,  # type: ignore[arg-type]
+            flavour=None if resolved.autopilot == "auto" else resolved.autopilot,
             connect_timeout_s=args.connect_timeout,
             source_component=PAYLOAD_COMPONENT,
         )

@@ -117,6 +117,14 @@ def _floats(text: str | None, n: int, option: str) -> tuple[float, ...] | None:
     return values
 
 
+def _xyz(text: str | None, option: str) -> tuple[float, float, float] | None:
+    """An x,y,z option (``--start``, ``--wind``): three comma-separated finite numbers, or None."""
+    from planner.geometry import vec3
+
+    values = _floats(text, 3, option)
+    return None if values is None else vec3(values)
+
+
 def _params(items: Sequence[str]) -> tuple[tuple[str, float], ...]:
     """``--param NAME=VALUE`` options -> (name, value) pairs (names checked by the vehicle)."""
     out: list[tuple[str, float]] = []
@@ -158,6 +166,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     Drone ``i`` (0-based) of the mission has system id ``i + 1``.
     """
     from missions.process_args import payload_world
+    from planner.geometry import vec3
     from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
     from vehicle_sim.payload import Payload, roles_to_flags
 
@@ -178,8 +187,8 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     if args.ready_after > 0 and args.airborne:
         raise UsageError("--ready-after: a vehicle booting --airborne is ready at boot")
     boot_params = _params(args.param)
-    start = _floats(args.start, 3, "--start")
-    wind = _floats(args.wind, 3, "--wind") or (0.0, 0.0, 0.0)
+    start = _xyz(args.start, "--start")
+    wind = _xyz(args.wind, "--wind") or (0.0, 0.0, 0.0)
     fence_z = _floats(args.fence_z, 2, "--fence-z")
     fence_box = _floats(args.fence_box, 4, "--fence-box")
     origin_v = _floats(args.origin, 3, "--origin")
@@ -234,7 +243,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         key = args.signing_key
         payload = None
         if mission is not None and starts is not None and world is not None:
-            pos = tuple(float(v) for v in starts[drone]) if start is None else start
+            pos = vec3(starts[drone]) if start is None else start
             resolved = mission.vehicles.for_drone(drone)
             flavour = flavour or resolved.flavour
             profile = profile or resolved.profile
@@ -254,7 +263,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
             cfg = VehicleConfig(
                 sysid=sysid,
                 flavour=flavour or "ardupilot",
-                start_enu_m=pos,  # type: ignore[arg-type]
+                start_enu_m=pos,
                 airborne=args.airborne,
                 ground_z_m=0.0,
                 origin=origin,
@@ -264,7 +273,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
                 physics_hz=args.physics_hz,
                 profile=profile or "pointmass",
                 lag_s=args.lag,
-                wind_enu_mps=wind,  # type: ignore[arg-type]
+                wind_enu_mps=wind,
                 position_noise_m=args.noise,
                 seed=seed,
                 signing_key_path=key,

@@ -51,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
     require_rerun()
     with ViewServer(web_port=args.port, rrds=files) as server:
         print(f"view: {server.browser_url}  ({', '.join(str(f) for f in files)}; Ctrl-C to stop)", flush=True)
-        code = server.proc.wait()  # type: ignore[union-attr]
+        code = server.wait()
     print(f"rerun's viewer stopped (status {code})", file=sys.stderr)
     return 1

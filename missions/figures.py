@@ -216,7 +216,7 @@ def _set_log_axis(ax: Any, lo: float, hi: float) -> None:
         minor = np.arange(ticks[0] - step, ticks[-1] + step, step / 2.0)
         ax.yaxis.set_minor_locator(FixedLocator([t for t in minor if lo <= t <= hi]))
     else:
-        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=np.arange(1.0, 10.0), numticks=100))
+        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=[float(m) for m in range(1, 10)], numticks=100))
     ax.yaxis.set_minor_formatter(NullFormatter())
 
 
@@ -415,8 +415,7 @@ def _end_tag(curve: _Curve, curves: Sequence[_Curve]) -> str:
 def _annotate_ends(fig: Any, ax: Any, curves: Sequence[_Curve], colours: dict[str, Any]) -> None:
     """Each curve's last value as text right of the axes, joined to the curve's end by a line;
     labels are spread vertically so that they do not overlap."""
-    ends = [(c, c.last()) for c in curves]
-    ends = [(c, e) for c, e in ends if e is not None]
+    ends = [(c, e) for c in curves if (e := c.last()) is not None]
     if not ends:
         return
     fig.canvas.draw()  # the layout fixes the axes height, which sets the labels' spacing

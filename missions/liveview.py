@@ -221,6 +221,12 @@ class ViewServer:
                 time.sleep(0.05)  # polling the ports, with the deadline above
         return self
 
+    def wait(self) -> int:
+        """Wait until the server exits; its exit status (RuntimeError if it was not started)."""
+        if self.proc is None:
+            raise RuntimeError("rerun's viewer was not started (ViewServer.start)")
+        return self.proc.wait()
+
     def close(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL after 3 s)."""
         p = self.proc
@@ -303,7 +309,7 @@ class SwarmView:
         rec.set_time("step", sequence=frame.step)
         rec.set_time("mission_time", duration=frame.time_s)
         rec.log("world/source", rr.Points3D([frame.source_m], radii=1.5, colors=[SOURCE_COLOUR], labels=["source"]))
-        known = np.isfinite(frame.positions_m).all(axis=1)
+        known = np.all(np.isfinite(frame.positions_m), axis=1)
         ids = [i for i in range(self.n) if known[i]]
         for i in ids:
             trail = self._trails[i]
@@ -314,7 +320,7 @@ class SwarmView:
         strips = [np.asarray(t) for t in self._trails if len(t) >= 2]
         if strips:
             rec.log("world/trails", rr.LineStrips3D(strips, radii=0.3, colors=[(0, 150, 70)]))
-        has_est = np.isfinite(frame.estimates_m).all(axis=1)
+        has_est = np.all(np.isfinite(frame.estimates_m), axis=1)
         est_ids = [i for i in range(self.n) if has_est[i]]
         rec.log(
             "world/estimates",

@@ -245,7 +245,7 @@ class _MissionDumper(yaml.SafeDumper):
     """Safe YAML dumper writing lists of scalars inline (``[0.0, 150.0, 8.0]``), the rest in block
     style, and text holding a YAML line break other than ``\\n`` double-quoted (escaped)."""
 
-    def represent_list(self, data: list[Any]) -> yaml.Node:  # PyYAML hook
+    def represent_list(self, data: Iterable[Any]) -> yaml.SequenceNode:  # PyYAML hook
         flow = all(not isinstance(item, (list, dict)) for item in data)
         return self.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
@@ -304,7 +304,12 @@ class _UnreadableValue(yaml.constructor.ConstructorError):
 
     def __init__(self, node: yaml.Node, exc: Exception) -> None:
         tag = node.tag.replace("tag:yaml.org,2002:", "!!")
-        value = node.value if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
+        if isinstance(node, yaml.ScalarNode):
+            value = node.value
+        elif isinstance(node, (yaml.SequenceNode, yaml.MappingNode)):
+            value = f"a {node.id}"
+        else:  # PyYAML composes only scalars, sequences and mappings
+            value = f"a {type(node).__name__}"
         reason = str(exc).split(";")[0] if isinstance(exc, (ValueError, OverflowError)) else ""
         found = _short(value) + (f" ({reason})" if reason else "")
         super().__init__(None, None, f"expected a YAML value that can be read as {tag}, found {found}"[:300], node.start_mark)
@@ -668,9 +673,9 @@ def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[
         else:
             text = f"unknown key; expected one of {', '.join(valid)}; found {key!r}"
     elif kind == "invalid_key":
-        key = loc.pop() if loc else None
+        bad_key = loc.pop() if loc else None
         valid = _model_fields_at(loc) or []
-        text = f"unknown key; expected text keys (one of {', '.join(valid)}); found {_kind(key)}"
+        text = f"unknown key; expected text keys (one of {', '.join(valid)}); found {_kind(bad_key)}"
     elif kind == "missing":
         parent_fields = _model_fields_at(loc[:-1])
         if parent_fields is not None:

@@ -203,8 +203,9 @@ def _expand_roles(data: Any) -> Any:
         if role not in ROLES:
             raise fail("roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role))
         count = data.get("count")
-        valid_count = isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES
-        data = {**data, "roles": [role] * (count if valid_count else 1)}
+        if not (isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES):
+            count = 1
+        data = {**data, "roles": [role] * count}
     return data
 
 
@@ -683,7 +684,7 @@ class Mission(_Section):
         any height) as bounds; a forgetting factor of 0.97 per step for a moving source."""
         box = self.source.search_box
         if box is not None:
-            lo, hi = tuple(box.min_m), tuple(box.max_m)
+            lo, hi = box.min_m, box.max_m
         else:
             f = self.fence
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
@@ -722,17 +723,17 @@ class Mission(_Section):
             if not c.z_min_m <= z <= c.z_max_m:
                 raise fail(where(i), f"z within [z_min_m, z_max_m] = [{c.z_min_m:g}, {c.z_max_m:g}]", who(i))
         inside_fence = self.fence.contains(starts)
-        for i in np.flatnonzero(~inside_fence):
-            raise fail(where(int(i)), "a start position inside the fence", who(int(i)))
+        for outside in np.flatnonzero(~inside_fence):
+            raise fail(where(int(outside)), "a start position inside the fence", who(int(outside)))
 
         if n > 1:
             diff = starts[:, None, :] - starts[None, :, :]
             dist = np.linalg.norm(diff, axis=-1) + np.diag(np.full(n, np.inf))
-            i, j = np.unravel_index(int(np.argmin(dist)), dist.shape)
-            if dist[i, j] < c.d_uav_m:
-                i, j = min(i, j), max(i, j)
+            a, b = np.unravel_index(int(np.argmin(dist)), dist.shape)
+            if dist[a, b] < c.d_uav_m:
+                i, j = int(min(a, b)), int(max(a, b))
                 raise fail(
-                    where(int(j)),
+                    where(j),
                     f"start positions at least d_uav_m = {c.d_uav_m:g} m apart",
                     f"drones {i + 1} and {j + 1} {dist[i, j]:.3g} m apart",
                 )
@@ -740,11 +741,11 @@ class Mission(_Section):
         source0 = self.source.position_at(0.0)
         source_end = self.source.position_at(self.duration_s)
         d_src = np.linalg.norm(starts - source0, axis=-1)
-        for i in np.flatnonzero(d_src < c.d_source_m):
+        for near in np.flatnonzero(d_src < c.d_source_m):
             raise fail(
-                where(int(i)),
+                where(int(near)),
                 f"a start at least d_source_m = {c.d_source_m:g} m from the source",
-                f"{who(int(i))}, {d_src[i]:.3g} m from it",
+                f"{who(int(near))}, {d_src[near]:.3g} m from it",
             )
         for label, point in (("at t = 0", source0), (f"at t = {self.duration_s:g} s", source_end)):
             if not bool(self.fence.contains(point)):
@@ -761,8 +762,8 @@ class Mission(_Section):
                     f"a start at least d_obstacle_m = {c.d_obstacle_m:g} m from every obstacle",
                     f"{who(int(i))}, {sd[i, b]:.3g} m from obstacle {names[b]!r}",
                 )
-            for b in range(len(names)):
-                if _segment_hits_box(source0, source_end, mins[b], maxs[b]):
+            for name, lo, hi in zip(names, mins, maxs):
+                if _segment_hits_box(source0, source_end, lo, hi):
                     path = "source.position_m" if self.source.is_static else "source"
-                    raise fail(path, "a source outside every obstacle", f"the source meets obstacle {names[b]!r}")
+                    raise fail(path, "a source outside every obstacle", f"the source meets obstacle {name!r}")
         return self

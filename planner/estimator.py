@@ -483,14 +483,16 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     row_ok = np.isfinite(px + py + pz)  # NaN/inf in any coordinate
     los = meas.los
     wb = row_weight * np.where(los, 1.0, config.nlos_bearing_weight)
-    out = [np.where(row_ok, arr, 0.0) for arr in (px, py, pz)]
-    weights = []
-    for z, w in ((meas.range_m, row_weight), (meas.azimuth_rad, wb), (meas.elevation_rad, wb)):
+
+    def present(z: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         ok = row_ok & np.isfinite(z)
-        out.append(np.where(ok, z, 0.0))
-        weights.append(np.where(ok, w, 0.0))
+        return np.where(ok, z, 0.0), np.where(ok, w, 0.0)
+
+    zr, ar = present(meas.range_m, row_weight)
+    za, aa = present(meas.azimuth_rad, wb)
+    ze, ae = present(meas.elevation_rad, wb)
     s0 = np.where(los, channel.sigma_r0_los, channel.sigma_r0_nlos)
-    return _Rows(*out, *weights, s0)
+    return _Rows(np.where(row_ok, px, 0.0), np.where(row_ok, py, 0.0), np.where(row_ok, pz, 0.0), zr, za, ze, ar, aa, ae, s0)
 
 
 @dataclass(frozen=True)
@@ -717,10 +719,11 @@ def _loss(e: FloatArray, k: float, c: float, redescend: bool | BoolArray) -> tup
     if not np.any(redescend):
         return huber()
     sel = np.asarray(redescend)[..., None]
-    return tuple(np.where(sel, t_, h_) for t_, h_ in zip(tukey(), huber()))  # type: ignore[return-value]
+    (t_rho, t_psi, t_w), (h_rho, h_psi, h_w) = tukey(), huber()
+    return np.where(sel, t_rho, h_rho), np.where(sel, t_psi, h_psi), np.where(sel, t_w, h_w)
 
 
-def _sum(a: FloatArray, b: FloatArray) -> FloatArray:
+def _sum(a: FloatArray, b: FloatArray | BoolArray) -> FloatArray:
     return np.einsum("...k,...k->...", a, b)
 
 

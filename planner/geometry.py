@@ -9,6 +9,8 @@ Every function broadcasts over leading dimensions (trials, drones, ...).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -18,6 +20,15 @@ BoolArray = NDArray[np.bool_]
 #: Horizontal distances below this are treated as this (m): the azimuth is undefined
 #: straight above or below the source.
 RHO_FLOOR_M: float = 1e-9
+
+
+def vec3(values: Iterable[float]) -> tuple[float, float, float]:
+    """One point or vector, e.g. a (3,) array, as three Python floats ``(x, y, z)`` (the form
+    messages and settings hold); ValueError for another number of values."""
+    out = tuple(float(v) for v in values)
+    if len(out) != 3:
+        raise ValueError(f"expected 3 coordinates (x, y, z), found {len(out)}")
+    return out[0], out[1], out[2]
 
 
 def ranges_angles(source: ArrayLike, positions: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:

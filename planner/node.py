@@ -49,10 +49,10 @@ import queue
 import select
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Literal, TextIO
 
 import numpy as np
 
@@ -69,6 +69,7 @@ from comms.mavlink_client import (
     MSG_HOME_POSITION,
     MSG_LOCAL_POSITION_NED,
     MSG_SYS_STATUS,
+    Frame,
     LinkError,
     VehicleLink,
     read_signing_key,
@@ -79,6 +80,7 @@ from comms.session import SessionSettings, open_session
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
 from planner.errors import FimnavError
+from planner.geometry import vec3
 from planner.params import Channel
 from planner.randomness import CONTROL_DRAWS, control_rng
 
@@ -171,8 +173,8 @@ class NodeOptions:
     step_timeout_s: float = 30.0
     preflight_timeout_s: float = 120.0
     speedup: float = 1.0
-    flavour: str | None = None
-    setpoint_frame: str | None = None
+    flavour: Literal["auto", "ardupilot", "px4"] | None = None
+    setpoint_frame: Literal["auto", "global", "local_ned"] | None = None
     signing_key_file: Path | None = None
     stream_hz: float = 5.0
     peer_wait_fraction: float = 0.5
@@ -203,14 +205,16 @@ class _Inbox:
     def __init__(self, mission_id: str, count: int) -> None:
         self.mission_id = mission_id
         self.count = count
-        self.queue: queue.SimpleQueue[tuple[str, str, bytes | None]] = queue.SimpleQueue()
+        #: (kind, key expression, payload): kind "data", or "alive"/"gone" for a liveliness
+        #: change (no payload: b"").
+        self.queue: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
         self.dropped: Counter[str] = Counter()
         # Self-pipe: a callback makes it readable so the node's select() wakes at once.
         self.wake_r, self.wake_w = os.pipe()
         os.set_blocking(self.wake_r, False)
         os.set_blocking(self.wake_w, False)
 
-    def _put(self, item: tuple[str, str, bytes | None]) -> None:
+    def _put(self, item: tuple[str, str, bytes]) -> None:
         self.queue.put(item)
         try:
             os.write(self.wake_w, b"z")
@@ -221,7 +225,7 @@ class _Inbox:
         self._put(("data", str(sample.key_expr), bytes(sample.payload.to_bytes())))
 
     def on_liveliness(self, sample: Any) -> None:
-        self._put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), None))
+        self._put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), b""))
 
     def clear_wake(self) -> None:
         try:
@@ -316,7 +320,7 @@ class PlannerNode:
         resolved = mission.vehicles.for_drone(self.i)
         self.flavour_setting = options.flavour or resolved.autopilot
         frame = options.setpoint_frame or resolved.setpoint_frame
-        self.frame = ("local_ned" if options.lockstep else "global") if frame == "auto" else frame
+        self.frame: Frame = ("local_ned" if options.lockstep else "global") if frame == "auto" else frame
         key_file = options.signing_key_file or resolved.signing_key_file
         # Read (and permission-check) the key before anything opens: a refused key starts nothing.
         self._signing_key = read_signing_key(key_file) if key_file is not None else None
@@ -373,10 +377,10 @@ class PlannerNode:
             sysid,
             signing_key=self._signing_key,
             wall=self.wall,
-            frame=self.frame,  # type: ignore[arg-type]
+            frame=self.frame,
             mission_frame=self.mission_frame,
             altitude_reference=self.m.altitude_reference,
-            flavour=forced,  # type: ignore[arg-type]
+            flavour=forced,
             tlog=self.o.tlog_path,
         )
 
@@ -471,7 +475,7 @@ class PlannerNode:
         while True:
             kind, key, data = item
             if kind == "data":
-                msg = self.inbox.decode(key, data)  # type: ignore[arg-type]
+                msg = self.inbox.decode(key, data)
                 if isinstance(msg, Observation):
                     if "/measurement/" in key:
                         if self.o.lockstep:
@@ -533,7 +537,8 @@ class PlannerNode:
         link = self._require_link()
         if not self.o.lockstep:
             timeout_s = min(timeout_s, link.stream_period_s)
-        fds = [self.inbox.wake_r] + ([link.fileno()] if link.fileno() is not None else [])
+        fd = link.fileno()
+        fds = [self.inbox.wake_r] + ([fd] if fd is not None else [])
         try:
             select.select(fds, [], [], max(timeout_s, 0.0))
         except (OSError, ValueError):
@@ -570,7 +575,12 @@ class PlannerNode:
             climb_to = float(self.start[2])
             if not link.is_px4:
                 link.takeoff(climb_to)
-                self._wait_preflight(lambda: link.telemetry.position_enu_m[2] >= climb_to - START_TOLERANCE_M, "take-off altitude")
+
+                def climbed() -> bool:
+                    pos = link.telemetry.position_enu_m
+                    return pos is not None and pos[2] >= climb_to - START_TOLERANCE_M
+
+                self._wait_preflight(climbed, "take-off altitude")
         else:
             link.set_mode(mode)
         self._wait_preflight(lambda: self._hold_start() < START_TOLERANCE_M, "start position")
@@ -620,7 +630,7 @@ class PlannerNode:
                     self.o.uav,
                     k,
                     t_k,
-                    tuple(float(v) for v in own),
+                    vec3(own),
                     bool(self.ranging[self.i]),
                     bool(self.bearing[self.i]),
                     meas.los,
@@ -662,7 +672,7 @@ class PlannerNode:
                         self.o.uav,
                         k,
                         t_k,
-                        tuple(float(v) for v in state.estimate_m),
+                        vec3(state.estimate_m),
                         bool(state.observable),
                         bool(step.singular),
                         active_mask,
@@ -979,7 +989,7 @@ class PlannerNode:
             self.o.uav,
             k,
             t_k,
-            tuple(float(v) for v in own),
+            vec3(own),
             bool(self.ranging[self.i]),
             bool(self.bearing[self.i]),
             True,
@@ -1377,7 +1387,7 @@ class PlannerNode:
                         self.o.uav,
                         k,
                         w0,
-                        tuple(float(v) for v in pos),
+                        vec3(pos),
                         bool(self.ranging[self.i]),
                         bool(self.bearing[self.i]),
                         True,
@@ -1418,7 +1428,7 @@ class PlannerNode:
                 self.o.uav,
                 k,
                 w0,
-                tuple(float(v) for v in own),
+                vec3(own),
                 bool(self.ranging[self.i]),
                 bool(self.bearing[self.i]),
                 bool(meas.los) if fresh and meas else True,
@@ -1448,7 +1458,7 @@ class PlannerNode:
                     self.o.uav,
                     k,
                     w0,
-                    tuple(float(v) for v in state.estimate_m),
+                    vec3(state.estimate_m),
                     bool(state.observable),
                     bool(step.singular),
                     active_mask,
@@ -1530,7 +1540,7 @@ class PlannerNode:
 
 def replay_step_logs(
     state: est.EstimatorState,
-    rows_by_drone: dict[int, Sequence[dict[str, Any]]],
+    rows_by_drone: Mapping[int, Sequence[dict[str, Any]]],
     n: int,
     first: int,
     channel: Channel,

@@ -121,14 +121,17 @@ class ZenohBridge:
             self.dropped += 1
             log.warning("dropped a %s on the tick key", type(msg).__name__)
             return
+        clock = self.clock
+        if clock is None:
+            raise RuntimeError("a tick arrived without a lockstep clock (real time subscribes to no tick)")
         with self._lock:
-            last = self.clock.last
+            last = clock.last
             if last is not None and msg.time_s <= last.t_s:
                 return  # a repeated tick (the clock re-sends for late joiners)
             index = self._next_index
             self._next_index += 1
             self._mission_step[index] = msg.step
-        self.clock.push(VehicleTick(index, msg.time_s))
+        clock.push(VehicleTick(index, msg.time_s))
 
     def on_tick(self, vehicle: Any, tick: VehicleTick) -> None:
         """Host hook after ``vehicle`` advanced to ``tick``: publish its payload measurement."""

@@ -105,7 +105,6 @@ class VehicleHost:
     def run(self) -> None:
         """The loop (blocks until :meth:`stop`)."""
         next_hb = self.wall()
-        lockstep = isinstance(self.clock, LockstepClock)
         while not self._stop.is_set():
             self.iterations += 1
             now = self.wall()
@@ -134,8 +133,8 @@ class VehicleHost:
                 next_sim = min((v.next_due_s() for v in self.vehicles), default=math.inf)
                 wake = min(self.clock.wall_at(next_sim), next_hb, now + MAX_SLEEP_S)
             fds: list[int] = [fd for v in self.vehicles for fd in v.link.filenos()]
-            if lockstep:
-                fds.append(self.clock.fileno())  # type: ignore[union-attr]
+            if isinstance(self.clock, LockstepClock):
+                fds.append(self.clock.fileno())
             timeout = max(0.0, wake - self.wall())
             try:
                 select.select(fds, [], [], timeout)

@@ -71,10 +71,12 @@ def protocol_version_message(
 ) -> Any:
     """A pymavlink-packable PROTOCOL_VERSION message (id 300, CRC extra 217; payload
     ``<HHH8s8s``: version, min_version, max_version, spec_version_hash, library_version_hash)."""
-    m = mavlink_module()
+    mavlink_module()  # MAVLink 2 and the dialect are set before pymavlink is imported
+    from pymavlink.dialects.v20.ardupilotmega import MAVLink_message
+
     payload = struct.pack("<HHH8s8s", version, min_version, max_version, spec_hash, lib_hash)
 
-    class _ProtocolVersion(m.MAVLink_message):  # type: ignore[name-defined, misc]
+    class _ProtocolVersion(MAVLink_message):
         id = PROTOCOL_VERSION_ID
         msgname = "PROTOCOL_VERSION"
         crc_extra = PROTOCOL_VERSION_CRC_EXTRA
@@ -192,7 +194,7 @@ class UdpTransport(Transport):
         return out
 
     def write(self, buf: bytes) -> None:
-        targets = self.clients if self.kind == "udpin" else [self.dest]
+        targets = self.clients if self.dest is None else [self.dest]  # udpin: no fixed destination
         for addr in targets:
             try:
                 self.sock.sendto(buf, addr)

@@ -138,7 +138,7 @@ class Measurement:
                 sysid=int(d["sysid"]),
                 step=int(d["step"]),
                 t_s=float(d["t_s"]),
-                position_enu_m=pos,  # type: ignore[arg-type]
+                position_enu_m=pos,
                 range_m=opt("range_m"),
                 azimuth_rad=opt("azimuth_rad"),
                 elevation_rad=opt("elevation_rad"),

@@ -21,10 +21,11 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
+from planner.geometry import vec3
 from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, FloatArray, PointMass
 from vehicle_sim.flavour import FlavourInfo, Mode, flavour_info
@@ -1301,13 +1302,13 @@ class SimVehicle:
             self.fence = replace(self.fence, enabled=v == 1.0)
             return None
 
-        def fence_alt(field: str, relative: bool) -> Callable[[float], str | None]:
+        def fence_alt(field: Literal["z_min_m", "z_max_m"], relative: bool) -> Callable[[float], str | None]:
             def _set(v: float) -> str | None:
                 if not math.isfinite(v):
                     return "must be finite"
                 z = v + (float(self.home[2]) if relative else 0.0)
                 try:
-                    self.fence = replace(self.fence, **{field: z})
+                    self.fence = replace(self.fence, z_min_m=z) if field == "z_min_m" else replace(self.fence, z_max_m=z)
                 except ValueError as exc:
                     return str(exc)
                 return None
@@ -1499,7 +1500,7 @@ class SimVehicle:
                 self._due[name] = nxt if nxt > t else t + iv
 
     def _telemetry_builder(self, name: str) -> Callable[[], Any]:
-        return getattr(self, "msg_" + name.lower())  # type: ignore[no-any-return]
+        return getattr(self, "msg_" + name.lower())
 
     def _reported_position(self) -> FloatArray:
         p = self.position
@@ -1743,8 +1744,8 @@ class SimVehicle:
             mode=self.mode.custom_mode,
             mode_name=self.mode.name,
             landed_state=self.landed_state,
-            position_enu_m=tuple(float(v) for v in self.position),  # type: ignore[arg-type]
-            velocity_enu_mps=tuple(float(v) for v in self.pm.velocity),  # type: ignore[arg-type]
+            position_enu_m=vec3(self.position),
+            velocity_enu_mps=vec3(self.pm.velocity),
             params=tuple((name, p.get()) for name, p in self.params.items()),
             intervals_s=tuple(self.intervals.items()),
             origin=self.ekf.origin,
