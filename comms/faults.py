@@ -174,7 +174,7 @@ class FaultBuffer:
         # Records delivered now for the first time; those older than the saved one were
         # overtaken while late and never enter the view, but they are still evidence.
         arrived = usable & delivered[None]
-        first = arrived & ~self._delivered
+        first_arrival = arrived & ~self._delivered
         self._delivered |= arrived
-        self.late_steps = np.where(first & (s_idx < new[None]) & ~own[None], s_idx, NEVER)
+        self.late_steps = np.where(first_arrival & (s_idx < new[None]) & ~own[None], s_idx, NEVER)
         return np.where(own, step, new)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from pyproj import Transformer
@@ -50,6 +51,25 @@ class GeoPoint:
         return int(round(self.lon_deg * 1e7))
 
 
+class OriginSection(Protocol):
+    """What :meth:`MissionFrame.of_mission` reads of ``missions.schema.Origin`` (duck-typed:
+    comms does not import missions)."""
+
+    @property
+    def lat_deg(self) -> float: ...
+    @property
+    def lon_deg(self) -> float: ...
+    @property
+    def alt_m(self) -> float: ...
+
+
+class HasOrigin(Protocol):
+    """A mission (``missions.schema.Mission``): anything with an :class:`OriginSection`."""
+
+    @property
+    def origin(self) -> OriginSection: ...
+
+
 class MissionFrame:
     """Conversions between the mission ENU frame and WGS-84 for one mission origin.
 
@@ -75,9 +95,9 @@ class MissionFrame:
         )
 
     @classmethod
-    def of_mission(cls, mission: object) -> MissionFrame:
+    def of_mission(cls, mission: HasOrigin) -> MissionFrame:
         """The frame of a ``missions.schema.Mission`` (its ``origin`` section)."""
-        o = mission.origin  # type: ignore[attr-defined]
+        o = mission.origin
         return cls(o.lat_deg, o.lon_deg, o.alt_m)
 
     def to_global(self, x_m: float, y_m: float, z_m: float) -> GeoPoint:

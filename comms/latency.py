@@ -74,7 +74,7 @@ class DelayedView:
         self.faults: FaultBuffer | None = None
         if faults is not None and faults.enabled:
             self.faults = FaultBuffer(faults, seed, [trial], [own_index], count, h_max if emulate else 1)
-        self._history: list[dict[int, Observation]] = [dict() for _ in range(count)]
+        self._history: list[dict[int, Observation]] = [{} for _ in range(count)]
         self._saved = np.full(count, NEVER, dtype=np.int64)
         self._last_position = np.full((count, 3), np.nan)
 

@@ -52,7 +52,14 @@ AUTOPILOT_COMPONENT = 1
 ARDUPILOT_GUIDED = 4
 ARDUPILOT_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9, "POSHOLD": 16, "BRAKE": 17}
 #: PX4 custom modes (main_mode << 16 | sub_mode << 24).
-PX4_MODES = {"POSCTL": 3 << 16, "OFFBOARD": 6 << 16, "AUTO.LOITER": (4 << 16) | (3 << 24), "AUTO.RTL": (4 << 16) | (5 << 24), "AUTO.LAND": (4 << 16) | (6 << 24), "AUTO.TAKEOFF": (4 << 16) | (2 << 24)}
+PX4_MODES = {
+    "POSCTL": 3 << 16,
+    "OFFBOARD": 6 << 16,
+    "AUTO.LOITER": (4 << 16) | (3 << 24),
+    "AUTO.RTL": (4 << 16) | (5 << 24),
+    "AUTO.LAND": (4 << 16) | (6 << 24),
+    "AUTO.TAKEOFF": (4 << 16) | (2 << 24),
+}
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 Flavour = Literal["ardupilot", "px4"]
@@ -97,8 +104,15 @@ MSG_EKF_STATUS_REPORT = 193
 MSG_HOME_POSITION = 242
 MSG_EXTENDED_SYS_STATE = 245
 #: REQUEST_DATA_STREAM groups (ArduPilot) that carry each message, for the fallback.
-DATA_STREAM_OF = {MSG_SYS_STATUS: 2, MSG_GPS_RAW_INT: 2, MSG_LOCAL_POSITION_NED: 6, MSG_GLOBAL_POSITION_INT: 6,
-                  MSG_EKF_STATUS_REPORT: 12, MSG_HOME_POSITION: 12, MSG_EXTENDED_SYS_STATE: 12}
+DATA_STREAM_OF = {
+    MSG_SYS_STATUS: 2,
+    MSG_GPS_RAW_INT: 2,
+    MSG_LOCAL_POSITION_NED: 6,
+    MSG_GLOBAL_POSITION_INT: 6,
+    MSG_EKF_STATUS_REPORT: 12,
+    MSG_HOME_POSITION: 12,
+    MSG_EXTENDED_SYS_STATE: 12,
+}
 
 
 #: A vehicle whose frames all fail our signature check for this long (wall s) and at least
@@ -234,7 +248,7 @@ class ClockWatch:
             step = len(pts) / 40.0
             pts = [pts[int(i * step)] for i in range(40)] + [pts[-1]]
         half = 0.5 * min_span_s
-        slopes = [(b2 - b1) / (w2 - w1) for i, (w1, b1) in enumerate(pts) for (w2, b2) in pts[i + 1:] if w2 - w1 >= half]
+        slopes = [(b2 - b1) / (w2 - w1) for i, (w1, b1) in enumerate(pts) for (w2, b2) in pts[i + 1 :] if w2 - w1 >= half]
         return float(np.median(slopes)) if slopes else None
 
 
@@ -549,7 +563,8 @@ class VehicleLink:
                 pass  # no position yet (ArduPilot reports 0, 0 before its first fix)
             elif self.frame == "global" and (msg.time_boot_ms >= tel.position_time_ms or msg.time_boot_ms < tel.position_time_ms - 10_000):
                 # (a time_boot_ms far behind the last one: the autopilot rebooted)
-                assert self.mission_frame is not None
+                if self.mission_frame is None:
+                    raise RuntimeError("frame 'global' without a mission frame (checked when the link is made)")
                 x, y, z = self.mission_frame.to_enu(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
                 if self.altitude_reference == "relative":
                     z = msg.relative_alt * 1e-3
@@ -591,11 +606,15 @@ class VehicleLink:
 
     def _signing_hint(self) -> str:
         if self._signing_key is not None and self.mav.signing.badsig_count:
-            return (f" ({self.mav.signing.badsig_count} frames from the vehicle carried a signature that does not "
-                    "match our signing key: check that both use the same key)")
+            return (
+                f" ({self.mav.signing.badsig_count} frames from the vehicle carried a signature that does not "
+                "match our signing key: check that both use the same key)"
+            )
         if self._signing_key is None and (self.telemetry.signed_seen or self.mav.signing.sig_count):
-            return (" (the vehicle signs its messages: it probably refuses our unsigned ones; give the "
-                    "signing key with --signing-key or vehicles.overrides[i].signing_key_file)")
+            return (
+                " (the vehicle signs its messages: it probably refuses our unsigned ones; give the "
+                "signing key with --signing-key or vehicles.overrides[i].signing_key_file)"
+            )
         return ""
 
     def wait_heartbeat(self, timeout_s: float = 10.0) -> None:
@@ -612,12 +631,17 @@ class VehicleLink:
             if self.telemetry.heartbeats > start:
                 return True
             sig = self.mav.signing
-            if (self._signing_key is not None and sig.badsig_count >= WRONG_KEY_MIN_FRAMES and sig.goodsig_count == 0
-                    and self.wall() - t0 >= WRONG_KEY_AFTER_S):
+            if (
+                self._signing_key is not None
+                and sig.badsig_count >= WRONG_KEY_MIN_FRAMES
+                and sig.goodsig_count == 0
+                and self.wall() - t0 >= WRONG_KEY_AFTER_S
+            ):
                 raise LinkError(
                     f"vehicle {self.target_system}: every frame from it for {self.wall() - t0:.0f} s "
                     f"({sig.badsig_count} frames) carried a signature that does not match our signing key: "
-                    "the vehicle was set up with another key (check --signing-key / signing_key_file)")
+                    "the vehicle was set up with another key (check --signing-key / signing_key_file)"
+                )
             return False
 
         self.wait_for(done, timeout_s, "heartbeat")
@@ -680,14 +704,15 @@ class VehicleLink:
             prearm_reported = t.sensors_present is not None and not self.in_mode("OFFBOARD")
         else:
             prearm_reported = t.sensors_present is not None and bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK)
-        if prearm_reported and not t.armed:
-            if not (t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK:
-                reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
-                missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
+        if prearm_reported and not t.armed and not ((t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK):
+            reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
+            missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
         if self.is_px4 and t.position_enu_m is None:
             # PX4 sends HOME_POSITION before its EKF has aligned, and no GLOBAL_POSITION_INT
             # (no LOCAL_POSITION_NED with a valid position) until it has.
-            missing.append("position estimate (no GLOBAL_POSITION_INT yet)" if self.frame == "global" else "position estimate (no LOCAL_POSITION_NED yet)")
+            missing.append(
+                "position estimate (no GLOBAL_POSITION_INT yet)" if self.frame == "global" else "position estimate (no LOCAL_POSITION_NED yet)"
+            )
         if not t.home_known:
             missing.append("home position (HOME_POSITION)")
         if t.origin_global is None:
@@ -701,7 +726,9 @@ class VehicleLink:
         still waits for the periodic heartbeat). Its acknowledgement is dropped with the next
         REQUEST_MESSAGE's (:meth:`command` clears stale acknowledgements)."""
         m = self.mavutil.mavlink
-        self.mav.command_long_send(self.target_system, AUTOPILOT_COMPONENT, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
+        self.mav.command_long_send(
+            self.target_system, AUTOPILOT_COMPONENT, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0
+        )
 
     def request_message(self, message_id: int) -> bool:
         """MAV_CMD_REQUEST_MESSAGE (one message now); False if refused or unanswered."""
@@ -789,14 +816,20 @@ class VehicleLink:
             if attempt > 0 and done_already is not None and done_already():
                 return m.MAV_RESULT_ACCEPTED
             if len(self.statustexts) == texts_before:  # an autopilot sends its reason after the ACK
-                try:
-                    self.wait_for(lambda: len(self.statustexts) > texts_before, 0.3, "reason")
-                except LinkTimeout:
-                    pass
+                self._wait_for_statustext_after(texts_before)
             reason = "; ".join(self.statustexts[texts_before:]) or "no reason given"
             name = m.enums["MAV_RESULT"][result].name if result in m.enums["MAV_RESULT"] else str(result)
             raise LinkError(f"vehicle {self.target_system} refused {label}: {name} ({reason})")
-        raise LinkTimeout(f"vehicle {self.target_system}: no acknowledgement of {label} after {retries} tries in {timeout_s:g} s{self._signing_hint()}")
+        raise LinkTimeout(
+            f"vehicle {self.target_system}: no acknowledgement of {label} after {retries} tries in {timeout_s:g} s{self._signing_hint()}"
+        )
+
+    def _wait_for_statustext_after(self, count: int) -> None:
+        """Wait briefly (0.3 s) for a STATUSTEXT beyond the first ``count``: a refusal's reason."""
+        try:
+            self.wait_for(lambda: len(self.statustexts) > count, 0.3, "reason")
+        except LinkTimeout:
+            pass
 
     def request_interval(self, message_id: int, rate_hz: float) -> None:
         """SET_MESSAGE_INTERVAL for one message (rate in the autopilot's time, Hz)."""
@@ -879,12 +912,19 @@ class VehicleLink:
                 # for a moment while its EKF settles): wait for a new pass, then try again.
                 if attempt == tries - 1:
                     raise
-                seen = self.telemetry.sys_status_count
-                self.wait_for(lambda: self.telemetry.sys_status_count > seen + 1
-                              and bool((self.telemetry.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK), 10.0, "pre-arm checks passing again")
+                self._wait_for_prearm_pass()
         if not self.telemetry.armed:
             self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.armed, MODE_CONFIRM_TIMEOUT_S, "armed heartbeat")
+
+    def _wait_for_prearm_pass(self) -> None:
+        """Wait (10 s) for a SYS_STATUS, after the next one, whose pre-arm check passes."""
+        seen = self.telemetry.sys_status_count
+        self.wait_for(
+            lambda: self.telemetry.sys_status_count > seen + 1 and bool((self.telemetry.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK),
+            10.0,
+            "pre-arm checks passing again",
+        )
 
     def takeoff(self, altitude_m: float) -> None:
         """MAV_CMD_NAV_TAKEOFF to ``altitude_m`` above home (acknowledged, not awaited)."""
@@ -913,7 +953,11 @@ class VehicleLink:
         m = self.mavutil.mavlink
         if position_enu_m is None and velocity_enu_mps is None:
             raise ValueError("a setpoint needs a position or a velocity")
-        mask = MASK_POSITION_VELOCITY if position_enu_m is not None and velocity_enu_mps is not None else (MASK_POSITION if velocity_enu_mps is None else MASK_VELOCITY)
+        mask = (
+            MASK_POSITION_VELOCITY
+            if position_enu_m is not None and velocity_enu_mps is not None
+            else (MASK_POSITION if velocity_enu_mps is None else MASK_VELOCITY)
+        )
         vn, ve, vd = enu_to_ned(velocity_enu_mps) if velocity_enu_mps is not None else (0.0, 0.0, 0.0)
         self.setpoints_sent += 1
         if self.frame == "local_ned":
@@ -922,7 +966,8 @@ class VehicleLink:
                 0, self.target_system, AUTOPILOT_COMPONENT, m.MAV_FRAME_LOCAL_NED, mask, n, e, d, vn, ve, vd, 0, 0, 0, 0, 0
             )
             return
-        assert self.mission_frame is not None
+        if self.mission_frame is None:
+            raise RuntimeError("frame 'global' without a mission frame (checked when the link is made)")
         lat_e7 = lon_e7 = 0
         alt = 0.0
         if position_enu_m is not None:

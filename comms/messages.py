@@ -156,7 +156,9 @@ def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = N
     if isinstance(msg, Done):
         return _header(MessageKind.DONE, mission_id, msg.sender, seq) + _DONE.pack(msg.step)
     if isinstance(msg, Status):
-        head = _STATUS_HEAD.pack(msg.step, msg.time_s, *msg.estimate_m, int(msg.observable), int(msg.singular), msg.active_mask & 0xFF, len(msg.saved_steps))
+        head = _STATUS_HEAD.pack(
+            msg.step, msg.time_s, *msg.estimate_m, int(msg.observable), int(msg.singular), msg.active_mask & 0xFF, len(msg.saved_steps)
+        )
         return _header(MessageKind.STATUS, mission_id, msg.sender, seq) + head + np.asarray(msg.saved_steps, dtype="<i4").tobytes()
     raise TypeError(f"cannot encode {type(msg).__name__}")
 
@@ -213,8 +215,9 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
                     raise MessageError(f"{name} {v!r}: expected an angle in [-{lim:.4f}, {lim:.4f}] rad (or NaN)")
         elif not (math.isnan(az) and math.isnan(el)):
             raise MessageError("bearing given by a drone without the bearing role")
-        return header, Observation(sender, step, t, (x, y, z), ranging, bearing, bool(flags & LOS_FLAG), rng, az, el,
-                                   bool(flags & STALE_FLAG), bool(flags & TAKEN_OVER_FLAG))
+        return header, Observation(
+            sender, step, t, (x, y, z), ranging, bearing, bool(flags & LOS_FLAG), rng, az, el, bool(flags & STALE_FLAG), bool(flags & TAKEN_OVER_FLAG)
+        )
     if kind == MessageKind.TICK:
         _need(body, _TICK.size, kind)
         step, t = _TICK.unpack(body)

@@ -38,9 +38,12 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:  # zenoh is imported when a session is made
+    import zenoh
 
 #: Zenoh transport lease (ms): a silent peer is declared gone after this.
 LEASE_MS: int = 2000
@@ -50,14 +53,20 @@ KEEP_ALIVE: int = 4
 
 class ZenohSection(Protocol):
     """What this module reads of ``missions.schema.ZenohSpec`` (duck-typed: comms does not
-    import missions)."""
+    import missions). Read-only: the mission's sections are frozen."""
 
-    mode: str
-    listen: Sequence[str]
-    connect: Sequence[str]
-    multicast_scouting: bool
-    tls: Any
-    auth: Any
+    @property
+    def mode(self) -> str: ...
+    @property
+    def listen(self) -> Sequence[str]: ...
+    @property
+    def connect(self) -> Sequence[str]: ...
+    @property
+    def multicast_scouting(self) -> bool: ...
+    @property
+    def tls(self) -> Any: ...
+    @property
+    def auth(self) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -96,7 +105,12 @@ class SessionSettings:
         return ["--zenoh-config", json.dumps(self.to_json())]
 
     def to_json(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"mode": self.mode, "listen": list(self.listen), "connect": list(self.connect), "multicast_scouting": self.multicast_scouting}
+        d: dict[str, Any] = {
+            "mode": self.mode,
+            "listen": list(self.listen),
+            "connect": list(self.connect),
+            "multicast_scouting": self.multicast_scouting,
+        }
         for name in ("tls_root_ca", "tls_certificate", "tls_private_key", "auth_user", "auth_password_file"):
             value = getattr(self, name)
             if value is not None:
@@ -105,14 +119,19 @@ class SessionSettings:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SessionSettings:
-        paths = {k: Path(d[k]) for k in ("tls_root_ca", "tls_certificate", "tls_private_key", "auth_password_file") if d.get(k)}
+        def path(key: str) -> Path | None:
+            return Path(d[key]) if d.get(key) else None
+
         return cls(
             mode=str(d.get("mode", "peer")),
             listen=tuple(d.get("listen", ("tcp/127.0.0.1:0",))),
             connect=tuple(d.get("connect", ())),
             multicast_scouting=bool(d.get("multicast_scouting", False)),
+            tls_root_ca=path("tls_root_ca"),
+            tls_certificate=path("tls_certificate"),
+            tls_private_key=path("tls_private_key"),
             auth_user=d.get("auth_user"),
-            **paths,
+            auth_password_file=path("auth_password_file"),
         )
 
 
@@ -169,7 +188,7 @@ def tls_endpoints(endpoints: Sequence[str], what: str) -> list[str]:
     return out
 
 
-def zenoh_config(settings: SessionSettings, dictionary_file: Path | None = None):  # noqa: ANN201 - zenoh.Config
+def zenoh_config(settings: SessionSettings, dictionary_file: Path | None = None) -> zenoh.Config:
     """The ``zenoh.Config`` of these settings.
 
     Args:
@@ -239,7 +258,7 @@ def _swarm_dictionary(settings: SessionSettings) -> Iterator[Path | None]:
         yield path
 
 
-def open_session(settings: SessionSettings):  # noqa: ANN201 - zenoh.Session
+def open_session(settings: SessionSettings) -> zenoh.Session:
     """Open a Zenoh session with these settings."""
     import zenoh
 

@@ -15,8 +15,9 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from types import FrameType
+from typing import Any
 
 from planner.errors import FimnavError
 
@@ -52,8 +53,7 @@ class _VersionAction(argparse.Action):
     def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, help: str | None = None) -> None:
         super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
-                 option_string: str | None = None) -> None:
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object, option_string: str | None = None) -> None:
         sys.stdout.write(f"fimnav {installed_version()}\n")
         parser.exit(0)
 
@@ -109,9 +109,10 @@ def _terminate_on_signals(command: str) -> Iterator[None]:
         yield
         return
     owner = os.getpid()
-    previous: dict[signal.Signals, object] = {}
+    # (what signal.signal returns: a handler, SIG_DFL/SIG_IGN, or None if not set from Python)
+    previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int | None] = {}
 
-    def terminate(signum: int, frame: FrameType | None) -> None:  # noqa: ARG001
+    def terminate(signum: int, frame: FrameType | None) -> None:
         if os.getpid() != owner:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
@@ -130,7 +131,7 @@ def _terminate_on_signals(command: str) -> Iterator[None]:
         yield
     finally:
         for s, handler in previous.items():
-            signal.signal(s, handler)  # type: ignore[arg-type]
+            signal.signal(s, handler)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

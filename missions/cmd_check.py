@@ -104,10 +104,7 @@ def summary(mission: Any, file: str) -> str:
     starts = d.start_positions_m()
     if d.start.ellipse is not None:
         e = d.start.ellipse
-        how = (
-            f"ellipse in XZ, centre {_v(e.center_m)} m, r_x {e.radius_x_m:g} m, r_z {e.radius_z_m:g} m, "
-            f"phase {e.phase_deg:g} deg"
-        )
+        how = f"ellipse in XZ, centre {_v(e.center_m)} m, r_x {e.radius_x_m:g} m, r_z {e.radius_z_m:g} m, phase {e.phase_deg:g} deg"
     else:
         how = "explicit positions"
     lines.append(f"start      {how}")
@@ -121,8 +118,10 @@ def summary(mission: Any, file: str) -> str:
     lines.append(f"source     {_v(src.position_m)} m, {motion}; {dist.min():.1f}..{dist.max():.1f} m from the starts")
     if m.obstacles:
         lines.append(f"obstacles  {len(m.obstacles)}:")
-        for b in m.obstacles:
-            lines.append(f"           {b.name}: x {b.min_m[0]:g}..{b.max_m[0]:g}, y {b.min_m[1]:g}..{b.max_m[1]:g}, z {b.min_m[2]:g}..{b.max_m[2]:g} m")
+        lines.extend(
+            f"           {b.name}: x {b.min_m[0]:g}..{b.max_m[0]:g}, y {b.min_m[1]:g}..{b.max_m[1]:g}, z {b.min_m[2]:g}..{b.max_m[2]:g} m"
+            for b in m.obstacles
+        )
     else:
         lines.append("obstacles  none (line of sight everywhere)")
     ch = m.channel

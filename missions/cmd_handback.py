@@ -31,7 +31,7 @@ def register(subparsers: Any) -> None:
         "handback",
         help="give a drone taken over by a pilot back to its planner",
         description="Ask drone N's planner to take its vehicle back (GUIDED / OFFBOARD at its position) after a pilot or "
-                    "a ground station took it over. Reaches the planners of a fimnav launch with --results DIR.",
+        "a ground station took it over. Reaches the planners of a fimnav launch with --results DIR.",
     )
     p.add_argument("mission", metavar="MISSION", help="mission file or shipped mission name (its id names the keys)")
     p.add_argument("--uav", type=int, required=True, help="drone id (1-based)")
@@ -88,8 +88,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         session.close()
     if not matched:
-        print(f"fimnav handback: no planner of drone {args.uav} of mission {mission.id} answered on "
-              f"{keys.control(mission.id, args.uav)} within {MATCH_TIMEOUT_S:g} s (sent anyway)")
+        print(
+            f"fimnav handback: no planner of drone {args.uav} of mission {mission.id} answered on "
+            f"{keys.control(mission.id, args.uav)} within {MATCH_TIMEOUT_S:g} s (sent anyway)"
+        )
         return 1
     print(f"fimnav handback: asked drone {args.uav}'s planner to take its vehicle back")
     return 0

@@ -21,37 +21,80 @@ def register(subparsers: Any) -> None:
         "over Zenoh (loopback) and MAVLink, step them in lockstep, show progress and write the results.",
     )
     p.add_argument("mission", type=Path, metavar="MISSION", help="a mission file, or the name of a shipped mission (fimnav missions list)")
-    p.add_argument("--out", type=Path, help="results directory (default: results/<mission id>-<date>-<time>, with -2, -3, ... "
-                   "if taken); one holding a previous run is refused unless --overwrite")
-    p.add_argument("--overwrite", action="store_true", help="--out holds a previous run: remove its files (mission.yaml, "
-                   "summary.json, logs/, tlogs/, runs/, figures/; nothing else) before starting")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="results directory (default: results/<mission id>-<date>-<time>, with -2, -3, ... "
+        "if taken); one holding a previous run is refused unless --overwrite",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="--out holds a previous run: remove its files (mission.yaml, "
+        "summary.json, logs/, tlogs/, runs/, figures/; nothing else) before starting",
+    )
     p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
     p.add_argument("--seed", type=int, help="root seed (default: the mission's)")
     p.add_argument("--criterion", choices=("A", "D"), help="design criterion (default: the mission's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds a step may take before the run fails (default 30)")
-    p.add_argument("--on-failure", choices=("continue", "abort", "restart"), default="continue",
-                   help="when a vehicle or planner fails mid-mission: fly on without that drone (default), stop the run, "
-                   "or also restart a failed planner, which rejoins at the current step; the summary lists every failure "
-                   "and the exit status is then 3")
+    p.add_argument(
+        "--on-failure",
+        choices=("continue", "abort", "restart"),
+        default="continue",
+        help="when a vehicle or planner fails mid-mission: fly on without that drone (default), stop the run, "
+        "or also restart a failed planner, which rejoins at the current step; the summary lists every failure "
+        "and the exit status is then 3",
+    )
     rt = p.add_argument_group("real time (a mixed fleet: drones with vehicles.overrides[i].connection fly that autopilot)")
-    rt.add_argument("--realtime", action="store_true", help="step on the wall clock instead of the lockstep clock; simulated "
-                    "vehicles run in real time; drones with a connection in the mission get no simulated vehicle")
-    rt.add_argument("--speedup", type=float, default=1.0, help="real time: mission seconds per wall second (default 1; "
-                    "more only when every vehicle is simulated, or an external SITL runs at the same speed-up)")
-    rt.add_argument("--gcs", metavar="ENDPOINT", help="real time: one ground-station port for every simulated vehicle, "
-                    "e.g. udpout:127.0.0.1:14550 (QGroundControl, MAVProxy) or tcpin:127.0.0.1:5760; its commands go to the "
-                    "vehicle they target (docs/in-the-field.md)")
-    rt.add_argument("--start-delay", type=float, metavar="S", help="real time: wall seconds from the launch to step 0 "
-                    "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step")
-    p.add_argument("--view", action="store_true", help="watch the swarm live in a browser: rerun's web viewer on 127.0.0.1 "
-                   "(the address is printed), recorded to OUT/view.rrd for fimnav view; needs pip install 'fimnav[view]'")
+    rt.add_argument(
+        "--realtime",
+        action="store_true",
+        help="step on the wall clock instead of the lockstep clock; simulated "
+        "vehicles run in real time; drones with a connection in the mission get no simulated vehicle",
+    )
+    rt.add_argument(
+        "--speedup",
+        type=float,
+        default=1.0,
+        help="real time: mission seconds per wall second (default 1; "
+        "more only when every vehicle is simulated, or an external SITL runs at the same speed-up)",
+    )
+    rt.add_argument(
+        "--gcs",
+        metavar="ENDPOINT",
+        help="real time: one ground-station port for every simulated vehicle, "
+        "e.g. udpout:127.0.0.1:14550 (QGroundControl, MAVProxy) or tcpin:127.0.0.1:5760; its commands go to the "
+        "vehicle they target (docs/in-the-field.md)",
+    )
+    rt.add_argument(
+        "--start-delay",
+        type=float,
+        metavar="S",
+        help="real time: wall seconds from the launch to step 0 "
+        "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step",
+    )
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="watch the swarm live in a browser: rerun's web viewer on 127.0.0.1 "
+        "(the address is printed), recorded to OUT/view.rrd for fimnav view; needs pip install 'fimnav[view]'",
+    )
     p.add_argument("--view-port", type=int, metavar="PORT", help="--view: the web viewer's port (default: a free one)")
-    p.add_argument("--vehicles-per-process", type=int, default=10, help="simulated vehicles hosted by one process (default 10: "
-                   "fewer interpreters share the cores better; 1 gives every vehicle its own process, e.g. to kill one)")
-    p.add_argument("--no-fork-server", dest="fork_server", action="store_false",
-                   help="start every planner as a fresh interpreter (about 0.45 s of CPU each to import) instead of forking it "
-                   "from a fork server that imported them once; each planner is its own process either way")
+    p.add_argument(
+        "--vehicles-per-process",
+        type=int,
+        default=10,
+        help="simulated vehicles hosted by one process (default 10: "
+        "fewer interpreters share the cores better; 1 gives every vehicle its own process, e.g. to kill one)",
+    )
+    p.add_argument(
+        "--no-fork-server",
+        dest="fork_server",
+        action="store_false",
+        help="start every planner as a fresh interpreter (about 0.45 s of CPU each to import) instead of forking it "
+        "from a fork server that imported them once; each planner is its own process either way",
+    )
     p.set_defaults(func=run)
 
 
@@ -74,9 +117,11 @@ def summary_line(summary: dict[str, Any], out: Path, stream: Any = None) -> str:
     ``stream``: where it will be printed (an arrow it cannot encode is written ``->``)."""
     last = int(summary["steps"]) - 1
     viol = sum(summary["violations"].values())
-    text = (f"{summary['run']}: mean PEB {_sig(summary['initial_peb_mean_m'])} → {_sig(summary['final_peb_mean_m'])} (step 0 → {last}), "
-            f"median estimate error {_sig(summary['final_estimate_error_median_m'])} (step {last}), safety violations {viol}, "
-            f"{summary['runtime_s']:.1f} s\nresults: {out}")
+    text = (
+        f"{summary['run']}: mean PEB {_sig(summary['initial_peb_mean_m'])} → {_sig(summary['final_peb_mean_m'])} (step 0 → {last}), "
+        f"median estimate error {_sig(summary['final_estimate_error_median_m'])} (step {last}), safety violations {viol}, "
+        f"{summary['runtime_s']:.1f} s\nresults: {out}"
+    )
     encoding = getattr(stream, "encoding", None) or "utf-8"
     try:
         text.encode(encoding)
@@ -139,15 +184,31 @@ def run(args: argparse.Namespace) -> int:
         bar.write(text, file=sys.stderr)
 
     try:
-        summary = launch(mission, out, progress=progress, step_timeout_s=args.step_timeout, vehicles_per_process=args.vehicles_per_process,
-                         on_failure=args.on_failure, realtime=args.realtime, speedup=args.speedup, start_delay_s=args.start_delay,
-                         fork_server=args.fork_server, overwrite=args.overwrite, notice=notice, gcs=args.gcs,
-                         view=args.view, view_port=args.view_port)
+        summary = launch(
+            mission,
+            out,
+            progress=progress,
+            step_timeout_s=args.step_timeout,
+            vehicles_per_process=args.vehicles_per_process,
+            on_failure=args.on_failure,
+            realtime=args.realtime,
+            speedup=args.speedup,
+            start_delay_s=args.start_delay,
+            fork_server=args.fork_server,
+            overwrite=args.overwrite,
+            notice=notice,
+            gcs=args.gcs,
+            view=args.view,
+            view_port=args.view_port,
+        )
     finally:
         bar.close()
     print(summary_line(summary, out, sys.stdout))
     for f in summary["failures"]:
-        print(f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}", file=sys.stderr)
+        print(
+            f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}",
+            file=sys.stderr,
+        )
     if summary["failures"]:
         print(f"the mission completed with {len(summary['failures'])} failure(s): see {out / 'summary.json'}", file=sys.stderr)
         return 3

@@ -7,9 +7,12 @@ import contextlib
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:
+    from planner.params import Criterion
 
 
 def register(subparsers: Any) -> None:
@@ -23,22 +26,34 @@ def register(subparsers: Any) -> None:
             "--criterion both put every run in the same figures (comparison)."
         ),
     )
-    p.add_argument("missions", nargs="+", metavar="MISSION",
-                   help="mission file(s) or names of missions shipped with fimnav, e.g. paper/joint (fimnav missions list)")
+    p.add_argument(
+        "missions",
+        nargs="+",
+        metavar="MISSION",
+        help="mission file(s) or names of missions shipped with fimnav, e.g. paper/joint (fimnav missions list)",
+    )
     p.add_argument("--trials", type=int, help="Monte Carlo trials M (default: the mission's)")
     p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
     p.add_argument("--criterion", choices=("A", "D", "both"), help="design criterion (default: the mission's)")
     p.add_argument("--activation", choices=("safe", "paper", "both"), help="constraint activation rule (default: the mission's)")
-    p.add_argument("--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate")
+    p.add_argument(
+        "--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate"
+    )
     p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one run each (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("--optimum", action="store_true",
-                   help="add to each run's summary the optimal placement's PEB (fimnav optimum, at the final source "
-                        "position, the safe rule's end-of-step distances) and the ratio final PEB / optimum")
-    p.add_argument("--view", action="store_true",
-                   help="watch it live in a browser (rerun's web viewer on 127.0.0.1, the URL is printed): trial 1 of each run, "
-                        "recorded to OUT/view/<run>.rrd for fimnav view; needs pip install 'fimnav[view]'")
+    p.add_argument(
+        "--optimum",
+        action="store_true",
+        help="add to each run's summary the optimal placement's PEB (fimnav optimum, at the final source "
+        "position, the safe rule's end-of-step distances) and the ratio final PEB / optimum",
+    )
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="watch it live in a browser (rerun's web viewer on 127.0.0.1, the URL is printed): trial 1 of each run, "
+        "recorded to OUT/view/<run>.rrd for fimnav view; needs pip install 'fimnav[view]'",
+    )
     p.add_argument("--view-port", type=int, metavar="PORT", help="--view: the web viewer's port (default: a free one)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.set_defaults(func=run)
@@ -72,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             if activation is not None:
                 ov["constraints.activation"] = activation
             mission = load_mission(path, ov)
-            criteria = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
+            criteria: tuple[Criterion, ...] = ("A", "D") if args.criterion == "both" else (args.criterion or mission.criterion,)
             for crit in criteria:
                 m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
                 specs.append(RunSpec(m, crit, args.trials or m.trials, args.steps or m.steps))

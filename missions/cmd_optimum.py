@@ -12,9 +12,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from planner.errors import UsageError
+
+if TYPE_CHECKING:
+    from planner.params import Criterion
+    from planner.placement import MarginRule
 
 #: Random starts of the optimisation by default (each a few tenths of a second for ten drones).
 DEFAULT_STARTS: int = 8
@@ -32,25 +36,42 @@ def register(subparsers: Any) -> None:
             "the placement and what it depends on. SLSQP from seeded random starts."
         ),
     )
-    p.add_argument("mission", metavar="MISSION",
-                   help="mission file, or the name of a mission shipped with fimnav such as paper/joint (fimnav missions list)")
+    p.add_argument(
+        "mission", metavar="MISSION", help="mission file, or the name of a mission shipped with fimnav such as paper/joint (fimnav missions list)"
+    )
     p.add_argument("--criterion", choices=("A", "D"), help="design criterion (default: the mission's)")
     p.add_argument("--starts", type=int, default=DEFAULT_STARTS, help=f"random starts (default {DEFAULT_STARTS})")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts (default 0)")
-    p.add_argument("--margins", choices=("filter", "hold", "none"), default="filter",
-                   help="distances kept: the safe rule's end-of-step clearances (filter, default), where its "
-                        "projection holds a converged drone (hold), or the bare d_S*, d_U*, d_O*, altitude box (none)")
-    p.add_argument("--oracle-estimate", action="store_true",
-                   help="the keep-out of a swarm planning with the true source (no 1.5 m inflation about an estimate)")
-    p.add_argument("--time", type=float, default=None, metavar="SECONDS",
-                   help="source position at this time (default: the end of the mission, K dt; a static source does not move)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a mission value (repeatable)")
+    p.add_argument(
+        "--margins",
+        choices=("filter", "hold", "none"),
+        default="filter",
+        help="distances kept: the safe rule's end-of-step clearances (filter, default), where its "
+        "projection holds a converged drone (hold), or the bare d_S*, d_U*, d_O*, altitude box (none)",
+    )
+    p.add_argument(
+        "--oracle-estimate", action="store_true", help="the keep-out of a swarm planning with the true source (no 1.5 m inflation about an estimate)"
+    )
+    p.add_argument(
+        "--time",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="source position at this time (default: the end of the mission, K dt; a static source does not move)",
+    )
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.set_defaults(func=run)
 
 
-def mission_optimum(mission: Any, criterion: str | None = None, starts: int = DEFAULT_STARTS, seed: int = 0,
-                    margins: str = "filter", oracle_estimate: bool = False, time_s: float | None = None) -> Any:
+def mission_optimum(
+    mission: Any,
+    criterion: Criterion | None = None,
+    starts: int = DEFAULT_STARTS,
+    seed: int = 0,
+    margins: MarginRule = "filter",
+    oracle_estimate: bool = False,
+    time_s: float | None = None,
+) -> Any:
     """:func:`planner.placement.optimal_placement` for a :class:`missions.schema.Mission`: its
     roles, channel, buildings and limits, the source at ``time_s`` (default K·Δt, the end of the
     run: where a moving source is when the final PEB is taken). Returns the
@@ -60,9 +81,16 @@ def mission_optimum(mission: Any, criterion: str | None = None, starts: int = DE
     t = mission.duration_s if time_s is None else float(time_s)
     bmin, bmax = mission.obstacle_bounds()
     return optimal_placement(
-        mission.source.position_at(t), mission.drones.ranging_mask(), mission.drones.bearing_mask(),
-        mission.channel.to_planner(), placement_bounds(mission.limits(), margins, oracle_estimate), bmin, bmax,  # type: ignore[arg-type]
-        criterion or mission.criterion, starts=starts, seed=seed,
+        mission.source.position_at(t),
+        mission.drones.ranging_mask(),
+        mission.drones.bearing_mask(),
+        mission.channel.to_planner(),
+        placement_bounds(mission.limits(), margins, oracle_estimate),
+        bmin,
+        bmax,
+        criterion or mission.criterion,
+        starts=starts,
+        seed=seed,
     )
 
 

@@ -49,8 +49,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--mission", required=True, type=Path, metavar="MISSION.yaml")
     p.add_argument("--uav", required=True, type=int, help="drone id, 1..N")
-    p.add_argument("--mavlink", metavar="CONN", help="a MAVLink connection to the autopilot for the payload (default: the "
-                   "mission's vehicles.overrides[i].payload_connection), e.g. tcp:127.0.0.1:5762 (SITL SERIAL1)")
+    p.add_argument(
+        "--mavlink",
+        metavar="CONN",
+        help="a MAVLink connection to the autopilot for the payload (default: the "
+        "mission's vehicles.overrides[i].payload_connection), e.g. tcp:127.0.0.1:5762 (SITL SERIAL1)",
+    )
     p.add_argument("--sysid", type=int, help="the autopilot's system id (default: the drone id)")
     p.add_argument("--speedup", type=float, default=1.0, help="mission seconds per wall second (default 1; the planners' --speedup)")
     p.add_argument("--signing-key", type=Path, metavar="FILE", help="MAVLink 2 signing key file, mode 0600 (default: the mission's)")
@@ -103,12 +107,10 @@ def run(args: argparse.Namespace) -> int:
     """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
     from comms.geodesy import MissionFrame
     from comms.mavlink_client import MSG_GLOBAL_POSITION_INT, LinkError, VehicleLink, read_signing_key
-    from missions.process_args import zenoh_settings
     from missions.forkspawn import watch_launcher
     from missions.loader import load_mission, parse_overrides
+    from missions.process_args import setup_logging, zenoh_settings
     from vehicle_sim.bridge import ZenohBridge
-
-    from missions.process_args import setup_logging
 
     setup_logging(args.log_level, f"payload[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
@@ -138,16 +140,36 @@ def run(args: argparse.Namespace) -> int:
         timer.start()
     sysid = args.sysid or args.uav
     try:
-        link = VehicleLink(conn, sysid, signing_key=key, frame="global", mission_frame=MissionFrame.of_mission(mission),
-                           altitude_reference=mission.altitude_reference, flavour=None if resolved.autopilot == "auto" else resolved.autopilot,  # type: ignore[arg-type]
-                           connect_timeout_s=args.connect_timeout, source_component=PAYLOAD_COMPONENT)
+        link = VehicleLink(
+            conn,
+            sysid,
+            signing_key=key,
+            frame="global",
+            mission_frame=MissionFrame.of_mission(mission),
+            altitude_reference=mission.altitude_reference,
+            flavour=None if resolved.autopilot == "auto" else resolved.autopilot,
+            connect_timeout_s=args.connect_timeout,
+            source_component=PAYLOAD_COMPONENT,
+        )
     except LinkError as exc:
         raise UsageError(str(exc)) from None
     drone = FollowedDrone(args.uav, build_payload(mission, args.uav), link)
     bridge = ZenohBridge(mission.id, n, mission.dt_s, None, [drone], settings)
     try:
-        print(json.dumps({"event": "ready", "pid": os.getpid(), "uav": args.uav, "mavlink": conn, "sysid": sysid,
-                          "key": f"fimnav/{mission.id}/measurement/{args.uav}", "clock": f"realtime x{args.speedup:g}"}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "event": "ready",
+                    "pid": os.getpid(),
+                    "uav": args.uav,
+                    "mavlink": conn,
+                    "sysid": sysid,
+                    "key": f"fimnav/{mission.id}/measurement/{args.uav}",
+                    "clock": f"realtime x{args.speedup:g}",
+                }
+            ),
+            flush=True,
+        )
         bridge.start_realtime([drone], args.speedup)
         deadline = link.wall() + args.connect_timeout
         streaming = following = False
@@ -169,8 +191,15 @@ def run(args: argparse.Namespace) -> int:
                 except LinkError as exc:
                     log.warning("position stream: %s", exc)
                 streaming = True
-                log.info("following system %d (autopilot %s) on %s; measurements on fimnav/%s/measurement/%d every %g s of mission time",
-                         sysid, link.flavour, conn, mission.id, args.uav, mission.dt_s)
+                log.info(
+                    "following system %d (autopilot %s) on %s; measurements on fimnav/%s/measurement/%d every %g s of mission time",
+                    sysid,
+                    link.flavour,
+                    conn,
+                    mission.id,
+                    args.uav,
+                    mission.dt_s,
+                )
             fresh = link.telemetry.position_enu_m is not None and link.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
             if fresh != following:
                 following = fresh

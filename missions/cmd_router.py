@@ -57,12 +57,23 @@ def register(subparsers: Any) -> None:
         "--connect forward messages and liveliness between their clients. Prints a JSON ready line with the "
         "actual endpoints, runs until SIGINT/SIGTERM (exit 0).",
     )
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help=f"endpoint to listen on, PROTOCOL/HOST:PORT (repeatable; default {DEFAULT_LISTEN}; port 0: OS-chosen)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="router or peer to link with, PROTOCOL/HOST:PORT (repeatable; retried until it answers)")
-    p.add_argument("--mission", type=Path, metavar="MISSION.yaml",
-                   help="take TLS and user/password authentication (zenoh.tls, zenoh.auth) from this mission")
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"endpoint to listen on, PROTOCOL/HOST:PORT (repeatable; default {DEFAULT_LISTEN}; port 0: OS-chosen)",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="router or peer to link with, PROTOCOL/HOST:PORT (repeatable; retried until it answers)",
+    )
+    p.add_argument(
+        "--mission", type=Path, metavar="MISSION.yaml", help="take TLS and user/password authentication (zenoh.tls, zenoh.auth) from this mission"
+    )
     sec = p.add_argument_group("security (override the mission's; docs/security.md)")
     sec.add_argument("--tls-root-ca", type=Path, metavar="FILE", help="CA certificate that signed the other side's")
     sec.add_argument("--tls-certificate", type=Path, metavar="FILE", help="this router's certificate (mutual TLS)")
@@ -94,7 +105,7 @@ def router_settings(args: argparse.Namespace) -> SessionSettings:
     Raises:
         UsageError: bad endpoints, half a TLS identity, authentication without both parts.
     """
-    from comms.session import SessionSettings  # noqa: F811 - the run-time import (zenoh-free)
+    from comms.session import SessionSettings  # the run-time import (zenoh-free)
 
     listen = tuple(check_endpoint(e, "--listen") for e in (args.listen or [DEFAULT_LISTEN]))
     connect = tuple(check_endpoint(e, "--connect") for e in args.connect)
@@ -105,9 +116,13 @@ def router_settings(args: argparse.Namespace) -> SessionSettings:
         mission = load_mission(args.mission)
         settings = dataclasses.replace(SessionSettings.from_mission(mission.zenoh, listen=listen), mode="router", connect=connect)
     overrides: dict[str, Any] = {}
-    for flag, name in (("tls_root_ca", "tls_root_ca"), ("tls_certificate", "tls_certificate"),
-                       ("tls_private_key", "tls_private_key"), ("auth_user", "auth_user"),
-                       ("auth_password_file", "auth_password_file")):
+    for flag, name in (
+        ("tls_root_ca", "tls_root_ca"),
+        ("tls_certificate", "tls_certificate"),
+        ("tls_private_key", "tls_private_key"),
+        ("auth_user", "auth_user"),
+        ("auth_password_file", "auth_password_file"),
+    ):
         value = getattr(args, flag)
         if value is not None:
             overrides[name] = value
@@ -161,8 +176,11 @@ def run_router(args: argparse.Namespace) -> int:
             raise UsageError(f"zenoh: cannot open the router ({exc})") from None
         try:
             ready = {
-                "event": "ready", "mode": "router", "zid": str(session.info.zid()),
-                "listen": listening_endpoints(session) or list(settings.listen), "connect": list(settings.connect),
+                "event": "ready",
+                "mode": "router",
+                "zid": str(session.info.zid()),
+                "listen": listening_endpoints(session) or list(settings.listen),
+                "connect": list(settings.connect),
             }
             print(json.dumps(ready), flush=True)
             log.info("listening on %s; linking with %s", ", ".join(ready["listen"]), ", ".join(settings.connect) or "nothing")

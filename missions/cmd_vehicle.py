@@ -45,8 +45,7 @@ def register(subparsers: Any) -> None:
         action="append",
         default=[],
         metavar="CONN",
-        help="connection: udpin:|udpout:|tcpin:|tcp:HOST:PORT (repeat once per vehicle; "
-        "default tcpin:127.0.0.1:5760+10*(sysid-1), as SITL)",
+        help="connection: udpin:|udpout:|tcpin:|tcp:HOST:PORT (repeat once per vehicle; default tcpin:127.0.0.1:5760+10*(sysid-1), as SITL)",
     )
     p.add_argument("--count", type=int, default=1, help="number of vehicles hosted by this process (default 1)")
     p.add_argument("--port-stride", type=int, default=1, help="port increment between vehicles (default 1)")
@@ -89,8 +88,7 @@ def register(subparsers: Any) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="set a parameter at boot, in the flavour's names and units (repeatable), "
-        "e.g. FS_GCS_ENABLE=1 or COM_OBL_RC_ACT=4",
+        help="set a parameter at boot, in the flavour's names and units (repeatable), e.g. FS_GCS_ENABLE=1 or COM_OBL_RC_ACT=4",
     )
     p.add_argument("--signing-key", metavar="FILE", help="MAVLink 2 signing key file (32 bytes or 64 hex digits)")
     p.add_argument("--tlog", metavar="PATH", help="write a .tlog; '{sysid}' in PATH is replaced per vehicle")
@@ -117,6 +115,14 @@ def _floats(text: str | None, n: int, option: str) -> tuple[float, ...] | None:
     if len(values) != n or not all(math.isfinite(v) for v in values):
         raise UsageError(f"{option}: expected {n} comma-separated finite numbers, found {text!r}")
     return values
+
+
+def _xyz(text: str | None, option: str) -> tuple[float, float, float] | None:
+    """An x,y,z option (``--start``, ``--wind``): three comma-separated finite numbers, or None."""
+    from planner.geometry import vec3
+
+    values = _floats(text, 3, option)
+    return None if values is None else vec3(values)
 
 
 def _params(items: Sequence[str]) -> tuple[tuple[str, float], ...]:
@@ -159,8 +165,9 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
 
     Drone ``i`` (0-based) of the mission has system id ``i + 1``.
     """
-    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
     from missions.process_args import payload_world
+    from planner.geometry import vec3
+    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
     from vehicle_sim.payload import Payload, roles_to_flags
 
     if args.count < 1:
@@ -180,8 +187,8 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     if args.ready_after > 0 and args.airborne:
         raise UsageError("--ready-after: a vehicle booting --airborne is ready at boot")
     boot_params = _params(args.param)
-    start = _floats(args.start, 3, "--start")
-    wind = _floats(args.wind, 3, "--wind") or (0.0, 0.0, 0.0)
+    start = _xyz(args.start, "--start")
+    wind = _xyz(args.wind, "--wind") or (0.0, 0.0, 0.0)
     fence_z = _floats(args.fence_z, 2, "--fence-z")
     fence_box = _floats(args.fence_box, 4, "--fence-box")
     origin_v = _floats(args.origin, 3, "--origin")
@@ -200,8 +207,14 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         fence_kw: dict[str, Any] = {}
         if mission is not None:
             c, f = mission.constraints, mission.fence
-            fence_kw = dict(z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m,
-                            y_min_m=f.y_min_m, y_max_m=f.y_max_m)
+            fence_kw = {
+                "z_min_m": c.z_min_m,
+                "z_max_m": c.z_max_m,
+                "x_min_m": f.x_min_m,
+                "x_max_m": f.x_max_m,
+                "y_min_m": f.y_min_m,
+                "y_max_m": f.y_max_m,
+            }
         if fence_z is not None:
             fence_kw.update(z_min_m=fence_z[0], z_max_m=fence_z[1])
         if fence_box is not None:
@@ -230,7 +243,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         key = args.signing_key
         payload = None
         if mission is not None and starts is not None and world is not None:
-            pos = tuple(float(v) for v in starts[drone]) if start is None else start
+            pos = vec3(starts[drone]) if start is None else start
             resolved = mission.vehicles.for_drone(drone)
             flavour = flavour or resolved.flavour
             profile = profile or resolved.profile
@@ -250,7 +263,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
             cfg = VehicleConfig(
                 sysid=sysid,
                 flavour=flavour or "ardupilot",
-                start_enu_m=pos,  # type: ignore[arg-type]
+                start_enu_m=pos,
                 airborne=args.airborne,
                 ground_z_m=0.0,
                 origin=origin,
@@ -260,7 +273,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
                 physics_hz=args.physics_hz,
                 profile=profile or "pointmass",
                 lag_s=args.lag,
-                wind_enu_mps=wind,  # type: ignore[arg-type]
+                wind_enu_mps=wind,
                 position_noise_m=args.noise,
                 seed=seed,
                 signing_key_path=key,
@@ -278,7 +291,6 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
 def run_vehicle(args: argparse.Namespace) -> int:
     """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
     from missions.forkspawn import watch_launcher
-
     from missions.process_args import setup_logging
 
     setup_logging(args.log_level, "%(name)s")

@@ -21,7 +21,7 @@ def register(subparsers: Any) -> None:
         "view",
         help="replay the live view recorded by launch --view or montecarlo --view, in a browser",
         description="Serve a run's recorded view (RESULTS/view.rrd, RESULTS/view/*.rrd, or an .rrd file) with rerun's web "
-                    "viewer on 127.0.0.1 and print the address to open. Needs pip install 'fimnav[view]'.",
+        "viewer on 127.0.0.1 and print the address to open. Needs pip install 'fimnav[view]'.",
     )
     p.add_argument("results", type=Path, metavar="RESULTS", help="a results directory, or a recording (.rrd)")
     p.add_argument("--port", type=int, help="the web viewer's port (default: a free one)")
@@ -51,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
     require_rerun()
     with ViewServer(web_port=args.port, rrds=files) as server:
         print(f"view: {server.browser_url}  ({', '.join(str(f) for f in files)}; Ctrl-C to stop)", flush=True)
-        code = server.proc.wait()  # type: ignore[union-attr]
+        code = server.wait()
     print(f"rerun's viewer stopped (status {code})", file=sys.stderr)
     return 1

@@ -12,15 +12,26 @@ Written with fastkml and geojson.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, TypedDict
 
 import numpy as np
+from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover - types only
     from missions.simulator import SimulationResult
 
 
-def flight_features(result: SimulationResult) -> list[dict]:
+class Feature(TypedDict):
+    """One feature of :func:`flight_features`."""
+
+    kind: Literal["trajectory", "estimate", "source"]
+    name: str
+    drone: int | None  # 1-based
+    role: str | None
+    lonlatalt: NDArray[np.float64]  # (n, 3): lon deg, lat deg, m AMSL
+
+
+def flight_features(result: SimulationResult) -> list[Feature]:
     """The run's features, frame-converted: dicts with ``kind`` (trajectory, estimate,
     source), ``name``, ``drone`` (1-based or None), ``role`` and ``lonlatalt`` ((n, 3): lon deg,
     lat deg, m AMSL)."""
@@ -38,28 +49,34 @@ def flight_features(result: SimulationResult) -> list[dict]:
     g = frame.to_global_many(np.concatenate([pos.transpose(1, 0, 2).reshape(-1, 3), est, src[None]]))
     lla = np.column_stack([g[:, 1], g[:, 0], g[:, 2]])
     k1 = pos.shape[0]
-    out = []
-    for i in range(n):
-        out.append({"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1:(i + 1) * k1]})
-    for i in range(n):
-        out.append({"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]})
+    out: list[Feature] = [
+        {"kind": "trajectory", "name": f"drone {i + 1} ({roles[i]})", "drone": i + 1, "role": roles[i], "lonlatalt": lla[i * k1 : (i + 1) * k1]}
+        for i in range(n)
+    ]
+    out.extend(
+        {"kind": "estimate", "name": f"drone {i + 1}'s source estimate", "drone": i + 1, "role": roles[i], "lonlatalt": lla[n * k1 + i][None]}
+        for i in range(n)
+    )
     out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lla[-1:]})
     return out
 
 
-def write_kml(features: list[dict], name: str, path: Path) -> None:
+def write_kml(features: list[Feature], name: str, path: Path) -> None:
     """The run's flight (:func:`flight_features`) as KML (fastkml) named ``name``: a folder of
     trajectories, one of estimates, the source."""
-    from fastkml import kml
     from fastkml import geometry as kg
+    from fastkml import kml
     from fastkml.containers import Document, Folder
     from fastkml.enums import AltitudeMode
     from fastkml.features import Placemark
     from pygeoif import geometry as geo
 
+    from planner.geometry import vec3
+
     folders: dict[str, list[Placemark]] = {"trajectory": [], "estimate": [], "source": []}
     for f in features:
-        c = [tuple(map(float, row)) for row in f["lonlatalt"]]
+        c = [vec3(row) for row in f["lonlatalt"]]
+        g: kg.LineString | kg.Point
         if f["kind"] == "trajectory":
             g = kg.LineString(altitude_mode=AltitudeMode.absolute, extrude=True, geometry=geo.LineString(c))
         else:
@@ -70,7 +87,7 @@ def write_kml(features: list[dict], name: str, path: Path) -> None:
     path.write_text(kml.KML(features=[doc]).to_string(prettyprint=True))
 
 
-def write_geojson(features: list[dict], path: Path) -> None:
+def write_geojson(features: list[Feature], path: Path) -> None:
     """The run's flight (:func:`flight_features`) as a GeoJSON FeatureCollection (geojson)."""
     import geojson
 

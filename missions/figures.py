@@ -18,6 +18,7 @@ import math
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -46,7 +47,8 @@ _MAX_DECADE_TICKS = 8
 _MAX_END_GAP = 0.2
 
 
-def _pyplot():  # noqa: ANN202 - matplotlib is imported lazily, headless
+def _pyplot() -> ModuleType:
+    """matplotlib.pyplot on the Agg backend (headless), imported only when a figure is made."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -198,7 +200,7 @@ def _set_log_axis(ax: Any, lo: float, hi: float) -> None:
     """Log y axis over the data range [lo, hi] (padded), plain-number major ticks, 1..9 minor."""
     from matplotlib.ticker import FixedFormatter, FixedLocator, LogLocator, NullFormatter
 
-    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo):
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo > 0):
         lo, hi = 1.0, 10.0
     if hi <= lo * 1.001:
         lo, hi = lo / 1.05, hi * 1.05
@@ -214,7 +216,7 @@ def _set_log_axis(ax: Any, lo: float, hi: float) -> None:
         minor = np.arange(ticks[0] - step, ticks[-1] + step, step / 2.0)
         ax.yaxis.set_minor_locator(FixedLocator([t for t in minor if lo <= t <= hi]))
     else:
-        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=np.arange(1.0, 10.0), numticks=100))
+        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=[float(m) for m in range(1, 10)], numticks=100))
     ax.yaxis.set_minor_formatter(NullFormatter())
 
 
@@ -358,10 +360,11 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
 
     # legend: one colour per mission (first column), one line style per (criterion, rule)
     # (second column, when there are several), the band
-    missions: list[Any] = []
     one_style = LINESTYLES[styles[0]] if len(styles) == 1 else "-"
-    for r in dict((r.spec.mission.id, r) for r in results).values():
-        missions.append(Line2D([], [], color=colours[r.spec.mission.id], ls=one_style, lw=2.0, label=f"{r.spec.mission.id} ({_roles_text(r)})"))
+    missions: list[Any] = [
+        Line2D([], [], color=colours[r.spec.mission.id], ls=one_style, lw=2.0, label=f"{r.spec.mission.id} ({_roles_text(r)})")
+        for r in {r.spec.mission.id: r for r in results}.values()
+    ]
     who = f"{_count([r.spec.trials for r in results], 'trial')} × {_count([r.spec.mission.drones.count for r in results], 'drone')}"
     if bands:
         shade = next(iter(colours.values())) if len(colours) == 1 else "0.5"
@@ -384,8 +387,15 @@ def _step_figure(curves: list[_Curve], title: str, ylabel: str, centre_name: str
     handles = missions + [blank] * (rows - len(missions))
     if line_styles:
         handles += line_styles + [blank] * (rows - len(line_styles))
-    fig.legend(handles=handles, loc="outside lower center", ncol=2 if line_styles else 1, fontsize=8.5, frameon=True,
-               title="\n".join(line for sentence in caption for line in textwrap.wrap(sentence, 120)), title_fontsize=8)
+    fig.legend(
+        handles=handles,
+        loc="outside lower center",
+        ncol=2 if line_styles else 1,
+        fontsize=8.5,
+        frameon=True,
+        title="\n".join(line for sentence in caption for line in textwrap.wrap(sentence, 120)),
+        title_fontsize=8,
+    )
 
     _annotate_ends(fig, ax, curves, colours)
     return fig
@@ -405,8 +415,7 @@ def _end_tag(curve: _Curve, curves: Sequence[_Curve]) -> str:
 def _annotate_ends(fig: Any, ax: Any, curves: Sequence[_Curve], colours: dict[str, Any]) -> None:
     """Each curve's last value as text right of the axes, joined to the curve's end by a line;
     labels are spread vertically so that they do not overlap."""
-    ends = [(c, c.last()) for c in curves]
-    ends = [(c, e) for c, e in ends if e is not None]
+    ends = [(c, e) for c in curves if (e := c.last()) is not None]
     if not ends:
         return
     fig.canvas.draw()  # the layout fixes the axes height, which sets the labels' spacing
@@ -518,8 +527,15 @@ def make_trajectories_figure(result: SimulationResult, trial: int = 0) -> Any:
     handles += [
         Line2D([], [], ls="", marker="s", markersize=6, markerfacecolor="white", markeredgecolor="0.2", label="start, k = 0"),
         Line2D([], [], ls="", marker="s", markersize=6, color="0.5", markeredgecolor="k", label=f"end, k = {last_k}"),
-        Line2D([], [], ls="-" if moving else "", marker="^", markersize=8, color=SOURCE_COLOUR,
-               label="source (track; triangle: last position)" if moving else "source (true position)"),
+        Line2D(
+            [],
+            [],
+            ls="-" if moving else "",
+            marker="^",
+            markersize=8,
+            color=SOURCE_COLOUR,
+            label="source (track; triangle: last position)" if moving else "source (true position)",
+        ),
     ]
     if d_s > 0:
         handles.append(Line2D([], [], ls=":", color=SOURCE_COLOUR, label=f"source keep-out $d_S^*$ = {d_s:g} m (top view)"))

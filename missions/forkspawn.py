@@ -171,17 +171,16 @@ def _leave_fork_server() -> None:
     the signals the server blocks."""
     server = getattr(multiprocessing.forkserver, "_forkserver", None)
     alive = getattr(server, "_forkserver_alive_fd", None)
-    if isinstance(alive, int):
+    if server is not None and isinstance(alive, int):
         try:
             os.close(alive)
         except OSError:
             pass  # already closed: nothing holds the server up
-        server._forkserver_alive_fd = None  # type: ignore[union-attr]
+        server._forkserver_alive_fd = None
     signal.pthread_sigmask(signal.SIG_UNBLOCK, SERVER_BLOCKED_SIGNALS)
 
 
-def _run_cli(argv: list[str], log_path: str, title: str, launcher_fd: int | None = None, truncate: bool = False,
-             cwd: str | None = None) -> None:
+def _run_cli(argv: list[str], log_path: str, title: str, launcher_fd: int | None = None, truncate: bool = False, cwd: str | None = None) -> None:
     """Fork-server child: become ``python -m missions ARGV`` with its output in ``log_path``
     (truncated first if ``truncate``, else appended to), in directory ``cwd``, watching the
     launcher through ``launcher_fd``."""
@@ -225,11 +224,11 @@ class ForkedProcess:
 
     @property
     def returncode(self) -> int | None:
-        return self._p.exitcode  # type: ignore[no-any-return]
+        return self._p.exitcode
 
     def poll(self) -> int | None:
         """The exit status, or None while it runs."""
-        return self._p.exitcode  # type: ignore[no-any-return]
+        return self._p.exitcode
 
     def wait(self, timeout: float | None = None) -> int:
         """Wait for the exit (at most ``timeout`` s); ``subprocess.TimeoutExpired`` after it."""
@@ -261,12 +260,13 @@ class ForkServer:
         the few milliseconds that takes (call it before other threads depend on them)."""
         env = same_code_environment({})
         saved = {name: os.environ.get(name) for name in env}
-        old_cwd = os.getcwd() if cwd is not None and sys.version_info < (3, 11) else None
+        start_in = cwd if sys.version_info < (3, 11) else None
+        old_cwd = os.getcwd() if start_in is not None else None
         old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, SERVER_BLOCKED_SIGNALS)
         try:
             os.environ.update(env)
-            if old_cwd is not None:
-                os.chdir(cwd)  # type: ignore[arg-type]
+            if start_in is not None:
+                os.chdir(start_in)
             multiprocessing.forkserver.ensure_running()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
@@ -278,14 +278,16 @@ class ForkServer:
                 else:
                     os.environ[name] = value
 
-    def spawn(self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False,
-              cwd: Path | None = None) -> ForkedProcess:
+    def spawn(
+        self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False, cwd: Path | None = None
+    ) -> ForkedProcess:
         """Fork ``python -m missions ARGS`` with stdout/stderr in ``log_path`` (truncated first
         if ``truncate``, else appended to), in directory ``cwd`` (default: the server's), given
         the read end ``launcher_fd`` of the launcher's watchdog pipe (:func:`watch_launcher`)."""
         title = " ".join([self.python, "-m", "missions", *args])
         inherited = _InheritedFd(launcher_fd) if launcher_fd is not None else None
-        p = self.ctx.Process(target=_run_cli, args=(list(args), str(log_path), title, inherited, truncate,
-                                                     str(cwd) if cwd is not None else None), daemon=True)
+        p = self.ctx.Process(
+            target=_run_cli, args=(list(args), str(log_path), title, inherited, truncate, str(cwd) if cwd is not None else None), daemon=True
+        )
         p.start()
         return ForkedProcess(p, [self.python, "-m", "missions", *args])

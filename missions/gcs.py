@@ -63,7 +63,7 @@ class GcsRouter:
         enc = mavutil.mavlink.MAVLink(None, srcSystem=ROUTER_SYSID, srcComponent=ROUTER_COMPID)
         self._heartbeat = enc.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0).pack(enc)
         self.to_gcs = 0
-        self.to_vehicle: dict[int, int] = {s: 0 for s in self.vehicles}
+        self.to_vehicle: dict[int, int] = dict.fromkeys(self.vehicles, 0)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="gcs-router", daemon=True)
 

@@ -349,7 +349,12 @@ class Launcher:
         with log_path.open("wb" if first else "ab") as fh:
             proc = subprocess.Popen(
                 [self.python, "-m", "missions", *args],
-                stdin=subprocess.DEVNULL, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, env=env, cwd=cwd,
+                stdin=subprocess.DEVNULL,
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                env=env,
+                cwd=cwd,
                 pass_fds=(watch_r,) if watch_r is not None else (),
             )
         child = Child(name, proc, log_path)
@@ -406,7 +411,14 @@ class Launcher:
             # its exit a few steps later).
             flown = [k for (k, j) in self._step_logs_of(drones[0])]
             step = max(flown) + 1 if flown else step
-        entry: dict[str, Any] = {"process": c.name, "drones": drones, "step": step, "status": code, "reason": reason[-300:], "action": "continued without it"}
+        entry: dict[str, Any] = {
+            "process": c.name,
+            "drones": drones,
+            "step": step,
+            "status": code,
+            "reason": reason[-300:],
+            "action": "continued without it",
+        }
         if c.name.startswith("planner"):
             i = drones[0]
             vehicle_alive = self._vehicle_child[i].proc.poll() is None
@@ -538,9 +550,21 @@ class Launcher:
                 tlog = self._abs_out / "tlogs" / ("vehicle_{sysid}.tlog" if len(ids) > 1 else f"vehicle_{first}.tlog")
                 vc = self._spawn(
                     name,
-                    ["vehicle", "--mission", str(mission_file), "--sysid", str(first), "--count", str(len(ids)),
-                     *[a for _ in ids for a in ("--mavlink", "udpin:127.0.0.1:0")],
-                     *timing, *physics, *vehicle_zenoh, "--tlog", str(tlog)],
+                    [
+                        "vehicle",
+                        "--mission",
+                        str(mission_file),
+                        "--sysid",
+                        str(first),
+                        "--count",
+                        str(len(ids)),
+                        *[a for _ in ids for a in ("--mavlink", "udpin:127.0.0.1:0")],
+                        *timing,
+                        *physics,
+                        *vehicle_zenoh,
+                        "--tlog",
+                        str(tlog),
+                    ],
                 )
                 vehicle_children.append(vc)
                 for i in ids:
@@ -565,17 +589,40 @@ class Launcher:
                 # A drone on an external autopilot: fimnav's simulated payload follows it over
                 # its second MAVLink connection, unless a real payload publishes.
                 if m.vehicles.for_drone(i - 1).payload == "simulated":
-                    self._spawn(f"payload_{i}", ["payload", "--mission", str(mission_file), "--uav", str(i),
-                                                 "--speedup", f"{self.speedup:g}", *child_zenoh.to_cli(),
-                                                 "--connect-timeout", str(self.preflight_timeout_s)])
+                    self._spawn(
+                        f"payload_{i}",
+                        [
+                            "payload",
+                            "--mission",
+                            str(mission_file),
+                            "--uav",
+                            str(i),
+                            "--speedup",
+                            f"{self.speedup:g}",
+                            *child_zenoh.to_cli(),
+                            "--connect-timeout",
+                            str(self.preflight_timeout_s),
+                        ],
+                    )
             for i in range(1, n + 1):
                 # An external autopilot's link is logged by its planner (a simulated vehicle
                 # writes its own .tlog).
-                conn = ["--tlog", str(self._abs_out / "tlogs" / f"vehicle_{i}.tlog")] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
+                conn = (
+                    ["--tlog", str(self._abs_out / "tlogs" / f"vehicle_{i}.tlog")] if i in external else ["--mavlink", f"udpout:127.0.0.1:{ports[i]}"]
+                )
                 self._planner_args[i] = [
-                    "plan", "--mission", str(mission_file), "--uav", str(i), *conn, *timing,
-                    *child_zenoh.to_cli(), "--log", str(self._abs_out / "logs" / f"planner_{i}.jsonl"),
-                    "--step-timeout", str(self.step_timeout_s),
+                    "plan",
+                    "--mission",
+                    str(mission_file),
+                    "--uav",
+                    str(i),
+                    *conn,
+                    *timing,
+                    *child_zenoh.to_cli(),
+                    "--log",
+                    str(self._abs_out / "logs" / f"planner_{i}.jsonl"),
+                    "--step-timeout",
+                    str(self.step_timeout_s),
                 ]
                 self._spawn(f"planner_{i}", self._planner_args[i])
             stop = self._should_stop
@@ -638,15 +685,18 @@ class Launcher:
         """Real time: say what the start delay waits for, then report progress on the wall
         clock until every planner has ended."""
         m = self.mission
-        assert self.start_unix is not None
+        if self.start_unix is None:
+            raise RuntimeError("real-time flight without a start time (start_unix is set when the planners are started)")
         dtw = m.dt_s / self.speedup
         self._flying = True
         reported = -1
         end_by = self.start_unix + m.steps * dtw + self.preflight_timeout_s + 120.0
         n = m.drones.count
         start_text = time.strftime("%H:%M:%S", time.localtime(self.start_unix))
-        self.notice(f"waiting for {n} drone{'s' if n != 1 else ''} to be ready and at their starts: "
-                    f"step 0 at {start_text} (in {max(0.0, self.start_unix - time.time()):.0f} s)")
+        self.notice(
+            f"waiting for {n} drone{'s' if n != 1 else ''} to be ready and at their starts: "
+            f"step 0 at {start_text} (in {max(0.0, self.start_unix - time.time()):.0f} s)"
+        )
         ready_seen = 0
         started = False
         while True:
@@ -736,7 +786,7 @@ class Launcher:
         _, stat, recs = self._heard_at(k)
         src = m.source.position_at(self._t(k))
         pebs, errs = [], []
-        for j, st in stat.items():
+        for st in stat.values():
             if st is None:
                 continue
             errs.append(float(np.linalg.norm(np.asarray(st.estimate_m) - src)))
@@ -847,8 +897,18 @@ class Launcher:
         recs: dict[tuple[int, int], Observation] = dict(self.collected.records)
         nan = float("nan")
         for (k, j), e in logs.items():
-            recs[(k, j)] = Observation(j, k, float(e.get("t_s", nan)), tuple(e["position_m"]), bool(m.drones.ranging_mask()[j - 1]),
-                                       bool(m.drones.bearing_mask()[j - 1]), bool(e["measurement"]["los"]), nan, nan, nan)
+            recs[(k, j)] = Observation(
+                j,
+                k,
+                float(e.get("t_s", nan)),
+                tuple(e["position_m"]),
+                bool(m.drones.ranging_mask()[j - 1]),
+                bool(m.drones.bearing_mask()[j - 1]),
+                bool(e["measurement"]["los"]),
+                nan,
+                nan,
+                nan,
+            )
         positions = np.full((K + 1, 1, n, 3), np.nan)
         estimates = np.full((K, 1, n, 3), np.nan)
         observable = np.zeros((K, 1, n), dtype=bool)
@@ -870,8 +930,14 @@ class Launcher:
             steps[(k, j)] = (st.estimate_m, st.observable, st.singular, False, st.saved_steps, [bool((st.active_mask >> b) & 1) for b in range(4)])
         for (k, j), e in logs.items():
             act = e.get("active", {})
-            steps[(k, j)] = (e["estimate_m"], e["observable"], e["singular"], e.get("filtered", False), e["saved_steps"],
-                             [bool(act.get(name, False)) for name in ("uav", "source", "obstacle", "altitude")])
+            steps[(k, j)] = (
+                e["estimate_m"],
+                e["observable"],
+                e["singular"],
+                e.get("filtered", False),
+                e["saved_steps"],
+                [bool(act.get(name, False)) for name in ("uav", "source", "obstacle", "altitude")],
+            )
         for (k, j), (est_m, obs, sing, filt, saved, act) in steps.items():
             if not 0 <= k < K:
                 continue
@@ -981,7 +1047,7 @@ def stop_on_signals(launcher: Launcher) -> Iterator[None]:
             continue
         previous[s] = current
 
-    def handler(signum: int, frame: Any) -> None:  # noqa: ARG001
+    def handler(signum: int, frame: Any) -> None:
         launcher.request_stop(signum)
 
     for s in previous:
@@ -1028,8 +1094,13 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
             raise launcher.interrupted()  # a signal while the last records were gathered
     summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
     summary = summaries[0]
-    summary.update(distributed=True, dropped_messages=int(result.extra["dropped_messages"]), missing_drone_steps=int(result.extra["missing_drone_steps"]),
-                   failures=launcher.failures, clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
-                   taken_over=taken_over(out, mission.drones.count))
+    summary.update(
+        distributed=True,
+        dropped_messages=int(result.extra["dropped_messages"]),
+        missing_drone_steps=int(result.extra["missing_drone_steps"]),
+        failures=launcher.failures,
+        clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
+        taken_over=taken_over(out, mission.drones.count),
+    )
     (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
     return summary

@@ -42,10 +42,10 @@ FloatArray = NDArray[np.float64]
 
 #: Drone states the view shows, with their colours (RGB).
 STATE_COLOURS: dict[str, tuple[int, int, int]] = {
-    "alive": (0, 200, 83),       # green
-    "stale": (255, 145, 0),      # orange: the planner republishes its last record
-    "taken over": (213, 0, 249), # magenta: a pilot flies it
-    "lost": (120, 120, 120),     # grey: no record this step
+    "alive": (0, 200, 83),  # green
+    "stale": (255, 145, 0),  # orange: the planner republishes its last record
+    "taken over": (213, 0, 249),  # magenta: a pilot flies it
+    "lost": (120, 120, 120),  # grey: no record this step
 }
 SOURCE_COLOUR = (255, 23, 68)
 ESTIMATE_COLOUR = (41, 121, 255)
@@ -151,8 +151,7 @@ class ViewServer:
     The child is in its own session and gets SIGTERM from the kernel if this process dies
     (Linux); :meth:`close` stops it. Its output goes to ``log_path`` (default: discarded)."""
 
-    def __init__(self, web_port: int | None = None, grpc_port: int | None = None, rrds: Sequence[Path] = (),
-                 log_path: Path | None = None) -> None:
+    def __init__(self, web_port: int | None = None, grpc_port: int | None = None, rrds: Sequence[Path] = (), log_path: Path | None = None) -> None:
         from missions.launcher import free_port
 
         self.web_port = web_port or free_port()
@@ -175,14 +174,31 @@ class ViewServer:
         """Start the server and wait (up to :data:`SERVER_START_TIMEOUT_S`) until both ports listen."""
         from missions.forkspawn import set_parent_death_signal
 
-        args = [*rerun_binary(), "--serve-web", "--bind", "127.0.0.1", "--port", str(self.grpc_port),
-                "--web-viewer-port", str(self.web_port), "--server-memory-limit", "25%"]
+        args = [
+            *rerun_binary(),
+            "--serve-web",
+            "--bind",
+            "127.0.0.1",
+            "--port",
+            str(self.grpc_port),
+            "--web-viewer-port",
+            str(self.web_port),
+            "--server-memory-limit",
+            "25%",
+        ]
         args.extend(str(r) for r in self.rrds)
         env = dict(os.environ, RERUN_ANALYTICS="0", TELEMETRY_ENABLED="false")  # nothing leaves this machine
         out: Any = open(self.log_path, "ab") if self.log_path is not None else subprocess.DEVNULL  # noqa: SIM115 (closed below)
         try:
-            self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                                         start_new_session=True, preexec_fn=set_parent_death_signal)
+            self.proc = subprocess.Popen(
+                args,
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+                preexec_fn=set_parent_death_signal,
+            )
         except OSError as exc:
             raise ViewError(f"cannot start rerun's viewer ({args[0]}): {exc}") from None
         finally:
@@ -192,17 +208,24 @@ class ViewServer:
         pending = {self.web_port, self.grpc_port}
         while pending:
             if self.proc.poll() is not None:
-                raise ViewError(f"rerun's viewer exited with status {self.proc.returncode} while starting"
-                                + (f" (see {self.log_path})" if self.log_path else ""))
+                raise ViewError(
+                    f"rerun's viewer exited with status {self.proc.returncode} while starting" + (f" (see {self.log_path})" if self.log_path else "")
+                )
             if time.monotonic() > deadline:
                 self.close()
                 raise ViewError(f"rerun's viewer did not listen on 127.0.0.1:{min(pending)} within {SERVER_START_TIMEOUT_S:g} s")
-            for port in list(pending):
+            for port in list(pending):  # noqa: PERF101 - the loop discards from pending: it iterates a copy
                 with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.2):
                     pending.discard(port)
             if pending:
                 time.sleep(0.05)  # polling the ports, with the deadline above
         return self
+
+    def wait(self) -> int:
+        """Wait until the server exits; its exit status (RuntimeError if it was not started)."""
+        if self.proc is None:
+            raise RuntimeError("rerun's viewer was not started (ViewServer.start)")
+        return self.proc.wait()
 
     def close(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL after 3 s)."""
@@ -271,8 +294,11 @@ class SwarmView:
         bmin, bmax = mission.obstacle_bounds()
         if len(bmin):
             lo, hi = np.asarray(bmin, dtype=float), np.asarray(bmax, dtype=float)
-            rec.log("world/buildings", rr.Boxes3D(centers=0.5 * (lo + hi), half_sizes=0.5 * (hi - lo), colors=[BUILDING_COLOUR],
-                                                  fill_mode="solid"), static=True)
+            rec.log(
+                "world/buildings",
+                rr.Boxes3D(centers=0.5 * (lo + hi), half_sizes=0.5 * (hi - lo), colors=[BUILDING_COLOUR], fill_mode="solid"),
+                static=True,
+            )
         starts = mission.drones.start_positions_m()
         rec.log("world/starts", rr.Points3D(starts, radii=0.6, colors=[(200, 200, 200)]), static=True)
 
@@ -283,22 +309,25 @@ class SwarmView:
         rec.set_time("step", sequence=frame.step)
         rec.set_time("mission_time", duration=frame.time_s)
         rec.log("world/source", rr.Points3D([frame.source_m], radii=1.5, colors=[SOURCE_COLOUR], labels=["source"]))
-        known = np.isfinite(frame.positions_m).all(axis=1)
+        known = np.all(np.isfinite(frame.positions_m), axis=1)
         ids = [i for i in range(self.n) if known[i]]
         for i in ids:
             trail = self._trails[i]
             trail.append(np.asarray(frame.positions_m[i], dtype=float))
             del trail[:-TRAIL_STEPS]
         labels = [f"UAV {i + 1}" + ("" if frame.states[i] == "alive" else f" ({frame.states[i]})") for i in ids]
-        rec.log("world/drones", rr.Points3D(frame.positions_m[ids], radii=2.0, colors=[STATE_COLOURS[frame.states[i]] for i in ids],
-                                            labels=labels))
+        rec.log("world/drones", rr.Points3D(frame.positions_m[ids], radii=2.0, colors=[STATE_COLOURS[frame.states[i]] for i in ids], labels=labels))
         strips = [np.asarray(t) for t in self._trails if len(t) >= 2]
         if strips:
             rec.log("world/trails", rr.LineStrips3D(strips, radii=0.3, colors=[(0, 150, 70)]))
-        has_est = np.isfinite(frame.estimates_m).all(axis=1)
+        has_est = np.all(np.isfinite(frame.estimates_m), axis=1)
         est_ids = [i for i in range(self.n) if has_est[i]]
-        rec.log("world/estimates", rr.Points3D(frame.estimates_m[est_ids], radii=0.8, colors=[ESTIMATE_COLOUR],
-                                               labels=[f"estimate {i + 1}" for i in est_ids], show_labels=False))
+        rec.log(
+            "world/estimates",
+            rr.Points3D(
+                frame.estimates_m[est_ids], radii=0.8, colors=[ESTIMATE_COLOUR], labels=[f"estimate {i + 1}" for i in est_ids], show_labels=False
+            ),
+        )
         centres, halves, quats = [], [], []
         for i in est_ids:
             axes = ellipsoid_axes(frame.covariances_m2[i])
@@ -306,8 +335,16 @@ class SwarmView:
                 centres.append(frame.estimates_m[i])
                 halves.append(axes[0])
                 quats.append(axes[1])
-        rec.log("world/uncertainty", rr.Ellipsoids3D(centers=centres, half_sizes=halves, quaternions=[rr.Quaternion(xyzw=q) for q in quats],
-                                                     colors=[ESTIMATE_COLOUR], fill_mode="majorwireframe"))
+        rec.log(
+            "world/uncertainty",
+            rr.Ellipsoids3D(
+                centers=centres,
+                half_sizes=halves,
+                quaternions=[rr.Quaternion(xyzw=q) for q in quats],
+                colors=[ESTIMATE_COLOUR],
+                fill_mode="majorwireframe",
+            ),
+        )
         if np.isfinite(frame.peb_m):
             rec.log("peb/mean", rr.Scalars(frame.peb_m))
         for i, state in enumerate(frame.states):
@@ -322,8 +359,16 @@ class SwarmView:
         self.rec.disconnect()
 
 
-def swarm_frame(mission: Mission, step: int, positions_m: FloatArray, states: Sequence[str], estimates_m: FloatArray,
-                view_positions_m: FloatArray, view_valid: NDArray[np.bool_], view_los: NDArray[np.bool_]) -> SwarmFrame:
+def swarm_frame(
+    mission: Mission,
+    step: int,
+    positions_m: FloatArray,
+    states: Sequence[str],
+    estimates_m: FloatArray,
+    view_positions_m: FloatArray,
+    view_valid: NDArray[np.bool_],
+    view_los: NDArray[np.bool_],
+) -> SwarmFrame:
     """A step's frame from what each drone knew: its view of the swarm (the records it held).
 
     Args:
@@ -348,5 +393,13 @@ def swarm_frame(mission: Mission, step: int, positions_m: FloatArray, states: Se
     src = np.asarray(mission.source.position_at(t), dtype=float)
     peb = position_error_bound(fisher_information(src, vp, rng, brg, view_los, channel))[0]
     finite = peb[np.isfinite(peb) & view_valid.any(axis=1)]
-    return SwarmFrame(step, t, np.asarray(positions_m, dtype=float), tuple(states), np.asarray(estimates_m, dtype=float), cov, src,
-                      float(finite.mean()) if finite.size else float("inf"))
+    return SwarmFrame(
+        step,
+        t,
+        np.asarray(positions_m, dtype=float),
+        tuple(states),
+        np.asarray(estimates_m, dtype=float),
+        cov,
+        src,
+        float(finite.mean()) if finite.size else float("inf"),
+    )

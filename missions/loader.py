@@ -160,7 +160,7 @@ def _bundled_name(text: str) -> str:
     while name.startswith("./"):
         name = name[2:]
     if name.startswith("missions/"):
-        name = name[len("missions/"):]
+        name = name[len("missions/") :]
     for suffix in (".yaml", ".yml"):
         if name.endswith(suffix):
             return name[: -len(suffix)]
@@ -171,10 +171,7 @@ def _not_found(label: str) -> str:
     """The one-line problem for a mission argument that is neither a file nor a bundled name."""
     close = suggest_bundled(label)
     hint = f"; did you mean {' or '.join(close)}?" if close else ""
-    return (
-        "mission not found: expected an existing YAML file or the name of a bundled mission "
-        f"(fimnav missions list), found neither{hint}"
-    )
+    return f"mission not found: expected an existing YAML file or the name of a bundled mission (fimnav missions list), found neither{hint}"
 
 
 def _read_mission_file(path: str | os.PathLike[str]) -> tuple[Path, str]:
@@ -201,11 +198,13 @@ def _read_mission_file(path: str | os.PathLike[str]) -> tuple[Path, str]:
     except UnicodeDecodeError as exc:
         line_start = raw.rfind(b"\n", 0, exc.start) + 1
         line = raw.count(b"\n", 0, exc.start) + 1
-        column = len(raw[line_start:exc.start].decode("utf-8", errors="replace")) + 1
+        column = len(raw[line_start : exc.start].decode("utf-8", errors="replace")) + 1
         raise MissionError(
             label,
-            [f"line {line}, column {column}: expected UTF-8 text, found the invalid byte 0x{raw[exc.start]:02x} "
-             f"(byte offset {exc.start}; save the file as UTF-8)"],
+            [
+                f"line {line}, column {column}: expected UTF-8 text, found the invalid byte 0x{raw[exc.start]:02x} "
+                f"(byte offset {exc.start}; save the file as UTF-8)"
+            ],
         ) from None
 
 
@@ -238,10 +237,7 @@ def mission_to_yaml(mission: Mission) -> str:
     # Exactly one start form is present in a valid mission; write only that one.
     data["drones"]["start"] = {k: v for k, v in data["drones"]["start"].items() if v is not None}
     body = yaml.dump(data, Dumper=_MissionDumper, sort_keys=False, allow_unicode=True, width=100)
-    header = (
-        f"# fimnav mission {mission.id!r} as run (format version {mission.schema_version}); "
-        "every default filled in.\n"
-    )
+    header = f"# fimnav mission {mission.id!r} as run (format version {mission.schema_version}); every default filled in.\n"
     return header + body
 
 
@@ -249,11 +245,11 @@ class _MissionDumper(yaml.SafeDumper):
     """Safe YAML dumper writing lists of scalars inline (``[0.0, 150.0, 8.0]``), the rest in block
     style, and text holding a YAML line break other than ``\\n`` double-quoted (escaped)."""
 
-    def represent_list(self, data: list[Any]) -> yaml.Node:  # noqa: D102 - PyYAML hook
+    def represent_list(self, data: Iterable[Any]) -> yaml.SequenceNode:  # PyYAML hook
         flow = all(not isinstance(item, (list, dict)) for item in data)
         return self.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 
-    def represent_text(self, data: str) -> yaml.Node:  # noqa: D102 - PyYAML hook
+    def represent_text(self, data: str) -> yaml.Node:  # PyYAML hook
         # With allow_unicode PyYAML writes NEL, LS and PS raw in plain and single-quoted text,
         # and reads them back as line breaks (folded to a space): escape them instead.
         if any(ch in data for ch in "\x85\u2028\u2029"):
@@ -296,7 +292,7 @@ class _MissionLoader(yaml.SafeLoader):
     Python errors without a position; here they become :class:`_UnreadableValue` at the node.
     """
 
-    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:  # noqa: D102 - PyYAML hook
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:  # PyYAML hook
         try:
             return super().construct_object(node, deep=deep)
         except (ValueError, OverflowError, TypeError, KeyError, AttributeError, IndexError) as exc:
@@ -308,7 +304,12 @@ class _UnreadableValue(yaml.constructor.ConstructorError):
 
     def __init__(self, node: yaml.Node, exc: Exception) -> None:
         tag = node.tag.replace("tag:yaml.org,2002:", "!!")
-        value = node.value if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
+        if isinstance(node, yaml.ScalarNode):
+            value = node.value
+        elif isinstance(node, (yaml.SequenceNode, yaml.MappingNode)):
+            value = f"a {node.id}"
+        else:  # PyYAML composes only scalars, sequences and mappings
+            value = f"a {type(node).__name__}"
         reason = str(exc).split(";")[0] if isinstance(exc, (ValueError, OverflowError)) else ""
         found = _short(value) + (f" ({reason})" if reason else "")
         super().__init__(None, None, f"expected a YAML value that can be read as {tag}, found {found}"[:300], node.start_mark)
@@ -346,8 +347,7 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
     if not isinstance(data, dict):
         raise MissionError(
             file,
-            [f"line {node.start_mark.line + 1}: expected a mapping of mission keys (id, drones, source, ...) "
-             f"at the top level, found {_kind(data)}"],
+            [f"line {node.start_mark.line + 1}: expected a mapping of mission keys (id, drones, source, ...) at the top level, found {_kind(data)}"],
         )
     return node, data
 
@@ -424,10 +424,12 @@ def _describe_yaml_error(exc: yaml.MarkedYAMLError, text: str) -> str:
                 quote = text[context_mark.index] if 0 <= context_mark.index < len(text) else "quote"
                 if problem.startswith("found unexpected "):
                     expected = f"a closing {quote}"
-                    found = problem[len("found unexpected "):]
+                    found = problem[len("found unexpected ") :]
                     found = {"end of stream": "the end of the file", "document separator": "a document separator"}.get(found, found)
-                    return (f"{_at(context_mark)}: invalid YAML: {what} with {quote} is not closed: expected {expected}, "
-                            f"found {found} at {_at(problem_mark)}")
+                    return (
+                        f"{_at(context_mark)}: invalid YAML: {what} with {quote} is not closed: expected {expected}, "
+                        f"found {found} at {_at(problem_mark)}"
+                    )
                 break
             if "simple key" in opening:
                 return f"{_at(context_mark)}: invalid YAML: expected 'key: value' on this line, found no ':' after the key"
@@ -448,34 +450,40 @@ def _describe_yaml_error(exc: yaml.MarkedYAMLError, text: str) -> str:
         return f"{where}invalid YAML: expected each anchor once, found &{name} again (first at {_at(context_mark)})"
     if problem.startswith("found unknown escape character"):
         char = problem.rsplit(" ", 1)[-1]
-        return (f"{where}invalid YAML: expected an escape sequence such as \\\\ or \\n in double-quoted text "
-                f"(or single quotes, where a backslash is plain), found the unknown escape \\{char.strip(chr(39))}")
+        return (
+            f"{where}invalid YAML: expected an escape sequence such as \\\\ or \\n in double-quoted text "
+            f"(or single quotes, where a backslash is plain), found the unknown escape \\{char.strip(chr(39))}"
+        )
     if problem == "found unhashable key":
         return f"{where}invalid YAML: expected a text key, found a list or mapping used as a key"
     if problem.startswith("found character '\\t'"):
         return f"{where}invalid YAML: expected spaces for indentation (YAML allows no tabs there), found a tab character"
     if problem == "mapping values are not allowed here":
-        return (f"{where}invalid YAML: expected a key indented like the keys above it (or a value containing ': ' "
-                f"in quotes), found ':' where a mapping is not allowed")
+        return (
+            f"{where}invalid YAML: expected a key indented like the keys above it (or a value containing ': ' "
+            f"in quotes), found ':' where a mapping is not allowed"
+        )
     in_context = ""
     if context and context_mark is not None and context_mark is not mark:
         in_context = f" ({context} started at {_at(context_mark)})"
     elif context:
         in_context = f" ({context})"
     if problem.startswith("expected <block end>, but found ") and context.startswith("while parsing a block"):
-        found = _token(problem[len("expected <block end>, but found "):])
+        found = _token(problem[len("expected <block end>, but found ") :])
         if found in ("']'", "'}'"):
             return f"{where}invalid YAML{in_context}: expected a key, an item or the end of the block, found {found} that closes nothing"
-        return (f"{where}invalid YAML{in_context}: expected a line indented like an enclosing block's keys or items, "
-                f"found {found} (check the indentation)")
+        return (
+            f"{where}invalid YAML{in_context}: expected a line indented like an enclosing block's keys or items, "
+            f"found {found} (check the indentation)"
+        )
     for but in (", but got ", " but got ", ", but found ", " but found "):
         if problem.startswith("expected") and but in problem:
             head, tail = problem.split(but, 1)
             return f"{where}invalid YAML{in_context}: {head}, found {_token(tail)}"
     if context.startswith("expected") and problem.startswith("but found "):
-        return f"{where}invalid YAML: {context}, found {problem[len('but found '):]}"
+        return f"{where}invalid YAML: {context}, found {problem[len('but found ') :]}"
     if problem.startswith("found "):
-        problem = problem[len("found "):]
+        problem = problem[len("found ") :]
     return f"{where}invalid YAML{in_context}: expected valid YAML syntax, found {problem}"
 
 
@@ -495,8 +503,10 @@ def _check_nodes(root: yaml.Node, file: str) -> None:
                     if key.value in seen:
                         raise MissionError(
                             file,
-                            [f"line {key.start_mark.line + 1}: {key.value}: expected each key once in a mapping, "
-                             f"found it again (first at line {seen[key.value]})"],
+                            [
+                                f"line {key.start_mark.line + 1}: {key.value}: expected each key once in a mapping, "
+                                f"found it again (first at line {seen[key.value]})"
+                            ],
                         )
                     seen[key.value] = key.start_mark.line + 1
                 stack.append(key)
@@ -528,9 +538,7 @@ def _node_at(root: yaml.Node, parts: Sequence[str | int]) -> tuple[yaml.Node, bo
 # --- overrides -----------------------------------------------------------------------------
 
 
-def _apply_overrides(
-    data: dict[str, Any], overrides: Mapping[str, Any], file: str, paths: list[tuple[str | int, ...]]
-) -> dict[str, Any]:
+def _apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], file: str, paths: list[tuple[str | int, ...]]) -> dict[str, Any]:
     """Deep-merge ``overrides`` (dotted keys or nested mappings) into a copy of ``data``."""
     out = copy.deepcopy(data)
 
@@ -629,7 +637,7 @@ def _inner_model(annotation: Any) -> Any:
 def _expected_from_msg(msg: str) -> str:
     for prefix in ("Input should be ", "Value should be "):
         if msg.startswith(prefix):
-            rest = msg[len(prefix):]
+            rest = msg[len(prefix) :]
             if rest.startswith(("greater", "less")):
                 rest = "a number " + rest
             return rest.replace("a valid tuple", "a list").replace("a valid dictionary", "a mapping")
@@ -651,7 +659,7 @@ def _merge_typos(errors: Sequence[Any]) -> list[Any]:
 
 def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[tuple[str | int, ...]]) -> str:
     """One line for one pydantic error: ``line N: key.path: expected ..., found ...``."""
-    loc: list[str | int] = [p for p in err["loc"]]
+    loc: list[str | int] = list(err["loc"])
     kind = err["type"]
     ctx = err.get("ctx") or {}
     if kind == "mission_invalid" and ctx.get("path"):
@@ -665,9 +673,9 @@ def _describe(err: Mapping[str, Any], root: yaml.Node, override_paths: Sequence[
         else:
             text = f"unknown key; expected one of {', '.join(valid)}; found {key!r}"
     elif kind == "invalid_key":
-        key = loc.pop() if loc else None
+        bad_key = loc.pop() if loc else None
         valid = _model_fields_at(loc) or []
-        text = f"unknown key; expected text keys (one of {', '.join(valid)}); found {_kind(key)}"
+        text = f"unknown key; expected text keys (one of {', '.join(valid)}); found {_kind(bad_key)}"
     elif kind == "missing":
         parent_fields = _model_fields_at(loc[:-1])
         if parent_fields is not None:

@@ -47,14 +47,15 @@ def zenoh_settings(mission: Mission, zenoh_config: str | None, zenoh_connect: Se
 def payload_world(mission: Mission) -> PayloadWorld:
     """The simulated payload's world of ``mission``: the source (position in m, velocity in
     m/s, mission frame ENU), the buildings' boxes (m), the channel and the seed."""
+    from planner.geometry import vec3
     from vehicle_sim.payload import PayloadWorld
 
     mins, maxs = mission.obstacle_bounds()
     return PayloadWorld(
-        source_position_m=tuple(float(v) for v in mission.source.position_m),  # type: ignore[arg-type]
-        source_velocity_mps=tuple(float(v) for v in mission.source.velocity_mps),  # type: ignore[arg-type]
-        boxes_min_m=tuple(tuple(float(v) for v in row) for row in mins),  # type: ignore[misc]
-        boxes_max_m=tuple(tuple(float(v) for v in row) for row in maxs),  # type: ignore[misc]
+        source_position_m=vec3(mission.source.position_m),
+        source_velocity_mps=vec3(mission.source.velocity_mps),
+        boxes_min_m=tuple(vec3(row) for row in mins),
+        boxes_max_m=tuple(vec3(row) for row in maxs),
         channel=mission.channel.to_planner(),
         seed=int(mission.seed),
     )

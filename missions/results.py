@@ -101,8 +101,14 @@ def violating_drones(result: SimulationResult) -> dict[str, list[dict[str, Any]]
         pairs = []
         for t, i in sorted({(int(t), int(i)) for _, t, i in np.argwhere(bad)}):
             steps = np.flatnonzero(bad[:, t, i])
-            entry: dict[str, Any] = {"trial": t, "drone": i + 1, "first_step": int(steps[0]), "last_step": int(steps[-1]),
-                                     "steps": int(steps.size), "worst_margin_m": round(float(margins[steps, t, i].min()), 3)}
+            entry: dict[str, Any] = {
+                "trial": t,
+                "drone": i + 1,
+                "first_step": int(steps[0]),
+                "last_step": int(steps[-1]),
+                "steps": int(steps.size),
+                "worst_margin_m": round(float(margins[steps, t, i].min()), 3),
+            }
             if family == "source":
                 e = err[steps[steps < err.shape[0]], t, i]
                 if e.size:
@@ -138,7 +144,17 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
         w = csv.writer(fh)
         w.writerow(["step", "peb_mean_m", "peb_p10_m", "peb_p90_m", "singular_fraction", "estimate_error_mean_m", "estimate_error_median_m"])
         for k in range(len(stats["mean"])):
-            w.writerow([k, _fmt(stats["mean"][k]), _fmt(stats["p10"][k]), _fmt(stats["p90"][k]), _fmt(stats["singular_fraction"][k]), _fmt(err[k].mean()), _fmt(np.median(err[k]))])
+            w.writerow(
+                [
+                    k,
+                    _fmt(stats["mean"][k]),
+                    _fmt(stats["p10"][k]),
+                    _fmt(stats["p90"][k]),
+                    _fmt(stats["singular_fraction"][k]),
+                    _fmt(err[k].mean()),
+                    _fmt(np.median(err[k])),
+                ]
+            )
     roles = result.spec.mission.drones.roles
     with (run_dir / "trajectories.csv").open("w", newline="") as fh:
         w = csv.writer(fh)

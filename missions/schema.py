@@ -119,8 +119,7 @@ def _check_connection(value: str) -> str:
     if not _CONNECTION_RE.match(value):
         raise PydanticCustomError(
             "mavlink_connection",
-            "expected a pymavlink connection string such as 'udpin:127.0.0.1:14550', "
-            "'tcp:HOST:PORT' or '/dev/ttyUSB0,57600', found {found}",
+            "expected a pymavlink connection string such as 'udpin:127.0.0.1:14550', 'tcp:HOST:PORT' or '/dev/ttyUSB0,57600', found {found}",
             {"found": repr(value)},
         )
     return value
@@ -177,22 +176,16 @@ class Ellipse(_Section):
         """Start positions of ``count`` drones, shape (count, 3), metres ENU, drone 1 first."""
         alpha = math.radians(self.phase_deg) + 2.0 * np.pi * np.arange(count) / count
         center = np.asarray(self.center_m, dtype=float)
-        offsets = np.stack(
-            [self.radius_x_m * np.cos(alpha), np.zeros(count), self.radius_z_m * np.sin(alpha)], axis=-1
-        )
+        offsets = np.stack([self.radius_x_m * np.cos(alpha), np.zeros(count), self.radius_z_m * np.sin(alpha)], axis=-1)
         return center + offsets
 
 
 class Start(_Section):
     """Initial positions: exactly one of ``positions_m`` (explicit) or ``ellipse``."""
 
-    model_config = ConfigDict(
-        json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}]}
-    )
+    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}]})
 
-    positions_m: tuple[Vec3, ...] | None = Field(
-        None, description="Explicit start positions, one [x, y, z] per drone (m, ENU), drone 1 first."
-    )
+    positions_m: tuple[Vec3, ...] | None = Field(None, description="Explicit start positions, one [x, y, z] per drone (m, ENU), drone 1 first.")
     ellipse: Ellipse | None = Field(None, description="Start on the paper's XZ-plane ellipse.")
 
     @model_validator(mode="after")
@@ -208,12 +201,11 @@ def _expand_roles(data: Any) -> Any:
     if isinstance(data, dict) and isinstance(data.get("roles"), str):
         role = data["roles"]
         if role not in ROLES:
-            raise fail(
-                "roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role)
-            )
+            raise fail("roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role))
         count = data.get("count")
-        valid_count = isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES
-        data = {**data, "roles": [role] * (count if valid_count else 1)}
+        if not (isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES):
+            count = 1
+        data = {**data, "roles": [role] * count}
     return data
 
 
@@ -334,9 +326,7 @@ class Box(_Section):
     def _ordered(self) -> Box:
         for axis, (lo, hi) in enumerate(zip(self.min_m, self.max_m)):
             if not lo < hi:
-                raise fail(
-                    f"max_m[{axis}]", f"max_m[{axis}] > min_m[{axis}] = {lo:g} ({'xyz'[axis]} axis)", hi
-                )
+                raise fail(f"max_m[{axis}]", f"max_m[{axis}] > min_m[{axis}] = {lo:g} ({'xyz'[axis]} axis)", hi)
         return self
 
 
@@ -379,16 +369,12 @@ class Constraints(_Section):
     tilt_change_max_deg: Float = Field(50.0, gt=0.0, le=180.0, description="θ_max, per step (deg).")
     z_min_m: Float = Field(2.0, description="Lowest altitude z_min (m, ENU up).")
     z_max_m: Float = Field(25.0, description="Highest altitude z_max (m, ENU up).")
-    activation: Literal["safe", "paper"] = Field(
-        "safe", description="'safe': constraints act before violation; 'paper': eqs. 15-17 literally."
-    )
+    activation: Literal["safe", "paper"] = Field("safe", description="'safe': constraints act before violation; 'paper': eqs. 15-17 literally.")
 
     @model_validator(mode="after")
     def _ordered(self) -> Constraints:
         if self.speed_min_mps > self.speed_max_mps:
-            raise fail(
-                "speed_min_mps", f"speed_min_mps <= speed_max_mps = {self.speed_max_mps:g}", self.speed_min_mps
-            )
+            raise fail("speed_min_mps", f"speed_min_mps <= speed_max_mps = {self.speed_max_mps:g}", self.speed_min_mps)
         if self.z_min_m > self.z_max_m:
             raise fail("z_min_m", f"z_min_m <= z_max_m = {self.z_max_m:g}", self.z_min_m)
         return self
@@ -427,15 +413,13 @@ class Faults(_Section):
     Off by default.
     """
 
-    loss: Float = Field(
-        0.0, ge=0.0, lt=1.0, description="Probability that a peer's record is lost at a receiver, in [0, 1)."
-    )
-    extra_delay_steps: Int = Field(
-        0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late."
-    )
+    loss: Float = Field(0.0, ge=0.0, lt=1.0, description="Probability that a peer's record is lost at a receiver, in [0, 1).")
+    extra_delay_steps: Int = Field(0, ge=0, le=1000, description="Maximum extra delay D (steps): each record arrives a uniform 0..D steps late.")
     partition_start_step: Int | None = Field(
-        None, ge=0, description="First step of a network partition (fimnav montecarlo only): drones "
-        "1..ceil(N/2) and the rest exchange no record, whatever their distance."
+        None,
+        ge=0,
+        description="First step of a network partition (fimnav montecarlo only): drones "
+        "1..ceil(N/2) and the rest exchange no record, whatever their distance.",
     )
     partition_steps: Int = Field(0, ge=0, le=100000, description="Length of the partition (steps); 0: none.")
 
@@ -473,12 +457,9 @@ class Controller(_Section):
     xi: Float | None = Field(
         None,
         gt=0.0,
-        description="Spatial step ξ (m per unit gradient). None: normalized step, the gradient "
-        "direction scaled to v_max·Δt.",
+        description="Spatial step ξ (m per unit gradient). None: normalized step, the gradient direction scaled to v_max·Δt.",
     )
-    random_perturbation_deg: Float = Field(
-        20.0, ge=0.0, le=180.0, description="Random heading perturbation used when the FIM is singular (deg)."
-    )
+    random_perturbation_deg: Float = Field(20.0, ge=0.0, le=180.0, description="Random heading perturbation used when the FIM is singular (deg).")
 
     @property
     def random_perturbation_rad(self) -> float:
@@ -505,12 +486,7 @@ class Fence(_Section):
     def contains(self, xy: NDArray[np.float64]) -> NDArray[np.bool_]:
         """True where points (..., ≥2) lie inside the fence (edges included)."""
         xy = np.asarray(xy, dtype=float)
-        return (
-            (xy[..., 0] >= self.x_min_m)
-            & (xy[..., 0] <= self.x_max_m)
-            & (xy[..., 1] >= self.y_min_m)
-            & (xy[..., 1] <= self.y_max_m)
-        )
+        return (xy[..., 0] >= self.x_min_m) & (xy[..., 0] <= self.x_max_m) & (xy[..., 1] >= self.y_min_m) & (xy[..., 1] <= self.y_max_m)
 
 
 class ZenohTls(_Section):
@@ -542,9 +518,7 @@ class ZenohSpec(_Section):
 class VehicleOverride(_Section):
     """Per-drone vehicle settings; absent keys take the ``vehicles`` defaults."""
 
-    connection: MavlinkConnection | None = Field(
-        None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle."
-    )
+    connection: MavlinkConnection | None = Field(None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle.")
     flavour: Literal["auto", "ardupilot", "px4"] | None = Field(
         None,
         description="Autopilot flavour. 'ardupilot' or 'px4' forces it for the planner (and sets the "
@@ -562,8 +536,7 @@ class VehicleOverride(_Section):
     )
     payload_connection: MavlinkConnection | None = Field(
         None,
-        description="A second MAVLink connection to the autopilot, for the simulated payload (e.g. SITL's "
-        "SERIAL1, tcp:127.0.0.1:5762).",
+        description="A second MAVLink connection to the autopilot, for the simulated payload (e.g. SITL's SERIAL1, tcp:127.0.0.1:5762).",
     )
 
 
@@ -589,9 +562,7 @@ class Vehicles(_Section):
     """Autopilots: defaults and an optional per-drone override list (empty, or one per drone)."""
 
     flavour: Literal["ardupilot", "px4"] = Field("ardupilot", description="Autopilot dialect.")
-    profile: Literal["ideal", "pointmass"] = Field(
-        "ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper)."
-    )
+    profile: Literal["ideal", "pointmass"] = Field("ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper).")
     overrides: tuple[VehicleOverride, ...] = Field((), description="One entry per drone, drone 1 first.")
     setpoint_frame: Literal["auto", "global", "local_ned"] = Field(
         "auto",
@@ -713,13 +684,11 @@ class Mission(_Section):
         any height) as bounds; a forgetting factor of 0.97 per step for a moving source."""
         box = self.source.search_box
         if box is not None:
-            lo, hi = tuple(box.min_m), tuple(box.max_m)
+            lo, hi = box.min_m, box.max_m
         else:
             f = self.fence
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
-        return EstimatorConfig(
-            forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi
-        )
+        return EstimatorConfig(forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi)
 
     def obstacle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Obstacle corners (mins, maxs), each shape (B, 3), metres ENU; B may be 0."""
@@ -754,17 +723,17 @@ class Mission(_Section):
             if not c.z_min_m <= z <= c.z_max_m:
                 raise fail(where(i), f"z within [z_min_m, z_max_m] = [{c.z_min_m:g}, {c.z_max_m:g}]", who(i))
         inside_fence = self.fence.contains(starts)
-        for i in np.flatnonzero(~inside_fence):
-            raise fail(where(int(i)), "a start position inside the fence", who(int(i)))
+        for outside in np.flatnonzero(~inside_fence):
+            raise fail(where(int(outside)), "a start position inside the fence", who(int(outside)))
 
         if n > 1:
             diff = starts[:, None, :] - starts[None, :, :]
             dist = np.linalg.norm(diff, axis=-1) + np.diag(np.full(n, np.inf))
-            i, j = np.unravel_index(int(np.argmin(dist)), dist.shape)
-            if dist[i, j] < c.d_uav_m:
-                i, j = min(i, j), max(i, j)
+            a, b = np.unravel_index(int(np.argmin(dist)), dist.shape)
+            if dist[a, b] < c.d_uav_m:
+                i, j = int(min(a, b)), int(max(a, b))
                 raise fail(
-                    where(int(j)),
+                    where(j),
                     f"start positions at least d_uav_m = {c.d_uav_m:g} m apart",
                     f"drones {i + 1} and {j + 1} {dist[i, j]:.3g} m apart",
                 )
@@ -772,11 +741,11 @@ class Mission(_Section):
         source0 = self.source.position_at(0.0)
         source_end = self.source.position_at(self.duration_s)
         d_src = np.linalg.norm(starts - source0, axis=-1)
-        for i in np.flatnonzero(d_src < c.d_source_m):
+        for near in np.flatnonzero(d_src < c.d_source_m):
             raise fail(
-                where(int(i)),
+                where(int(near)),
                 f"a start at least d_source_m = {c.d_source_m:g} m from the source",
-                f"{who(int(i))}, {d_src[i]:.3g} m from it",
+                f"{who(int(near))}, {d_src[near]:.3g} m from it",
             )
         for label, point in (("at t = 0", source0), (f"at t = {self.duration_s:g} s", source_end)):
             if not bool(self.fence.contains(point)):
@@ -793,8 +762,8 @@ class Mission(_Section):
                     f"a start at least d_obstacle_m = {c.d_obstacle_m:g} m from every obstacle",
                     f"{who(int(i))}, {sd[i, b]:.3g} m from obstacle {names[b]!r}",
                 )
-            for b in range(len(names)):
-                if _segment_hits_box(source0, source_end, mins[b], maxs[b]):
+            for name, lo, hi in zip(names, mins, maxs):
+                if _segment_hits_box(source0, source_end, lo, hi):
                     path = "source.position_m" if self.source.is_static else "source"
-                    raise fail(path, "a source outside every obstacle", f"the source meets obstacle {names[b]!r}")
+                    raise fail(path, "a source outside every obstacle", f"the source meets obstacle {name!r}")
         return self

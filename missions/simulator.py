@@ -140,8 +140,13 @@ def _own_at(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
 
 
 def _with_late_records(
-    meas: est.Measurements, late_steps: NDArray[np.int64], positions: FloatArray, rec_range: FloatArray, rec_az: FloatArray,
-    rec_el: FloatArray, rec_los: NDArray[np.bool_],
+    meas: est.Measurements,
+    late_steps: NDArray[np.int64],
+    positions: FloatArray,
+    rec_range: FloatArray,
+    rec_az: FloatArray,
+    rec_el: FloatArray,
+    rec_los: NDArray[np.bool_],
 ) -> est.Measurements:
     """The view's new records plus the peers' records delivered late, after a newer one
     (:attr:`comms.faults.FaultBuffer.late_steps`, (W, M, N, N)): old evidence about the source
@@ -310,14 +315,36 @@ def simulate(
         view_brg = brg_view & have
         # Each drone's own last ranges bound its distance to the source (second keep-out).
         lo = max(0, k - OWN_RANGE_WINDOW + 1)
-        own_lb = own_range_lower_bound_m(np.moveaxis(rec_range[lo:k + 1], 0, -1), np.moveaxis(rec_los[lo:k + 1], 0, -1), channel)
+        own_lb = own_range_lower_bound_m(np.moveaxis(rec_range[lo : k + 1], 0, -1), np.moveaxis(rec_los[lo : k + 1], 0, -1), channel)
         planned = plan(
-            pos, prev_step, eye_b, view_pos, have, view_los, np.where(have, k - saved, 0), hops,
-            ranging, bearing, state.estimate_m, state.information, state.observable, channel, limits,
-            spec.criterion, bmin, bmax, comms.d_hop_m, ctrl_u[k], xi=xi, perturbation_rad=perturb,
-            oracle_source=src if oracle_estimate else None, own_distance_lower_m=own_lb,
-            lost_contact=cut, own_then_m=None if cut is None else _own_at(positions, saved),
-            start_positions_m=starts, step_index=k,
+            pos,
+            prev_step,
+            eye_b,
+            view_pos,
+            have,
+            view_los,
+            np.where(have, k - saved, 0),
+            hops,
+            ranging,
+            bearing,
+            state.estimate_m,
+            state.information,
+            state.observable,
+            channel,
+            limits,
+            spec.criterion,
+            bmin,
+            bmax,
+            comms.d_hop_m,
+            ctrl_u[k],
+            xi=xi,
+            perturbation_rad=perturb,
+            oracle_source=src if oracle_estimate else None,
+            own_distance_lower_m=own_lb,
+            lost_contact=cut,
+            own_then_m=None if cut is None else _own_at(positions, saved),
+            start_positions_m=starts,
+            step_index=k,
         )
         step = planned.step
         fallback[k] = step.singular

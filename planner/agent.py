@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner.control import lost_contact_planes, StepResult, control_step, source_activation_margin_m
+from planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
@@ -78,13 +78,18 @@ def _normal_cdf(u: FloatArray) -> FloatArray:
     import and numpy's per-call overhead."""
     if u.size <= 8:
         return np.array([0.5 * math.erfc(-x / math.sqrt(2.0)) for x in u.ravel().tolist()]).reshape(u.shape)
-    from scipy.special import ndtr  # noqa: PLC0415 - see above
+    from scipy.special import ndtr  # imported here: see above
 
     return ndtr(u)
 
 
 def own_los_weight(
-    position: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike, measured_los: ArrayLike | None = None, softness_m: float = LOS_SOFTNESS_M
+    position: ArrayLike,
+    source: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+    measured_los: ArrayLike | None = None,
+    softness_m: float = LOS_SOFTNESS_M,
 ) -> tuple[FloatArray, FloatArray]:
     """Predicted line of sight of a drone's link to the (estimated) source, and its gradient.
 
@@ -212,9 +217,19 @@ def estimate_sigma_m(information: ArrayLike) -> FloatArray:
 
 
 def _planning_cost(
-    p_hat: FloatArray, own_position: ArrayLike, own: NDArray[np.bool_], view_positions: ArrayLike, rng_view: NDArray[np.bool_], brg_view: NDArray[np.bool_],
-    view_los: ArrayLike, own_ranging: NDArray[np.bool_], own_bearing: NDArray[np.bool_], channel: Channel, criterion: Criterion,
-    boxes_min: ArrayLike, boxes_max: ArrayLike,
+    p_hat: FloatArray,
+    own_position: ArrayLike,
+    own: NDArray[np.bool_],
+    view_positions: ArrayLike,
+    rng_view: NDArray[np.bool_],
+    brg_view: NDArray[np.bool_],
+    view_los: ArrayLike,
+    own_ranging: NDArray[np.bool_],
+    own_bearing: NDArray[np.bool_],
+    channel: Channel,
+    criterion: Criterion,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
 ) -> CostGradient:
     """Cost of eq. 6 and its gradient w.r.t. the drone's own position, with the own link's
     predicted line of sight q (:func:`own_los_weight`): J = J_peers + q J_L + (1 − q) J_N
@@ -315,8 +330,14 @@ def plan(
     brg_view = np.asarray(bearing, dtype=bool) & valid
     own_ranging = (np.asarray(ranging, dtype=bool) & own).any(-1)
     own_bearing = (np.asarray(bearing, dtype=bool) & own).any(-1)
-    p_hat = np.asarray(estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), np.shape(estimate_m))
-    cg = _planning_cost(p_hat, own_position, own, view_positions, rng_view, brg_view, view_los, own_ranging, own_bearing, channel, criterion, boxes_min, boxes_max)
+    p_hat = (
+        np.asarray(estimate_m, dtype=float)
+        if oracle_source is None
+        else np.broadcast_to(np.asarray(oracle_source, dtype=float), np.shape(estimate_m))
+    )
+    cg = _planning_cost(
+        p_hat, own_position, own, view_positions, rng_view, brg_view, view_los, own_ranging, own_bearing, channel, criterion, boxes_min, boxes_max
+    )
     obs = np.asarray(observable, dtype=bool)
     batch = np.shape(own_position)[:-1]
     if oracle_source is not None:
@@ -349,8 +370,21 @@ def plan(
         ages = np.where(unheard, int(step_index), ages)
         peers = peers | unheard
     step = control_step(
-        own_position, previous_step, cg.gradient, status, peer_rows, peers, ages,
-        p_hat, keepout, boxes_min, boxes_max, limits, perturbation_uniforms, xi=xi, perturbation_rad=perturbation_rad,
+        own_position,
+        previous_step,
+        cg.gradient,
+        status,
+        peer_rows,
+        peers,
+        ages,
+        p_hat,
+        keepout,
+        boxes_min,
+        boxes_max,
+        limits,
+        perturbation_uniforms,
+        xi=xi,
+        perturbation_rad=perturbation_rad,
         peer_planes=planes,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout))

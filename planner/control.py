@@ -241,11 +241,21 @@ def control_step(
     if p.ndim == 1:
         # One drone: run the batched code on a batch of one and unwrap.
         r = control_step(
-            p[None], np.asarray(previous_step, dtype=float)[None], np.asarray(gradient, dtype=float)[None],
-            np.asarray(status)[None], np.asarray(peers, dtype=float)[None], np.asarray(peer_mask)[None],
-            np.asarray(peer_age_steps)[None], np.asarray(source_estimate, dtype=float)[None],
-            np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1], boxes_min, boxes_max, limits,
-            np.asarray(perturbation_uniforms, dtype=float)[None], xi, perturbation_rad,
+            p[None],
+            np.asarray(previous_step, dtype=float)[None],
+            np.asarray(gradient, dtype=float)[None],
+            np.asarray(status)[None],
+            np.asarray(peers, dtype=float)[None],
+            np.asarray(peer_mask)[None],
+            np.asarray(peer_age_steps)[None],
+            np.asarray(source_estimate, dtype=float)[None],
+            np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1],
+            boxes_min,
+            boxes_max,
+            limits,
+            np.asarray(perturbation_uniforms, dtype=float)[None],
+            xi,
+            perturbation_rad,
             None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
         )
         return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
@@ -281,7 +291,9 @@ def control_step(
     g_o = sd - limits.d_obstacle_m
     # Altitude box as two more constraints (safe rule only; the paper clamps z afterwards).
     n_alt = 2 if safe else 0
-    G = np.concatenate([g_u, g_s[..., None], g_o[..., None]] + ([limits.z_max_m - p[..., 2:3], p[..., 2:3] - limits.z_min_m] if safe else []), axis=-1)
+    G = np.concatenate(
+        [g_u, g_s[..., None], g_o[..., None]] + ([limits.z_max_m - p[..., 2:3], p[..., 2:3] - limits.z_min_m] if safe else []), axis=-1
+    )
     parts = [n_u, n_s[..., None, :], n_o[..., None, :]]
     if safe:
         up = np.zeros(batch + (2, 3))
@@ -292,8 +304,8 @@ def control_step(
     fam = slice(None, G.shape[-1] - n_alt)  # the uav, source and obstacle columns
     if safe:
         gt = G.copy()
-        gt[..., :-2 - n_alt] -= smax * (2.0 + age) + 2.0 * tb
-        gt[..., -2 - n_alt:] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
+        gt[..., : -2 - n_alt] -= smax * (2.0 + age) + 2.0 * tb
+        gt[..., -2 - n_alt :] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
     else:
         gt = G
     active_all = gt < 0.0
@@ -331,10 +343,7 @@ def control_step(
     g_norm = np.sqrt((grad * grad).sum(-1))
     pg = np.where((pg_norm <= PG_REL_TOL * g_norm)[..., None], 0.0, pg)
     pg_norm = np.where(pg_norm <= PG_REL_TOL * g_norm, 0.0, pg_norm)
-    if xi is None:
-        descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None]
-    else:
-        descent = -float(xi) * pg
+    descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None] if xi is None else -float(xi) * pg
     prev_s, prev_psi, prev_theta = _spherical(prev)
     has_prev = prev_s > 0.0
     if singular.any():
@@ -438,8 +447,15 @@ def control_step(
                 m_now = dist - c.peer_required
                 cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
             strict_clear, loose_clear, hard_clear = (
-                _Clearances(q[..., cols, :], c.peer_required[..., cols], src, c.source_required, c.obstacle_required,
-                            None if planes is None else planes[..., cols, :], limits.d_uav_m)
+                _Clearances(
+                    q[..., cols, :],
+                    c.peer_required[..., cols],
+                    src,
+                    c.source_required,
+                    c.obstacle_required,
+                    None if planes is None else planes[..., cols, :],
+                    limits.d_uav_m,
+                )
                 for c in (strict_clear, loose_clear, hard_clear)
             )
         if near.any():
@@ -450,8 +466,17 @@ def control_step(
         if bad.any():
             idx = np.nonzero(bad)
             u_b, margins_b, inf_b = _envelope_search(
-                p[idx], u[idx], prev[idx], has_prev[idx], need[idx], _subset(strict_clear, idx), bmin, bmax, limits,
-                _subset(loose_clear, idx), _subset(hard_clear, idx)
+                p[idx],
+                u[idx],
+                prev[idx],
+                has_prev[idx],
+                need[idx],
+                _subset(strict_clear, idx),
+                bmin,
+                bmax,
+                limits,
+                _subset(loose_clear, idx),
+                _subset(hard_clear, idx),
             )
             u = u.copy()
             u[idx] = u_b

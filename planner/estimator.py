@@ -80,9 +80,9 @@ is initialised), and ``observable`` says when it can be trusted.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Callable
-from typing import Literal
+from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,7 +92,7 @@ from planner.params import Channel
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["Measurements", "EstimatorConfig", "EstimatorState", "initial_state", "update", "empty_measurements"]
+__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update"]
 
 #: Floors (m) keeping the model finite when a drone sits on the source or right above it.
 _RHO2_FLOOR_M2: float = 1e-12
@@ -244,9 +244,7 @@ class EstimatorConfig:
         if not (isinstance(self.window_rows, int) and self.window_rows >= 0):
             raise ValueError(f"EstimatorConfig.window_rows: expected an integer >= 0, found {self.window_rows!r}")
         if not (isinstance(self.recheck_window_rows, int) and self.recheck_window_rows >= 0):
-            raise ValueError(
-                f"EstimatorConfig.recheck_window_rows: expected an integer >= 0, found {self.recheck_window_rows!r}"
-            )
+            raise ValueError(f"EstimatorConfig.recheck_window_rows: expected an integer >= 0, found {self.recheck_window_rows!r}")
         if not (isinstance(self.recheck_every, int) and self.recheck_every >= 0):
             raise ValueError(f"EstimatorConfig.recheck_every: expected an integer >= 0, found {self.recheck_every!r}")
         for name in ("iterations", "init_iterations"):
@@ -262,30 +260,20 @@ class EstimatorConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"EstimatorConfig.{name}: expected a finite positive number, found {value!r}")
-        if self.consistency_threshold is not None and not (
-            math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0
-        ):
-            raise ValueError(
-                f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}"
-            )
+        if self.consistency_threshold is not None and not (math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0):
+            raise ValueError(f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}")
         if not 0.0 < self.consistency_forgetting < 1.0:
-            raise ValueError(
-                f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}"
-            )
+            raise ValueError(f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}")
         if self.gate_sigma is not None and not (math.isfinite(self.gate_sigma) and self.gate_sigma > 0.0):
             raise ValueError(f"EstimatorConfig.gate_sigma: expected None or a positive number, found {self.gate_sigma!r}")
         if not 0.0 <= self.gate_max_fraction <= 1.0:
-            raise ValueError(
-                f"EstimatorConfig.gate_max_fraction: expected a value in [0, 1], found {self.gate_max_fraction!r}"
-            )
+            raise ValueError(f"EstimatorConfig.gate_max_fraction: expected a value in [0, 1], found {self.gate_max_fraction!r}")
         for name in ("suspect_fraction", "suspect_deflation", "recheck_trust"):
             value = getattr(self, name)
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"EstimatorConfig.{name}: expected a value in (0, 1], found {value!r}")
         if not 0.0 <= self.nlos_bearing_weight <= 1.0:
-            raise ValueError(
-                f"EstimatorConfig.nlos_bearing_weight: expected a value in [0, 1], found {self.nlos_bearing_weight!r}"
-            )
+            raise ValueError(f"EstimatorConfig.nlos_bearing_weight: expected a value in [0, 1], found {self.nlos_bearing_weight!r}")
         if self.range_cost not in ("gls", "ml"):
             raise ValueError(f"EstimatorConfig.range_cost: expected 'gls' or 'ml', found {self.range_cost!r}")
         lo, hi = np.asarray(self.bounds_min_m, dtype=float), np.asarray(self.bounds_max_m, dtype=float)
@@ -477,13 +465,13 @@ class _Rows:
     ae: FloatArray
     s0: FloatArray
 
-    def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> "_Rows":
+    def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> _Rows:
         return _Rows(self.px, self.py, self.pz, self.zr, self.za, self.ze, ar, aa, ae, self.s0)
 
-    def sliced(self, sl: slice) -> "_Rows":
+    def sliced(self, sl: slice) -> _Rows:
         return _Rows(*(getattr(self, f)[..., sl] for f in self.__dataclass_fields__))
 
-    def subset(self, mask: BoolArray) -> "_Rows":
+    def subset(self, mask: BoolArray) -> _Rows:
         return _Rows(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
 
 
@@ -495,16 +483,16 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     row_ok = np.isfinite(px + py + pz)  # NaN/inf in any coordinate
     los = meas.los
     wb = row_weight * np.where(los, 1.0, config.nlos_bearing_weight)
-    out = []
-    for arr in (px, py, pz):
-        out.append(np.where(row_ok, arr, 0.0))
-    weights = []
-    for z, w in ((meas.range_m, row_weight), (meas.azimuth_rad, wb), (meas.elevation_rad, wb)):
+
+    def present(z: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         ok = row_ok & np.isfinite(z)
-        out.append(np.where(ok, z, 0.0))
-        weights.append(np.where(ok, w, 0.0))
+        return np.where(ok, z, 0.0), np.where(ok, w, 0.0)
+
+    zr, ar = present(meas.range_m, row_weight)
+    za, aa = present(meas.azimuth_rad, wb)
+    ze, ae = present(meas.elevation_rad, wb)
     s0 = np.where(los, channel.sigma_r0_los, channel.sigma_r0_nlos)
-    return _Rows(*out, *weights, s0)
+    return _Rows(np.where(row_ok, px, 0.0), np.where(row_ok, py, 0.0), np.where(row_ok, pz, 0.0), zr, za, ze, ar, aa, ae, s0)
 
 
 @dataclass(frozen=True)
@@ -549,6 +537,36 @@ class _Gate:
     max_fraction: float
 
 
+# The evaluation (cost_only False) or the cost alone (cost_only True): the return type follows.
+@overload
+def _evaluate(
+    x: FloatArray,
+    rows: _Rows,
+    channel: Channel,
+    k: float,
+    ml: bool,
+    d_var: FloatArray | None = None,
+    gate: _Gate | None = None,
+    cost_only: Literal[False] = False,
+    redescend: bool | BoolArray = False,
+    tukey_c: float = 4.685,
+    suspect_sigma: float = 2.5,
+) -> _Eval: ...
+@overload
+def _evaluate(
+    x: FloatArray,
+    rows: _Rows,
+    channel: Channel,
+    k: float,
+    ml: bool,
+    d_var: FloatArray | None = None,
+    gate: _Gate | None = None,
+    *,
+    cost_only: Literal[True],
+    redescend: bool | BoolArray = False,
+    tukey_c: float = 4.685,
+    suspect_sigma: float = 2.5,
+) -> FloatArray: ...
 def _evaluate(
     x: FloatArray,
     rows: _Rows,
@@ -683,6 +701,7 @@ def _loss(e: FloatArray, k: float, c: float, redescend: bool | BoolArray) -> tup
     Tukey's biweight (threshold c), where ``redescend`` ((...,) or scalar): with
     u = min(e²/c², 1), ρ = c²/6 (1 − (1 − u)³), w = (1 − u)², ψ = w e (no influence beyond c).
     """
+
     def huber() -> tuple[FloatArray, FloatArray, FloatArray]:
         ae = np.abs(e)
         m = np.minimum(ae, k)
@@ -700,10 +719,11 @@ def _loss(e: FloatArray, k: float, c: float, redescend: bool | BoolArray) -> tup
     if not np.any(redescend):
         return huber()
     sel = np.asarray(redescend)[..., None]
-    return tuple(np.where(sel, t_, h_) for t_, h_ in zip(tukey(), huber()))  # type: ignore[return-value]
+    (t_rho, t_psi, t_w), (h_rho, h_psi, h_w) = tukey(), huber()
+    return np.where(sel, t_rho, h_rho), np.where(sel, t_psi, h_psi), np.where(sel, t_w, h_w)
 
 
-def _sum(a: FloatArray, b: FloatArray) -> FloatArray:
+def _sum(a: FloatArray, b: FloatArray | BoolArray) -> FloatArray:
     return np.einsum("...k,...k->...", a, b)
 
 
@@ -940,9 +960,7 @@ def _schur_prior(A: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
 def _check(measurements: Measurements, batch_shape: tuple[int, ...]) -> Measurements:
     p = np.asarray(measurements.positions_m, dtype=float)
     if p.ndim < 2 or p.shape[-1] != 3 or p.shape[:-2] != batch_shape:
-        raise ValueError(
-            f"Measurements.positions_m: expected shape {batch_shape + ('M', 3)}, found {p.shape}"
-        )
+        raise ValueError(f"Measurements.positions_m: expected shape {batch_shape + ('M', 3)}, found {p.shape}")
     rows = p.shape[:-1]
     fields = {}
     for name in ("range_m", "azimuth_rad", "elevation_rad"):
@@ -1017,7 +1035,6 @@ def _lm_iterations(
         rd = redescend(it)
         if ev is None:
             ev = _evaluate(x, rows, channel, k, ml, redescend=rd, tukey_c=c, suspect_sigma=config.suspect_sigma)
-            assert isinstance(ev, _Eval)
         x_lin = x
         g, H, F = _accumulate(ev)
         g = g + np.einsum("...ij,...j->...i", prior_info, x) - prior_vec
@@ -1042,7 +1059,8 @@ def _lm_iterations(
         x = np.where(accept[..., None], cand, x)
         mu = np.where(accept, mu / 3.0, mu * 4.0)
         last, ev = ev, None
-    assert g is not None and H is not None and F is not None
+    if g is None or H is None or F is None:
+        raise ValueError(f"its: expected at least one iteration, found {its!r}")
     return x, mu, last, g, H, F, x_lin
 
 
@@ -1094,7 +1112,7 @@ def _score_test(
     S_t = np.where(keep, S_H, np.where(eye, tr[..., None, None], 0.0))
     S_inv, ok = _inv3_spd(S_t)
     T = np.where(ok & active, np.einsum("...i,...ij,...j->...", s, S_inv, s), 0.0)
-    fail = active & (T > threshold)
+    fail = active & (T > threshold)  # noqa: SIM300 - T is the test statistic (an array), not a constant
     S_H = np.where(fail[..., None, None], 0.0, S_H)
     S_v = np.where(fail[..., None], 0.0, S_v)
     return S_H, S_v, T, fail
@@ -1243,9 +1261,12 @@ def update(
         det = _det3(J)
         # tr(J⁻¹) = tr(adj J)/det J ≥ the variance of the estimate along any direction.
         tr_adj = (
-            J[..., 1, 1] * J[..., 2, 2] - J[..., 1, 2] ** 2
-            + J[..., 0, 0] * J[..., 2, 2] - J[..., 0, 2] ** 2
-            + J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] ** 2
+            J[..., 1, 1] * J[..., 2, 2]
+            - J[..., 1, 2] ** 2
+            + J[..., 0, 0] * J[..., 2, 2]
+            - J[..., 0, 2] ** 2
+            + J[..., 0, 0] * J[..., 1, 1]
+            - J[..., 0, 1] ** 2
         )
         use = state.observable & state.initialised & (det > 0.0)
         var_bound = np.where(use, tr_adj / np.where(use, det, 1.0), 0.0)
@@ -1277,24 +1298,48 @@ def update(
 
     n_elem = np.where(long_run, n_long, n_short)
     ev = _evaluate(
-        x, rows, channel, k, ml, gate=gate, redescend=redescend(0, fresh_start, init_before, n_elem), tukey_c=c,
+        x,
+        rows,
+        channel,
+        k,
+        ml,
+        gate=gate,
+        redescend=redescend(0, fresh_start, init_before, n_elem),
+        tukey_c=c,
         suspect_sigma=config.suspect_sigma,
     )
-    assert isinstance(ev, _Eval)
     rows = rows.with_weights(ev.ar, ev.aa, ev.ae)
     if run:
         mu = np.full(bshape, config.lm_damping)
         x, mu, ev, g, H, F, x_lin = _lm_iterations(
-            x, mu, rows, ev, prior_info, prior_vec, active, range(n_short),
-            lambda it: redescend(it, fresh_start, init_before, n_elem), channel, config,
+            x,
+            mu,
+            rows,
+            ev,
+            prior_info,
+            prior_vec,
+            active,
+            range(n_short),
+            lambda it: redescend(it, fresh_start, init_before, n_elem),
+            channel,
+            config,
         )
         sel = active & (n_elem > n_short)
         if n_long > n_short and np.any(sel):
             # The elements that need more iterations continue alone (batch subset).
             fs, ib, ne = fresh_start[sel], init_before[sel], n_elem[sel]
             xs, _, evs, gs, Hs, Fs, xls = _lm_iterations(
-                x[sel], mu[sel], rows.subset(sel), None, prior_info[sel], prior_vec[sel], np.ones(ne.shape, dtype=bool),
-                range(n_short, n_long), lambda it: redescend(it, fs, ib, ne), channel, config,
+                x[sel],
+                mu[sel],
+                rows.subset(sel),
+                None,
+                prior_info[sel],
+                prior_vec[sel],
+                np.ones(ne.shape, dtype=bool),
+                range(n_short, n_long),
+                lambda it: redescend(it, fs, ib, ne),
+                channel,
+                config,
             )
             x, g, H, F, x_lin = (_scatter(a, b, sel) for a, b in ((x, xs), (g, gs), (H, Hs), (F, Fs), (x_lin, xls)))
             ev = _Eval(**{f: _scatter(getattr(ev, f), getattr(evs, f), sel) for f in _Eval.__dataclass_fields__})
@@ -1363,9 +1408,13 @@ def update(
             order = np.argsort(pool_weight > 0.0, axis=-1, kind="stable")
             pool = _take(pool, order)
             pool_weight = np.take_along_axis(pool_weight, order, axis=-1)
-            leaving = Measurements(pool.positions_m[..., :M, :], pool.range_m[..., :M], pool.azimuth_rad[..., :M], pool.elevation_rad[..., :M], pool.los[..., :M])
+            leaving = Measurements(
+                pool.positions_m[..., :M, :], pool.range_m[..., :M], pool.azimuth_rad[..., :M], pool.elevation_rad[..., :M], pool.los[..., :M]
+            )
             leaving_weight = pool_weight[..., :M]
-            range_window = Measurements(pool.positions_m[..., M:, :], pool.range_m[..., M:], pool.azimuth_rad[..., M:], pool.elevation_rad[..., M:], pool.los[..., M:])
+            range_window = Measurements(
+                pool.positions_m[..., M:, :], pool.range_m[..., M:], pool.azimuth_rad[..., M:], pool.elevation_rad[..., M:], pool.los[..., M:]
+            )
             range_weight = pool_weight[..., M:]
         else:
             leaving, leaving_weight = new_ranges, new_weight

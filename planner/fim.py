@@ -340,7 +340,7 @@ def _cost_gradient_one(
     rho2 = max(rx * rx + ry * ry, RHO_FLOOR_M**2)
     d2 = rho2 + rz * rz
     d = math.sqrt(d2)
-    los = float(own_los)
+    los = float(np.asarray(own_los, dtype=float))
     tr = 0.0  # tr(M (J_LOS − J_NLOS)) of the own term
     gx = gy = gz = 0.0
     if bool(own_ranging):

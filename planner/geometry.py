@@ -9,6 +9,8 @@ Every function broadcasts over leading dimensions (trials, drones, ...).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -18,6 +20,15 @@ BoolArray = NDArray[np.bool_]
 #: Horizontal distances below this are treated as this (m): the azimuth is undefined
 #: straight above or below the source.
 RHO_FLOOR_M: float = 1e-9
+
+
+def vec3(values: Iterable[float]) -> tuple[float, float, float]:
+    """One point or vector, e.g. a (3,) array, as three Python floats ``(x, y, z)`` (the form
+    messages and settings hold); ValueError for another number of values."""
+    out = tuple(float(v) for v in values)
+    if len(out) != 3:
+        raise ValueError(f"expected 3 coordinates (x, y, z), found {len(out)}")
+    return out[0], out[1], out[2]
 
 
 def ranges_angles(source: ArrayLike, positions: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -109,9 +120,7 @@ def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayL
     return _box_distances(p, bmin, bmax)[0].min(-1)
 
 
-def distance_to_boxes_with_gradient(
-    points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike
-) -> tuple[FloatArray, FloatArray]:
+def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Signed distance to the nearest box and its gradient with respect to the point.
 
     Outside a box the distance is ``|p - clip(p, min, max)|`` and its gradient the unit vector
@@ -171,7 +180,11 @@ LINK_SAMPLES: int = 16
 
 
 def link_clearance_with_gradient(
-    positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike, samples: int = LINK_SAMPLES,
+    positions: ArrayLike,
+    source: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+    samples: int = LINK_SAMPLES,
     cutoff_m: float | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Clearance of the link drone → source from each obstacle, and its gradient w.r.t. the drone.

@@ -49,16 +49,16 @@ import queue
 import select
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Literal, TextIO
 
 import numpy as np
 
 from comms import keys
-from comms.latency import DelayedView
 from comms.geodesy import MissionFrame
+from comms.latency import DelayedView
 from comms.mavlink_client import (
     MAV_LANDED_STATE_NAMES,
     MSG_EKF_STATUS_REPORT,
@@ -69,6 +69,7 @@ from comms.mavlink_client import (
     MSG_HOME_POSITION,
     MSG_LOCAL_POSITION_NED,
     MSG_SYS_STATUS,
+    Frame,
     LinkError,
     VehicleLink,
     read_signing_key,
@@ -79,6 +80,7 @@ from comms.session import SessionSettings, open_session
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
 from planner.errors import FimnavError
+from planner.geometry import vec3
 from planner.params import Channel
 from planner.randomness import CONTROL_DRAWS, control_rng
 
@@ -112,8 +114,7 @@ LOCKSTEP_FLIGHT_STREAM_HZ: tuple[tuple[int, float], ...] = ((1, 0.2), (24, 0.2),
 FAILSAFE_NOTE = {
     "ardupilot": "ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
     "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
-    "px4": "PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); "
-    "a data-link loss (NAV_DLL_ACT) may follow",
+    "px4": "PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); a data-link loss (NAV_DLL_ACT) may follow",
 }
 
 
@@ -172,8 +173,8 @@ class NodeOptions:
     step_timeout_s: float = 30.0
     preflight_timeout_s: float = 120.0
     speedup: float = 1.0
-    flavour: str | None = None
-    setpoint_frame: str | None = None
+    flavour: Literal["auto", "ardupilot", "px4"] | None = None
+    setpoint_frame: Literal["auto", "global", "local_ned"] | None = None
     signing_key_file: Path | None = None
     stream_hz: float = 5.0
     peer_wait_fraction: float = 0.5
@@ -204,14 +205,16 @@ class _Inbox:
     def __init__(self, mission_id: str, count: int) -> None:
         self.mission_id = mission_id
         self.count = count
-        self.queue: queue.SimpleQueue[tuple[str, str, bytes | None]] = queue.SimpleQueue()
+        #: (kind, key expression, payload): kind "data", or "alive"/"gone" for a liveliness
+        #: change (no payload: b"").
+        self.queue: queue.SimpleQueue[tuple[str, str, bytes]] = queue.SimpleQueue()
         self.dropped: Counter[str] = Counter()
         # Self-pipe: a callback makes it readable so the node's select() wakes at once.
         self.wake_r, self.wake_w = os.pipe()
         os.set_blocking(self.wake_r, False)
         os.set_blocking(self.wake_w, False)
 
-    def _put(self, item: tuple[str, str, bytes | None]) -> None:
+    def _put(self, item: tuple[str, str, bytes]) -> None:
         self.queue.put(item)
         try:
             os.write(self.wake_w, b"z")
@@ -222,7 +225,7 @@ class _Inbox:
         self._put(("data", str(sample.key_expr), bytes(sample.payload.to_bytes())))
 
     def on_liveliness(self, sample: Any) -> None:
-        self._put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), None))
+        self._put(("alive" if str(sample.kind).endswith("PUT") else "gone", str(sample.key_expr), b""))
 
     def clear_wake(self) -> None:
         try:
@@ -304,13 +307,20 @@ class PlannerNode:
         self.start = self.starts[self.i]
         self.est_config = mission.estimator_config()
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
-        self.view = DelayedView(self.i, n, mission.comms.d_hop_m, mission.comms.h_max, emulate=mission.comms.latency == "emulated",
-                                faults=mission.comms.faults.to_model(), seed=mission.seed)
+        self.view = DelayedView(
+            self.i,
+            n,
+            mission.comms.d_hop_m,
+            mission.comms.h_max,
+            emulate=mission.comms.latency == "emulated",
+            faults=mission.comms.faults.to_model(),
+            seed=mission.seed,
+        )
         self.inbox = _Inbox(mission.id, n)
         resolved = mission.vehicles.for_drone(self.i)
         self.flavour_setting = options.flavour or resolved.autopilot
         frame = options.setpoint_frame or resolved.setpoint_frame
-        self.frame = ("local_ned" if options.lockstep else "global") if frame == "auto" else frame
+        self.frame: Frame = ("local_ned" if options.lockstep else "global") if frame == "auto" else frame
         key_file = options.signing_key_file or resolved.signing_key_file
         # Read (and permission-check) the key before anything opens: a refused key starts nothing.
         self._signing_key = read_signing_key(key_file) if key_file is not None else None
@@ -363,8 +373,14 @@ class PlannerNode:
     def _default_link(self, conn: str, sysid: int) -> VehicleLink:
         forced = None if self.flavour_setting == "auto" else self.flavour_setting
         return VehicleLink(
-            conn, sysid, signing_key=self._signing_key, wall=self.wall, frame=self.frame,  # type: ignore[arg-type]
-            mission_frame=self.mission_frame, altitude_reference=self.m.altitude_reference, flavour=forced,  # type: ignore[arg-type]
+            conn,
+            sysid,
+            signing_key=self._signing_key,
+            wall=self.wall,
+            frame=self.frame,
+            mission_frame=self.mission_frame,
+            altitude_reference=self.m.altitude_reference,
+            flavour=forced,
             tlog=self.o.tlog_path,
         )
 
@@ -381,7 +397,9 @@ class PlannerNode:
         ]
         if self.o.lockstep:
             # The simulated vehicle's bridge holds a token: its process dying is seen at once.
-            self._subs.append(s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True))
+            self._subs.append(
+                s.liveliness().declare_subscriber(keys.alive(mid, "vehicle", self.o.sysid or self.o.uav), self.inbox.on_liveliness, history=True)
+            )
         self._subs.append(s.declare_subscriber(keys.control(mid, self.o.uav), self._on_control))
         self._token = s.liveliness().declare_token(keys.alive(mid, "planner", self.o.uav))
         self._pub_record = declare_publisher(s, keys.record(mid, self.o.uav))
@@ -409,7 +427,7 @@ class PlannerNode:
         if self.session is not None:
             try:
                 self._token.undeclare()
-            except Exception:  # noqa: BLE001 - closing anyway
+            except Exception:  # closing anyway
                 pass
             self.session.close()
             self.session = None
@@ -426,7 +444,7 @@ class PlannerNode:
         """An operator command (Zenoh callback thread): queued for the main loop, which checks it."""
         try:
             self.control.put(bytes(sample.payload.to_bytes()).decode("utf-8", "replace"))
-        except Exception as exc:  # noqa: BLE001 - a bad sample must not kill the callback thread
+        except Exception as exc:  # a bad sample must not kill the callback thread
             log.warning("uav %d: unreadable control message ignored (%s)", self.o.uav, exc)
 
     def _handback_requested(self) -> bool:
@@ -446,8 +464,7 @@ class PlannerNode:
             if isinstance(msg, dict) and msg.get("command") == "handback":
                 asked = True
             else:
-                log.warning("uav %d: control message without a known command (expected {\"command\": \"handback\"}), ignored: %.80r",
-                            self.o.uav, text)
+                log.warning('uav %d: control message without a known command (expected {"command": "handback"}), ignored: %.80r', self.o.uav, text)
 
     def _drain(self, timeout_s: float = 0.0) -> None:
         """Handle queued Zenoh messages (waiting up to ``timeout_s`` for the first)."""
@@ -458,7 +475,7 @@ class PlannerNode:
         while True:
             kind, key, data = item
             if kind == "data":
-                msg = self.inbox.decode(key, data)  # type: ignore[arg-type]
+                msg = self.inbox.decode(key, data)
                 if isinstance(msg, Observation):
                     if "/measurement/" in key:
                         if self.o.lockstep:
@@ -474,9 +491,8 @@ class PlannerNode:
                         self.view.add(msg)
                     else:
                         self._add_realtime_record(msg)
-                elif isinstance(msg, Tick):
-                    if self.tick is None or msg.step >= self.tick.step:
-                        self.tick = msg
+                elif isinstance(msg, Tick) and (self.tick is None or msg.step >= self.tick.step):
+                    self.tick = msg
             elif "/alive/vehicle/" in key:
                 if kind == "gone" and self.vehicle_gone_at is None:
                     self.vehicle_gone_at = self.wall()
@@ -521,7 +537,8 @@ class PlannerNode:
         link = self._require_link()
         if not self.o.lockstep:
             timeout_s = min(timeout_s, link.stream_period_s)
-        fds = [self.inbox.wake_r] + ([link.fileno()] if link.fileno() is not None else [])
+        fd = link.fileno()
+        fds = [self.inbox.wake_r] + ([fd] if fd is not None else [])
         try:
             select.select(fds, [], [], max(timeout_s, 0.0))
         except (OSError, ValueError):
@@ -540,14 +557,10 @@ class PlannerNode:
     # -- flight -----------------------------------------------------------------------------
     def preflight(self) -> None:
         """Heartbeat, streams, GUIDED, arm, take-off and flight to the start position."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         t = self.o.preflight_timeout_s
         link.wait_heartbeat(t)
-        if self.o.lockstep:
-            rates = dict(LOCKSTEP_STREAM_HZ)
-        else:
-            rates = {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
+        rates = dict(LOCKSTEP_STREAM_HZ) if self.o.lockstep else {32: 10.0, 33: 5.0, 242: 0.2, 245: 1.0}
         for msg_id, hz in rates.items():
             link.request_interval(msg_id, hz)
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
@@ -562,15 +575,19 @@ class PlannerNode:
             climb_to = float(self.start[2])
             if not link.is_px4:
                 link.takeoff(climb_to)
-                self._wait_preflight(lambda: link.telemetry.position_enu_m[2] >= climb_to - START_TOLERANCE_M, "take-off altitude")
+
+                def climbed() -> bool:
+                    pos = link.telemetry.position_enu_m
+                    return pos is not None and pos[2] >= climb_to - START_TOLERANCE_M
+
+                self._wait_preflight(climbed, "take-off altitude")
         else:
             link.set_mode(mode)
         self._wait_preflight(lambda: self._hold_start() < START_TOLERANCE_M, "start position")
 
     def _hold_start(self) -> float:
         """Send the start position as setpoint; return the distance to it (m)."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         link.send_setpoint(self.start, None)
         pos = link.telemetry.position_enu_m
         return math.inf if pos is None else float(np.linalg.norm(pos - self.start))
@@ -610,29 +627,29 @@ class PlannerNode:
                 meas = self._measurement(k)
                 w_meas = self.wall()
                 record = Observation(
-                    self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                    meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad,
+                    self.o.uav,
+                    k,
+                    t_k,
+                    vec3(own),
+                    bool(self.ranging[self.i]),
+                    bool(self.bearing[self.i]),
+                    meas.los,
+                    meas.range_m,
+                    meas.azimuth_rad,
+                    meas.elevation_rad,
                 )
                 self.view.add(record)
                 self.own_ranges.append((record.range_m, record.los))
                 self._track(k, own)
                 self._publish(self._pub_record, record, MessageKind.RECORD)
-                # Lockstep barrier: every other planner of the mission, except those that left.
-                # (Waiting only for the planners already seen alive would let a planner whose
-                # liveliness has not reached us yet be skipped, and the views would differ.)
-                expected = [j for j in range(1, self.n + 1) if j != self.o.uav]
-                self._wait(
-                    lambda: all(self.view.has(j, k) for j in expected if j not in self.left),
-                    self.o.step_timeout_s,
-                    f"records of step {k} from the planners",
-                    missing=lambda: sorted(j for j in expected if j not in self.left and not self.view.has(j, k)),
-                )
+                self._wait_for_peer_records(k)
                 w_peers = self.wall()
                 view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
                 step = result.step
                 u = np.asarray(step.displacement, dtype=float)
                 nxt = np.asarray(step.next_position, dtype=float)
-                assert self.link is not None
+                if self.link is None:
+                    raise NodeError(f"uav {self.o.uav}: the vehicle link is closed")
                 # A heartbeat read while the step was planned (the 1 Hz one) may say the vehicle
                 # was taken over meanwhile: then this step's setpoint is not sent.
                 self.link.pump(0.0)
@@ -651,17 +668,38 @@ class PlannerNode:
                 active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
                 self._publish(
                     self._pub_status,
-                    Status(self.o.uav, k, t_k, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
+                    Status(
+                        self.o.uav,
+                        k,
+                        t_k,
+                        vec3(state.estimate_m),
+                        bool(state.observable),
+                        bool(step.singular),
+                        active_mask,
+                        tuple(int(s) for s in view.saved_steps),
+                    ),
                 )
                 self._publish(self._pub_done, Done(self.o.uav, k))
-                timing = {"wait_tick_s": w_tick - w0, "wait_measurement_s": w_meas - w_tick, "wait_peers_s": w_peers - w_meas,
-                          "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w_meas}
+                timing = {
+                    "wait_tick_s": w_tick - w0,
+                    "wait_measurement_s": w_meas - w_tick,
+                    "wait_peers_s": w_peers - w_meas,
+                    "compute_s": w_sent - w_peers,
+                    "measurement_to_setpoint_s": w_sent - w_meas,
+                }
                 self._log_step(k, t_k, own, record, view, state, result, rows, timing)
                 done_steps += 1
             self._await_end()
             end = self._end()
-            return {"uav": self.o.uav, "steps": done_steps, "dropped": dict(self.inbox.dropped), "mode_changes": self.mode_changes,
-                    "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps, "end": end}
+            return {
+                "uav": self.o.uav,
+                "steps": done_steps,
+                "dropped": dict(self.inbox.dropped),
+                "mode_changes": self.mode_changes,
+                "taken_over": self.takeovers,
+                "taken_over_steps": self.taken_over_steps,
+                "end": end,
+            }
         finally:
             self.close()
 
@@ -711,7 +749,8 @@ class PlannerNode:
         if not link.telemetry.armed:
             raise NodeError(f"uav {self.o.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
         self._wait(lambda: self.tick is not None and self.tick.step >= 0, t, "a clock tick of the mission to rejoin at")
-        assert self.tick is not None
+        if self.tick is None:
+            raise NodeError(f"uav {self.o.uav}: internal: no clock tick after waiting for one")
         p = self.tick.step
         if p >= self.steps - 1:
             raise NodeError(f"uav {self.o.uav}: cannot rejoin at step {p}: the mission has {self.steps} steps")
@@ -736,8 +775,15 @@ class PlannerNode:
         own = len(done.get(self.i, []))
         peers = sum(len(v) for j, v in done.items() if j != self.i)
         where = f"; estimate {tuple(round(float(v), 2) for v in state.estimate_m)}" if state.observable else ""
-        log.warning("uav %d: estimator rebuilt from %d steps of its predecessor's log (steps up to %d) and %d records of %d peers' logs%s",
-                    self.o.uav, own, used[self.i], peers, sum(1 for j, v in done.items() if j != self.i and v), where)
+        log.warning(
+            "uav %d: estimator rebuilt from %d steps of its predecessor's log (steps up to %d) and %d records of %d peers' logs%s",
+            self.o.uav,
+            own,
+            used[self.i],
+            peers,
+            sum(1 for j, v in done.items() if j != self.i and v),
+            where,
+        )
         return state
 
     def _await_step(self, k: int) -> float:
@@ -745,17 +791,21 @@ class PlannerNode:
             # Step 0 starts when the whole swarm is at its start positions: pre-flight deadline.
             timeout = self.o.preflight_timeout_s if k == 0 else self.o.step_timeout_s
             self._wait(lambda: self.tick is not None and self.tick.step >= k, timeout, f"clock tick of step {k}")
-            assert self.tick is not None
+            if self.tick is None:
+                raise NodeError(f"uav {self.o.uav}: internal: no clock tick after waiting for the one of step {k}")
             return self.tick.time_s if self.tick.step == k else self.tick.time_s - (self.tick.step - k) * self.dt
         raise NodeError("internal: _await_step is the lockstep clock; real time steps in _run_realtime")
 
     def _own_position(self, t_k: float) -> np.ndarray:
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         stamp = int(round(t_k * 1000.0))
-        self._wait(self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
-                   self.o.step_timeout_s, f"position telemetry at t = {t_k:g} s")
-        assert link.telemetry.position_enu_m is not None
+        self._wait(
+            self._vehicle_alive(lambda: link.telemetry.position_time_ms >= stamp, f"position telemetry at t = {t_k:g} s"),
+            self.o.step_timeout_s,
+            f"position telemetry at t = {t_k:g} s",
+        )
+        if link.telemetry.position_enu_m is None:
+            raise NodeError(f"uav {self.o.uav}: no position telemetry at t = {t_k:g} s")
         return link.telemetry.position_enu_m.astype(float)
 
     def _vehicle_alive(self, predicate: Callable[[], bool], what: str) -> Callable[[], bool]:
@@ -780,17 +830,39 @@ class PlannerNode:
         return check
 
     def _measurement(self, k: int) -> Observation:
-        self._wait(self._vehicle_alive(lambda: k in self.measurements, f"payload measurement of step {k}"),
-                   self.o.step_timeout_s, f"payload measurement of step {k}")
+        self._wait(
+            self._vehicle_alive(lambda: k in self.measurements, f"payload measurement of step {k}"),
+            self.o.step_timeout_s,
+            f"payload measurement of step {k}",
+        )
         for s in [s for s in self.measurements if s <= k]:
             meas = self.measurements.pop(s)
         return meas
+
+    def _wait_for_peer_records(self, k: int) -> None:
+        """Lockstep barrier of step k: the records of every other planner of the mission,
+        except those that left. (Waiting only for the planners already seen alive would let a
+        planner whose liveliness has not reached us yet be skipped, and the views would differ.)"""
+        expected = [j for j in range(1, self.n + 1) if j != self.o.uav]
+        self._wait(
+            lambda: all(self.view.has(j, k) for j in expected if j not in self.left),
+            self.o.step_timeout_s,
+            f"records of step {k} from the planners",
+            missing=lambda: sorted(j for j in expected if j not in self.left and not self.view.has(j, k)),
+        )
+
+    def _serve_until_peers(self, k: int, t_unix: float) -> bool:
+        """:meth:`_serve_until_unix` until the records of step k from the live peers are in
+        (:meth:`_missing_peers`) or UNIX time ``t_unix``; return whether they are all in."""
+        return self._serve_until_unix(t_unix, lambda: not self._missing_peers(k))
 
     def _missing_peers(self, k: int) -> list[int]:
         """Live peers (1-based ids) whose record of step k has not arrived."""
         return sorted(j for j in self.alive if j != self.o.uav and not self.view.has(j, k) and self.stale_peers.get(j) != k)
 
-    def _view_estimate_plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
+    def _view_estimate_plan(
+        self, k: int, own: np.ndarray, prev_step: np.ndarray, state: est.EstimatorState, used: np.ndarray
+    ) -> tuple[Any, est.EstimatorState, int, np.ndarray, Any]:
         """Step k after the records are in: delayed view, source estimate (with the records
         not used before), control step. Returns (view, state, new rows, used steps, plan)."""
         view = self.view.advance(k)
@@ -843,17 +915,40 @@ class PlannerNode:
         mc = self.m.controller
         bmin, bmax = self.boxes
         return plan(
-            own, prev_step, own_mask, pos, valid, los, ages, view.hops, self.ranging, self.bearing,
-            state.estimate_m, state.information, state.observable, self.channel, self.limits, self.m.criterion,
-            bmin, bmax, self.m.comms.d_hop_m, uniforms, xi=mc.xi, perturbation_rad=mc.random_perturbation_rad,
+            own,
+            prev_step,
+            own_mask,
+            pos,
+            valid,
+            los,
+            ages,
+            view.hops,
+            self.ranging,
+            self.bearing,
+            state.estimate_m,
+            state.information,
+            state.observable,
+            self.channel,
+            self.limits,
+            self.m.criterion,
+            bmin,
+            bmax,
+            self.m.comms.d_hop_m,
+            uniforms,
+            xi=mc.xi,
+            perturbation_rad=mc.random_perturbation_rad,
             own_distance_lower_m=own_range_lower_bound_m(
                 np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
             ),
-            lost_contact=lost if own_then is not None else None, own_then_m=own_then,
-            start_positions_m=self.starts, step_index=k,
+            lost_contact=lost if own_then is not None else None,
+            own_then_m=own_then,
+            start_positions_m=self.starts,
+            step_index=k,
         )
 
-    def _log_step(self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]) -> None:
+    def _log_step(
+        self, k: int, t_k: float, own: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]
+    ) -> None:
         if self._log is None:
             return
         step = result.step
@@ -861,7 +956,12 @@ class PlannerNode:
             "step": k,
             "t_s": t_k,
             "position_m": [float(v) for v in own],
-            "measurement": {"range_m": _num(record.range_m), "azimuth_rad": _num(record.azimuth_rad), "elevation_rad": _num(record.elevation_rad), "los": record.los},
+            "measurement": {
+                "range_m": _num(record.range_m),
+                "azimuth_rad": _num(record.azimuth_rad),
+                "elevation_rad": _num(record.elevation_rad),
+                "los": record.los,
+            },
             "saved_steps": [int(s) for s in view.saved_steps],
             "hops": [int(h) for h in view.hops],
             "new_records": rows,
@@ -885,8 +985,19 @@ class PlannerNode:
         for s in [s for s in self.measurements if s <= k]:
             del self.measurements[s]
         nan = float("nan")
-        rec = Observation(self.o.uav, k, t_k, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                          True, nan, nan, nan, taken_over=True)
+        rec = Observation(
+            self.o.uav,
+            k,
+            t_k,
+            vec3(own),
+            bool(self.ranging[self.i]),
+            bool(self.bearing[self.i]),
+            True,
+            nan,
+            nan,
+            nan,
+            taken_over=True,
+        )
         self._track(k, own)
         self._publish(self._pub_record, rec, MessageKind.RECORD)
         self.ctrl_rng.random(CONTROL_DRAWS)
@@ -897,12 +1008,10 @@ class PlannerNode:
         """End of mission as the mission says: hold (stay in GUIDED at the last setpoint),
         land or return to launch, confirmed by the vehicle's mode; left to the pilot of a
         drone taken over."""
-        link = self.link
-        assert link is not None
+        link = self._require_link()
         action = self.m.end_action
         if self.taken_over is not None:
-            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
-                        self.o.uav, link.mode_name(), action)
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot", self.o.uav, link.mode_name(), action)
             return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         try:
             if action == "land":
@@ -919,7 +1028,6 @@ class PlannerNode:
             raise NodeError(f"uav {self.o.uav}: end of mission ({action}) failed: {exc}") from None
         log.info("uav %d: mission over (%s)", self.o.uav, action)
         return {"action": action, "confirmed": True, "mode": link.mode_name()}
-
 
     # -- real time --------------------------------------------------------------------------
     def _add_realtime_record(self, rec: Observation) -> None:
@@ -945,8 +1053,10 @@ class PlannerNode:
         if link.lost and self.link_down_since is None:
             self.link_down_since = self.wall()
             log.error(
-                "uav %d: vehicle link lost (no heartbeat for %.1f s): publishing the last record as stale "
-                "until it returns; meanwhile %s", self.o.uav, link.link_age_s(), FAILSAFE_NOTE[link.flavour],
+                "uav %d: vehicle link lost (no heartbeat for %.1f s): publishing the last record as stale until it returns; meanwhile %s",
+                self.o.uav,
+                link.link_age_s(),
+                FAILSAFE_NOTE[link.flavour],
             )
         elif self.link_down_since is not None and not link.lost:
             down = self.wall() - self.link_down_since
@@ -989,7 +1099,9 @@ class PlannerNode:
                 return
             now = self.wall()
             if now >= deadline:
-                raise NodeError(f"uav {self.o.uav}: vehicle not ready to fly after {self.o.preflight_timeout_s:g} s; still waiting for: {'; '.join(missing)}")
+                raise NodeError(
+                    f"uav {self.o.uav}: vehicle not ready to fly after {self.o.preflight_timeout_s:g} s; still waiting for: {'; '.join(missing)}"
+                )
             if now - last_report >= READY_REPORT_PERIOD_S:
                 log.info("uav %d: waiting for the vehicle: %s", self.o.uav, "; ".join(missing))
                 last_report = now
@@ -1051,10 +1163,16 @@ class PlannerNode:
         self._ready_wait()
         self._check_clock()
         origin = link.telemetry.origin_global
-        assert origin is not None
+        if origin is None:
+            raise NodeError(f"uav {self.o.uav}: the vehicle is ready but sent no EKF origin (GPS_GLOBAL_ORIGIN)")
         shared = self.mission_frame.matches(*origin)
-        log.info("uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
-                 self.o.uav, *origin, "is" if shared else "is not", "SET_POSITION_TARGET_GLOBAL_INT" if self.frame == "global" else "LOCAL_NED")
+        log.info(
+            "uav %d: ready; EKF origin %.7f, %.7f, %.2f m (%s the mission origin); setpoints in %s",
+            self.o.uav,
+            *origin,
+            "is" if shared else "is not",
+            "SET_POSITION_TARGET_GLOBAL_INT" if self.frame == "global" else "LOCAL_NED",
+        )
         if self.frame == "local_ned" and not shared:
             raise NodeError(
                 f"uav {self.o.uav}: setpoint_frame local_ned needs the vehicle's EKF origin at the mission origin "
@@ -1063,7 +1181,8 @@ class PlannerNode:
             )
         self._wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
         pos = link.telemetry.position_enu_m
-        assert pos is not None
+        if pos is None:
+            raise NodeError(f"uav {self.o.uav}: no position telemetry after waiting for it")
         climb_to = float(self.m.takeoff_alt_m if self.m.takeoff_alt_m is not None else self.start[2])
         tol = START_TOLERANCE_REALTIME_M
         # Take-off done at 95 % of the climb (an autopilot's altitude settles slowly at the end).
@@ -1147,8 +1266,15 @@ class PlannerNode:
                 link.set_stream(None)
                 self.taken_over = {"step": k, "mode": now}
                 self.takeovers.append(dict(self.taken_over))
-                log.warning("uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
-                            "position without measurements; hand it back with: fimnav handback MISSION --uav %d", self.o.uav, k, want, now, self.o.uav)
+                log.warning(
+                    "uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
+                    "position without measurements; hand it back with: fimnav handback MISSION --uav %d",
+                    self.o.uav,
+                    k,
+                    want,
+                    now,
+                    self.o.uav,
+                )
             else:
                 log.warning("uav %d: taken over, the vehicle is now in %s", self.o.uav, now)
         self._reported_mode = now if not link.in_mode(want) else None
@@ -1182,7 +1308,8 @@ class PlannerNode:
             link.set_stream(None)
             log.error("uav %d: hand-back refused: %s", self.o.uav, exc)
             return False
-        assert self.taken_over is not None
+        if self.taken_over is None:
+            raise NodeError(f"uav {self.o.uav}: internal: hand-back at step {k} of a drone not taken over")
         self.takeovers[-1]["handed_back_step"] = k
         self.taken_over = None
         self._reported_mode = None
@@ -1230,7 +1357,9 @@ class PlannerNode:
             if w0 - t_k > dtw:
                 skip = int((w0 - t_k) // dtw)
                 self.late_steps += skip
-                log.warning("uav %d: step %d is %.3f s late; skipping %d step(s), the vehicle follows the last setpoint", self.o.uav, k, w0 - t_k, skip)
+                log.warning(
+                    "uav %d: step %d is %.3f s late; skipping %d step(s), the vehicle follows the last setpoint", self.o.uav, k, w0 - t_k, skip
+                )
                 k += skip
                 continue
             if self.resume_needed and self.link_down_since is None:
@@ -1252,22 +1381,33 @@ class PlannerNode:
                 # step, without a measurement (the pilot's flight is no planned sensing), so the
                 # others keep clear of where it is; without telemetry its last record, as stale.
                 pos = link.telemetry.position_enu_m
-                fresh_pos = pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
                 nan = float("nan")
-                if fresh_pos:
-                    assert pos is not None
-                    rec = Observation(self.o.uav, k, w0, tuple(float(v) for v in pos), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
-                                      True, nan, nan, nan, taken_over=True)
+                if pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S:  # a fresh position
+                    rec = Observation(
+                        self.o.uav,
+                        k,
+                        w0,
+                        vec3(pos),
+                        bool(self.ranging[self.i]),
+                        bool(self.bearing[self.i]),
+                        True,
+                        nan,
+                        nan,
+                        nan,
+                        taken_over=True,
+                    )
                     self._publish(self._pub_record, rec, MessageKind.RECORD)
                 elif self.last_record is not None:
-                    self._publish(self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True),
-                                  MessageKind.RECORD)
+                    self._publish(
+                        self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True), MessageKind.RECORD
+                    )
                 self.taken_over_steps += 1
                 prev_step = np.zeros(3)
                 k += 1
                 continue
             pos = link.telemetry.position_enu_m
-            assert pos is not None
+            if pos is None:
+                raise NodeError(f"uav {self.o.uav}: step {k}: no position telemetry from the vehicle")
             age = self.wall() - link.telemetry.position_wall_s
             if age > POSITION_MAX_AGE_S:
                 # Heartbeats but no position: plan nothing on an old position.
@@ -1285,7 +1425,12 @@ class PlannerNode:
                 log.warning("uav %d: step %d without a payload measurement newer than %.3g s", self.o.uav, k, max_age_wall)
             nan = float("nan")
             record = Observation(
-                self.o.uav, k, w0, tuple(float(v) for v in own), bool(self.ranging[self.i]), bool(self.bearing[self.i]),
+                self.o.uav,
+                k,
+                w0,
+                vec3(own),
+                bool(self.ranging[self.i]),
+                bool(self.bearing[self.i]),
                 bool(meas.los) if fresh and meas else True,
                 meas.range_m if fresh and meas and self.ranging[self.i] else nan,
                 meas.azimuth_rad if fresh and meas and self.bearing[self.i] else nan,
@@ -1297,8 +1442,7 @@ class PlannerNode:
             self._track(k, own)
             self._publish(self._pub_record, record, MessageKind.RECORD)
             w_meas = self.unix()
-            peers = lambda: not self._missing_peers(k)  # noqa: E731
-            if not self._serve_until_unix(t_k + self.o.peer_wait_fraction * dtw, peers):
+            if not self._serve_until_peers(k, t_k + self.o.peer_wait_fraction * dtw):
                 log.info("uav %d: step %d without the records of %s (deadline)", self.o.uav, k, self._missing_peers(k))
             w_peers = self.unix()
             view, state, rows, used, result = self._view_estimate_plan(k, own, prev_step, state, used)
@@ -1310,7 +1454,16 @@ class PlannerNode:
             active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
             self._publish(
                 self._pub_status,
-                Status(self.o.uav, k, w0, tuple(float(v) for v in state.estimate_m), bool(state.observable), bool(step.singular), active_mask, tuple(int(s) for s in view.saved_steps)),
+                Status(
+                    self.o.uav,
+                    k,
+                    w0,
+                    vec3(state.estimate_m),
+                    bool(state.observable),
+                    bool(step.singular),
+                    active_mask,
+                    tuple(int(s) for s in view.saved_steps),
+                ),
             )
             self._publish(self._pub_done, Done(self.o.uav, k))
             timing = {"late_s": w0 - t_k, "wait_peers_s": w_peers - w_meas, "compute_s": w_sent - w_peers, "measurement_to_setpoint_s": w_sent - w0}
@@ -1319,10 +1472,19 @@ class PlannerNode:
             k += 1
         end = self._end_realtime()
         return {
-            "uav": self.o.uav, "steps": done_steps, "stale_steps": stale_steps, "late_steps": self.late_steps,
-            "flavour": link.flavour, "frame": self.frame, "link_losses": self.link_losses, "mode_changes": self.mode_changes,
-            "taken_over": self.takeovers, "taken_over_steps": self.taken_over_steps,
-            "setpoints_sent": link.setpoints_sent, "dropped": dict(self.inbox.dropped), "end": end,
+            "uav": self.o.uav,
+            "steps": done_steps,
+            "stale_steps": stale_steps,
+            "late_steps": self.late_steps,
+            "flavour": link.flavour,
+            "frame": self.frame,
+            "link_losses": self.link_losses,
+            "mode_changes": self.mode_changes,
+            "taken_over": self.takeovers,
+            "taken_over_steps": self.taken_over_steps,
+            "setpoints_sent": link.setpoints_sent,
+            "dropped": dict(self.inbox.dropped),
+            "end": end,
             "vehicle_clock_rate": None if self.vehicle_clock_rate is None else round(self.vehicle_clock_rate, 3),
         }
 
@@ -1337,8 +1499,7 @@ class PlannerNode:
             log.error("uav %d: mission over with the vehicle link down: its failsafe keeps control", self.o.uav)
             return {"action": action, "confirmed": False, "reason": "link lost"}
         if self.taken_over is not None:
-            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot",
-                        self.o.uav, link.mode_name(), action)
+            log.warning("uav %d: mission over while taken over (%s): the end action (%s) is left to the pilot", self.o.uav, link.mode_name(), action)
             return {"action": action, "confirmed": False, "reason": f"taken over ({link.mode_name()})"}
         pos = link.telemetry.position_enu_m
         try:
@@ -1353,7 +1514,9 @@ class PlannerNode:
             elif action == "land":
                 link.set_mode("AUTO.LAND" if link.is_px4 else "LAND")
                 link.set_stream(None)
-                self._wait(lambda: not link.telemetry.armed and link.telemetry.landed_state in (None, 1), self.o.end_timeout_s, "landed and disarmed vehicle")
+                self._wait(
+                    lambda: not link.telemetry.armed and link.telemetry.landed_state in (None, 1), self.o.end_timeout_s, "landed and disarmed vehicle"
+                )
             else:
                 link.set_mode("AUTO.RTL" if link.is_px4 else "RTL")
                 link.set_stream(None)
@@ -1364,13 +1527,23 @@ class PlannerNode:
             # GUIDED without one, PX4 holds in AUTO.LOITER.
             link.set_stream(None)
         landed = link.telemetry.landed_state
-        end = {"action": action, "confirmed": True, "mode": link.mode_name(), "armed": link.telemetry.armed,
-               "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None}
+        end = {
+            "action": action,
+            "confirmed": True,
+            "mode": link.mode_name(),
+            "armed": link.telemetry.armed,
+            "landed_state": MAV_LANDED_STATE_NAMES.get(landed, str(landed)) if landed is not None else None,
+        }
         log.info("uav %d: mission over (%s): vehicle in %s, %s", self.o.uav, action, end["mode"], "armed" if end["armed"] else "disarmed")
         return end
 
+
 def replay_step_logs(
-    state: est.EstimatorState, rows_by_drone: dict[int, Sequence[dict[str, Any]]], n: int, first: int, channel: Channel,
+    state: est.EstimatorState,
+    rows_by_drone: Mapping[int, Sequence[dict[str, Any]]],
+    n: int,
+    first: int,
+    channel: Channel,
     config: est.EstimatorConfig,
 ) -> tuple[est.EstimatorState, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
     """Feed the records of the steps before ``first`` found in step logs to the estimator, step

@@ -85,9 +85,7 @@ class Limits:
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.step_min_m <= self.step_max_m:
-            raise ValueError(
-                f"Limits: expected 0 <= step_min_m <= step_max_m, found {self.step_min_m} and {self.step_max_m}"
-            )
+            raise ValueError(f"Limits: expected 0 <= step_min_m <= step_max_m, found {self.step_min_m} and {self.step_max_m}")
         if not self.z_min_m <= self.z_max_m:
             raise ValueError(f"Limits: expected z_min_m <= z_max_m, found {self.z_min_m} and {self.z_max_m}")
         if self.activation not in ("safe", "paper"):

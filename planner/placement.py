@@ -83,6 +83,8 @@ SLSQP_MAXITER: int = 400
 SLSQP_FTOL: float = 1e-10
 #: Cost of a placement whose J is singular (the solver must leave it; never returned as optimal).
 _SINGULAR_PENALTY: float = 1e6
+#: No buildings: the default obstacle boxes of :func:`optimal_placement`, shape (0, 3).
+_NO_BOXES = np.zeros((0, 3))
 
 
 @dataclass(frozen=True)
@@ -222,7 +224,9 @@ class Placement:
         return np.arctan2(r[:, 1], r[:, 0])
 
 
-def placement_margins(positions: ArrayLike, source: ArrayLike, bounds: PlacementBounds, boxes_min: ArrayLike, boxes_max: ArrayLike) -> dict[str, float]:
+def placement_margins(
+    positions: ArrayLike, source: ArrayLike, bounds: PlacementBounds, boxes_min: ArrayLike, boxes_max: ArrayLike
+) -> dict[str, float]:
     """Worst margin (m) of a placement per family: distance minus its bound.
 
     ``source``: min_j |p_j − p_0| − R_S; ``uav``: min_{i<j} |p_i − p_j| − R_U (inf for one
@@ -256,8 +260,17 @@ def _soft_los(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray, 
 class _Problem:
     """Cost and constraints of one optimisation, in the flat variables x = q.ravel() (3N,)."""
 
-    def __init__(self, source: FloatArray, ranging: BoolArray, bearing: BoolArray, channel: Channel, criterion: Criterion,
-                 bounds: PlacementBounds, bmin: FloatArray, bmax: FloatArray) -> None:
+    def __init__(
+        self,
+        source: FloatArray,
+        ranging: BoolArray,
+        bearing: BoolArray,
+        channel: Channel,
+        criterion: Criterion,
+        bounds: PlacementBounds,
+        bmin: FloatArray,
+        bmax: FloatArray,
+    ) -> None:
         self.source, self.ranging, self.bearing = source, ranging, bearing
         self.channel, self.criterion, self.bounds = channel, criterion, bounds
         self.bmin, self.bmax = bmin, bmax
@@ -276,7 +289,9 @@ class _Problem:
         else:
             q, gq = np.ones(self.n), None
         J = fisher_information(self.source, p, self.ranging, self.bearing, q, self.channel)
-        cg = cost_gradient(np.broadcast_to(J, (self.n, 3, 3)), src, p, self.ranging, self.bearing, q, self.channel, self.criterion, own_los_gradient=gq)
+        cg = cost_gradient(
+            np.broadcast_to(J, (self.n, 3, 3)), src, p, self.ranging, self.bearing, q, self.channel, self.criterion, own_los_gradient=gq
+        )
         value = float(cg.value[0])
         if not math.isfinite(value) or (self.criterion == "A" and value <= 0.0):
             return _SINGULAR_PENALTY, np.zeros(x.shape)
@@ -356,8 +371,8 @@ def optimal_placement(
     bearing: ArrayLike,
     channel: Channel,
     bounds: PlacementBounds,
-    boxes_min: ArrayLike = np.zeros((0, 3)),
-    boxes_max: ArrayLike = np.zeros((0, 3)),
+    boxes_min: ArrayLike = _NO_BOXES,
+    boxes_max: ArrayLike = _NO_BOXES,
     criterion: Criterion = "A",
     starts: int = 8,
     seed: int = 0,
@@ -414,8 +429,9 @@ def optimal_placement(
         x = x0.reshape(-1).copy()
         for s in stages:
             prob.softness_m = s
-            res = minimize(prob.cost, x, jac=True, method="SLSQP", bounds=zb, constraints=[cons],
-                           options={"maxiter": SLSQP_MAXITER, "ftol": SLSQP_FTOL})
+            res = minimize(
+                prob.cost, x, jac=True, method="SLSQP", bounds=zb, constraints=[cons], options={"maxiter": SLSQP_MAXITER, "ftol": SLSQP_FTOL}
+            )
             x = np.asarray(res.x, dtype=float)
         p = x.reshape(n, 3)
         margins = placement_margins(p, src, bounds, bmin, bmax)
@@ -431,7 +447,17 @@ def optimal_placement(
         raise RuntimeError(f"no placement keeping every distance was found from {len(x0s)} starts (seed {seed})")
     value, p, peb, los = best
     return Placement(
-        positions_m=p, los=los, peb_m=peb, cost=value, criterion=criterion, source_m=src, bounds=bounds,
-        margins_m=placement_margins(p, src, bounds, bmin, bmax), start_costs=costs, best_start=best_k,
-        seed=seed, starts=starts, evaluations=prob.evaluations,
+        positions_m=p,
+        los=los,
+        peb_m=peb,
+        cost=value,
+        criterion=criterion,
+        source_m=src,
+        bounds=bounds,
+        margins_m=placement_margins(p, src, bounds, bmin, bmax),
+        start_costs=costs,
+        best_start=best_k,
+        seed=seed,
+        starts=starts,
+        evaluations=prob.evaluations,
     )

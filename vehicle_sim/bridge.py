@@ -47,7 +47,9 @@ class ZenohBridge:
         settings: the Zenoh session settings.
     """
 
-    def __init__(self, mission_id: str, count: int, dt_s: float, clock: LockstepClock | None, vehicles: Sequence[Any], settings: SessionSettings) -> None:
+    def __init__(
+        self, mission_id: str, count: int, dt_s: float, clock: LockstepClock | None, vehicles: Sequence[Any], settings: SessionSettings
+    ) -> None:
         self.mission_id = mission_id
         self.count = count
         self.dt = dt_s
@@ -94,8 +96,13 @@ class ZenohBridge:
         m = vehicle.payload.measure(position_m, step, step * self.dt)
         nan = math.nan
         obs = Observation(
-            sender=vehicle.sysid, step=step, time_s=time_s, position_m=m.position_enu_m,
-            ranging=bool(vehicle.payload.ranging[0]), bearing=bool(vehicle.payload.bearing[0]), los=m.los,
+            sender=vehicle.sysid,
+            step=step,
+            time_s=time_s,
+            position_m=m.position_enu_m,
+            ranging=bool(vehicle.payload.ranging[0]),
+            bearing=bool(vehicle.payload.bearing[0]),
+            los=m.los,
             range_m=nan if m.range_m is None else m.range_m,
             azimuth_rad=nan if m.azimuth_rad is None else m.azimuth_rad,
             elevation_rad=nan if m.elevation_rad is None else m.elevation_rad,
@@ -114,14 +121,17 @@ class ZenohBridge:
             self.dropped += 1
             log.warning("dropped a %s on the tick key", type(msg).__name__)
             return
+        clock = self.clock
+        if clock is None:
+            raise RuntimeError("a tick arrived without a lockstep clock (real time subscribes to no tick)")
         with self._lock:
-            last = self.clock.last
+            last = clock.last
             if last is not None and msg.time_s <= last.t_s:
                 return  # a repeated tick (the clock re-sends for late joiners)
             index = self._next_index
             self._next_index += 1
             self._mission_step[index] = msg.step
-        self.clock.push(VehicleTick(index, msg.time_s))
+        clock.push(VehicleTick(index, msg.time_s))
 
     def on_tick(self, vehicle: Any, tick: VehicleTick) -> None:
         """Host hook after ``vehicle`` advanced to ``tick``: publish its payload measurement."""
@@ -141,6 +151,6 @@ class ZenohBridge:
         for t in self._tokens:
             try:
                 t.undeclare()
-            except Exception:  # noqa: BLE001 - closing anyway
+            except Exception:  # closing anyway
                 pass
         self.session.close()

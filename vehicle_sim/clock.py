@@ -193,7 +193,7 @@ class ZenohTickSource:
     def _on_sample(self, sample: Any) -> None:
         try:
             payload = sample.payload.to_bytes()
-        except Exception as exc:  # noqa: BLE001 - never let a bad sample kill the zenoh thread
+        except Exception as exc:  # never let a bad sample kill the zenoh thread
             log.warning("lockstep: unreadable tick sample: %s", exc)
             return
         self.clock.push_payload(payload)

@@ -100,6 +100,13 @@ class Geofence:
         """True when the horizontal box is set."""
         return self.x_min_m is not None and self.y_min_m is not None
 
+    @property
+    def box(self) -> tuple[float, float, float, float] | None:
+        """``(x_min_m, x_max_m, y_min_m, y_max_m)`` when the horizontal box is set (:attr:`has_box`), else None."""
+        if self.x_min_m is None or self.x_max_m is None or self.y_min_m is None or self.y_max_m is None:
+            return None
+        return self.x_min_m, self.x_max_m, self.y_min_m, self.y_max_m
+
 
 @dataclass(frozen=True)
 class VehicleLimits:
@@ -228,9 +235,7 @@ class VehicleConfig:
             _finite(f"VehicleConfig.wind_enu_mps[{i}]", v)
         _finite("VehicleConfig.ground_z_m", self.ground_z_m)
         if self.start_enu_m[2] < self.ground_z_m:
-            raise ValueError(
-                f"VehicleConfig.start_enu_m: z = {self.start_enu_m[2]} m is below the ground ({self.ground_z_m} m)"
-            )
+            raise ValueError(f"VehicleConfig.start_enu_m: z = {self.start_enu_m[2]} m is below the ground ({self.ground_z_m} m)")
         _positive("VehicleConfig.guided_timeout_s", self.guided_timeout_s)
         _positive("VehicleConfig.offboard_loss_s", self.offboard_loss_s)
         _positive("VehicleConfig.physics_hz", self.physics_hz)
@@ -244,9 +249,7 @@ class VehicleConfig:
         if not (math.isfinite(self.ready_after_s) and self.ready_after_s >= 0.0):
             raise ValueError(f"VehicleConfig.ready_after_s must be a finite number >= 0 s, found {self.ready_after_s!r}")
         if self.airborne and self.ready_after_s > 0.0:
-            raise ValueError(
-                f"VehicleConfig: a vehicle booting airborne is ready at boot; ready_after_s must be 0, found {self.ready_after_s!r}"
-            )
+            raise ValueError(f"VehicleConfig: a vehicle booting airborne is ready at boot; ready_after_s must be 0, found {self.ready_after_s!r}")
         if not (math.isfinite(self.ekf_status_hz) and self.ekf_status_hz >= 0.0):
             raise ValueError(f"VehicleConfig.ekf_status_hz must be >= 0 Hz, found {self.ekf_status_hz!r}")
         for name, hz in self.rates_hz:

@@ -181,7 +181,7 @@ class PointMass:
         cmd = self.command
         elapsed = self._t - self._t0
         self.accel = np.zeros(3)
-        if cmd.kind == "idle" or cmd.kind == "hold" and cmd.position is None:
+        if cmd.kind == "idle" or (cmd.kind == "hold" and cmd.position is None):
             self.velocity = np.zeros(3)
             return
         if cmd.kind == "velocity":

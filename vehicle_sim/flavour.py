@@ -106,6 +106,14 @@ class FlavourInfo:
                 return m
         return None
 
+    def require_mode(self, custom_mode: int) -> Mode:
+        """The mode with this custom_mode, one the flavour's mode logic uses (``boot_mode``,
+        ``hold_mode``, ...); ValueError if the flavour has no such mode."""
+        mode = self.mode(custom_mode)
+        if mode is None:
+            raise ValueError(f"custom_mode {custom_mode}: not a mode of this flavour (modes {', '.join(m.name for m in self.modes)})")
+        return mode
+
     def mode_by_name(self, name: str) -> Mode | None:
         """The mode with this (case-insensitive) name, or None."""
         for m in self.modes:

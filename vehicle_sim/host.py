@@ -98,14 +98,13 @@ class VehicleHost:
             return
         try:
             vehicle.advance_to(t_s, report_position=report)
-        except Exception:  # noqa: BLE001 - one broken vehicle must not stop the others
+        except Exception:  # one broken vehicle must not stop the others
             vehicle.healthy = False
             log.exception("sysid %d: vehicle failed; heartbeats stop", vehicle.sysid)
 
     def run(self) -> None:
         """The loop (blocks until :meth:`stop`)."""
         next_hb = self.wall()
-        lockstep = isinstance(self.clock, LockstepClock)
         while not self._stop.is_set():
             self.iterations += 1
             now = self.wall()
@@ -121,7 +120,7 @@ class VehicleHost:
                         if self.on_tick is not None:
                             try:
                                 self.on_tick(v, tick)
-                            except Exception:  # noqa: BLE001 - a hook must not stop the loop
+                            except Exception:  # a hook must not stop the loop
                                 log.exception("sysid %d: on_tick hook failed", v.sysid)
                 for v in self.vehicles:
                     if v.poll():
@@ -134,8 +133,8 @@ class VehicleHost:
                 next_sim = min((v.next_due_s() for v in self.vehicles), default=math.inf)
                 wake = min(self.clock.wall_at(next_sim), next_hb, now + MAX_SLEEP_S)
             fds: list[int] = [fd for v in self.vehicles for fd in v.link.filenos()]
-            if lockstep:
-                fds.append(self.clock.fileno())  # type: ignore[union-attr]
+            if isinstance(self.clock, LockstepClock):
+                fds.append(self.clock.fileno())
             timeout = max(0.0, wake - self.wall())
             try:
                 select.select(fds, [], [], timeout)

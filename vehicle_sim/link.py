@@ -71,10 +71,12 @@ def protocol_version_message(
 ) -> Any:
     """A pymavlink-packable PROTOCOL_VERSION message (id 300, CRC extra 217; payload
     ``<HHH8s8s``: version, min_version, max_version, spec_version_hash, library_version_hash)."""
-    m = mavlink_module()
+    mavlink_module()  # MAVLink 2 and the dialect are set before pymavlink is imported
+    from pymavlink.dialects.v20.ardupilotmega import MAVLink_message
+
     payload = struct.pack("<HHH8s8s", version, min_version, max_version, spec_hash, lib_hash)
 
-    class _ProtocolVersion(m.MAVLink_message):  # type: ignore[name-defined, misc]
+    class _ProtocolVersion(MAVLink_message):
         id = PROTOCOL_VERSION_ID
         msgname = "PROTOCOL_VERSION"
         crc_extra = PROTOCOL_VERSION_CRC_EXTRA
@@ -99,9 +101,7 @@ def parse_connection(conn: str) -> tuple[str, str, int]:
     parts = conn.split(":")
     kinds = ("udpin", "udp", "udpout", "tcpin", "tcp")
     if len(parts) != 3 or parts[0] not in kinds:
-        raise UsageError(
-            f"MAVLink connection {conn!r}: expected KIND:HOST:PORT with KIND one of {', '.join(kinds)}"
-        )
+        raise UsageError(f"MAVLink connection {conn!r}: expected KIND:HOST:PORT with KIND one of {', '.join(kinds)}")
     kind, host, port_s = parts
     try:
         port = int(port_s)
@@ -194,7 +194,7 @@ class UdpTransport(Transport):
         return out
 
     def write(self, buf: bytes) -> None:
-        targets = self.clients if self.kind == "udpin" else [self.dest]
+        targets = self.clients if self.dest is None else [self.dest]  # udpin: no fixed destination
         for addr in targets:
             try:
                 self.sock.sendto(buf, addr)
@@ -209,7 +209,8 @@ class UdpTransport(Transport):
         if self.kind == "udpin":
             host, port = self.sock.getsockname()[:2]
             return f"udpin:{host}:{port}"
-        assert self.dest is not None
+        if self.dest is None:
+            raise RuntimeError(f"UDP transport {self.kind}: no destination address")
         return f"udpout:{self.dest[0]}:{self.dest[1]}"
 
     def peers(self) -> int:
@@ -472,7 +473,7 @@ class MavlinkLink:
         self._tlog: BinaryIO | None = None
         if tlog_path is not None:
             try:
-                self._tlog = open(tlog_path, "ab")
+                self._tlog = open(tlog_path, "ab")  # noqa: SIM115 - closed by close()
             except OSError as exc:
                 raise UsageError(f"tlog {tlog_path!r}: {exc.strerror or exc}") from None
 
@@ -530,7 +531,7 @@ class MavlinkLink:
         parser = self._parser(peer)
         try:
             msgs = parser.parse_buffer(data) or []
-        except Exception as exc:  # noqa: BLE001 - any parser failure is a bad frame, not a crash
+        except Exception as exc:  # any parser failure is a bad frame, not a crash
             log.debug("parser reset after %s", exc)
             self.bad_frames += 1
             self._parsers.pop(peer, None)
@@ -546,7 +547,7 @@ class MavlinkLink:
                 if m.get_msgId() == MAVLINK_MSG_ID_SETUP_SIGNING:
                     self.frames_not_logged += 1
                 else:
-                    self._log(m.get_msgbuf())
+                    self._log(self._tlog, m.get_msgbuf())
         return good
 
     def receive(self) -> list[Any]:
@@ -571,12 +572,13 @@ class MavlinkLink:
             if _frame_msg_id(buf) == MAVLINK_MSG_ID_SETUP_SIGNING:
                 self.frames_not_logged += 1
             else:
-                self._log(buf)
+                self._log(self._tlog, buf)
 
-    def _log(self, buf: bytes) -> None:
-        assert self._tlog is not None
+    @staticmethod
+    def _log(tlog: BinaryIO, buf: bytes) -> None:
+        """One .tlog entry: the big-endian UNIX time in microseconds, then the frame."""
         usec = int(time.time() * 1e6) & ~3
-        self._tlog.write(struct.pack(">Q", usec) + bytes(buf))
+        tlog.write(struct.pack(">Q", usec) + bytes(buf))
 
     def flush(self) -> None:
         """Flush the .tlog."""

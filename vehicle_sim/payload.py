@@ -58,9 +58,7 @@ class PayloadWorld:
 
     def __post_init__(self) -> None:
         if len(self.boxes_min_m) != len(self.boxes_max_m):
-            raise ValueError(
-                f"PayloadWorld: {len(self.boxes_min_m)} box minima but {len(self.boxes_max_m)} maxima"
-            )
+            raise ValueError(f"PayloadWorld: {len(self.boxes_min_m)} box minima but {len(self.boxes_max_m)} maxima")
         for name in ("source_position_m", "source_velocity_mps"):
             v = getattr(self, name)
             if len(v) != 3 or not all(math.isfinite(x) for x in v):
@@ -140,7 +138,7 @@ class Measurement:
                 sysid=int(d["sysid"]),
                 step=int(d["step"]),
                 t_s=float(d["t_s"]),
-                position_enu_m=pos,  # type: ignore[arg-type]
+                position_enu_m=pos,
                 range_m=opt("range_m"),
                 azimuth_rad=opt("azimuth_rad"),
                 elevation_rad=opt("elevation_rad"),

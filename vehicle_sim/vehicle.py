@@ -21,10 +21,11 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
+from planner.geometry import vec3
 from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, FloatArray, PointMass
 from vehicle_sim.flavour import FlavourInfo, Mode, flavour_info
@@ -59,8 +60,14 @@ EKF_PRED_POS_HORIZ_ABS = 512
 EKF_FLAGS_ALIGNED = EKF_ATTITUDE | EKF_CONST_POS_MODE
 #: Flags of an EKF using GPS on the ground (no terrain height: no POS_VERT_AGL).
 EKF_FLAGS_READY = (
-    EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_REL | EKF_POS_HORIZ_ABS
-    | EKF_POS_VERT_ABS | EKF_PRED_POS_HORIZ_REL | EKF_PRED_POS_HORIZ_ABS
+    EKF_ATTITUDE
+    | EKF_VELOCITY_HORIZ
+    | EKF_VELOCITY_VERT
+    | EKF_POS_HORIZ_REL
+    | EKF_POS_HORIZ_ABS
+    | EKF_POS_VERT_ABS
+    | EKF_PRED_POS_HORIZ_REL
+    | EKF_PRED_POS_HORIZ_ABS
 )
 #: Start-up stages: EKF initialising, attitude aligned (no GPS fix), ready (GPS, home, origin).
 STAGES: tuple[str, ...] = ("init", "aligned", "ready")
@@ -190,7 +197,7 @@ class SimVehicle:
         self.yaw_rad = 0.0
         self.armed = bool(config.airborne)
         self.flying = bool(config.airborne)
-        self.mode: Mode = self.info.mode(self.info.air_boot_mode if config.airborne else self.info.boot_mode)  # type: ignore[assignment]
+        self.mode: Mode = self.info.require_mode(self.info.air_boot_mode if config.airborne else self.info.boot_mode)
         self.landed_state = self.m.MAV_LANDED_STATE_IN_AIR if config.airborne else self.m.MAV_LANDED_STATE_ON_GROUND
         if config.airborne:
             self._hold_here()
@@ -210,7 +217,7 @@ class SimVehicle:
         if config.flavour == "ardupilot":  # ArduPilot's EXTRA3 stream; PX4 has no such message
             self.defaults["EKF_STATUS_REPORT"] = 1.0 / config.ekf_status_hz if config.ekf_status_hz > 0 else None
         self.intervals = dict(self.defaults)
-        self._due: dict[str, float] = {name: 0.0 for name in self.intervals}
+        self._due: dict[str, float] = dict.fromkeys(self.intervals, 0.0)
         #: (custom mode, armed) of the last HEARTBEAT built: a lockstep tick report repeats the
         #: heartbeat when the state changed since (:meth:`emit_due`).
         self._heartbeat_state: tuple[int, bool] | None = None
@@ -263,11 +270,7 @@ class SimVehicle:
     def _ack(self, msg: Any, command: int, result: int, text: str | None = None, severity: int = 4) -> int:
         """COMMAND_ACK to the sender, then the STATUSTEXT reason if any."""
         self.acks_sent += 1
-        self.link.send(
-            self.m.MAVLink_command_ack_message(
-                command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            )
-        )
+        self.link.send(self.m.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
         if text:
             self.statustext(severity, text)
         return result
@@ -355,11 +358,10 @@ class SimVehicle:
 
         zlo, zhi = lim(f.z_min_m, f.z_max_m, 2)
         q[2] = min(max(q[2], zlo), zhi)
-        if f.has_box:
-            assert f.x_min_m is not None and f.x_max_m is not None
-            assert f.y_min_m is not None and f.y_max_m is not None
-            xlo, xhi = lim(f.x_min_m, f.x_max_m, 0)
-            ylo, yhi = lim(f.y_min_m, f.y_max_m, 1)
+        box = f.box
+        if box is not None:
+            xlo, xhi = lim(box[0], box[1], 0)
+            ylo, yhi = lim(box[2], box[3], 1)
             q[0] = min(max(q[0], xlo), xhi)
             q[1] = min(max(q[1], ylo), yhi)
         if f.radius_m is not None:
@@ -408,10 +410,9 @@ class SimVehicle:
             return f"Mode change to {mode.name} failed: requires position"
         if mode.behaviour == "guided" and self.config.flavour == "px4" and not self._offboard_stream_ok():
             return "Offboard: no setpoint stream >2Hz"
-        if mode.behaviour in ("land", "rtl") and not self.flying:
-            if not self.armed:
-                self.mode = mode
-                return None
+        if mode.behaviour in ("land", "rtl") and not self.flying and not self.armed:
+            self.mode = mode
+            return None
         if mode.behaviour == "takeoff" and not self.armed:
             return "Takeoff: arm first"
         previous = self.mode
@@ -480,7 +481,7 @@ class SimVehicle:
             if self.config.flavour == "px4":  # ArduPilot's GUIDED take-off ends silently
                 self.statustext(6, "Takeoff complete")
             if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
-                self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
+                self.mode = self.info.require_mode(self.info.hold_mode)
                 target = self.pm.command.position
                 self._command(Command("hold", position=None if target is None else target.copy()))
         elif self.phase == "land" and self.flying and float(p[2]) <= self.config.ground_z_m + 1e-6:
@@ -490,9 +491,8 @@ class SimVehicle:
             if target is not None and abs(float(p[2] - target[2])) <= ARRIVAL_TOL_M:
                 self.phase = "rtl_return"
                 self._command(Command("position", position=np.array([self.home[0], self.home[1], float(p[2])])))
-        elif self.phase == "rtl_return":
-            if math.hypot(float(p[0] - self.home[0]), float(p[1] - self.home[1])) <= ARRIVAL_TOL_M:
-                self._start_land()
+        elif self.phase == "rtl_return" and math.hypot(float(p[0] - self.home[0]), float(p[1] - self.home[1])) <= ARRIVAL_TOL_M:
+            self._start_land()
         if beh == "guided" and self.flying and self.phase == "":
             age = self.t - self.last_setpoint_t
             if self.config.flavour == "ardupilot":
@@ -531,7 +531,7 @@ class SimVehicle:
         """PX4 offboard loss (no setpoint for COM_OF_LOSS_T): the COM_OBL_RC_ACT action."""
         action = PX4_OBL_ACTIONS.get(int(self.offboard_loss_action), "hold")
         if action == "hold":
-            self.mode = self.info.mode(self.info.hold_mode)  # type: ignore[assignment]
+            self.mode = self.info.require_mode(self.info.hold_mode)
             self._hold_here()
             self.statustext(2, "Failsafe: offboard lost, holding")
         elif action == "terminate":
@@ -539,7 +539,7 @@ class SimVehicle:
             self._motors_off()
         else:
             self.statustext(2, f"Failsafe: offboard lost, {'returning' if action == 'rtl' else 'landing'}")
-            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
+            self.set_mode(self.info.require_mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))
 
     def _motors_off(self) -> None:
         """Disarm now, in the air too (flight termination): the mass drops to the ground."""
@@ -577,7 +577,7 @@ class SimVehicle:
             self.statustext(4, "GCS Failsafe - Continuing Landing")
         else:
             self.statustext(4, "GCS Failsafe")
-            self.set_mode(self.info.mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))  # type: ignore[arg-type]
+            self.set_mode(self.info.require_mode(self.info.rtl_mode if action == "rtl" else self.info.land_mode))
 
     def _physics_to(self, t_next: float) -> None:
         h = t_next - self.t
@@ -634,7 +634,7 @@ class SimVehicle:
         """Handle one decoded MAVLink message (never raises)."""
         try:
             self._dispatch(msg)
-        except Exception:  # noqa: BLE001 - a bad message must never take the vehicle down
+        except Exception:  # a bad message must never take the vehicle down
             self.ignored_messages += 1
             log.exception("sysid %d: error handling %s", self.sysid, msg.get_type())
 
@@ -676,12 +676,8 @@ class SimVehicle:
             m.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_interval,
             m.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_interval,
             m.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._reply_with(
-                m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, self.msg_autopilot_version
-            ),
-            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(
-                m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version
-            ),
+            m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: self._reply_with(m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, self.msg_autopilot_version),
+            m.MAV_CMD_REQUEST_PROTOCOL_VERSION: self._reply_with(m.MAV_CMD_REQUEST_PROTOCOL_VERSION, self.msg_protocol_version),
             m.MAV_CMD_GET_HOME_POSITION: self._cmd_get_home_position,
             m.MAV_CMD_DO_REPOSITION: self._cmd_reposition,
             m.MAV_CMD_DO_CHANGE_SPEED: self._cmd_change_speed,
@@ -695,7 +691,7 @@ class SimVehicle:
         acks_before = self.acks_sent
         try:
             handler(msg, p, frame)
-        except Exception:  # noqa: BLE001 - a handler bug must still answer the command
+        except Exception:  # a handler bug must still answer the command
             # Handlers validate their parameters and answer; reaching this is a bug in the
             # vehicle: logged and counted, and the sender still gets its COMMAND_ACK.
             self.ignored_messages += 1
@@ -731,7 +727,7 @@ class SimVehicle:
             if reason and self.config.flavour == "ardupilot" and reason.startswith("PreArm: "):
                 # ArduPilot runs the same checks on an arming command with the prefix "Arm: "
                 # (AP_Arming::check_failed while arming); "PreArm: " is its periodic report.
-                reason = "Arm: " + reason[len("PreArm: "):]
+                reason = "Arm: " + reason[len("PreArm: ") :]
             if reason:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, reason, 2)
             self.armed = True
@@ -741,9 +737,7 @@ class SimVehicle:
             if not self.armed:
                 return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_ACCEPTED)
             if self.flying and p[1] != FORCE_MAGIC:
-                return self._ack(
-                    msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, "Disarm: vehicle is flying", 3
-                )
+                return self._ack(msg, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_RESULT_FAILED, "Disarm: vehicle is flying", 3)
             self.armed = False
             if self.flying:  # forced disarm in flight: the motors stop, the mass drops
                 self.position[2] = self.config.ground_z_m
@@ -785,7 +779,7 @@ class SimVehicle:
         if self.fence.enabled and z > self.fence.z_max_m:
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude above fence")
         if self.config.flavour == "px4" and self.info.takeoff_mode is not None:
-            self.mode = self.info.mode(self.info.takeoff_mode)  # type: ignore[assignment]
+            self.mode = self.info.require_mode(self.info.takeoff_mode)
         self._start_takeoff(z)
         return self._ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
 
@@ -802,8 +796,7 @@ class SimVehicle:
 
     def _cmd_land(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
         m = self.m
-        mode = self.info.mode(self.info.land_mode)
-        assert mode is not None
+        mode = self.info.require_mode(self.info.land_mode)
         if not self.flying:
             return self._ack(msg, m.MAV_CMD_NAV_LAND, m.MAV_RESULT_TEMPORARILY_REJECTED, "Land: not flying")
         self.set_mode(mode)
@@ -811,8 +804,7 @@ class SimVehicle:
 
     def _cmd_rtl(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
         m = self.m
-        mode = self.info.mode(self.info.rtl_mode)
-        assert mode is not None
+        mode = self.info.require_mode(self.info.rtl_mode)
         if not self.flying:
             return self._ack(msg, m.MAV_CMD_NAV_RETURN_TO_LAUNCH, m.MAV_RESULT_TEMPORARILY_REJECTED, "RTL: not flying")
         self.set_mode(mode)
@@ -862,11 +854,7 @@ class SimVehicle:
             if reason:
                 self.statustext(3, reason)
         # ArduPilot acknowledges SET_MODE with COMMAND_ACK whose command is the message id (11).
-        self.link.send(
-            m.MAVLink_command_ack_message(
-                m.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            )
-        )
+        self.link.send(m.MAVLink_command_ack_message(m.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
 
     def _stream_name(self, msg_id: float) -> str | None:
         if not math.isfinite(msg_id):
@@ -993,7 +981,7 @@ class SimVehicle:
         if self.fence.action == "reject" and not self.inside_fence(target):
             return self._ack(msg, cmd, m.MAV_RESULT_DENIED, "Fence: target outside fence, refused")
         if self.mode.behaviour != "guided":
-            reason = self.set_mode(self.info.mode(self.info.guided_mode))  # type: ignore[arg-type]
+            reason = self.set_mode(self.info.require_mode(self.info.guided_mode))
             if reason:
                 return self._ack(msg, cmd, m.MAV_RESULT_FAILED, reason, 3)
         previous_speed = self.speed_override_mps
@@ -1143,9 +1131,7 @@ class SimVehicle:
             return
         vals = [msg.alt] if use_pos else []
         vals += [msg.vx, msg.vy, msg.vz] if use_vel else []
-        if not all(math.isfinite(v) for v in vals) or (
-            use_pos and not (abs(msg.lat_int) <= 900_000_000 and abs(msg.lon_int) <= 1_800_000_000)
-        ):
+        if not all(math.isfinite(v) for v in vals) or (use_pos and not (abs(msg.lat_int) <= 900_000_000 and abs(msg.lon_int) <= 1_800_000_000)):
             self.statustext(4, "Setpoint: invalid values ignored", key="sp_nan")
             return
         pos = vel = None
@@ -1219,51 +1205,33 @@ class SimVehicle:
                 result = m.MAV_MISSION_ACCEPTED if ok else m.MAV_MISSION_ERROR
             else:
                 result = m.MAV_MISSION_INVALID
-        self.link.send(
-            m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type)
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
 
     # ------------------------------------------------------------------ mission protocol
 
     def _on_mission_request_list(self, msg: Any) -> None:
-        self.link.send(
-            self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type)
-        )
+        self.link.send(self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
 
     def _on_mission_request_int(self, msg: Any) -> None:
         m = self.m
-        self.link.send(
-            m.MAVLink_mission_ack_message(
-                msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_INVALID_SEQUENCE, msg.mission_type
-            )
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_INVALID_SEQUENCE, msg.mission_type))
 
     _on_mission_request = _on_mission_request_int
 
     def _on_mission_count(self, msg: Any) -> None:
         m = self.m
         result = m.MAV_MISSION_ACCEPTED if msg.count == 0 else m.MAV_MISSION_UNSUPPORTED
-        self.link.send(
-            m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type)
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
 
     def _on_mission_clear_all(self, msg: Any) -> None:
         m = self.m
-        self.link.send(
-            m.MAVLink_mission_ack_message(
-                msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_ACCEPTED, msg.mission_type
-            )
-        )
+        self.link.send(m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), m.MAV_MISSION_ACCEPTED, msg.mission_type))
 
     # ------------------------------------------------------------------ streams, timesync
 
     def _on_request_data_stream(self, msg: Any) -> None:
         sid = msg.req_stream_id
-        names: tuple[str, ...]
-        if sid == 0:
-            names = tuple(n for group in DATA_STREAMS.values() for n in group)
-        else:
-            names = DATA_STREAMS.get(sid, ())
+        names: tuple[str, ...] = tuple(n for group in DATA_STREAMS.values() for n in group) if sid == 0 else DATA_STREAMS.get(sid, ())
         for name in names:
             if name not in self.intervals:
                 continue
@@ -1297,9 +1265,7 @@ class SimVehicle:
         body = ((seq + 1) & 0xFFFF).to_bytes(2, "little") + bytes([session, reply_op, size, opcode, 0, 0])
         body += bytes(4) + data
         payload = list(body + bytes(251 - len(body)))
-        self.link.send(
-            self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload)
-        )
+        self.link.send(self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload))
 
     # ------------------------------------------------------------------ parameters
 
@@ -1336,13 +1302,13 @@ class SimVehicle:
             self.fence = replace(self.fence, enabled=v == 1.0)
             return None
 
-        def fence_alt(field: str, relative: bool) -> Callable[[float], str | None]:
+        def fence_alt(field: Literal["z_min_m", "z_max_m"], relative: bool) -> Callable[[float], str | None]:
             def _set(v: float) -> str | None:
                 if not math.isfinite(v):
                     return "must be finite"
                 z = v + (float(self.home[2]) if relative else 0.0)
                 try:
-                    self.fence = replace(self.fence, **{field: z})
+                    self.fence = replace(self.fence, z_min_m=z) if field == "z_min_m" else replace(self.fence, z_max_m=z)
                 except ValueError as exc:
                     return str(exc)
                 return None
@@ -1383,9 +1349,15 @@ class SimVehicle:
 
             return _set
 
-        home_z = lambda: float(self.home[2])  # noqa: E731
-        z_max_get = lambda: self.fence.z_max_m - home_z()  # noqa: E731
-        z_min_get = lambda: self.fence.z_min_m - home_z()  # noqa: E731
+        def home_z() -> float:
+            return float(self.home[2])
+
+        def z_max_get() -> float:
+            return self.fence.z_max_m - home_z()
+
+        def z_min_get() -> float:
+            return self.fence.z_min_m - home_z()
+
         P = _Param
         common = [P("FENCE_ENABLE", True, lambda: float(self.fence.enabled), fence_enable)]
         if self.fence.has_box:  # the mission's horizontal box (read-only, ENU m)
@@ -1465,9 +1437,7 @@ class SimVehicle:
     def _send_param(self, p: _Param) -> None:
         names = list(self.params)
         value, ptype = self._encode_param(p)
-        self.link.send(
-            self.m.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name))
-        )
+        self.link.send(self.m.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name)))
 
     @staticmethod
     def _param_id(raw: Any) -> str:
@@ -1530,7 +1500,7 @@ class SimVehicle:
                 self._due[name] = nxt if nxt > t else t + iv
 
     def _telemetry_builder(self, name: str) -> Callable[[], Any]:
-        return getattr(self, "msg_" + name.lower())  # type: ignore[no-any-return]
+        return getattr(self, "msg_" + name.lower())
 
     def _reported_position(self) -> FloatArray:
         p = self.position
@@ -1562,16 +1532,11 @@ class SimVehicle:
         elif self.config.flavour == "ardupilot":
             # GCS_MAVLINK_Copter::vehicle_system_status: CRITICAL in a failsafe, STANDBY while
             # landed (armed or not), ACTIVE in the air.
-            if self.gcs_failsafe:
-                status = m.MAV_STATE_CRITICAL
-            else:
-                status = m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY
+            status = m.MAV_STATE_CRITICAL if self.gcs_failsafe else (m.MAV_STATE_ACTIVE if self.flying else m.MAV_STATE_STANDBY)
         else:
             status = m.MAV_STATE_ACTIVE if self.armed else m.MAV_STATE_STANDBY
         self._heartbeat_state = (self.mode.custom_mode, self.armed)
-        return m.MAVLink_heartbeat_message(
-            m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), self.mode.custom_mode, status, 3
-        )
+        return m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), self.mode.custom_mode, status, 3)
 
     def msg_sys_status(self) -> Any:
         """SYS_STATUS: sensors present/enabled/healthy, battery."""
@@ -1598,9 +1563,7 @@ class SimVehicle:
         if not self.healthy:
             health = 0
         volt_mv = int(self._voltage() * 1000)
-        return m.MAVLink_sys_status_message(
-            present, present, health, 100, volt_mv, self._current_ca(), int(self.battery * 100), 0, 0, 0, 0, 0, 0
-        )
+        return m.MAVLink_sys_status_message(present, present, health, 100, volt_mv, self._current_ca(), int(self.battery * 100), 0, 0, 0, 0, 0, 0)
 
     def _voltage(self) -> float:
         return 16.8 * (0.85 + 0.15 * self.battery)
@@ -1738,11 +1701,7 @@ class SimVehicle:
             | m.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
             | m.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
             | m.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-            | (
-                m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-                if self.info.param_bytewise
-                else m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
-            )
+            | (m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.info.param_bytewise else m.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
         )
         return m.MAVLink_autopilot_version_message(
             caps,
@@ -1785,8 +1744,8 @@ class SimVehicle:
             mode=self.mode.custom_mode,
             mode_name=self.mode.name,
             landed_state=self.landed_state,
-            position_enu_m=tuple(float(v) for v in self.position),  # type: ignore[arg-type]
-            velocity_enu_mps=tuple(float(v) for v in self.pm.velocity),  # type: ignore[arg-type]
+            position_enu_m=vec3(self.position),
+            velocity_enu_mps=vec3(self.pm.velocity),
             params=tuple((name, p.get()) for name, p in self.params.items()),
             intervals_s=tuple(self.intervals.items()),
             origin=self.ekf.origin,
