@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import signal
 import sys
 import time
 from pathlib import Path
@@ -109,13 +110,18 @@ def run(args: argparse.Namespace) -> int:
                 bar.set_postfix_str(spec.label)
                 results.append(_simulate(spec, args.oracle_estimate, bar.update, view))
         else:
-            # A Pool, not a ProcessPoolExecutor: leaving the block for any reason (an error, a
-            # signal, Ctrl-C) terminates the workers instead of waiting for the queued runs.
-            with multiprocessing.Pool(min(args.jobs, len(specs))) as pool:
+            # A Pool, not a ProcessPoolExecutor: leaving the block on an error, a signal or
+            # Ctrl-C terminates the workers instead of waiting for the queued runs. After the
+            # last result the workers are told to finish and joined (close, join): terminating
+            # them then could find one blocked on the task queue's lock, which the terminating
+            # pool holds, and wait for it forever.
+            with multiprocessing.Pool(min(args.jobs, len(specs)), initializer=_worker_signals) as pool:
                 sim = functools.partial(_simulate, oracle=args.oracle_estimate, progress=None, view=view)
                 for spec, result in zip(specs, pool.imap(sim, specs)):
                     results.append(result)
                     bar.update(spec.steps)
+                pool.close()
+                pool.join()
     extras = None
     if args.optimum:
         from missions.cmd_optimum import run_optimum_summary
@@ -134,6 +140,15 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"results: {out}  (wall {wall:.1f} s)")
     return 0
+
+
+def _worker_signals() -> None:
+    """In a pool worker: SIGTERM and SIGHUP end the process at once (the default action), so
+    the pool's ``terminate`` ends it wherever it waits; the command's own handlers belong to
+    the parent."""
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(signum) != signal.SIG_IGN:
+            signal.signal(signum, signal.SIG_DFL)
 
 
 def _f(x: float | None) -> str:
