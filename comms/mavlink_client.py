@@ -42,9 +42,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comms.errors import FimnavError, UsageError
 from comms.geodesy import MissionFrame
 from comms.session import check_secret_file
-from planner.errors import FimnavError, UsageError
 
 #: Our MAVLink identity: a companion computer of the vehicle's system.
 COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER

@@ -24,7 +24,7 @@ Security (docs/security.md), configured from the mission's ``zenoh.tls`` and ``z
   lines; fimnav writes a private one for the swarm's credential, read by zenoh when the
   session opens and deleted right after).
 * Secret files (private key, password) must not be readable by group or others: refused
-  with a clear :class:`~planner.errors.UsageError`. Secrets never appear in messages, logs or
+  with a clear :class:`~comms.errors.UsageError`. Secrets never appear in messages, logs or
   command lines (children get file paths, not contents).
 """
 
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 if TYPE_CHECKING:  # zenoh is imported when a session is made
     import zenoh

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator, Sequence
 from types import FrameType
 from typing import Any
 
-from planner.errors import FimnavError
+from comms.errors import FimnavError
 
 #: Subcommand modules, in the order ``fimnav --help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from comms import keys
+from comms.errors import FimnavError
 from comms.messages import Done, MessageError, Tick, decode, encode
 from comms.pubsub import declare_publisher
-from planner.errors import FimnavError
 
 #: Simulated time per pre-flight tick (s), and wall time between pre-flight ticks (s): the
 #: pre-flight (take-off, flight to the start) runs at 10x real time.

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 #: How long the command waits for the planner's subscription to be matched (wall s).
 MATCH_TIMEOUT_S = 5.0

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 
 def register(subparsers: Any) -> None:

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 if TYPE_CHECKING:
     from planner.params import Criterion

@@ -14,7 +14,7 @@ import math
 import sys
 from typing import TYPE_CHECKING, Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 if TYPE_CHECKING:
     from planner.params import Criterion

@@ -29,7 +29,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 #: Our MAVLink component on the autopilot's system: MAV_COMP_ID_PERIPHERAL (the planner is 191).
 PAYLOAD_COMPONENT = 158

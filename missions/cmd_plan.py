@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 
 def register(subparsers: Any) -> None:

@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 if TYPE_CHECKING:
     from comms.session import SessionSettings

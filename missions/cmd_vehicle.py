@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 
 def register(subparsers: Any) -> None:

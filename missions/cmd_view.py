@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 
 def register(subparsers: Any) -> None:

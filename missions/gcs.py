@@ -24,7 +24,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 log = logging.getLogger("fimnav.gcs")
 

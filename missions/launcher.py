@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from comms import keys
+from comms.errors import FimnavError, UsageError
 from comms.messages import Done, MessageError, Observation, Status, decode
 from comms.session import SessionSettings, open_session
 from missions.clock import ClockError, LockstepClock
@@ -55,7 +56,6 @@ from missions.loader import mission_to_yaml
 from missions.results import write_results
 from missions.schema import Mission
 from missions.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
-from planner.errors import FimnavError, UsageError
 from planner.fim import fisher_information, position_error_bound
 
 log = logging.getLogger("fimnav.launch")

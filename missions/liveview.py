@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from comms.errors import FimnavError
 from missions.schema import Mission
-from planner.errors import FimnavError
 
 FloatArray = NDArray[np.float64]
 

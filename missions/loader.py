@@ -2,7 +2,7 @@
 clear message.
 
 Every failure (missing file, YAML syntax, a non-mapping document, a wrong type, an unknown
-key, an impossible value) raises :class:`MissionError`, a :class:`planner.errors.UsageError`
+key, an impossible value) raises :class:`MissionError`, a :class:`comms.errors.UsageError`
 (exit status 2), whose message names the file, the line when known, the key path
 (``drones.roles[3]``), what was expected and what was found, and for a mistyped key the
 nearest valid key. The YAML is read with PyYAML's safe loader only.
@@ -26,8 +26,8 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from comms.errors import UsageError
 from missions.schema import Mission
-from planner.errors import UsageError
 
 #: Mission files larger than this are refused (a mission is a few kilobytes).
 MAX_FILE_BYTES: int = 1 << 20

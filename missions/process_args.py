@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 if TYPE_CHECKING:  # pragma: no cover - types only
     from comms.session import SessionSettings

@@ -57,6 +57,7 @@ from typing import Any, Literal, TextIO
 import numpy as np
 
 from comms import keys
+from comms.errors import FimnavError
 from comms.geodesy import MissionFrame
 from comms.latency import DelayedView
 from comms.mavlink_client import (
@@ -79,7 +80,6 @@ from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
-from planner.errors import FimnavError
 from planner.geometry import vec3
 from planner.params import Channel
 from planner.randomness import CONTROL_DRAWS, control_rng

@@ -42,7 +42,7 @@ import time
 from collections.abc import Callable
 from typing import Any, BinaryIO
 
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 log = logging.getLogger(__name__)
 

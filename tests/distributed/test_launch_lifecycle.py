@@ -31,7 +31,7 @@ from typing import NamedTuple
 import pytest
 
 from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 from .test_launch import PAPER, ROOT, Launch, launches, wait_for  # noqa: F401 (fixture)
 

@@ -11,7 +11,7 @@ import pytest
 
 from missions.loader import MissionError, load_mission, loads_mission, mission_to_yaml, parse_overrides
 from missions.schema import Mission
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 

@@ -25,7 +25,7 @@ import zenoh
 from comms.messages import Observation, encode
 from comms.session import SessionSettings, open_session, zenoh_config
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
-from planner.errors import UsageError
+from comms.errors import UsageError
 
 from security.certs import Authority, Node
 

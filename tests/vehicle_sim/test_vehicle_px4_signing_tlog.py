@@ -119,7 +119,7 @@ def test_signing_refuses_unsigned_and_accepts_signed(make_rig, tmp_path):
 
 
 def test_bad_signing_key_file_is_a_usage_error(tmp_path):
-    from planner.errors import UsageError
+    from comms.errors import UsageError
     from vehicle_sim.host import build_vehicle
 
     bad = tmp_path / "short.key"
