@@ -56,6 +56,7 @@ from missions.loader import mission_to_yaml
 from missions.results import write_results
 from missions.schema import Mission
 from missions.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
+from planner.agent import records_as_arrays
 from planner.fim import fisher_information, position_error_bound
 
 log = logging.getLogger("fimnav.launch")
@@ -260,6 +261,7 @@ class Launcher:
         view_port: int | None = None,
     ) -> None:
         self.mission = mission
+        self._planner_config = mission.planner_config()
         #: The live view (rerun): asked for, its port, and while running its server and recording.
         self.view = view
         self.view_port = view_port
@@ -853,16 +855,9 @@ class Launcher:
         return k * self.mission.dt_s
 
     def _peb_of_view(self, saved: Sequence[int], recs: dict[tuple[int, int], Observation], src: np.ndarray) -> float:
-        m = self.mission
-        n = m.drones.count
-        pos = np.zeros((n, 3))
-        valid = np.zeros(n, dtype=bool)
-        los = np.zeros(n, dtype=bool)
-        for j in range(n):
-            r = recs.get((saved[j], j + 1)) if saved[j] >= 0 else None
-            if r is not None:
-                pos[j], valid[j], los[j] = r.position_m, True, r.los
-        J = fisher_information(src, pos, m.drones.ranging_mask() & valid, m.drones.bearing_mask() & valid, los, m.channel.to_planner())
+        config = self._planner_config
+        pos, valid, los = records_as_arrays([recs.get((s, j + 1)) if s >= 0 else None for j, s in enumerate(saved)])
+        J = fisher_information(src, pos, config.ranging & valid, config.bearing & valid, los, config.channel)
         return float(position_error_bound(J)[0])
 
     def _step_logs(self) -> dict[tuple[int, int], dict[str, Any]]:

@@ -40,8 +40,9 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from comms.faults import FaultModel
+from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
-from planner.params import Channel, Limits
+from planner.params import Channel, Criterion, Limits
 
 #: Version of the mission format written by :func:`missions.loader.mission_to_yaml`.
 SCHEMA_VERSION: int = 1
@@ -689,6 +690,25 @@ class Mission(_Section):
             f = self.fence
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
         return EstimatorConfig(forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi)
+
+    def planner_config(self, criterion: Criterion | None = None) -> PlannerConfig:
+        """Everything a drone's planning step takes from this mission (:class:`PlannerConfig`),
+        with ``criterion`` in place of the mission's (a run's override), if given."""
+        bmin, bmax = self.obstacle_bounds()
+        return PlannerConfig(
+            channel=self.channel.to_planner(),
+            limits=self.limits(),
+            criterion=self.criterion if criterion is None else criterion,
+            ranging=self.drones.ranging_mask(),
+            bearing=self.drones.bearing_mask(),
+            boxes_min_m=bmin,
+            boxes_max_m=bmax,
+            d_hop_m=self.comms.d_hop_m,
+            start_positions_m=self.drones.start_positions_m(),
+            estimator=self.estimator_config(),
+            xi=self.controller.xi,
+            perturbation_rad=self.controller.random_perturbation_rad,
+        )
 
     def obstacle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Obstacle corners (mins, maxs), each shape (B, 3), metres ENU; B may be 0."""

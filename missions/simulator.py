@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
+from planner.agent import OWN_RANGE_WINDOW, PlanView, own_range_lower_bound_m, plan
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
@@ -222,25 +222,21 @@ def simulate(
     mission = spec.mission
     M, K = spec.trials, spec.steps
     N = mission.drones.count
-    limits: Limits = mission.limits()
-    channel = mission.channel.to_planner()
-    bmin, bmax = mission.obstacle_bounds()
-    ranging = mission.drones.ranging_mask()
-    bearing = mission.drones.bearing_mask()
+    config = mission.planner_config(spec.criterion)
+    channel = config.channel
+    bmin, bmax = config.boxes_min_m, config.boxes_max_m
+    ranging, bearing = config.ranging, config.bearing
     comms = mission.comms
     dt = mission.dt_s
     if estimator_config is None:
-        estimator_config = mission.estimator_config()
-    xi = mission.controller.xi
-    perturb = mission.controller.random_perturbation_rad
+        estimator_config = config.estimator
 
     meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
     ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
 
-    # Every drone's start position, known to all (a peer not heard of yet is kept clear of there,
-    # planner.agent.plan; the same float64 values as a planner node's).
-    starts = mission.drones.start_positions_m()
-    pos = np.broadcast_to(starts, (M, N, 3)).copy()
+    # Every drone's start position (the mission's; the planning step keeps clear of a peer not
+    # heard of yet there, planner.agent.plan).
+    pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
     if float32_positions:
         pos = pos.astype(np.float32).astype(np.float64)
     prev_step = np.zeros((M, N, 3))
@@ -316,35 +312,19 @@ def simulate(
         # Each drone's own last ranges bound its distance to the source (second keep-out).
         lo = max(0, k - OWN_RANGE_WINDOW + 1)
         own_lb = own_range_lower_bound_m(np.moveaxis(rec_range[lo : k + 1], 0, -1), np.moveaxis(rec_los[lo : k + 1], 0, -1), channel)
+        view = PlanView(eye_b, view_pos, have, view_los, np.where(have, k - saved, 0), hops)
         planned = plan(
+            config,
             pos,
             prev_step,
-            eye_b,
-            view_pos,
-            have,
-            view_los,
-            np.where(have, k - saved, 0),
-            hops,
-            ranging,
-            bearing,
-            state.estimate_m,
-            state.information,
-            state.observable,
-            channel,
-            limits,
-            spec.criterion,
-            bmin,
-            bmax,
-            comms.d_hop_m,
+            view,
+            state,
             ctrl_u[k],
-            xi=xi,
-            perturbation_rad=perturb,
+            step_index=k,
             oracle_source=src if oracle_estimate else None,
             own_distance_lower_m=own_lb,
             lost_contact=cut,
             own_then_m=None if cut is None else _own_at(positions, saved),
-            start_positions_m=starts,
-            step_index=k,
         )
         step = planned.step
         fallback[k] = step.singular
@@ -368,7 +348,7 @@ def simulate(
         if progress is not None:
             progress(1)
 
-    margins = safety_margins(positions, sources, limits, bmin, bmax)
+    margins = safety_margins(positions, sources, config.limits, bmin, bmax)
     return SimulationResult(
         spec=spec,
         positions_m=positions,

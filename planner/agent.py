@@ -36,11 +36,14 @@ Policies fixed here (docs/control.md):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner.config import PlannerConfig
 from planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
@@ -256,50 +259,105 @@ class PlanResult:
     keepout_m: FloatArray
 
 
+@dataclass(frozen=True, eq=False)
+class PlanView:
+    """Drone i's delayed view as arrays (leading batch dims ``...``; N drones, itself included).
+
+    Attributes:
+        own_mask: (..., N) bool, True at drone i's own row.
+        positions_m: (..., N, 3) positions of the records in the view, m, ENU.
+        valid: (..., N) bool, the view holds a record of that drone.
+        los: (..., N) bool, LOS flag of each record.
+        age_steps: (..., N) k − ℓ, the age in steps of each record (0 where none).
+        hops: (..., N) hop counts from drone i (−1 unreachable), for :func:`collision_relevant`.
+    """
+
+    own_mask: NDArray[np.bool_]
+    positions_m: FloatArray
+    valid: NDArray[np.bool_]
+    los: NDArray[np.bool_]
+    age_steps: NDArray[np.int64]
+    hops: NDArray[np.int64]
+
+    @classmethod
+    def from_records(cls, own_index: int, records: Sequence[_Record | None], saved_steps: ArrayLike, step_index: int, hops: ArrayLike) -> PlanView:
+        """One drone's view from its records (None where it holds none), the step ℓ of each
+        (``saved_steps``), the current step k and its hop counts."""
+        n = len(records)
+        positions, valid, los = records_as_arrays(records)
+        own = np.zeros(n, dtype=bool)
+        own[own_index] = True
+        ages = np.where(valid, step_index - np.asarray(saved_steps), 0)
+        return cls(own, positions, valid, los, ages, np.asarray(hops))
+
+
+class SourceEstimate(Protocol):
+    """What :func:`plan` reads of a drone's source estimate (an
+    :class:`planner.estimator.EstimatorState` is one)."""
+
+    @property
+    def estimate_m(self) -> FloatArray:
+        """p̂0, (..., 3), m, ENU."""
+        ...
+
+    @property
+    def information(self) -> FloatArray:
+        """Its Fisher information, (..., 3, 3), m⁻²."""
+        ...
+
+    @property
+    def observable(self) -> NDArray[np.bool_]:
+        """(...) bool, the source is locally identifiable."""
+        ...
+
+
+class _Record(Protocol):
+    """What :class:`PlanView` reads of a record: where it was taken and its LOS flag."""
+
+    @property
+    def position_m(self) -> ArrayLike: ...
+
+    @property
+    def los(self) -> bool: ...
+
+
+def records_as_arrays(records: Sequence[_Record | None]) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """(positions (N, 3) m ENU, valid (N,), los (N,)) of N records, None where there is none
+    (position zero, not valid, NLOS there)."""
+    n = len(records)
+    positions = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=bool)
+    los = np.zeros(n, dtype=bool)
+    for j, rec in enumerate(records):
+        if rec is not None:
+            positions[j], valid[j], los[j] = rec.position_m, True, rec.los
+    return positions, valid, los
+
+
 def plan(
+    config: PlannerConfig,
     own_position: ArrayLike,
     previous_step: ArrayLike,
-    own_mask: ArrayLike,
-    view_positions: ArrayLike,
-    view_valid: ArrayLike,
-    view_los: ArrayLike,
-    view_age_steps: ArrayLike,
-    hops: ArrayLike,
-    ranging: ArrayLike,
-    bearing: ArrayLike,
-    estimate_m: ArrayLike,
-    estimate_information: ArrayLike,
-    observable: ArrayLike,
-    channel: Channel,
-    limits: Limits,
-    criterion: Criterion,
-    boxes_min: ArrayLike,
-    boxes_max: ArrayLike,
-    d_hop_m: float,
+    view: PlanView,
+    estimate: SourceEstimate,
     perturbation_uniforms: ArrayLike,
-    xi: float | None = None,
-    perturbation_rad: float = np.radians(20.0),
+    *,
+    step_index: int = 0,
     oracle_source: ArrayLike | None = None,
     own_distance_lower_m: ArrayLike | None = None,
     lost_contact: ArrayLike | None = None,
     own_then_m: ArrayLike | None = None,
-    start_positions_m: ArrayLike | None = None,
-    step_index: int = 0,
 ) -> PlanResult:
     """Drone i's planning step from its view (eqs. 6, 10-17).
 
     Args:
+        config: the mission's planning parameters (channel, limits, criterion, roles,
+            buildings, d_hop, start positions, controller settings).
         own_position: p_i^(k) (..., 3), m, ENU. previous_step: u_i^(k) (..., 3), m.
-        own_mask: (..., N) bool, True at drone i's own row of the view.
-        view_positions: (..., N, 3) positions of the records in the view, m, ENU.
-        view_valid: (..., N) bool, the view holds a record of that drone.
-        view_los: (..., N) bool, LOS flag of each record. view_age_steps: (..., N) k − ℓ.
-        hops: (..., N) hop counts from drone i (−1 unreachable), for :func:`collision_relevant`.
-        ranging, bearing: (N,) roles κ_j, β_j.
-        estimate_m, estimate_information, observable: drone i's estimator output.
-        channel, limits, criterion, boxes_min, boxes_max, d_hop_m: mission parameters.
+        view: drone i's delayed view (:class:`PlanView`).
+        estimate: drone i's estimator state (its estimate, information and observability).
         perturbation_uniforms: (..., 2) uniforms for the singular fallback.
-        xi, perturbation_rad: controller parameters.
+        step_index: k, the current step (≥ 0), the age of a start position.
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
         own_distance_lower_m: (...), m, a lower bound on drone i's distance to the source from
@@ -316,14 +374,26 @@ def plan(
             the same on its side. None: no such peer.
         own_then_m: (..., N, 3), m, ENU: drone i's own position at the step of each peer's
             last record (needed with ``lost_contact``).
-        start_positions_m: (N, 3) or (..., N, 3), m, ENU: every drone's position at step 0 (the
-            mission's start, known to all). A peer drone i holds no record of yet (its first
-            records are late or lost) is kept clear of as if its start position were its record
-            of step 0, aged ``step_index`` steps: it is within ``step_index + 1`` v_max Δt of it
-            at the end of this step. Its row is used for the anti-collision constraint only (no
-            measurement). None: such a peer is not a constraint.
-        step_index: k, the current step (≥ 0), the age of a start position.
+
+    A peer drone i holds no record of yet (its first records are late or lost) is kept clear
+    of as if its start position (``config.start_positions_m``, the mission's start, known to
+    all) were its record of step 0, aged ``step_index`` steps: it is within ``step_index + 1``
+    v_max Δt of it at the end of this step. Its row is used for the anti-collision constraint
+    only (no measurement). With no start positions such a peer is not a constraint.
     """
+    channel, limits, criterion = config.channel, config.limits, config.criterion
+    boxes_min, boxes_max = config.boxes_min_m, config.boxes_max_m
+    ranging, bearing = config.ranging, config.bearing
+    own_mask, view_positions, view_valid, view_los, view_age_steps, hops = (
+        view.own_mask,
+        view.positions_m,
+        view.valid,
+        view.los,
+        view.age_steps,
+        view.hops,
+    )
+    estimate_m, estimate_information, observable = estimate.estimate_m, estimate.information, estimate.observable
+    start_positions_m = config.start_positions_m
     own = np.asarray(own_mask, dtype=bool)
     valid = np.asarray(view_valid, dtype=bool)
     rng_view = np.asarray(ranging, dtype=bool) & valid
@@ -351,7 +421,7 @@ def plan(
         else:
             d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
             keepout = np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
-    relevant = collision_relevant(hops, d_hop_m, limits)
+    relevant = collision_relevant(hops, config.d_hop_m, limits)
     peer_rows = np.asarray(view_positions, dtype=float)
     ages = np.where(valid, view_age_steps, 0)
     planes = None
@@ -383,8 +453,8 @@ def plan(
         boxes_max,
         limits,
         perturbation_uniforms,
-        xi=xi,
-        perturbation_rad=perturbation_rad,
+        xi=config.xi,
+        perturbation_rad=config.perturbation_rad,
         peer_planes=planes,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout))

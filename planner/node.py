@@ -79,7 +79,7 @@ from comms.messages import Done, MessageError, MessageKind, Observation, Status,
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, own_range_lower_bound_m, plan
+from planner.agent import OWN_RANGE_WINDOW, PlanView, own_range_lower_bound_m, plan
 from planner.geometry import vec3
 from planner.params import Channel
 from planner.randomness import CONTROL_DRAWS, control_rng
@@ -297,15 +297,9 @@ class PlannerNode:
         self.n = n
         self.steps = options.steps or mission.steps
         self.dt = mission.dt_s
-        self.channel = mission.channel.to_planner()
-        self.limits = mission.limits()
-        self.boxes = mission.obstacle_bounds()
-        self.ranging = mission.drones.ranging_mask()
-        self.bearing = mission.drones.bearing_mask()
-        #: Every drone's start position (m, ENU): a peer not heard of yet is kept clear of there.
-        self.starts = mission.drones.start_positions_m()
-        self.start = self.starts[self.i]
-        self.est_config = mission.estimator_config()
+        #: The mission's planning parameters, one source for each (:class:`planner.config.PlannerConfig`).
+        self.config = mission.planner_config()
+        self.start = mission.drones.start_positions_m()[self.i]
         self.ctrl_rng = control_rng(mission.seed, 0, self.i)
         self.view = DelayedView(
             self.i,
@@ -605,7 +599,7 @@ class PlannerNode:
             if not self.o.lockstep:
                 return self._run_realtime()
             first = self._rejoin() if self.o.rejoin else self._start()
-            state = est.initial_state((), self.est_config)
+            state = est.initial_state((), self.config.estimator)
             used = np.full(self.n, -1, dtype=np.int64)
             if self.o.rejoin:
                 state = self._rebuild(state, first, used)
@@ -631,8 +625,8 @@ class PlannerNode:
                     k,
                     t_k,
                     vec3(own),
-                    bool(self.ranging[self.i]),
-                    bool(self.bearing[self.i]),
+                    bool(self.config.ranging[self.i]),
+                    bool(self.config.bearing[self.i]),
                     meas.los,
                     meas.range_m,
                     meas.azimuth_rad,
@@ -765,7 +759,7 @@ class PlannerNode:
         predecessor's step log and, when they are next to it (a launch's results directory),
         its peers' logs (:func:`replay_step_logs`). ``used`` (per drone, the newest step fed
         to the estimator) is updated in place."""
-        state, done = replay_step_logs(state, self.predecessor_rows, self.n, first, self.channel, self.est_config)
+        state, done = replay_step_logs(state, self.predecessor_rows, self.n, first, self.config.channel, self.config.estimator)
         for step, pos, rng, los in done.get(self.i, []):
             self.own_ranges.append((rng, los))
             self._track(step, pos)
@@ -888,7 +882,7 @@ class PlannerNode:
             pos[row] = rec.position_m
             rng[row], az[row], el[row], los[row] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
         meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los)
-        return est.update(state, meas, self.channel, self.est_config), int(new.sum()) + len(late)
+        return est.update(state, meas, self.config.channel, self.config.estimator), int(new.sum()) + len(late)
 
     def _track(self, k: int, own: np.ndarray) -> None:
         """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""
@@ -896,54 +890,28 @@ class PlannerNode:
         self.own_track.pop(k - OWN_TRACK_STEPS, None)
 
     def _plan(self, k: int, own: np.ndarray, prev_step: np.ndarray, view: Any, state: est.EstimatorState) -> Any:
-        pos = np.zeros((self.n, 3))
-        valid = np.zeros(self.n, dtype=bool)
-        los = np.zeros(self.n, dtype=bool)
-        for j, rec in enumerate(view.records):
-            if rec is not None:
-                pos[j], valid[j], los[j] = rec.position_m, True, rec.los
-        own_mask = np.zeros(self.n, dtype=bool)
-        own_mask[self.i] = True
-        ages = np.where(valid, k - view.saved_steps, 0)
+        plan_view = PlanView.from_records(self.i, view.records, view.saved_steps, k, view.hops)
         # Peers whose planner left the liveliness view (a partition, not distance): kept apart
         # by the bisector planes of the step of their last record (planner.agent.plan).
-        lost = np.array([j + 1 in self.left and valid[j] for j in range(self.n)], dtype=bool)
+        lost = np.array([j + 1 in self.left and plan_view.valid[j] for j in range(self.n)], dtype=bool)
         own_then = None
         if lost.any():
             own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own) for j in range(self.n)], dtype=float)
         uniforms = self.ctrl_rng.random(CONTROL_DRAWS)
-        mc = self.m.controller
-        bmin, bmax = self.boxes
+        own_lower = own_range_lower_bound_m(
+            np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.config.channel
+        )
         return plan(
+            self.config,
             own,
             prev_step,
-            own_mask,
-            pos,
-            valid,
-            los,
-            ages,
-            view.hops,
-            self.ranging,
-            self.bearing,
-            state.estimate_m,
-            state.information,
-            state.observable,
-            self.channel,
-            self.limits,
-            self.m.criterion,
-            bmin,
-            bmax,
-            self.m.comms.d_hop_m,
+            plan_view,
+            state,
             uniforms,
-            xi=mc.xi,
-            perturbation_rad=mc.random_perturbation_rad,
-            own_distance_lower_m=own_range_lower_bound_m(
-                np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.channel
-            ),
+            step_index=k,
+            own_distance_lower_m=own_lower,
             lost_contact=lost if own_then is not None else None,
             own_then_m=own_then,
-            start_positions_m=self.starts,
-            step_index=k,
         )
 
     def _log_step(
@@ -990,8 +958,8 @@ class PlannerNode:
             k,
             t_k,
             vec3(own),
-            bool(self.ranging[self.i]),
-            bool(self.bearing[self.i]),
+            bool(self.config.ranging[self.i]),
+            bool(self.config.bearing[self.i]),
             True,
             nan,
             nan,
@@ -1345,7 +1313,7 @@ class PlannerNode:
         self.t0_unix = self.o.start_at_unix if self.o.start_at_unix is not None else math.ceil((now + 0.25 * dtw) / dtw) * dtw
         log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.o.uav, self.t0_unix, dtw)
         max_age_wall = (self.o.measurement_max_age_s if self.o.measurement_max_age_s is not None else self.dt) / self.o.speedup
-        state = est.initial_state((), self.est_config)
+        state = est.initial_state((), self.config.estimator)
         used = np.full(self.n, -1, dtype=np.int64)
         prev_step = np.zeros(3)
         done_steps = stale_steps = 0
@@ -1388,8 +1356,8 @@ class PlannerNode:
                         k,
                         w0,
                         vec3(pos),
-                        bool(self.ranging[self.i]),
-                        bool(self.bearing[self.i]),
+                        bool(self.config.ranging[self.i]),
+                        bool(self.config.bearing[self.i]),
                         True,
                         nan,
                         nan,
@@ -1429,12 +1397,12 @@ class PlannerNode:
                 k,
                 w0,
                 vec3(own),
-                bool(self.ranging[self.i]),
-                bool(self.bearing[self.i]),
+                bool(self.config.ranging[self.i]),
+                bool(self.config.bearing[self.i]),
                 bool(meas.los) if fresh and meas else True,
-                meas.range_m if fresh and meas and self.ranging[self.i] else nan,
-                meas.azimuth_rad if fresh and meas and self.bearing[self.i] else nan,
-                meas.elevation_rad if fresh and meas and self.bearing[self.i] else nan,
+                meas.range_m if fresh and meas and self.config.ranging[self.i] else nan,
+                meas.azimuth_rad if fresh and meas and self.config.bearing[self.i] else nan,
+                meas.elevation_rad if fresh and meas and self.config.bearing[self.i] else nan,
             )
             self.last_record = record
             self.view.add(record)

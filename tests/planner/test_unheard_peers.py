@@ -12,7 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner.agent import plan
+from types import SimpleNamespace
+
+from planner.agent import PlanView, plan
+from planner.config import PlannerConfig
+from planner.estimator import EstimatorConfig
 from planner.params import Channel, Limits
 
 LIM = Limits()  # d_U* = 1 m, 0.5-1 m per step, 50° per step
@@ -26,30 +30,28 @@ def step_towards_unheard_peer(step_index: int, with_start: bool) -> tuple[float,
     now, after the step), m."""
     own = np.array([0.0, 0.0, 10.0])
     start = np.array([[0.0, 0.0, 10.0], [2.5, 1.5, 10.0]])
-    r = plan(
-        own_position=own,
-        previous_step=np.array([1.0, 0.0, 0.0]),
-        own_mask=np.array([True, False]),
-        view_positions=np.array([own, [0.0, 0.0, 0.0]]),  # no record of drone 1: its row is unused
-        view_valid=np.array([True, False]),
-        view_los=np.array([True, False]),
-        view_age_steps=np.array([0, 0]),
-        hops=np.array([0, 1]),  # drone 1 is a neighbour (it is within d_hop), just not heard yet
-        ranging=np.array([True, True]),
-        bearing=np.array([False, False]),
-        estimate_m=np.array([0.0, 500.0, 2.0]),
-        estimate_information=np.zeros((3, 3)),
-        observable=np.array(False),
+    config = PlannerConfig(
         channel=Channel(),
         limits=LIM,
         criterion="A",
-        boxes_min=NO_BOX,
-        boxes_max=NO_BOX,
+        ranging=np.array([True, True]),
+        bearing=np.array([False, False]),
+        boxes_min_m=NO_BOX,
+        boxes_max_m=NO_BOX,
         d_hop_m=100.0,
-        perturbation_uniforms=np.array([0.5, 0.5]),
         start_positions_m=start if with_start else None,
-        step_index=step_index,
+        estimator=EstimatorConfig(),
     )
+    view = PlanView(
+        own_mask=np.array([True, False]),
+        positions_m=np.array([own, [0.0, 0.0, 0.0]]),  # no record of drone 1: its row is unused
+        valid=np.array([True, False]),
+        los=np.array([True, False]),
+        age_steps=np.array([0, 0]),
+        hops=np.array([0, 1]),  # drone 1 is a neighbour (it is within d_hop), just not heard yet
+    )
+    estimate = SimpleNamespace(estimate_m=np.array([0.0, 500.0, 2.0]), information=np.zeros((3, 3)), observable=np.array(False))
+    r = plan(config, own, np.array([1.0, 0.0, 0.0]), view, estimate, np.array([0.5, 0.5]), step_index=step_index)
     return float(np.linalg.norm(own - start[1])), float(np.linalg.norm(r.step.next_position - start[1]))
 
 
