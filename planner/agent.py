@@ -166,7 +166,7 @@ def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel
     """
     r = np.asarray(range_m, dtype=float)
     have = np.isfinite(r)
-    s0 = np.where(np.asarray(los, dtype=bool), channel.sigma_r0_los, channel.sigma_r0_nlos)
+    s0 = channel.sigma_r0(los)
     w0 = np.where(have, 1.0 / s0**2, 0.0)
     sw0 = w0.sum(-1)
     dbar = (w0 * np.where(have, r, 0.0)).sum(-1) / np.where(sw0 > 0.0, sw0, 1.0)

@@ -491,7 +491,7 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     zr, ar = present(meas.range_m, row_weight)
     za, aa = present(meas.azimuth_rad, wb)
     ze, ae = present(meas.elevation_rad, wb)
-    s0 = np.where(los, channel.sigma_r0_los, channel.sigma_r0_nlos)
+    s0 = channel.sigma_r0(los)
     return _Rows(np.where(row_ok, px, 0.0), np.where(row_ok, py, 0.0), np.where(row_ok, pz, 0.0), zr, za, ze, ar, aa, ae, s0)
 
 

@@ -49,7 +49,7 @@ class Observation:
 
 def ranging_std(d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
     """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
-    s0 = np.where(np.asarray(los, dtype=bool), channel.sigma_r0_los, channel.sigma_r0_nlos)
+    s0 = channel.sigma_r0(los)
     return s0 * np.asarray(d, dtype=float) ** (0.5 * channel.gamma)
 
 

@@ -11,6 +11,9 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import Literal
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 #: Constraint activation rule. ``"safe"`` (default) activates a constraint with a margin that
 #: covers one step of motion of both parties and filters the kinematically limited step so no
 #: safety distance is ever crossed; ``"paper"`` is the paper's literal rule (eqs. 15-17:
@@ -54,6 +57,11 @@ class Channel:
     def sigma_r0_nlos(self) -> float:
         """Ranging std at d0 = 1 m in NLOS, σ_r0 = (ln10/10)(σ_sh/γ) (eq. 5), metres."""
         return LN10_OVER_10 * self.sigma_ratio_nlos
+
+    def sigma_r0(self, los: ArrayLike) -> NDArray[np.float64]:
+        """σ_r0 of each link (eq. 5), metres: the LOS value where ``los`` (bool, any shape),
+        the NLOS value elsewhere. The ranging std at distance d is σ_r0 d^(γ/2)."""
+        return np.where(np.asarray(los, dtype=bool), self.sigma_r0_los, self.sigma_r0_nlos)
 
 
 @dataclass(frozen=True)
