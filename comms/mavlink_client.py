@@ -42,6 +42,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comms.autopilot import EKF_CONST_POS_MODE, EKF_READY_FLAGS, MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4, client_mode_table
 from comms.errors import FimnavError, UsageError
 from comms.geodesy import MissionFrame
 from comms.session import check_secret_file
@@ -49,19 +50,10 @@ from comms.session import check_secret_file
 #: Our MAVLink identity: a companion computer of the vehicle's system.
 COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 AUTOPILOT_COMPONENT = 1
-ARDUPILOT_GUIDED = 4
-ARDUPILOT_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9, "POSHOLD": 16, "BRAKE": 17}
-#: PX4 custom modes (main_mode << 16 | sub_mode << 24).
-PX4_MODES = {
-    "POSCTL": 3 << 16,
-    "OFFBOARD": 6 << 16,
-    "AUTO.LOITER": (4 << 16) | (3 << 24),
-    "AUTO.RTL": (4 << 16) | (5 << 24),
-    "AUTO.LAND": (4 << 16) | (6 << 24),
-    "AUTO.TAKEOFF": (4 << 16) | (2 << 24),
-}
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_PX4 = 12
+#: {mode name: custom_mode} per flavour, from the autopilot profiles (comms.autopilot); PX4's
+#: custom modes are main_mode << 16 | sub_mode << 24, its AUTO sub-modes named AUTO.<name>.
+ARDUPILOT_MODES = client_mode_table("ardupilot")
+PX4_MODES = client_mode_table("px4")
 Flavour = Literal["ardupilot", "px4"]
 Frame = Literal["local_ned", "global"]
 AltitudeReference = Literal["amsl", "relative"]
@@ -85,11 +77,6 @@ LINK_LOSS_S: float = 2.0
 #: ``time_boot_ms`` stamps (:class:`ClockWatch`).
 CLOCK_WINDOW_S: float = 1.5
 
-# EKF_STATUS_REPORT flags a copter needs for position control (ArduPilot's own pre-arm
-# test: attitude, velocities and absolute horizontal and vertical position), and the
-# constant-position mode flag that says it has no position yet.
-EKF_READY_FLAGS = 1 | 2 | 4 | 16 | 32
-EKF_CONST_POS_MODE = 128
 MAV_SYS_STATUS_AHRS = 0x200000
 MAV_SYS_STATUS_PREARM_CHECK = 0x10000000
 MAV_LANDED_STATE_NAMES = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}

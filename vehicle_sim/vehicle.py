@@ -25,10 +25,23 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comms.autopilot import (
+    EKF_ATTITUDE,
+    EKF_CONST_POS_MODE,
+    EKF_POS_HORIZ_ABS,
+    EKF_POS_HORIZ_REL,
+    EKF_POS_VERT_ABS,
+    EKF_PRED_POS_HORIZ_ABS,
+    EKF_PRED_POS_HORIZ_REL,
+    EKF_VELOCITY_HORIZ,
+    EKF_VELOCITY_VERT,
+    FlavourInfo,
+    Mode,
+    flavour_info,
+)
 from planner.geometry import vec3
 from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, FloatArray, PointMass
-from vehicle_sim.flavour import FlavourInfo, Mode, flavour_info
 from vehicle_sim.geo import LocalFrame
 from vehicle_sim.link import PROTOCOL_VERSION_ID, MavlinkLink, protocol_version_message
 from vehicle_sim.payload import Measurement, Payload
@@ -46,16 +59,6 @@ PX4_TAKEOFF_ALT_DEFAULT_M = 2.5
 MAV_CMD_DO_SET_GLOBAL_ORIGIN = 611
 ORIGIN_ALT_MAX_M = (2**31 - 1) / 1000.0  # GPS_GLOBAL_ORIGIN.altitude is int32 mm
 
-# EKF_STATUS_REPORT.flags (ArduPilot EKF_STATUS_FLAGS).
-EKF_ATTITUDE = 1
-EKF_VELOCITY_HORIZ = 2
-EKF_VELOCITY_VERT = 4
-EKF_POS_HORIZ_REL = 8
-EKF_POS_HORIZ_ABS = 16
-EKF_POS_VERT_ABS = 32
-EKF_CONST_POS_MODE = 128
-EKF_PRED_POS_HORIZ_REL = 256
-EKF_PRED_POS_HORIZ_ABS = 512
 #: Flags of an EKF that has aligned its attitude but has no position (no GPS yet).
 EKF_FLAGS_ALIGNED = EKF_ATTITUDE | EKF_CONST_POS_MODE
 #: Flags of an EKF using GPS on the ground (no terrain height: no POS_VERT_AGL).

@@ -1,4 +1,7 @@
-"""Autopilot flavours: flight modes and identity of ArduPilot copter and PX4.
+"""Autopilot profiles: flight modes, identity and readiness flags of ArduPilot copter and PX4,
+one table per flavour used by both sides of the link (the simulated vehicle,
+:mod:`vehicle_sim.vehicle`, and the planner's MAVLink client, :mod:`comms.mavlink_client`), so
+the two cannot disagree.
 
 A mode is identified by its HEARTBEAT ``custom_mode``: ArduPilot copter mode numbers
 (GUIDED = 4, ...) or PX4's ``main_mode << 16 | sub_mode << 24``. Each mode maps to one
@@ -22,6 +25,21 @@ Behaviour = Literal["hold", "guided", "takeoff", "land", "rtl", "mission"]
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 
+# EKF_STATUS_REPORT.flags (ArduPilot EKF_STATUS_FLAGS).
+EKF_ATTITUDE = 1
+EKF_VELOCITY_HORIZ = 2
+EKF_VELOCITY_VERT = 4
+EKF_POS_HORIZ_REL = 8
+EKF_POS_HORIZ_ABS = 16
+EKF_POS_VERT_ABS = 32
+EKF_CONST_POS_MODE = 128
+EKF_PRED_POS_HORIZ_REL = 256
+EKF_PRED_POS_HORIZ_ABS = 512
+#: The flags a copter needs for position control (ArduPilot's own pre-arm test: attitude,
+#: velocities and absolute horizontal and vertical position); with them, EKF_CONST_POS_MODE
+#: clear says it has a position.
+EKF_READY_FLAGS = EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_ABS | EKF_POS_VERT_ABS
+
 
 @dataclass(frozen=True)
 class Mode:
@@ -41,6 +59,17 @@ class Mode:
     behaviour: Behaviour
     armable: bool
     needs_position: bool = False
+
+    @property
+    def qualified_name(self) -> str:
+        """The name the planner's client uses for a mode change: PX4's sub-modes of AUTO as
+        ``AUTO.<name>`` (AUTO.LOITER, AUTO.LAND, ...), every other mode by its name."""
+        main, sub = (self.custom_mode >> 16) & 0xFF, (self.custom_mode >> 24) & 0xFF
+        return f"AUTO.{self.name}" if main == PX4_MAIN_AUTO and sub else self.name
+
+
+#: PX4's AUTO main mode (its sub-modes are TAKEOFF, LOITER, MISSION, RTL, LAND).
+PX4_MAIN_AUTO = 4
 
 
 def px4_custom_mode(main: int, sub: int = 0) -> int:
@@ -162,3 +191,9 @@ def flavour_info(flavour: str) -> FlavourInfo:
     if flavour == "px4":
         return PX4
     raise ValueError(f"unknown flavour {flavour!r}: expected 'ardupilot' or 'px4'")
+
+
+def client_mode_table(flavour: str) -> dict[str, int]:
+    """{qualified name: custom_mode} of a flavour's modes (:attr:`Mode.qualified_name`), the
+    planner client's names for a mode change."""
+    return {m.qualified_name: m.custom_mode for m in flavour_info(flavour).modes}
