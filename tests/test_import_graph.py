@@ -23,19 +23,25 @@ ALLOWED_THIRD_PARTY = ("numpy", "scipy")
 
 
 def core_modules() -> list[str]:
-    """Every planner/*.py except the node edge (node*, cli*)."""
+    """Every module of the planner package and its subpackages (planner/estimator/...) except
+    the node edge (node*, cli*)."""
     names = []
-    for path in sorted(PLANNER.glob("*.py")):
-        stem = path.stem
-        if stem.startswith(("node", "cli")):
+    for path in sorted(PLANNER.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if parts[-1].startswith(("node", "cli")):
             continue
-        names.append("planner" if stem == "__init__" else f"planner.{stem}")
+        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
     return names
+
+
+def _module_path(module: str) -> Path:
+    path = ROOT.joinpath(*module.split("."))
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
 
 
 def test_core_module_list_is_not_empty():
     mods = core_modules()
-    for expected in ("planner", "planner.geometry", "planner.fim", "planner.control", "planner.network"):
+    for expected in ("planner", "planner.geometry", "planner.fim", "planner.control", "planner.network", "planner.estimator", "planner.estimator.update"):
         assert expected in mods
 
 
@@ -68,7 +74,7 @@ def _imported_roots(path: Path) -> set[str]:
 
 @pytest.mark.parametrize("module", core_modules())
 def test_core_module_imports_only_stdlib_numpy_scipy(module):
-    path = PLANNER / ("__init__.py" if module == "planner" else module.split(".", 1)[1] + ".py")
+    path = _module_path(module)
     roots = _imported_roots(path)
     assert not roots & set(FORBIDDEN), f"{path.name} imports {sorted(roots & set(FORBIDDEN))}"
     stdlib = set(sys.stdlib_module_names) | {"__future__"}
