@@ -2,7 +2,7 @@
 half of the swarm (the drones' payloads + an observer of records and liveliness), and the
 planners' step logs read back.
 
-Processes are :class:`external.helpers.Proc` (own session, stopped by process group).
+Processes are :class:`tests.external.helpers.Proc` (own session, stopped by process group).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 import yaml
-from external.helpers import Proc
+
+from tests.external.helpers import Proc
 
 
 def start_router(procs: list[Proc], *connect: str, listen: str = "tcp/127.0.0.1:0") -> tuple[Proc, str, float]:

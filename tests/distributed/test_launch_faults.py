@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+from tests.distributed.test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 

@@ -27,7 +27,7 @@ import yaml
 from tests.vehicle_sim.procs import MAVPROXY
 from tests.vehicle_sim.procs import Proc as Tool
 
-from .test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 

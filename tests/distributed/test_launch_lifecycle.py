@@ -33,7 +33,7 @@ import pytest
 from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
 from planner.errors import UsageError
 
-from .test_launch import PAPER, ROOT, Launch, launches, wait_for  # noqa: F401 (fixture)
+from tests.distributed.test_launch import PAPER, ROOT, Launch, launches, wait_for  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 

@@ -20,7 +20,7 @@ import yaml
 
 from tests.external.helpers import Proc
 
-from .test_launch import Launch, launches  # noqa: F401 (fixture)
+from tests.distributed.test_launch import Launch, launches  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 

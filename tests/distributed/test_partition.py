@@ -34,11 +34,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from external.helpers import Proc
 
 from missions.loader import load_mission
 
-from .partition_helpers import (
+from tests.distributed.partition_helpers import (
     HalfWatch,
     ages,
     min_pair_distance,
@@ -49,6 +48,7 @@ from .partition_helpers import (
     wait_for,
     write_partition_mission,
 )
+from tests.external.helpers import Proc
 
 pytestmark = pytest.mark.integration
 

@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from .helpers import Proc
+from tests.external.helpers import Proc
 
 
 @pytest.fixture

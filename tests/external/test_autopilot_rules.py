@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from .helpers import Proc, write_mission
+from tests.external.helpers import Proc, write_mission
 
 pytestmark = pytest.mark.integration
 

@@ -12,7 +12,7 @@ import pytest
 
 from comms.mavlink_client import ClockWatch
 
-from .helpers import Proc, read_tlog, start_vehicle, write_mission
+from tests.external.helpers import Proc, read_tlog, start_vehicle, write_mission
 
 pytestmark = pytest.mark.integration
 

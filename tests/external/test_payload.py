@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 import yaml
 
-from .helpers import ENV, Proc, free_tcp_port, start_vehicle, write_mission
+from tests.external.helpers import ENV, Proc, free_tcp_port, start_vehicle, write_mission
 
 pytestmark = pytest.mark.integration
 

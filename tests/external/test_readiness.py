@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from .helpers import Proc, SwarmPeer, write_mission
+from tests.external.helpers import Proc, SwarmPeer, write_mission
 
 pytestmark = pytest.mark.integration
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
-from .helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
+from tests.external.helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
 
 pytestmark = pytest.mark.integration
 

@@ -27,7 +27,7 @@ from typing import Any
 
 import pytest
 
-from .helpers import Proc, SwarmPeer, free_tcp_port, handback, start_vehicle, write_mission
+from tests.external.helpers import Proc, SwarmPeer, free_tcp_port, handback, start_vehicle, write_mission
 from tests.distributed.test_launch import wait_for
 
 pytestmark = pytest.mark.integration

@@ -11,7 +11,6 @@ key handled as a secret (issue 7, security).
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 from collections.abc import Iterator
@@ -20,11 +19,9 @@ from typing import Any
 
 import pytest
 
-os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
 
-from pymavlink import mavutil  # noqa: E402
-
-from security.proc import Fimnav  # noqa: E402
+from tests.security.proc import Fimnav
 
 pytestmark = pytest.mark.integration
 

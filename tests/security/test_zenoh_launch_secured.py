@@ -26,8 +26,8 @@ from missions.loader import load_mission
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from missions.simulator import RunSpec, simulate
 
-from distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
-from security.certs import Authority
+from tests.distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
+from tests.security.certs import Authority
 
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

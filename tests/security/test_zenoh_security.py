@@ -27,7 +27,7 @@ from comms.session import SessionSettings, open_session, zenoh_config
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from planner.errors import UsageError
 
-from security.certs import Authority, Node
+from tests.security.certs import Authority, Node
 
 
 pytestmark = pytest.mark.integration

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import connect_client, hello, mavlink as R, wait_msg
-from procs import Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, mavlink as R, wait_msg
+from tests.vehicle_sim.procs import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 

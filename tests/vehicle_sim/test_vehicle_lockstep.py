@@ -13,7 +13,7 @@ from vehicle_sim.clock import LockstepClock, Tick, ZenohTickSource, encode_tick,
 from vehicle_sim.config import Origin, VehicleConfig
 from vehicle_sim.geo import LocalFrame
 
-from conftest import mavlink as R, wait_msg, wait_until
+from tests.vehicle_sim.clients import mavlink as R, wait_msg, wait_until
 
 pytestmark = pytest.mark.integration
 

@@ -12,8 +12,8 @@ from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from conftest import connect_client, hello, wait_msg
-from procs import MAVPROXY, Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, wait_msg
+from tests.vehicle_sim.procs import MAVPROXY, Proc, fimnav
 
 pytestmark = pytest.mark.integration
 

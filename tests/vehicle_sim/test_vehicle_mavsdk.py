@@ -11,7 +11,7 @@ from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from procs import Proc, fimnav
+from tests.vehicle_sim.procs import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 GEOD = Geod(ellps="WGS84")

@@ -15,7 +15,7 @@ from pymavlink import mavutil
 
 from vehicle_sim.config import VehicleConfig
 
-from conftest import connect_client, drain, mavlink as R, wait_msg, wait_until
+from tests.vehicle_sim.clients import connect_client, drain, mavlink as R, wait_msg, wait_until
 
 pytestmark = pytest.mark.integration
 

@@ -13,18 +13,15 @@ PX4 needed (tests/sitl/record_transcript_px4.py records the reference).
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-from procs import Proc
+from tests.sitl import gcs_script_px4
+from tests.sitl.record_transcript_px4 import REFERENCE, vehicle_argv
+from tests.vehicle_sim.procs import Proc
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "sitl"))
-
-import gcs_script_px4  # noqa: E402
-from record_transcript_px4 import REFERENCE, vehicle_argv  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
