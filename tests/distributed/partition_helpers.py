@@ -2,16 +2,13 @@
 half of the swarm (the drones' payloads + an observer of records and liveliness), and the
 planners' step logs read back.
 
-Processes are :class:`tests.external.helpers.Proc` (own session, stopped by process group).
+Processes are :class:`tests.support.proc.Proc` (own session, stopped by process group).
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import signal
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -22,7 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from tests.external.helpers import Proc
+from tests.support.proc import Proc, fimnav
 
 
 def start_router(procs: list[Proc], *connect: str, listen: str = "tcp/127.0.0.1:0") -> tuple[Proc, str, float]:
@@ -32,29 +29,10 @@ def start_router(procs: list[Proc], *connect: str, listen: str = "tcp/127.0.0.1:
     args = ["router", "--listen", listen, "--log-level", "WARNING"]
     for e in connect:
         args += ["--connect", e]
-    p = Proc(args)
+    p = Proc(fimnav(*args))
     procs.append(p)
-    ready = json.loads(p.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+    ready = p.ready(30.0)
     return p, str(ready["listen"][0]), time.monotonic()
-
-
-def stop_all(procs: Sequence[Proc], grace_s: float = 5.0) -> None:
-    """Stop every process group at once: SIGTERM to all, wait up to ``grace_s`` for all,
-    then :meth:`Proc.stop` (SIGKILL) for whatever lingers."""
-    for p in procs:
-        if p.p.poll() is None:
-            try:
-                os.killpg(p.p.pid, signal.SIGTERM)
-            except (ProcessLookupError, PermissionError):
-                pass
-    deadline = time.monotonic() + grace_s
-    for p in procs:
-        try:
-            p.p.wait(max(deadline - time.monotonic(), 0.01))
-        except subprocess.TimeoutExpired:
-            pass
-    for p in procs:
-        p.stop()
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, procs: Sequence[Proc] = (), detail: Callable[[], Any] | None = None) -> float:
@@ -64,7 +42,7 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, procs: 
     while not predicate():
         for p in procs:
             if p.p.poll() not in (None, 0):
-                raise AssertionError(f"{p.args[:3]} exited {p.p.returncode} while waiting for {what}:\n{p.tail()}")
+                raise AssertionError(f"{p.label} exited {p.p.returncode} while waiting for {what}:\n{p.tail()}")
         if time.monotonic() > deadline:
             extra = f"\n{detail()}" if detail is not None else ""
             raise AssertionError(f"{what}: not within {timeout_s:g} s{extra}")

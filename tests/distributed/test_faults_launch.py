@@ -16,7 +16,8 @@ import pytest
 from missions.loader import load_mission
 from missions.schema import Mission
 from missions.simulator import RunSpec, simulate
-from tests.distributed.test_launch import PAPER, Launch, launches, read_peb, read_trajectories  # noqa: F401 - fixture
+from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
+from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 from tests.simulator.test_faults import ref_decisions, ref_saved
 
 pytestmark = pytest.mark.integration

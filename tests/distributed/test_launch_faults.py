@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.distributed.test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+from tests.support.launch import PAPER, Launch, processes_mentioning
+from tests.distributed.test_launch import launches, wait_for  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 

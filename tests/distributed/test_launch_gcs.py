@@ -24,10 +24,10 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.vehicle_sim.procs import MAVPROXY
-from tests.vehicle_sim.procs import Proc as Tool
+from tests.support.proc import MAVPROXY, Proc
 
-from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 
@@ -66,7 +66,7 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
 
     gcs_port, tap_port = free_udp_port(), free_udp_port()
     tap = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tap_port}", source_system=254)
-    mavproxy = Tool([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
+    mavproxy = Proc([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
                      "--streamrate=-1", "--default-modules=cmdlong"], stdin=True, cwd=str(tmp_path))
     mission = tmp_path / "gcs.yaml"
     mission.write_text(yaml.safe_dump({
@@ -98,13 +98,12 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
                 mavproxy.send(f"long REQUEST_MESSAGE {AUTOPILOT_VERSION}")
                 asked = True
         code, stdout, stderr = run.wait(60.0)
-        # End of input ends MAVProxy's console (SIGTERM alone waits for the next line: 3 s lost in kill()).
-        assert mavproxy.p.stdin is not None
-        mavproxy.p.stdin.close()
+        # End of input ends MAVProxy's console (SIGTERM alone waits for the next line: 3 s lost in stop()).
+        mavproxy.close_stdin()
         mavproxy.wait(10.0)
     finally:
         tap.close()
-        mavproxy.kill()
+        mavproxy.stop()
     assert code == 0, stderr[-3000:]
     assert "ground station port udpout:127.0.0.1" in stderr and "Traceback" not in stderr
     # MAVProxy detected the three vehicles and selected system 2.

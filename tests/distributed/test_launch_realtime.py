@@ -18,9 +18,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.external.helpers import Proc
+from tests.support.proc import Proc, fimnav
 
-from tests.distributed.test_launch import Launch, launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.integration
 
@@ -51,10 +52,10 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
                                                   "payload": "external"}]},
         "zenoh": {"connect": [f"tcp/127.0.0.1:{zenoh_port}"]},
     }))
-    external = Proc(["vehicle", "--mission", str(mission), "--sysid", "3", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
-                     "--speedup", str(SPEEDUP), "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}", "--tlog", str(tmp_path / "external.tlog")])
+    external = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "3", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
+                           "--speedup", str(SPEEDUP), "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}", "--tlog", str(tmp_path / "external.tlog")))
     try:
-        ready = json.loads(external.expect(r"\{\"event\": \"ready\".*\}", 60.0).group(0))
+        ready = external.ready(60.0)
         assert ready.get("payload") == "realtime"
         out = tmp_path / "run"
         run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "15")

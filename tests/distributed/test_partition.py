@@ -44,11 +44,10 @@ from tests.distributed.partition_helpers import (
     min_pair_distance_between,
     read_steps,
     start_router,
-    stop_all,
     wait_for,
     write_partition_mission,
 )
-from tests.external.helpers import Proc
+from tests.support.proc import Proc, fimnav, stop_all
 
 pytestmark = pytest.mark.integration
 
@@ -60,7 +59,7 @@ def procs() -> Iterator[list[Proc]]:
     started: list[Proc] = []
     yield started
     stop_all(started)
-    assert all(p.p.poll() is not None for p in started), [p.args[:3] for p in started if p.p.poll() is None]
+    assert all(p.p.poll() is not None for p in started), [p.label for p in started if p.p.poll() is None]
 
 
 @dataclass(frozen=True)
@@ -110,12 +109,12 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
     watch = {"A": HalfWatch("partition", len(everyone), ea, a, starts, np.array(SOURCE_M)),
              "B": HalfWatch("partition", len(everyone), eb, b, starts, np.array(SOURCE_M))}
     try:
-        vehicles = [Proc(["vehicle", "--mission", str(path), "--sysid", str(u), "--mavlink", "udpin:127.0.0.1:0", "--profile", "pointmass",
-                          "--speedup", str(sc.speedup), "--tlog", str(tmp_path / f"v{u}.tlog")]) for u in everyone]
+        vehicles = [Proc(fimnav("vehicle", "--mission", str(path), "--sysid", str(u), "--mavlink", "udpin:127.0.0.1:0", "--profile", "pointmass",
+                                "--speedup", str(sc.speedup), "--tlog", str(tmp_path / f"v{u}.tlog"))) for u in everyone]
         procs.extend(vehicles)
         ports = {}
         for u, v in zip(everyone, vehicles):
-            ready = json.loads(v.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+            ready = v.ready(30.0)
             ports[u] = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
         # Step 0 of every planner at the same instant, once all are at their start positions.
         preflight_s = max(PREFLIGHT_S, PREFLIGHT_PER_DRONE_S * len(everyone))
@@ -124,9 +123,9 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         planners = {}
         for u in everyone:
             zenoh = {"mode": "client", "listen": [], "connect": [ea if u in a else eb]}
-            planners[u] = Proc(["plan", "--mission", str(path), "--uav", str(u), "--mavlink", f"udpout:127.0.0.1:{ports[u]}",
-                                "--speedup", str(sc.speedup), "--start-at", f"{start_at:.3f}", "--zenoh-config", json.dumps(zenoh),
-                                "--log", str(logs[u]), "--preflight-timeout", "60"])
+            planners[u] = Proc(fimnav("plan", "--mission", str(path), "--uav", str(u), "--mavlink", f"udpout:127.0.0.1:{ports[u]}",
+                                      "--speedup", str(sc.speedup), "--start-at", f"{start_at:.3f}", "--zenoh-config", json.dumps(zenoh),
+                                      "--log", str(logs[u]), "--preflight-timeout", "60"))
             procs.append(planners[u])
         running = list(planners.values()) + vehicles + [ra, rb]
         t_ready = wait_for(lambda: all("ready at the start position" in p.err for p in planners.values()), preflight_s + 60.0,
@@ -321,7 +320,7 @@ def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[P
         sa.close()
         sb.close()
     # Started together (each is a Python start-up on a shared machine), then checked.
-    bad = {args: Proc(["router", *args]) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
+    bad = {args: Proc(fimnav("router", *args)) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
                                                        ("--auth-user", "swarm"), ("--duration", "nan"))}
     procs.extend(bad.values())
     stopped = {signum: start_router(procs)[0] for signum in (signal.SIGINT, signal.SIGTERM)}
@@ -358,9 +357,9 @@ def test_router_with_a_password_refuses_a_client_without_it(tmp_path: Path, proc
     password = tmp_path / "password"
     password.write_text("not-a-real-secret\n")
     password.chmod(0o600)
-    r = Proc(["router", "--listen", "tcp/127.0.0.1:0", "--auth-user", "swarm", "--auth-password-file", str(password)])
+    r = Proc(fimnav("router", "--listen", "tcp/127.0.0.1:0", "--auth-user", "swarm", "--auth-password-file", str(password)))
     procs.append(r)
-    endpoint = json.loads(r.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))["listen"][0]
+    endpoint = r.ready(30.0)["listen"][0]
     member = SessionSettings(mode="client", listen=(), connect=(endpoint,), auth_user="swarm", auth_password_file=password)
     got: list[bytes] = []
     a, b = open_session(member), open_session(member)

@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.external.helpers import Proc
+from tests.support.proc import Proc
 
 
 @pytest.fixture

@@ -17,7 +17,8 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.external.helpers import ENV, Proc, free_tcp_port, start_vehicle, write_mission
+from tests.external.helpers import free_tcp_port, start_vehicle, write_mission
+from tests.support.proc import ENV, Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -48,12 +49,12 @@ def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_
     sub = session.declare_subscriber(keys.measurement("payload", 1), on_measurement)
     try:
         # The payload's own link to the autopilot (the vehicle answers every UDP peer).
-        payload = Proc(["payload", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
-                        "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep])
+        payload = Proc(fimnav("payload", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
+                              "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep))
         procs.append(payload)
         payload.expect(r"\{\"event\": \"ready\".*\"key\": \"fimnav/payload/measurement/1\"", 30.0)
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
-                     "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep, "--log", str(tmp_path / "p.jsonl")])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
+                           "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep, "--log", str(tmp_path / "p.jsonl")))
         procs.append(plan)
         assert plan.wait(60.0) == 0, plan.tail()
         payload.stop()

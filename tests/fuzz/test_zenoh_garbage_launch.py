@@ -25,7 +25,8 @@ from comms.messages import Observation, Tick, encode
 from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
-from tests.distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
+from tests.support.launch import PAPER, Launch, read_trajectories
+from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from missions.liveview import STATE_COLOURS
-from tests.distributed.test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+from tests.support.launch import PAPER, Launch, processes_mentioning
+from tests.distributed.test_launch import launches, wait_for  # noqa: F401 (fixture)
 
 #: The browser, named like the SITL binaries: the test takes about 40 s of the default run's
 #: 5 minutes on two cores, so it runs when asked (FIMNAV_CHROMIUM=/usr/bin/chromium).

@@ -26,7 +26,8 @@ from missions.loader import load_mission
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from missions.simulator import RunSpec, simulate
 
-from tests.distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
+from tests.support.launch import PAPER, Launch, read_trajectories
+from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 from tests.security.certs import Authority
 
 

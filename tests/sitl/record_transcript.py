@@ -19,7 +19,7 @@ from typing import Any
 
 from tests.sitl import gcs_script
 from tests.sitl.sitl import sitl_config, start_sitl
-from tests.vehicle_sim.procs import Proc
+from tests.support.proc import Proc
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -78,11 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         p = Proc(vehicle_argv(a.speedup), cwd=str(ROOT))
         try:
-            m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout=30)
+            m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
             tr = gcs_script.run_sequence(f"tcp:127.0.0.1:{m.group(1)}", speedup=a.speedup, log=log,
                                          vehicle={"kind": "fimnav_vehicle", "flavour": "ardupilot"})
         finally:
-            p.kill()
+            p.stop()
     text = json.dumps(tr, indent=1, sort_keys=True) + "\n"
     if a.out == "-":
         sys.stdout.write(text)

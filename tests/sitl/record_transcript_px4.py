@@ -20,7 +20,7 @@ from typing import Any
 
 from tests.sitl import gcs_script_px4
 from tests.sitl.px4 import px4_config, start_px4
-from tests.vehicle_sim.procs import Proc
+from tests.support.proc import Proc
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -57,11 +57,11 @@ def record_vehicle(speedup: float, log: Any = None) -> dict[str, Any]:
     """Start ``fimnav vehicle --flavour px4``, fly the sequence, stop it; the transcript."""
     p = Proc(vehicle_argv(speedup), cwd=str(ROOT))
     try:
-        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout=30)
+        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
         return gcs_script_px4.run_sequence(f"udpout:127.0.0.1:{m.group(1)}", speedup=speedup, log=log,
                                            vehicle={"kind": "fimnav_vehicle", "flavour": "px4"})
     finally:
-        p.kill()
+        p.stop()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
 import socket
 import subprocess
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+
+from tests.support.proc import stop_group
 
 ENV_BINARY = "FIMNAV_SITL_ARDUCOPTER"
 ENV_DEFAULTS = "FIMNAV_SITL_ARDUCOPTER_DEFAULTS"
@@ -68,23 +69,6 @@ def console_tail(path: Path, n: int = 3000) -> str:
         return ""
 
 
-def stop_group(proc: subprocess.Popen[bytes], grace_s: float = 5.0) -> None:
-    """SIGTERM ``proc``'s process group, then SIGKILL it if still there after ``grace_s``; wait
-    for the process."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            break
-        try:
-            proc.wait(grace_s)
-            break
-        except subprocess.TimeoutExpired:
-            continue
-    if proc.poll() is None:
-        proc.wait(grace_s)
-
-
 @dataclass
 class SitlInstance:
     """A running SITL: its process, its SERIAL0 address (``tcp:127.0.0.1:PORT``), its speed-up,
@@ -104,7 +88,7 @@ class SitlInstance:
 
     def stop(self, grace_s: float = 5.0) -> None:
         """SIGTERM the process group, then SIGKILL it if still there; wait for the process."""
-        stop_group(self.proc, grace_s)
+        stop_group(self.proc, grace_s=grace_s)
 
 
 def wait_for_bind(inst: SitlInstance, deadline_s: float) -> None:

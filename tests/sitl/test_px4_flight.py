@@ -28,9 +28,11 @@ import pytest
 import yaml
 
 from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc, read_tlog, start_vehicle
+from tests.external.helpers import read_tlog, start_vehicle
+from tests.support.proc import Proc, fimnav
 
-from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 
 from tests.sitl.px4 import Px4Instance, px4_config, start_px4
 from tests.sitl.test_sitl_flight import START, STEPS, V_MAX, tracking, write_mission
@@ -55,8 +57,8 @@ def fly(procs: list[Proc], mission: Path, conn: str, sysid: int, speedup: float,
     summary, the wall seconds from ``t0`` (default: the planner's start) to its ``ready; EKF
     origin`` line, and the process."""
     start = time.monotonic()
-    plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--sysid", str(sysid), "--mavlink", conn,
-                 "--speedup", f"{speedup:g}", "--log", str(log), "--preflight-timeout", "180"])
+    plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--sysid", str(sysid), "--mavlink", conn,
+                       "--speedup", f"{speedup:g}", "--log", str(log), "--preflight-timeout", "180"))
     procs.append(plan)
     plan.expect(r"ready; EKF origin", timeout_s, stream="err")
     ready_s = time.monotonic() - (start if t0 is None else t0)
@@ -119,8 +121,8 @@ def test_px4_at_another_speed_factor_is_refused_before_take_off(tmp_path: Path, 
     assert _CFG is not None
     mission = write_mission(tmp_path / "m.yaml")
     with start_px4(_CFG, tmp_path / "px4", home=home_below(mission, START), speed=1.0) as px4:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
-                     "--speedup", "5"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
+                           "--speedup", "5"))
         procs.append(plan)
         assert plan.wait(60.0) == 1, plan.tail()
         console = px4_texts(px4)

@@ -29,9 +29,11 @@ import pytest
 import yaml
 
 from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc, start_vehicle
+from tests.external.helpers import start_vehicle
+from tests.support.proc import Proc, fimnav
 
-from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 
 from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
 
@@ -80,8 +82,8 @@ def fly(procs: list[Proc], mission: Path, conn: str, speedup: float, log: Path, 
     """Run ``fimnav plan`` to the end; return its summary, the wall seconds from its start to
     its ``ready; EKF origin`` line, and the process."""
     t0 = time.monotonic()
-    plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", conn, "--speedup", f"{speedup:g}",
-                 "--log", str(log), "--preflight-timeout", "180"])
+    plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", conn, "--speedup", f"{speedup:g}",
+                       "--log", str(log), "--preflight-timeout", "180"))
     procs.append(plan)
     plan.expect(r"ready; EKF origin", timeout_s, stream="err")
     ready_s = time.monotonic() - t0
@@ -117,7 +119,7 @@ def test_sitl_at_another_speed_up_is_refused_before_take_off(tmp_path: Path, pro
     assert _CFG is not None
     mission = write_mission(tmp_path / "m.yaml")
     with start_sitl(_CFG, tmp_path / "sitl", speedup=1.0, home=home_below(mission, START)) as sitl:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", "5"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", "5"))
         procs.append(plan)
         assert plan.wait(60.0) == 1, plan.tail()
     err = plan.err

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.external.helpers import Proc
+from tests.support.proc import Proc, fimnav
 
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, write_mission  # noqa: F401 (fixture)
 
@@ -123,8 +123,8 @@ def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path:
     sitl = start_sitl_on(tmp_path / "sitl", free_port(), home_below(mission, START))
     relay = TcpRelay(sitl.port)
     try:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"tcp:127.0.0.1:{relay.port}",
-                     "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"tcp:127.0.0.1:{relay.port}",
+                           "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"))
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
         wait_for_step(tmp_path / "p.jsonl", 10, 30.0)
@@ -164,8 +164,8 @@ def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp
     home = home_below(mission, START)
     sitl = start_sitl_on(tmp_path / "sitl", port, home)
     try:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address,
-                     "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address,
+                           "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"))
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
         wait_for_step(tmp_path / "p.jsonl", 5, 30.0)  # mid-flight

@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from tests.external.helpers import Proc, SwarmPeer, handback
+from tests.external.helpers import SwarmPeer, handback
+from tests.support.proc import Proc, fimnav
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
 from tests.distributed.test_launch import wait_for
 
@@ -38,8 +39,8 @@ def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_pat
     log = tmp_path / "p.jsonl"
     peer = SwarmPeer("sitl_one", 1, {1: 75.0})
     with sitl_with_serial1(tmp_path / "sitl", SPEEDUP, home_below(mission, START), 1) as (sitl, serial1):
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", f"{SPEEDUP:g}",
-                     "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", f"{SPEEDUP:g}",
+                           "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint))
         procs.append(plan)
         gcs = None
         try:

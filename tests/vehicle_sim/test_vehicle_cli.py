@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tests.vehicle_sim.clients import connect_client, hello, mavlink as R, wait_msg
-from tests.vehicle_sim.procs import Proc, fimnav
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -21,7 +21,7 @@ MISSION = ROOT / "missions" / "paper" / "ranging_nlos.yaml"
 
 
 def _ready(proc: Proc) -> dict:
-    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
+    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout_s=30).group(0)
     return json.loads(line)
 
 
@@ -44,7 +44,7 @@ def test_several_vehicles_in_one_process():
     finally:
         for c in clients:
             c.close()
-        proc.kill()
+        proc.stop()
 
 
 def test_mission_start_position_and_airborne():
@@ -69,7 +69,7 @@ def test_mission_start_position_and_airborne():
     finally:
         if c is not None:
             c.close()
-        proc.kill()
+        proc.stop()
 
 
 def _free_port() -> int:
@@ -115,7 +115,7 @@ def test_lockstep_process_advances_only_on_zenoh_ticks():
             session.close()
         if c is not None:
             c.close()
-        proc.kill()
+        proc.stop()
 
 
 @pytest.mark.parametrize(
@@ -143,7 +143,7 @@ def test_bad_input_exits_2_without_traceback(args, fragment):
         assert "Traceback" not in proc.err
         assert fragment in proc.err
     finally:
-        proc.kill()
+        proc.stop()
 
 
 def test_port_in_use_is_a_clear_error():
@@ -154,7 +154,7 @@ def test_port_in_use_is_a_clear_error():
         try:
             rc = proc.wait(30)
         finally:
-            proc.kill()
+            proc.stop()
     assert rc == 2 and "Traceback" not in proc.err and "in use" in proc.err
 
 
@@ -177,7 +177,7 @@ def test_sigterm_stops_cleanly_and_flushes_the_tlogs(tmp_path):
     finally:
         for c in clients:
             c.close()
-        proc.kill()
+        proc.stop()
     for sysid in (1, 2):
         data = (tmp_path / f"v{sysid}.tlog").read_bytes()
         # uint64 BE time stamp then a MAVLink 2 frame: the first frame is ours or the client's

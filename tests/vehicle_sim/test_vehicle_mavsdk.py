@@ -11,7 +11,7 @@ from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from tests.vehicle_sim.procs import Proc, fimnav
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 GEOD = Geod(ellps="WGS84")
@@ -19,7 +19,7 @@ GEOD = Geod(ellps="WGS84")
 
 def _start(*args: str, speedup: str = "5") -> tuple[Proc, str]:
     proc = Proc(fimnav("vehicle", "--mavlink", "tcpin:127.0.0.1:0", "--speedup", speedup, *args))
-    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
+    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout_s=30).group(0)
     port = line.split('"mavlink": "')[1].split('"')[0].rsplit(":", 1)[1]
     return proc, port
 
@@ -76,7 +76,7 @@ def test_mavsdk_ardupilot_arm_takeoff_goto():
     finally:
         if m is not None:
             m.destroy()
-        proc.kill()
+        proc.stop()
 
 
 def test_mavsdk_px4_offboard():
@@ -104,4 +104,4 @@ def test_mavsdk_px4_offboard():
     finally:
         if m is not None:
             m.destroy()
-        proc.kill()
+        proc.stop()

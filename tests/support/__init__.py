@@ -1,0 +1,1 @@
+"""What the tests share: real subprocesses (:mod:`.proc`) and ``fimnav launch`` runs (:mod:`.launch`)."""
