@@ -16,9 +16,9 @@ import pytest
 from missions.loader import load_mission
 from missions.schema import Mission
 from missions.simulator import RunSpec, simulate
-from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 from tests.simulator.test_faults import ref_decisions, ref_saved
+from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 
 pytestmark = pytest.mark.integration
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,17 +20,10 @@ from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
 from tests.support.launch import PAPER, Launch, processes_mentioning, read_peb, read_trajectories
+from tests.support.wait import wait_for
+from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
-
-
-def wait_for(predicate, timeout_s: float, what: str, interval_s: float = 0.1) -> None:  # noqa: ANN001
-    """Poll ``predicate`` until true; fail naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
-        time.sleep(interval_s)  # polling interval of a deadline wait, not a fixed delay
 
 
 @pytest.fixture
@@ -46,7 +38,7 @@ def launches(tmp_path: Path) -> Iterator[list[Launch]]:
             run.proc.wait(10)
         try:
             wait_for(lambda r=run: not processes_mentioning(str(r.out)), 15.0, f"the processes of {run.out} to exit")
-        except pytest.fail.Exception:
+        except AssertionError:
             leftovers[str(run.out)] = processes_mentioning(str(run.out))
             run.kill()
     assert not leftovers, f"processes left behind: {leftovers}"
@@ -131,11 +123,7 @@ def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
 def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launches: list[Launch]) -> None:
     """Two missions with different ids on one Zenoh network (both connect to a common peer):
     each completes, neither receives a message of the other, and each matches its simulator."""
-    from comms.session import SessionSettings, open_session
-    from missions.launcher import free_port
-
-    port = free_port()
-    hub = open_session(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",)))
+    hub, endpoint = open_hub()
     heard: list[str] = []
     sub = hub.declare_subscriber("fimnav/**", lambda sample: heard.append(str(sample.key_expr)))
     try:
@@ -143,7 +131,7 @@ def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launche
         for name, mission_id in (("ranging_los", "alpha"), ("joint", "bravo")):
             out = tmp_path / mission_id
             run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--step-timeout", "60", "--set", f"id={mission_id}",
-                         "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]', "--set", "drones.count=4")
+                         "--set", f'zenoh.connect=["{endpoint}"]', "--set", "drones.count=4")
             launches.append(run)
             runs.append((run, out))
         for run, out in runs:

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 from tests.support.launch import PAPER, Launch, processes_mentioning
-from tests.distributed.test_launch import launches, wait_for  # noqa: F401 (fixture)
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 

@@ -24,10 +24,11 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.support.net import free_port
 from tests.support.proc import MAVPROXY, Proc
 
-from tests.support.launch import Launch, processes_mentioning
 from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
 
 pytestmark = pytest.mark.integration
 
@@ -35,12 +36,6 @@ SPEEDUP = 10.0
 STEPS = 20
 MAV_CMD_REQUEST_MESSAGE, AUTOPILOT_VERSION = 512, 148
 MAVPROXY_SYSID, MAVPROXY_COMPID = 255, 230
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def commands_in(tlog: Path, command: int) -> int:
@@ -64,7 +59,7 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    gcs_port, tap_port = free_udp_port(), free_udp_port()
+    gcs_port, tap_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     tap = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tap_port}", source_system=254)
     mavproxy = Proc([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
                      "--streamrate=-1", "--default-modules=cmdlong"], stdin=True, cwd=str(tmp_path))

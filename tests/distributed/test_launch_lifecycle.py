@@ -32,9 +32,11 @@ import pytest
 from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
 from planner.errors import UsageError
 
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 from tests.support.launch import PAPER, ROOT, Launch
+from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
-from tests.distributed.test_launch import launches, wait_for  # noqa: F401 (fixture)
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -269,18 +271,12 @@ def test_realtime_launch_says_what_its_start_delay_waits_for(tmp_path: Path) -> 
         run.stop(signal.SIGKILL)
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_planner_started_by_hand_exits_128_plus_signal(signum: int) -> None:
     """``fimnav plan`` by hand (no launcher; its vehicle never answers): SIGTERM ends it with
     143, SIGHUP with 129, after its clean-up and with one line saying so."""
     run = Proc(fimnav("plan", "--mission", str(PAPER / "joint.yaml"), "--uav", "1",
-                      "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"), cwd=ROOT)
+                      "--mavlink", f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"), cwd=ROOT)
     try:
         wait_for(lambda: "fimnav code from" in run.err or run.p.poll() is not None, 60.0, "the planner to start")
         assert "launcher" not in run.err

@@ -18,20 +18,15 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
 
-from tests.support.launch import Launch
 from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch
 
 pytestmark = pytest.mark.integration
 
 SPEEDUP = 5.0
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.slow  # 24 s of real time; with real ArduPilot SITL: tests/sitl/test_sitl_flight.py (-m sitl)

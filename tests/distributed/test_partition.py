@@ -43,11 +43,11 @@ from tests.distributed.partition_helpers import (
     min_pair_distance,
     min_pair_distance_between,
     read_steps,
-    start_router,
-    wait_for,
     write_partition_mission,
 )
 from tests.support.proc import Proc, fimnav, stop_all
+from tests.support.wait import wait_for
+from tests.support.zenoh import start_router
 
 pytestmark = pytest.mark.integration
 
@@ -129,7 +129,7 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
             procs.append(planners[u])
         running = list(planners.values()) + vehicles + [ra, rb]
         t_ready = wait_for(lambda: all("ready at the start position" in p.err for p in planners.values()), preflight_s + 60.0,
-                           "every planner at its start position", running)
+                           "every planner at its start position", procs=running, interval_s=0.02)
         preflight_margin_s = start_at - (time.time() - (time.monotonic() - t_ready))
 
         def count(since_unix: float, oldest: Callable[[int], Sequence[int]], low: int, high: int) -> dict[int, int]:
@@ -143,7 +143,7 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
 
         # -- phase 1: linked -----------------------------------------------------------------
         wait_for(lambda: min(count(0.0, peers.__getitem__, 0, 1).values()) >= sc.linked_steps, 60.0 + preflight_s,
-                 f"{sc.linked_steps} linked steps with every peer fresh", running, status)
+                 f"{sc.linked_steps} linked steps with every peer fresh", procs=running, detail=status, interval_s=0.02)
         for name in watch:
             assert watch[name].alive() == set(everyone), (name, watch[name].liveliness)
 
@@ -153,11 +153,12 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         # kernel closes them (a crashed router machine's TCP peers see a reset).
         os.killpg(link.p.pid, signal.SIGSTOP if sc.freeze else signal.SIGKILL)
         gone = {name: wait_for(lambda n=name: watch[n].first_event(t_cut, "DELETE", far[n]) is not None, 15.0,
-                               f"liveliness of the other half gone on side {name}", running)
+                               f"liveliness of the other half gone on side {name}", procs=running, interval_s=0.02)
                 for name in watch}
         notice = {name: watch[name].first_event(t_cut, "DELETE", far[name]) - t_cut for name in watch}  # type: ignore[operator]
         wait_for(lambda: min(count(t_cut_unix, other.__getitem__, 2, sc.steps).values()) >= sc.cut_steps, 60.0,
-                 f"{sc.cut_steps} steps of every planner with the other half stale", running, status)
+                 f"{sc.cut_steps} steps of every planner with the other half stale", procs=running, detail=status,
+                 interval_s=0.02)
         t_restore, t_restore_unix = time.monotonic(), time.time()
         leaked = {name: watch[name].records_between(max(gone.values()) + 0.5, t_restore, far[name]) for name in watch}
         alive_in_cut = {name: watch[name].alive() for name in watch}
@@ -169,10 +170,11 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         _, _, t_link_ready = start_router(procs, ea, eb)
         for name in watch:
             wait_for(lambda n=name: watch[n].first_record(t_restore, far[n]) is not None, 30.0,
-                     f"records of the other half on side {name} after the restore", running)
+                     f"records of the other half on side {name} after the restore", procs=running, interval_s=0.02)
         first_rec = {name: watch[name].first_record(t_restore, far[name]) - t_restore for name in watch}  # type: ignore[operator]
         wait_for(lambda: min(count(t_restore_unix, other.__getitem__, 0, 0).values()) >= sc.merged_steps, 60.0,
-                 f"{sc.merged_steps} merged steps of every planner with the other half fresh", running, status)
+                 f"{sc.merged_steps} merged steps of every planner with the other half fresh", procs=running,
+                 detail=status, interval_s=0.02)
         alive_back = {name: watch[name].first_event(t_restore, "PUT", far[name]) for name in watch}
         alive_merged = {name: watch[name].alive() for name in watch}
         for u, p in planners.items():
@@ -313,7 +315,7 @@ def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[P
             pub.put(b"x")
             return bool(got)
 
-        wait_for(crossed, 10.0, "a message from a client of B at a client of A through the link router", [link])
+        wait_for(crossed, 10.0, "a message from a client of B at a client of A through the link router", procs=[link], interval_s=0.02)
         print(f"routers linked: first message across {got[0] - t_link:.3f} s after the link router's ready line")
         sub.undeclare()
     finally:
@@ -370,7 +372,7 @@ def test_router_with_a_password_refuses_a_client_without_it(tmp_path: Path, proc
             a.put("auth-test/x", b"member")
             return bool(got)
 
-        wait_for(crossed, 10.0, "a message between two clients with the password", [r])
+        wait_for(crossed, 10.0, "a message between two clients with the password", procs=[r], interval_s=0.02)
     finally:
         a.close()
         b.close()

@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from tests.support.proc import ENV, Proc, fimnav
+from tests.support.zenoh import open_hub
 
 
 def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps: int, end_action: str, **extra: object) -> Path:
@@ -95,11 +96,8 @@ class SwarmPeer:
 
     def __post_init__(self) -> None:
         from comms import keys
-        from comms.session import SessionSettings, open_session
 
-        port = free_tcp_port()
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        self.session = open_session(SessionSettings(listen=(self.endpoint,)))
+        self.session, self.endpoint = open_hub()
         self._pubs = {uav: self.session.declare_publisher(keys.measurement(self.mission_id, uav)) for uav in self.ranges_m}
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(keys.record(self.mission_id), self._on_record)
@@ -137,12 +135,6 @@ class SwarmPeer:
 def handback(mission: Path, uav: int, *args: str) -> subprocess.CompletedProcess[str]:
     """Run ``fimnav handback MISSION --uav UAV ARGS`` to its end (30 s at most)."""
     return subprocess.run(fimnav("handback", str(mission), "--uav", str(uav), *args), capture_output=True, text=True, env=ENV, timeout=30)
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

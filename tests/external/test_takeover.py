@@ -27,9 +27,10 @@ from typing import Any
 
 import pytest
 
-from tests.external.helpers import SwarmPeer, free_tcp_port, handback, start_vehicle, write_mission
+from tests.external.helpers import SwarmPeer, handback, start_vehicle, write_mission
 from tests.support.proc import Proc, fimnav
-from tests.distributed.test_launch import wait_for
+from tests.support.wait import wait_for
+from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
 
@@ -124,12 +125,10 @@ class LockstepHub:
 
     def __init__(self, mission_id: str, count: int, dt_s: float) -> None:
         from comms import keys
-        from comms.session import SessionSettings, open_session
         from missions.clock import LockstepClock
 
-        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.session, self.endpoint = open_hub("router")
         self.mission_id, self.count = mission_id, count
-        self.session = open_session(SessionSettings(mode="router", listen=(self.endpoint,)))
         self.records: list[Any] = []
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(keys.record(mission_id), self._on_record)

@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 
 from missions.liveview import STATE_COLOURS
+from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 from tests.support.launch import PAPER, Launch, processes_mentioning
-from tests.distributed.test_launch import launches, wait_for  # noqa: F401 (fixture)
+from tests.support.wait import wait_for
 
 #: The browser, named like the SITL binaries: the test takes about 40 s of the default run's
 #: 5 minutes on two cores, so it runs when asked (FIMNAV_CHROMIUM=/usr/bin/chromium).

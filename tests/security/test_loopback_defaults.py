@@ -18,8 +18,8 @@ from comms.session import SessionSettings, open_session
 from missions.loader import load_mission
 from missions.schema import ZenohSpec
 
-from tests.support.proc import Proc, fimnav
 from tests.security.sockets import sockets_of
+from tests.support.proc import Proc, fimnav
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = sorted((ROOT / "missions" / "paper").glob("*.yaml"))

@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from tests.support.net import free_port
 from tests.support.proc import stop_group
 
 ENV_BINARY = "FIMNAV_SITL_ARDUCOPTER"
@@ -52,13 +53,6 @@ def sitl_config() -> tuple[SitlConfig | None, str]:
     if not defaults.is_file():
         return None, f"{ENV_DEFAULTS}={d} is not a file"
     return SitlConfig(binary, defaults), ""
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port free on every interface (SITL binds 0.0.0.0) for ``kind`` (TCP or UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("0.0.0.0", 0))
-        return int(s.getsockname()[1])
 
 
 def console_tail(path: Path, n: int = 3000) -> str:
@@ -121,7 +115,7 @@ def start_sitl(cfg: SitlConfig, workdir: Path, *, speedup: float = 10.0, home: s
     inst: SitlInstance | None = None
     try:
         for attempt in range(attempts):
-            port, rc_port = free_port(), free_port(socket.SOCK_DGRAM)
+            port, rc_port = free_port(host="0.0.0.0"), free_port(socket.SOCK_DGRAM, host="0.0.0.0")  # SITL binds every interface
             argv = [str(cfg.binary), "--model", model, "--speedup", f"{speedup:g}", "--defaults", str(cfg.defaults),
                     "--home", home, "--sysid", str(sysid), "-w",
                     "--serial0", f"tcp:{port}:wait", "--serial1", "none:", "--serial2", "none:", "--rc-in-port", str(rc_port)]

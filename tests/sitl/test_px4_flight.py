@@ -31,8 +31,8 @@ from tests.external.conftest import procs  # noqa: F401 (fixture: every process 
 from tests.external.helpers import read_tlog, start_vehicle
 from tests.support.proc import Proc, fimnav
 
-from tests.support.launch import Launch, processes_mentioning
 from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
 
 from tests.sitl.px4 import Px4Instance, px4_config, start_px4
 from tests.sitl.test_sitl_flight import START, STEPS, V_MAX, tracking, write_mission

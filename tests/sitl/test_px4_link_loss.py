@@ -19,11 +19,11 @@ import pytest
 
 from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
 from tests.external.helpers import SwarmPeer
-from tests.support.proc import Proc, fimnav
 from tests.sitl.px4 import px4_config, start_px4
 from tests.sitl.test_px4_flight import home_below
 from tests.sitl.test_sitl_flight import START, write_mission
-from tests.distributed.test_launch import wait_for
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 _CFG, _REASON = px4_config()
 

@@ -32,10 +32,11 @@ from tests.external.conftest import procs  # noqa: F401 (fixture: every process 
 from tests.external.helpers import start_vehicle
 from tests.support.proc import Proc, fimnav
 
-from tests.support.launch import Launch, processes_mentioning
 from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
 
-from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
+from tests.sitl.sitl import SitlInstance, sitl_config, start_sitl, wait_for_bind
+from tests.support.net import free_port
 
 _CFG, _REASON = sitl_config()
 
@@ -133,7 +134,7 @@ def sitl_with_serial1(workdir: Path, speedup: float, home: str, sysid: int) -> I
     free TCP port too (the simulated payload's link); yields (instance, SERIAL1 address)."""
     assert _CFG is not None
     workdir.mkdir(parents=True, exist_ok=True)
-    port, port1, rc_port = free_port(), free_port(), free_port(socket.SOCK_DGRAM)
+    port, port1, rc_port = free_port(host="0.0.0.0"), free_port(host="0.0.0.0"), free_port(socket.SOCK_DGRAM, host="0.0.0.0")  # SITL binds every interface
     argv = [str(_CFG.binary), "--model", "+", "--speedup", f"{speedup:g}", "--defaults", str(_CFG.defaults), "--home", home,
             "--sysid", str(sysid), "-w", "--serial0", f"tcp:{port}:wait", "--serial1", f"tcp:{port1}", "--serial2", "none:",
             "--rc-in-port", str(rc_port)]

@@ -30,7 +30,8 @@ from tests.support.proc import Proc, fimnav
 
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, write_mission  # noqa: F401 (fixture)
 
-from tests.sitl.sitl import SitlInstance, free_port, wait_for_bind
+from tests.sitl.sitl import SitlInstance, wait_for_bind
+from tests.support.net import free_port
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
@@ -58,7 +59,7 @@ def start_sitl_on(workdir: Path, port: int, home: str, wipe: bool = True) -> Sit
     workdir.mkdir(parents=True, exist_ok=True)
     argv = [str(_CFG.binary), "--model", "+", "--speedup", f"{SPEEDUP:g}", "--defaults", str(_CFG.defaults), "--home", home,
             "--sysid", "1", *(["-w"] if wipe else []), "--serial0", f"tcp:{port}:wait", "--serial1", "none:", "--serial2", "none:",
-            "--rc-in-port", str(free_port(socket.SOCK_DGRAM))]
+            "--rc-in-port", str(free_port(socket.SOCK_DGRAM, host="0.0.0.0"))]
     log_path = workdir / f"sitl-console-{time.monotonic_ns()}.log"
     with open(log_path, "wb") as out:
         proc = subprocess.Popen(argv, cwd=workdir, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -120,7 +121,7 @@ class TcpRelay:
 def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
     steps = 60
     mission = write_mission(tmp_path / "m.yaml", steps)
-    sitl = start_sitl_on(tmp_path / "sitl", free_port(), home_below(mission, START))
+    sitl = start_sitl_on(tmp_path / "sitl", free_port(host="0.0.0.0"), home_below(mission, START))
     relay = TcpRelay(sitl.port)
     try:
         plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"tcp:127.0.0.1:{relay.port}",
@@ -160,7 +161,7 @@ def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path:
 
 def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
     mission = write_mission(tmp_path / "m.yaml", 100)
-    port = free_port()
+    port = free_port(host="0.0.0.0")
     home = home_below(mission, START)
     sitl = start_sitl_on(tmp_path / "sitl", port, home)
     try:

@@ -28,9 +28,9 @@ import pytest
 from pymavlink import mavutil
 
 from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.support.proc import Proc, fimnav
 from tests.sitl.sitl import sitl_config
 from tests.sitl.test_sitl_flight import START, home_below, sitl_with_serial1, write_mission
+from tests.support.proc import Proc, fimnav
 
 _CFG, _REASON = sitl_config()
 

@@ -22,9 +22,9 @@ import pytest
 from pymavlink import mavutil
 
 from tests.external.helpers import SwarmPeer, handback
-from tests.support.proc import Proc, fimnav
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
-from tests.distributed.test_launch import wait_for
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 

@@ -46,15 +46,6 @@ def drain(conn: Any) -> None:
         pass
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = 5.0, what: str = "condition") -> None:
-    """Poll ``pred`` until true (deadline ``timeout`` s); cheap sleeps between polls."""
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} not reached within {timeout} s")
-        time.sleep(0.005)
-
-
 @dataclass
 class Rig:
     """Vehicles hosted in a background thread plus their clients."""

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.vehicle_sim.clients import connect_client, hello, mavlink as R, wait_msg
+from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, mavlink as R, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -72,18 +73,12 @@ def test_mission_start_position_and_airborne():
         proc.stop()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_lockstep_process_advances_only_on_zenoh_ticks():
     import zenoh
 
     from vehicle_sim.clock import Tick, encode_tick, tick_key, zenoh_config
 
-    zport = _free_port()
+    zport = free_port()
     proc = Proc(fimnav("vehicle", "--lockstep", "--mission-id", "lk1", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
                        "--mavlink", "udpin:127.0.0.1:0", "--airborne", "--start", "0,0,5", "--profile", "ideal"))
     c = None

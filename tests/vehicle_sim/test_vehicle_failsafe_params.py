@@ -20,8 +20,8 @@ import pytest
 
 from vehicle_sim.config import VehicleConfig
 
-from tests.vehicle_sim.clients import connect_client, drain, hello, mavlink, wait_msg
 from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, drain, hello, mavlink, wait_msg
 
 SPEEDUP = 10.0
 ARDUPILOT_GUIDED, ARDUPILOT_RTL, ARDUPILOT_LAND = 4, 6, 9

@@ -12,8 +12,8 @@ from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from tests.vehicle_sim.clients import connect_client, hello, wait_msg
 from tests.support.proc import MAVPROXY, Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, wait_msg
 
 pytestmark = pytest.mark.integration
 

@@ -19,8 +19,8 @@ from comms.geodesy import MissionFrame
 from comms.mavlink_client import EKF_CONST_POS_MODE, EKF_READY_FLAGS
 from vehicle_sim.config import Origin, VehicleConfig
 
-from tests.vehicle_sim.clients import mavlink, wait_msg
 from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import mavlink, wait_msg
 
 #: 8 sim s at x4: 2 s of wall time (aligned after 1 s).
 READY_AFTER_S = 8.0
