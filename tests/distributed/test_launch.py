@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,29 +18,10 @@ from scipy.sparse.csgraph import shortest_path
 from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
-from tests.support.launch import PAPER, Launch, processes_mentioning, read_peb, read_trajectories
-from tests.support.wait import wait_for
+from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
-
-
-@pytest.fixture
-def launches(tmp_path: Path) -> Iterator[list[Launch]]:
-    """Started launches; at the end every process of every run must be gone (then killed)."""
-    started: list[Launch] = []
-    yield started
-    leftovers = {}
-    for run in started:
-        if run.proc.poll() is None:
-            run.kill()
-            run.proc.wait(10)
-        try:
-            wait_for(lambda r=run: not processes_mentioning(str(r.out)), 15.0, f"the processes of {run.out} to exit")
-        except AssertionError:
-            leftovers[str(run.out)] = processes_mentioning(str(run.out))
-            run.kill()
-    assert not leftovers, f"processes left behind: {leftovers}"
 
 
 def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:

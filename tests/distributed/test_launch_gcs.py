@@ -24,11 +24,9 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.support.launch import Launch, processes_mentioning
 from tests.support.net import free_port
 from tests.support.proc import MAVPROXY, Proc
-
-from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
-from tests.support.launch import Launch, processes_mentioning
 
 pytestmark = pytest.mark.integration
 
@@ -55,7 +53,7 @@ def horizontal_m(a: tuple[float, float], b: tuple[float, float]) -> float:
     return float(np.hypot((b[0] - a[0]) * 111_320.0, (b[1] - a[1]) * 111_320.0 * np.cos(np.radians(a[0]))))
 
 
-def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 

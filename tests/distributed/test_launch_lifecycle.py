@@ -32,7 +32,6 @@ import pytest
 from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
 from planner.errors import UsageError
 
-from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
@@ -118,7 +117,7 @@ def swarm_of(run: Launch, planners: int) -> dict[int, ProcInfo]:
     [(signal.SIGINT, True), (signal.SIGTERM, False), (signal.SIGHUP, True)],
     ids=["SIGINT-ctrl-c", "SIGTERM-kill", "SIGHUP-terminal-closed"],
 )
-def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path, launches: list[Launch], signum: int,  # noqa: F811
+def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path, launches: list[Launch], signum: int,
                                                                   to_group: bool) -> None:
     out = tmp_path / "run"
     run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "20", "--set", "drones.count=4")
@@ -141,7 +140,7 @@ def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path
 
 
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
-def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
+def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:
     """SIGKILL to the launcher: nothing stops the children for it; each notices by itself
     (the watchdog pipe reads end of file) and stops."""
     out = tmp_path / "run"
@@ -168,7 +167,7 @@ SUMMARY = re.compile(
 )
 
 
-def test_a_results_directory_holding_a_run_is_refused_or_overwritten(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_a_results_directory_holding_a_run_is_refused_or_overwritten(tmp_path: Path, launches: list[Launch]) -> None:
     """A previous run's files in ``--out`` (here: a summary and a vehicle log whose ready line
     names a port nobody listens on, which made a second launch wait 120 s for a heartbeat):
     refused at once, exit 2, nothing touched; ``--overwrite`` removes them (only them) and the
@@ -223,7 +222,7 @@ def test_results_directory_rules(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
-def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
+def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:
     """The launcher started like the console script of an installed copy (its code found on its
     ``sys.path``, not in the working directory), from a directory that holds another
     ``missions`` package, as a clone does: the vehicles and the planners (forked from the fork

@@ -18,11 +18,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.support.launch import Launch
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
-
-from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
-from tests.support.launch import Launch
 
 pytestmark = pytest.mark.integration
 
@@ -30,7 +28,7 @@ SPEEDUP = 5.0
 
 
 @pytest.mark.slow  # 24 s of real time; with real ArduPilot SITL: tests/sitl/test_sitl_flight.py (-m sitl)
-def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> None:
     key = tmp_path / "drone3.key"
     key.write_bytes(bytes(range(32)))
     key.chmod(0o600)

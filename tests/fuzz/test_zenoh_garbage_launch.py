@@ -24,7 +24,6 @@ from comms.messages import Observation, Tick, encode
 from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
-from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 from tests.support.launch import PAPER, Launch, read_trajectories
 from tests.support.net import free_port
 from tests.support.zenoh import raw_session
@@ -70,7 +69,7 @@ def garbage(rng: np.random.Generator, count: int) -> list[tuple[str, bytes]]:
     return items
 
 
-def test_garbage_on_the_swarm_keys_changes_nothing(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_garbage_on_the_swarm_keys_changes_nothing(tmp_path: Path, launches: list[Launch]) -> None:
     port = free_port()
     hub = raw_session(listen=[f"tcp/127.0.0.1:{port}"])
     stop = threading.Event()

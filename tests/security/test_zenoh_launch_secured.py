@@ -25,7 +25,6 @@ from missions.loader import load_mission
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from missions.simulator import RunSpec, simulate
 
-from tests.distributed.test_launch import launches  # noqa: F401 - fixture
 from tests.security.certs import Authority
 from tests.support.launch import PAPER, Launch, read_trajectories
 from tests.support.net import free_port
@@ -37,7 +36,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 MISSION_ID = "secured"
 
 
-def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Launch]) -> None:
     ca = Authority(tmp_path / "pki", "swarm-ca")
     node = ca.issue("swarm-node")
     password = tmp_path / "zenoh.password"

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
 from tests.external.helpers import SwarmPeer
 from tests.sitl.px4 import px4_config, start_px4
 from tests.sitl.test_px4_flight import home_below
@@ -32,7 +31,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG
 SPEEDUP = 5.0
 
 
-def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:
     assert _CFG is not None
     steps = 40
     mission = write_mission(tmp_path / "m.yaml", steps=steps)

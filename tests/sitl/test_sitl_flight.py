@@ -28,15 +28,11 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
 from tests.external.helpers import start_vehicle
-from tests.support.proc import Proc, fimnav
-
-from tests.distributed.test_launch import launches  # noqa: F401 (fixture)
-from tests.support.launch import Launch, processes_mentioning
-
 from tests.sitl.sitl import SitlInstance, sitl_config, start_sitl, wait_for_bind
+from tests.support.launch import Launch, processes_mentioning
 from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
 
 _CFG, _REASON = sitl_config()
 
@@ -149,7 +145,7 @@ def sitl_with_serial1(workdir: Path, speedup: float, home: str, sysid: int) -> I
         inst.stop()
 
 
-def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:
     """The paper's heterogeneous mission, four drones, 30 steps, in real time at x{SPEEDUP}:
     drones 1 and 2 are SITL copters (own system ids, homes 6 m apart below their starts),
     3 and 4 fimnav's simulated vehicles. Every drone arms, takes off in GUIDED, reaches its

@@ -26,12 +26,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.support.proc import Proc, fimnav
-
-from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, write_mission  # noqa: F401 (fixture)
-
 from tests.sitl.sitl import SitlInstance, wait_for_bind
+from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, write_mission
 from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
@@ -118,7 +116,7 @@ class TcpRelay:
         self.listen.close()
 
 
-def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:
     steps = 60
     mission = write_mission(tmp_path / "m.yaml", steps)
     sitl = start_sitl_on(tmp_path / "sitl", free_port(host="0.0.0.0"), home_below(mission, START))
@@ -159,7 +157,7 @@ def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path:
     assert drift < 1.0 + 3.0 + 0.5, drift
 
 
-def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp_path: Path, procs: list[Proc]) -> None:
     mission = write_mission(tmp_path / "m.yaml", 100)
     port = free_port(host="0.0.0.0")
     home = home_below(mission, START)

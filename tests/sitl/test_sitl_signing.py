@@ -27,7 +27,6 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
 from tests.sitl.sitl import sitl_config
 from tests.sitl.test_sitl_flight import START, home_below, sitl_with_serial1, write_mission
 from tests.support.proc import Proc, fimnav
@@ -73,7 +72,7 @@ def ack_within(conn: mavutil.mavfile, timeout_s: float) -> object | None:
     return None
 
 
-def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs: list[Proc]) -> None:
     assert _CFG is not None
     key = key_file(tmp_path / "key", b"fimnav sitl test")
     wrong = key_file(tmp_path / "wrong", b"another key")

@@ -22,7 +22,7 @@ import pytest
 from pymavlink import mavutil
 
 from tests.external.helpers import SwarmPeer, handback
-from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
+from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, sitl_with_serial1, write_mission
 from tests.support.proc import Proc, fimnav
 from tests.support.wait import wait_for
 
@@ -33,7 +33,7 @@ COPTER_BRAKE, COPTER_GUIDED = 17, 4
 MAV_CMD_DO_SET_MODE = 176
 
 
-def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_path: Path, procs: list[Proc]) -> None:
     steps = 40
     mission = write_mission(tmp_path / "m.yaml", steps=steps)
     log = tmp_path / "p.jsonl"
