@@ -30,25 +30,26 @@ from tests.sitl.sitl import SitlInstance, wait_for_bind
 from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, write_mission
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
 SPEEDUP = 5.0
 
 
+def last_step(log: Path) -> int | None:
+    """The last step in the planner's step log (JSON lines); None before the first."""
+    try:
+        steps = [json.loads(line)["step"] for line in log.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError, KeyError):
+        steps = []  # not written yet, or a line being written
+    return max(steps, default=None)
+
+
 def wait_for_step(log: Path, step: int, timeout_s: float) -> None:
-    """Wait until the planner's step log (JSON lines) holds ``step``; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            steps = [json.loads(line)["step"] for line in log.read_text().splitlines() if line.strip()]
-        except (OSError, ValueError, KeyError):
-            steps = []  # not written yet, or a line being written
-        if steps and max(steps) >= step:
-            return
-        if time.monotonic() > deadline:
-            raise AssertionError(f"the planner did not log step {step} within {timeout_s} s (last: {max(steps, default=None)})")
-        time.sleep(0.05)  # polling the log file, with the deadline above
+    """Wait until the planner's step log holds ``step``; fail after ``timeout_s``."""
+    wait_for(lambda: (s := last_step(log)) is not None and s >= step, timeout_s, f"the planner to log step {step}",
+             detail=lambda: f"last: {last_step(log)}", interval_s=0.05)
 
 
 def start_sitl_on(workdir: Path, port: int, home: str, wipe: bool = True) -> SitlInstance:
