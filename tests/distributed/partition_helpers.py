@@ -1,74 +1,21 @@
-"""Helpers of the partition test: ``fimnav router`` processes, the test's Zenoh client on each
-half of the swarm (the drones' payloads + an observer of records and liveliness), and the
-planners' step logs read back.
-
-Processes are :class:`external.helpers.Proc` (own session, stopped by process group).
+"""Helpers of the partition test: the test's Zenoh client on each half of the swarm (the drones'
+payloads + an observer of records and liveliness), the planners' step logs read back, and the
+geometry of the flown positions. (``fimnav router`` processes: :func:`tests.support.zenoh.start_router`.)
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import signal
-import subprocess
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
-from external.helpers import Proc
-
-
-def start_router(procs: list[Proc], *connect: str, listen: str = "tcp/127.0.0.1:0") -> tuple[Proc, str, float]:
-    """``fimnav router`` listening on a free loopback port (the OS picks it), linked to
-    ``connect``; return the process, its endpoint (from its ready line) and the wall time
-    (monotonic s) the ready line was seen."""
-    args = ["router", "--listen", listen, "--log-level", "WARNING"]
-    for e in connect:
-        args += ["--connect", e]
-    p = Proc(args)
-    procs.append(p)
-    ready = json.loads(p.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
-    return p, str(ready["listen"][0]), time.monotonic()
-
-
-def stop_all(procs: Sequence[Proc], grace_s: float = 5.0) -> None:
-    """Stop every process group at once: SIGTERM to all, wait up to ``grace_s`` for all,
-    then :meth:`Proc.stop` (SIGKILL) for whatever lingers."""
-    for p in procs:
-        if p.p.poll() is None:
-            try:
-                os.killpg(p.p.pid, signal.SIGTERM)
-            except (ProcessLookupError, PermissionError):
-                pass
-    deadline = time.monotonic() + grace_s
-    for p in procs:
-        try:
-            p.p.wait(max(deadline - time.monotonic(), 0.01))
-        except subprocess.TimeoutExpired:
-            pass
-    for p in procs:
-        p.stop()
-
-
-def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, procs: Sequence[Proc] = (), detail: Callable[[], Any] | None = None) -> float:
-    """Poll ``predicate`` until it holds (return the monotonic time it did) or fail after
-    ``timeout_s`` naming ``what``; fail at once if one of ``procs`` exits with an error."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        for p in procs:
-            if p.p.poll() not in (None, 0):
-                raise AssertionError(f"{p.args[:3]} exited {p.p.returncode} while waiting for {what}:\n{p.tail()}")
-        if time.monotonic() > deadline:
-            extra = f"\n{detail()}" if detail is not None else ""
-            raise AssertionError(f"{what}: not within {timeout_s:g} s{extra}")
-        time.sleep(0.02)
-    return time.monotonic()
 
 
 @dataclass

@@ -16,8 +16,8 @@ import pytest
 from missions.loader import load_mission
 from missions.schema import Mission
 from missions.simulator import RunSpec, simulate
-from tests.distributed.test_launch import PAPER, Launch, launches, read_peb, read_trajectories  # noqa: F401 - fixture
 from tests.simulator.test_faults import ref_decisions, ref_saved
+from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 
 pytestmark = pytest.mark.integration
 
@@ -35,7 +35,7 @@ def _node_injects_faults(mission: Mission) -> bool:
 
 
 @pytest.mark.slow  # a lockstep launch with faults (6 s); tests/simulator/test_faults.py checks the fault rule in the default run
-def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:
     """The paper's heterogeneous mission, shortened, with 20 % of the peer records lost and up to
     2 steps of extra delay: it completes; every planner held exactly the records the brute-force
     buffer gives with its own decisions (so it fell back on saved records); its positions equal

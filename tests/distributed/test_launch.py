@@ -7,14 +7,8 @@ and checks that no process of the run is left (processes are found by their resu
 
 from __future__ import annotations
 
-import csv
 import json
 import os
-import signal
-import subprocess
-import sys
-import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,99 +18,10 @@ from scipy.sparse.csgraph import shortest_path
 from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
-ROOT = Path(__file__).resolve().parents[2]
-PAPER = ROOT / "missions" / "paper"
+from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
+from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
-
-
-def processes_mentioning(text: str) -> list[int]:
-    """PIDs of live processes whose command line contains ``text`` (from /proc)."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
-        try:
-            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (entry / "stat").read_text().split(")")[-1].split()[0]
-        except OSError:
-            continue
-        if text in cmd and state != "Z":
-            pids.append(int(entry.name))
-    return pids
-
-
-def wait_for(predicate, timeout_s: float, what: str, interval_s: float = 0.1) -> None:  # noqa: ANN001
-    """Poll ``predicate`` until true; fail naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:g} s waiting for {what}")
-        time.sleep(interval_s)  # polling interval of a deadline wait, not a fixed delay
-
-
-class Launch:
-    """A ``fimnav launch`` subprocess in its own session."""
-
-    def __init__(self, mission: Path, out: Path, *args: str) -> None:
-        self.out = out
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "missions", "launch", str(mission), "--out", str(out), *args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=ROOT,
-        )
-
-    def wait(self, timeout_s: float = 240.0) -> tuple[int, str, str]:
-        try:
-            out, err = self.proc.communicate(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.kill()
-            out, err = self.proc.communicate()
-            pytest.fail(f"launch did not finish within {timeout_s:g} s:\n{err.decode(errors='replace')[-3000:]}")
-        return self.proc.returncode, out.decode(errors="replace"), err.decode(errors="replace")
-
-    def kill(self) -> None:
-        for pid in [self.proc.pid, *processes_mentioning(str(self.out))]:
-            try:
-                os.killpg(pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
-
-
-@pytest.fixture
-def launches(tmp_path: Path) -> Iterator[list[Launch]]:
-    """Started launches; at the end every process of every run must be gone (then killed)."""
-    started: list[Launch] = []
-    yield started
-    leftovers = {}
-    for run in started:
-        if run.proc.poll() is None:
-            run.kill()
-            run.proc.wait(10)
-        try:
-            wait_for(lambda r=run: not processes_mentioning(str(r.out)), 15.0, f"the processes of {run.out} to exit")
-        except pytest.fail.Exception:
-            leftovers[str(run.out)] = processes_mentioning(str(run.out))
-            run.kill()
-    assert not leftovers, f"processes left behind: {leftovers}"
-
-
-def read_trajectories(out: Path, mission) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
-    """(positions (K+1, N, 3), estimates (K, N, 3)) from the run's trajectories CSV."""
-    path = next((out / "runs").glob("*/trajectories.csv"))
-    K, N = mission.steps, mission.drones.count
-    pos = np.full((K + 1, N, 3), np.nan)
-    est = np.full((K, N, 3), np.nan)
-    for row in csv.DictReader(path.open()):
-        k, j = int(row["step"]), int(row["drone"]) - 1
-        pos[k, j] = [float(row["x_m"]), float(row["y_m"]), float(row["z_m"])]
-        if k < K:
-            est[k, j] = [float(row["estimate_x_m"]), float(row["estimate_y_m"]), float(row["estimate_z_m"])]
-    return pos, est
-
-
-def read_peb(out: Path) -> np.ndarray:
-    path = next((out / "runs").glob("*/peb.csv"))
-    return np.array([float(r["peb_mean_m"]) for r in csv.DictReader(path.open())])
 
 
 def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, launches: list[Launch]) -> None:
@@ -198,11 +103,7 @@ def test_hop_latency_is_real(tmp_path: Path, launches: list[Launch]) -> None:
 def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launches: list[Launch]) -> None:
     """Two missions with different ids on one Zenoh network (both connect to a common peer):
     each completes, neither receives a message of the other, and each matches its simulator."""
-    from comms.session import SessionSettings, open_session
-    from missions.launcher import free_port
-
-    port = free_port()
-    hub = open_session(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",)))
+    hub, endpoint = open_hub()
     heard: list[str] = []
     sub = hub.declare_subscriber("fimnav/**", lambda sample: heard.append(str(sample.key_expr)))
     try:
@@ -210,7 +111,7 @@ def test_two_missions_share_a_network_without_cross_talk(tmp_path: Path, launche
         for name, mission_id in (("ranging_los", "alpha"), ("joint", "bravo")):
             out = tmp_path / mission_id
             run = Launch(PAPER / f"{name}.yaml", out, "--steps", "15", "--step-timeout", "60", "--set", f"id={mission_id}",
-                         "--set", f'zenoh.connect=["tcp/127.0.0.1:{port}"]', "--set", "drones.count=4")
+                         "--set", f'zenoh.connect=["{endpoint}"]', "--set", "drones.count=4")
             launches.append(run)
             runs.append((run, out))
         for run, out in runs:

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+from tests.support.launch import PAPER, Launch, processes_mentioning
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -48,7 +49,7 @@ def steps_logged(out: Path, uav: int) -> list[dict]:
     return entries
 
 
-def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, launches: list[Launch]) -> None:
     out = tmp_path / "dead_vehicle"
     steps = 30
     run = Launch(PAPER / "joint.yaml", out, "--steps", str(steps), "--step-timeout", "20", "--set", "drones.count=5",
@@ -91,7 +92,7 @@ def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, 
 # 10-15 s: in the slow set to keep the default run under 5 minutes; the default run rebuilds a
 # restarted planner's state from the logs in tests/planner/test_replay_own_log.py.
 @pytest.mark.slow
-def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:
     out = tmp_path / "dead_planner"
     steps = 150
     # A fresh interpreter (--no-fork-server): the replacement then takes ~1 s to start, long
@@ -161,7 +162,7 @@ def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: lis
 
 
 @pytest.mark.slow  # the default run covers the launcher's other failure paths; this one stops at the first
-def test_abort_stops_the_run_at_the_first_failure(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_abort_stops_the_run_at_the_first_failure(tmp_path: Path, launches: list[Launch]) -> None:
     out = tmp_path / "abort"
     run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "8", "--on-failure", "abort", "--set", "drones.count=5",
                  "--vehicles-per-process", "1")

@@ -24,10 +24,9 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.vehicle_sim.procs import MAVPROXY
-from tests.vehicle_sim.procs import Proc as Tool
-
-from .test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
+from tests.support.launch import Launch, processes_mentioning
+from tests.support.net import free_port
+from tests.support.proc import MAVPROXY, Proc
 
 pytestmark = pytest.mark.integration
 
@@ -35,12 +34,6 @@ SPEEDUP = 10.0
 STEPS = 20
 MAV_CMD_REQUEST_MESSAGE, AUTOPILOT_VERSION = 512, 148
 MAVPROXY_SYSID, MAVPROXY_COMPID = 255, 230
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def commands_in(tlog: Path, command: int) -> int:
@@ -60,13 +53,13 @@ def horizontal_m(a: tuple[float, float], b: tuple[float, float]) -> float:
     return float(np.hypot((b[0] - a[0]) * 111_320.0, (b[1] - a[1]) * 111_320.0 * np.cos(np.radians(a[0]))))
 
 
-def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_reach_their_target(tmp_path: Path, launches: list[Launch]) -> None:
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    gcs_port, tap_port = free_udp_port(), free_udp_port()
+    gcs_port, tap_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     tap = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tap_port}", source_system=254)
-    mavproxy = Tool([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
+    mavproxy = Proc([MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", f"--out=udpout:127.0.0.1:{tap_port}", "--no-state",
                      "--streamrate=-1", "--default-modules=cmdlong"], stdin=True, cwd=str(tmp_path))
     mission = tmp_path / "gcs.yaml"
     mission.write_text(yaml.safe_dump({
@@ -98,13 +91,12 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
                 mavproxy.send(f"long REQUEST_MESSAGE {AUTOPILOT_VERSION}")
                 asked = True
         code, stdout, stderr = run.wait(60.0)
-        # End of input ends MAVProxy's console (SIGTERM alone waits for the next line: 3 s lost in kill()).
-        assert mavproxy.p.stdin is not None
-        mavproxy.p.stdin.close()
+        # End of input ends MAVProxy's console (SIGTERM alone waits for the next line: 3 s lost in stop()).
+        mavproxy.close_stdin()
         mavproxy.wait(10.0)
     finally:
         tap.close()
-        mavproxy.kill()
+        mavproxy.stop()
     assert code == 0, stderr[-3000:]
     assert "ground station port udpout:127.0.0.1" in stderr and "Traceback" not in stderr
     # MAVProxy detected the three vehicles and selected system 2.

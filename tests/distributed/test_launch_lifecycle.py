@@ -23,7 +23,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -33,7 +32,10 @@ import pytest
 from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
 from comms.errors import UsageError
 
-from .test_launch import PAPER, ROOT, Launch, launches, wait_for  # noqa: F401 (fixture)
+from tests.support.launch import PAPER, ROOT, Launch
+from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -45,7 +47,7 @@ GONE_WITHIN_S = 6.0
 MISSIONS_DIR = str(ROOT / "missions")
 
 
-class Proc(NamedTuple):
+class ProcInfo(NamedTuple):
     """One process as /proc shows it."""
 
     ppid: int
@@ -54,7 +56,7 @@ class Proc(NamedTuple):
     cmdline: str
 
 
-def read_proc(pid: int) -> Proc | None:
+def read_proc(pid: int) -> ProcInfo | None:
     """/proc/PID/stat and cmdline, or None if there is no such process."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -62,17 +64,17 @@ def read_proc(pid: int) -> Proc | None:
     except OSError:
         return None
     fields = stat.rsplit(")", 1)[1].split()
-    return Proc(int(fields[1]), fields[0], int(fields[19]), cmd)
+    return ProcInfo(int(fields[1]), fields[0], int(fields[19]), cmd)
 
 
-def descendants(root: int) -> dict[int, Proc]:
+def descendants(root: int) -> dict[int, ProcInfo]:
     """Every live (non-zombie) descendant of ``root``, from /proc."""
     table = {int(e.name): read_proc(int(e.name)) for e in Path("/proc").iterdir() if e.name.isdigit()}
     children: dict[int, list[int]] = {}
     for pid, p in table.items():
         if p is not None:
             children.setdefault(p.ppid, []).append(pid)
-    found: dict[int, Proc] = {}
+    found: dict[int, ProcInfo] = {}
     stack = [root]
     while stack:
         for c in children.get(stack.pop(), []):
@@ -83,7 +85,7 @@ def descendants(root: int) -> dict[int, Proc]:
     return found
 
 
-def still_alive(procs: dict[int, Proc]) -> dict[int, str]:
+def still_alive(procs: dict[int, ProcInfo]) -> dict[int, str]:
     """The processes of ``procs`` still running (same pid and start time, not a zombie)."""
     alive = {}
     for pid, p in procs.items():
@@ -98,7 +100,7 @@ def steps_logged(out: Path, uav: int = 1) -> int:
     return path.read_text().count("\n") if path.exists() else 0
 
 
-def swarm_of(run: Launch, planners: int) -> dict[int, Proc]:
+def swarm_of(run: Launch, planners: int) -> dict[int, ProcInfo]:
     """The launcher's descendants once the mission flies: ``planners`` planners, the vehicles'
     process and the planners' fork server (and multiprocessing's resource tracker)."""
     wait_for(lambda: steps_logged(run.out) >= 2, 90.0, "the mission to fly two steps")
@@ -115,7 +117,7 @@ def swarm_of(run: Launch, planners: int) -> dict[int, Proc]:
     [(signal.SIGINT, True), (signal.SIGTERM, False), (signal.SIGHUP, True)],
     ids=["SIGINT-ctrl-c", "SIGTERM-kill", "SIGHUP-terminal-closed"],
 )
-def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path, launches: list[Launch], signum: int,  # noqa: F811
+def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path, launches: list[Launch], signum: int,
                                                                   to_group: bool) -> None:
     out = tmp_path / "run"
     run = Launch(PAPER / "joint.yaml", out, "--steps", "400", "--step-timeout", "20", "--set", "drones.count=4")
@@ -138,7 +140,7 @@ def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path
 
 
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
-def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
+def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:
     """SIGKILL to the launcher: nothing stops the children for it; each notices by itself
     (the watchdog pipe reads end of file) and stops."""
     out = tmp_path / "run"
@@ -165,7 +167,7 @@ SUMMARY = re.compile(
 )
 
 
-def test_a_results_directory_holding_a_run_is_refused_or_overwritten(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_a_results_directory_holding_a_run_is_refused_or_overwritten(tmp_path: Path, launches: list[Launch]) -> None:
     """A previous run's files in ``--out`` (here: a summary and a vehicle log whose ready line
     names a port nobody listens on, which made a second launch wait 120 s for a heartbeat):
     refused at once, exit 2, nothing touched; ``--overwrite`` removes them (only them) and the
@@ -219,17 +221,8 @@ def test_results_directory_rules(tmp_path: Path) -> None:
     assert _ready_line(log, 33) is None
 
 
-class CommandLaunch(Launch):
-    """A launch run by the command ``argv`` in directory ``cwd`` (the :class:`Launch` helper runs
-    ``python -m missions launch`` from the repository)."""
-
-    def __init__(self, argv: list[str], out: Path, cwd: Path) -> None:  # noqa: D107 - the base's __init__ starts another command
-        self.out = out
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True, cwd=cwd)
-
-
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
-def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:  # noqa: F811
+def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:
     """The launcher started like the console script of an installed copy (its code found on its
     ``sys.path``, not in the working directory), from a directory that holds another
     ``missions`` package, as a clone does: the vehicles and the planners (forked from the fork
@@ -245,8 +238,8 @@ def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch],
     # (as pip writes a console script: multiprocessing imports it again in a forked child)
     script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\nfrom missions.cli import main\nif __name__ == '__main__':\n    sys.exit(main())\n")
     out = tmp_path / "run"
-    run = CommandLaunch([sys.executable, str(script), "launch", str(PAPER / "joint.yaml"), "--steps", "2", "--set", "drones.count=2",
-                         *([] if fork_server else ["--no-fork-server"]), "--out", str(out)], out, cwd=decoy)
+    run = Launch.command([sys.executable, str(script), "launch", str(PAPER / "joint.yaml"), "--steps", "2", "--set", "drones.count=2",
+                          *([] if fork_server else ["--no-fork-server"]), "--out", str(out)], out, cwd=decoy)
     launches.append(run)
     code, _, stderr = run.wait(90.0)
     assert code == 0, stderr[-3000:]
@@ -257,81 +250,42 @@ def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch],
         assert f"fimnav code from {MISSIONS_DIR}" in (out / "logs" / f"planner_{i}.log").read_text()
 
 
-class Streamed:
-    """A process in its own session with stderr gathered by a reader thread (to wait on lines
-    while it runs)."""
-
-    def __init__(self, argv: list[str]) -> None:
-        self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                     start_new_session=True, cwd=ROOT)
-        self.err = ""
-        self._lock = threading.Lock()
-        self._reader = threading.Thread(target=self._pump, daemon=True)
-        self._reader.start()
-
-    def _pump(self) -> None:
-        assert self.proc.stderr is not None
-        for raw in iter(lambda: self.proc.stderr.read1(65536), b""):  # type: ignore[union-attr]
-            with self._lock:
-                self.err += raw.decode(errors="replace")
-
-    def text(self) -> str:
-        with self._lock:
-            return self.err
-
-    def finish(self, timeout_s: float) -> int:
-        code = self.proc.wait(timeout_s)
-        self._reader.join(5.0)
-        return code
-
-    def kill_group(self) -> None:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait(10.0)
-
-
 def test_realtime_launch_says_what_its_start_delay_waits_for(tmp_path: Path) -> None:
     """``--realtime``: one line with what the start delay waits for and when step 0 is, then the
     drones ready at their starts as they report; Ctrl-C during the delay stops everything."""
     out = tmp_path / "rt"
-    run = Streamed([sys.executable, "-m", "missions", "launch", str(PAPER / "joint.yaml"), "--out", str(out), "--realtime",
-                    "--speedup", "5", "--start-delay", "60", "--steps", "5", "--set", "drones.count=2"])
+    run = Proc(fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--realtime",
+                      "--speedup", "5", "--start-delay", "60", "--steps", "5", "--set", "drones.count=2"), cwd=ROOT)
     try:
-        wait_for(lambda: "drones ready at their starts" in run.text() or run.proc.poll() is not None, 60.0, "a drone ready at its start")
-        text = run.text()
+        wait_for(lambda: "drones ready at their starts" in run.err or run.p.poll() is not None, 60.0, "a drone ready at its start")
+        text = run.err
         assert re.search(r"^waiting for 2 drones to be ready and at their starts: step 0 at \d\d:\d\d:\d\d \(in \d+ s\)$", text, re.M), text
         assert re.search(r"^[12]/2 drones ready at their starts \(step 0 in \d+ s\)$", text, re.M), text
-        tree = descendants(run.proc.pid)
-        os.killpg(run.proc.pid, signal.SIGINT)
-        assert run.finish(30.0) == 130
-        assert f"interrupted by SIGINT: every process was stopped; partial logs in {out / 'logs'}" in run.text()
+        tree = descendants(run.p.pid)
+        os.killpg(run.p.pid, signal.SIGINT)
+        assert run.wait(30.0) == 130
+        assert f"interrupted by SIGINT: every process was stopped; partial logs in {out / 'logs'}" in run.err
         wait_for(lambda: not still_alive(tree), GONE_WITHIN_S, f"every process to end: {still_alive(tree)}")
     finally:
-        run.kill_group()
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+        run.stop(signal.SIGKILL)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_planner_started_by_hand_exits_128_plus_signal(signum: int) -> None:
     """``fimnav plan`` by hand (no launcher; its vehicle never answers): SIGTERM ends it with
     143, SIGHUP with 129, after its clean-up and with one line saying so."""
-    run = Streamed([sys.executable, "-m", "missions", "plan", "--mission", str(PAPER / "joint.yaml"), "--uav", "1",
-                    "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"])
+    run = Proc(fimnav("plan", "--mission", str(PAPER / "joint.yaml"), "--uav", "1",
+                      "--mavlink", f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"), cwd=ROOT)
     try:
-        wait_for(lambda: "fimnav code from" in run.text() or run.proc.poll() is not None, 60.0, "the planner to start")
-        assert "launcher" not in run.text()
-        run.proc.send_signal(signum)
-        assert run.finish(20.0) == 128 + signum, run.text()[-2000:]
+        wait_for(lambda: "fimnav code from" in run.err or run.p.poll() is not None, 60.0, "the planner to start")
+        assert "launcher" not in run.err
+        run.p.send_signal(signum)
+        assert run.wait(20.0) == 128 + signum, run.err[-2000:]
         # (on a loaded machine the clean-up can be cut short after its 5 s grace: the line says so)
-        assert run.text().strip().splitlines()[-1].startswith(f"fimnav plan: stopped by {signal.Signals(signum).name}"), run.text()[-2000:]
-        assert "Traceback" not in run.text()
+        assert run.err.strip().splitlines()[-1].startswith(f"fimnav plan: stopped by {signal.Signals(signum).name}"), run.err[-2000:]
+        assert "Traceback" not in run.err
     finally:
-        run.kill_group()
+        run.stop(signal.SIGKILL)
 
 
 def test_a_vehicle_started_by_hand_outlives_its_parent(tmp_path: Path) -> None:

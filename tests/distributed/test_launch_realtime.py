@@ -18,23 +18,17 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.external.helpers import Proc
-
-from .test_launch import Launch, launches  # noqa: F401 (fixture)
+from tests.support.launch import Launch
+from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
 SPEEDUP = 5.0
 
 
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.slow  # 24 s of real time; with real ArduPilot SITL: tests/sitl/test_sitl_flight.py (-m sitl)
-def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> None:
     key = tmp_path / "drone3.key"
     key.write_bytes(bytes(range(32)))
     key.chmod(0o600)
@@ -51,10 +45,10 @@ def test_mixed_fleet_in_real_time(tmp_path: Path, launches: list[Launch]) -> Non
                                                   "payload": "external"}]},
         "zenoh": {"connect": [f"tcp/127.0.0.1:{zenoh_port}"]},
     }))
-    external = Proc(["vehicle", "--mission", str(mission), "--sysid", "3", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
-                     "--speedup", str(SPEEDUP), "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}", "--tlog", str(tmp_path / "external.tlog")])
+    external = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "3", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
+                           "--speedup", str(SPEEDUP), "--zenoh-listen", f"tcp/127.0.0.1:{zenoh_port}", "--tlog", str(tmp_path / "external.tlog")))
     try:
-        ready = json.loads(external.expect(r"\{\"event\": \"ready\".*\}", 60.0).group(0))
+        ready = external.ready(60.0)
         assert ready.get("payload") == "realtime"
         out = tmp_path / "run"
         run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "15")

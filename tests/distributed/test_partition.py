@@ -34,21 +34,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from external.helpers import Proc
 
 from missions.loader import load_mission
 
-from .partition_helpers import (
+from tests.distributed.partition_helpers import (
     HalfWatch,
     ages,
     min_pair_distance,
     min_pair_distance_between,
     read_steps,
-    start_router,
-    stop_all,
-    wait_for,
     write_partition_mission,
 )
+from tests.support.proc import Proc, fimnav, stop_all
+from tests.support.wait import wait_for
+from tests.support.zenoh import start_router
 
 pytestmark = pytest.mark.integration
 
@@ -60,7 +59,7 @@ def procs() -> Iterator[list[Proc]]:
     started: list[Proc] = []
     yield started
     stop_all(started)
-    assert all(p.p.poll() is not None for p in started), [p.args[:3] for p in started if p.p.poll() is None]
+    assert all(p.p.poll() is not None for p in started), [p.label for p in started if p.p.poll() is None]
 
 
 @dataclass(frozen=True)
@@ -110,12 +109,12 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
     watch = {"A": HalfWatch("partition", len(everyone), ea, a, starts, np.array(SOURCE_M)),
              "B": HalfWatch("partition", len(everyone), eb, b, starts, np.array(SOURCE_M))}
     try:
-        vehicles = [Proc(["vehicle", "--mission", str(path), "--sysid", str(u), "--mavlink", "udpin:127.0.0.1:0", "--profile", "pointmass",
-                          "--speedup", str(sc.speedup), "--tlog", str(tmp_path / f"v{u}.tlog")]) for u in everyone]
+        vehicles = [Proc(fimnav("vehicle", "--mission", str(path), "--sysid", str(u), "--mavlink", "udpin:127.0.0.1:0", "--profile", "pointmass",
+                                "--speedup", str(sc.speedup), "--tlog", str(tmp_path / f"v{u}.tlog"))) for u in everyone]
         procs.extend(vehicles)
         ports = {}
         for u, v in zip(everyone, vehicles):
-            ready = json.loads(v.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+            ready = v.ready(30.0)
             ports[u] = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
         # Step 0 of every planner at the same instant, once all are at their start positions.
         preflight_s = max(PREFLIGHT_S, PREFLIGHT_PER_DRONE_S * len(everyone))
@@ -124,13 +123,13 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         planners = {}
         for u in everyone:
             zenoh = {"mode": "client", "listen": [], "connect": [ea if u in a else eb]}
-            planners[u] = Proc(["plan", "--mission", str(path), "--uav", str(u), "--mavlink", f"udpout:127.0.0.1:{ports[u]}",
-                                "--speedup", str(sc.speedup), "--start-at", f"{start_at:.3f}", "--zenoh-config", json.dumps(zenoh),
-                                "--log", str(logs[u]), "--preflight-timeout", "60"])
+            planners[u] = Proc(fimnav("plan", "--mission", str(path), "--uav", str(u), "--mavlink", f"udpout:127.0.0.1:{ports[u]}",
+                                      "--speedup", str(sc.speedup), "--start-at", f"{start_at:.3f}", "--zenoh-config", json.dumps(zenoh),
+                                      "--log", str(logs[u]), "--preflight-timeout", "60"))
             procs.append(planners[u])
         running = list(planners.values()) + vehicles + [ra, rb]
         t_ready = wait_for(lambda: all("ready at the start position" in p.err for p in planners.values()), preflight_s + 60.0,
-                           "every planner at its start position", running)
+                           "every planner at its start position", procs=running, interval_s=0.02)
         preflight_margin_s = start_at - (time.time() - (time.monotonic() - t_ready))
 
         def count(since_unix: float, oldest: Callable[[int], Sequence[int]], low: int, high: int) -> dict[int, int]:
@@ -144,7 +143,7 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
 
         # -- phase 1: linked -----------------------------------------------------------------
         wait_for(lambda: min(count(0.0, peers.__getitem__, 0, 1).values()) >= sc.linked_steps, 60.0 + preflight_s,
-                 f"{sc.linked_steps} linked steps with every peer fresh", running, status)
+                 f"{sc.linked_steps} linked steps with every peer fresh", procs=running, detail=status, interval_s=0.02)
         for name in watch:
             assert watch[name].alive() == set(everyone), (name, watch[name].liveliness)
 
@@ -154,11 +153,12 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         # kernel closes them (a crashed router machine's TCP peers see a reset).
         os.killpg(link.p.pid, signal.SIGSTOP if sc.freeze else signal.SIGKILL)
         gone = {name: wait_for(lambda n=name: watch[n].first_event(t_cut, "DELETE", far[n]) is not None, 15.0,
-                               f"liveliness of the other half gone on side {name}", running)
+                               f"liveliness of the other half gone on side {name}", procs=running, interval_s=0.02)
                 for name in watch}
         notice = {name: watch[name].first_event(t_cut, "DELETE", far[name]) - t_cut for name in watch}  # type: ignore[operator]
         wait_for(lambda: min(count(t_cut_unix, other.__getitem__, 2, sc.steps).values()) >= sc.cut_steps, 60.0,
-                 f"{sc.cut_steps} steps of every planner with the other half stale", running, status)
+                 f"{sc.cut_steps} steps of every planner with the other half stale", procs=running, detail=status,
+                 interval_s=0.02)
         t_restore, t_restore_unix = time.monotonic(), time.time()
         leaked = {name: watch[name].records_between(max(gone.values()) + 0.5, t_restore, far[name]) for name in watch}
         alive_in_cut = {name: watch[name].alive() for name in watch}
@@ -170,10 +170,11 @@ def run_partition(tmp_path: Path, procs: list[Proc], sc: Scenario) -> dict[str, 
         _, _, t_link_ready = start_router(procs, ea, eb)
         for name in watch:
             wait_for(lambda n=name: watch[n].first_record(t_restore, far[n]) is not None, 30.0,
-                     f"records of the other half on side {name} after the restore", running)
+                     f"records of the other half on side {name} after the restore", procs=running, interval_s=0.02)
         first_rec = {name: watch[name].first_record(t_restore, far[name]) - t_restore for name in watch}  # type: ignore[operator]
         wait_for(lambda: min(count(t_restore_unix, other.__getitem__, 0, 0).values()) >= sc.merged_steps, 60.0,
-                 f"{sc.merged_steps} merged steps of every planner with the other half fresh", running, status)
+                 f"{sc.merged_steps} merged steps of every planner with the other half fresh", procs=running,
+                 detail=status, interval_s=0.02)
         alive_back = {name: watch[name].first_event(t_restore, "PUT", far[name]) for name in watch}
         alive_merged = {name: watch[name].alive() for name in watch}
         for u, p in planners.items():
@@ -314,14 +315,14 @@ def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[P
             pub.put(b"x")
             return bool(got)
 
-        wait_for(crossed, 10.0, "a message from a client of B at a client of A through the link router", [link])
+        wait_for(crossed, 10.0, "a message from a client of B at a client of A through the link router", procs=[link], interval_s=0.02)
         print(f"routers linked: first message across {got[0] - t_link:.3f} s after the link router's ready line")
         sub.undeclare()
     finally:
         sa.close()
         sb.close()
     # Started together (each is a Python start-up on a shared machine), then checked.
-    bad = {args: Proc(["router", *args]) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
+    bad = {args: Proc(fimnav("router", *args)) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
                                                        ("--auth-user", "swarm"), ("--duration", "nan"))}
     procs.extend(bad.values())
     stopped = {signum: start_router(procs)[0] for signum in (signal.SIGINT, signal.SIGTERM)}
@@ -358,9 +359,9 @@ def test_router_with_a_password_refuses_a_client_without_it(tmp_path: Path, proc
     password = tmp_path / "password"
     password.write_text("not-a-real-secret\n")
     password.chmod(0o600)
-    r = Proc(["router", "--listen", "tcp/127.0.0.1:0", "--auth-user", "swarm", "--auth-password-file", str(password)])
+    r = Proc(fimnav("router", "--listen", "tcp/127.0.0.1:0", "--auth-user", "swarm", "--auth-password-file", str(password)))
     procs.append(r)
-    endpoint = json.loads(r.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))["listen"][0]
+    endpoint = r.ready(30.0)["listen"][0]
     member = SessionSettings(mode="client", listen=(), connect=(endpoint,), auth_user="swarm", auth_password_file=password)
     got: list[bytes] = []
     a, b = open_session(member), open_session(member)
@@ -371,7 +372,7 @@ def test_router_with_a_password_refuses_a_client_without_it(tmp_path: Path, proc
             a.put("auth-test/x", b"member")
             return bool(got)
 
-        wait_for(crossed, 10.0, "a message between two clients with the password", [r])
+        wait_for(crossed, 10.0, "a message between two clients with the password", procs=[r], interval_s=0.02)
     finally:
         a.close()
         b.close()

@@ -1,112 +1,23 @@
-"""Helpers of the real-time tests: real ``fimnav vehicle`` / ``fimnav plan`` processes in their
-own sessions (process groups, killed at the end), waits on their output with deadlines, a UDP
-relay the test can cut, a Zenoh peer publishing payload measurements, and .tlog reading."""
+"""Helpers of the real-time tests: missions, a simulated vehicle started as a real process
+(:class:`tests.support.proc.Proc`), a UDP relay the test can cut, a Zenoh peer publishing
+payload measurements, and .tlog reading."""
 
 from __future__ import annotations
 
-import json
 import os
-import re
 import select
-import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-ENV = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
-
-
-class Proc:
-    """``python -m missions ARGS`` in its own session; stdout and stderr collected by threads."""
-
-    def __init__(self, args: Sequence[str], cwd: Path | None = None) -> None:
-        self.args = list(args)
-        self.p = subprocess.Popen(
-            [sys.executable, "-m", "missions", *self.args],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-            start_new_session=True, env=ENV, cwd=cwd,
-        )
-        self._lock = threading.Lock()
-        self.text = {"out": "", "err": ""}
-        self._readers = [threading.Thread(target=self._pump, args=(stream, name), daemon=True) for name, stream in (("out", self.p.stdout), ("err", self.p.stderr))]
-        for t in self._readers:
-            t.start()
-
-    def _pump(self, stream: Any, name: str) -> None:
-        fd = stream.fileno()
-        while True:
-            try:
-                chunk = os.read(fd, 65536)
-            except OSError:
-                return
-            if not chunk:
-                return
-            with self._lock:
-                self.text[name] += chunk.decode("utf-8", errors="replace")
-
-    @property
-    def out(self) -> str:
-        with self._lock:
-            return self.text["out"]
-
-    @property
-    def err(self) -> str:
-        with self._lock:
-            return self.text["err"]
-
-    def expect(self, pattern: str, timeout_s: float, stream: str = "out") -> re.Match[str]:
-        """Wait until ``pattern`` (regex) appears in ``stream``; fail with the output."""
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + timeout_s
-        while True:
-            m = rx.search(self.out if stream == "out" else self.err)
-            if m:
-                return m
-            if self.p.poll() is not None:
-                for t in self._readers:  # the readers end at the pipes' end of file
-                    t.join(5.0)
-                m = rx.search(self.out if stream == "out" else self.err)
-                if m:
-                    return m
-                raise AssertionError(f"{self.args[:1]} exited {self.p.returncode} before {pattern!r}:\n{self.tail()}")
-            if time.monotonic() > deadline:
-                raise AssertionError(f"{pattern!r} not seen within {timeout_s} s:\n{self.tail()}")
-            time.sleep(0.02)
-
-    def wait(self, timeout_s: float) -> int:
-        try:
-            return self.p.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{self.args[:1]} still running after {timeout_s} s:\n{self.tail()}") from None
-
-    def tail(self) -> str:
-        return f"--- stdout\n{self.out[-3000:]}\n--- stderr\n{self.err[-4000:]}"
-
-    def stop(self) -> None:
-        """SIGTERM the process group, then SIGKILL it if it lingers."""
-        for sig, grace in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if self.p.poll() is not None:
-                break
-            try:
-                os.killpg(self.p.pid, sig)
-            except (ProcessLookupError, PermissionError):
-                break
-            try:
-                self.p.wait(grace)
-            except subprocess.TimeoutExpired:
-                continue
-        try:  # stragglers of the group (none expected)
-            os.killpg(self.p.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+from tests.support.proc import ENV, Proc, fimnav
+from tests.support.zenoh import open_hub
 
 
 def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps: int, end_action: str, **extra: object) -> Path:
@@ -124,10 +35,10 @@ def write_mission(path: Path, mission_id: str, starts: list[list[float]], steps:
 
 def start_vehicle(procs: list[Proc], mission: Path, tlog: Path, *extra: str, sysid: int = 1) -> tuple[Proc, int]:
     """A simulated vehicle of ``mission`` on a free UDP port (udpin); return it and its port."""
-    v = Proc(["vehicle", "--mission", str(mission), "--sysid", str(sysid), "--mavlink", "udpin:127.0.0.1:0",
-              "--profile", "pointmass", "--tlog", str(tlog), *extra])
+    v = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", str(sysid), "--mavlink", "udpin:127.0.0.1:0",
+                    "--profile", "pointmass", "--tlog", str(tlog), *extra))
     procs.append(v)
-    ready = json.loads(v.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+    ready = v.ready(30.0)
     port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
     return v, port
 
@@ -185,11 +96,8 @@ class SwarmPeer:
 
     def __post_init__(self) -> None:
         from comms import keys
-        from comms.session import SessionSettings, open_session
 
-        port = free_tcp_port()
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        self.session = open_session(SessionSettings(listen=(self.endpoint,)))
+        self.session, self.endpoint = open_hub()
         self._pubs = {uav: self.session.declare_publisher(keys.measurement(self.mission_id, uav)) for uav in self.ranges_m}
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(keys.record(self.mission_id), self._on_record)
@@ -226,14 +134,7 @@ class SwarmPeer:
 
 def handback(mission: Path, uav: int, *args: str) -> subprocess.CompletedProcess[str]:
     """Run ``fimnav handback MISSION --uav UAV ARGS`` to its end (30 s at most)."""
-    return subprocess.run([sys.executable, "-m", "missions", "handback", str(mission), "--uav", str(uav), *args],
-                          capture_output=True, text=True, env=ENV, timeout=30)
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return subprocess.run(fimnav("handback", str(mission), "--uav", str(uav), *args), capture_output=True, text=True, env=ENV, timeout=30)
 
 
 @dataclass

@@ -14,7 +14,8 @@ from typing import Any
 
 import pytest
 
-from .helpers import Proc, write_mission
+from tests.external.helpers import write_mission
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -87,7 +88,7 @@ def autopilot(request: pytest.FixtureRequest) -> Iterator[ScriptedAutopilot]:
 
 def test_refused_intervals_fall_back_to_data_streams_and_the_readiness_wait_says_what_is_missing(tmp_path: Path, autopilot: ScriptedAutopilot) -> None:
     mission = write_mission(tmp_path / "m.yaml", "notready", [[10.0, 20.0, 8.0]], 5, "hold")
-    p = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{autopilot.port}", "--preflight-timeout", "3"])
+    p = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{autopilot.port}", "--preflight-timeout", "3"))
     try:
         assert p.wait(60.0) == 1, p.tail()
     finally:

@@ -12,7 +12,8 @@ import pytest
 
 from comms.mavlink_client import ClockWatch
 
-from .helpers import Proc, read_tlog, start_vehicle, write_mission
+from tests.external.helpers import read_tlog, start_vehicle, write_mission
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -32,7 +33,7 @@ def test_clock_watch_measures_the_rate_and_ignores_delayed_messages() -> None:
 def test_a_vehicle_at_another_speed_up_is_refused_before_take_off(tmp_path: Path, procs: list[Proc]) -> None:
     mission = write_mission(tmp_path / "m.yaml", "clock", [[0.0, 0.0, 5.0]], 5, "land")
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", "1")
-    planner = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--speedup", "5"])
+    planner = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--speedup", "5"))
     procs.append(planner)
     assert planner.wait(30.0) == 1, planner.tail()
     err = planner.err
@@ -47,7 +48,7 @@ def test_a_vehicle_at_another_speed_up_is_refused_before_take_off(tmp_path: Path
 def test_a_vehicle_at_the_same_speed_up_is_measured_and_flown(tmp_path: Path, procs: list[Proc]) -> None:
     mission = write_mission(tmp_path / "m.yaml", "clock", [[0.0, 0.0, 5.0]], 3, "hold")
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", "5")
-    planner = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--speedup", "5"])
+    planner = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--speedup", "5"))
     procs.append(planner)
     assert planner.wait(60.0) == 0, planner.tail()
     summary = json.loads(planner.out.strip().splitlines()[-1])

@@ -17,7 +17,9 @@ from typing import Any
 import pytest
 import yaml
 
-from .helpers import ENV, Proc, free_tcp_port, start_vehicle, write_mission
+from tests.external.helpers import start_vehicle, write_mission
+from tests.support.proc import ENV, Proc, fimnav
+from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
 
@@ -27,7 +29,6 @@ SPEEDUP = 5.0
 def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_path: Path, procs: list[Proc]) -> None:
     from comms import keys
     from comms.messages import decode
-    from comms.session import SessionSettings, open_session
     from missions.cmd_payload import build_payload
     from missions.loader import load_mission
 
@@ -35,8 +36,7 @@ def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_
     mission = write_mission(tmp_path / "m.yaml", "payload", [[0.0, 0.0, 6.0]], steps, "land",
                             drones={"count": 1, "roles": ["joint"], "start": {"positions_m": [[0.0, 0.0, 6.0]]}})
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", f"{SPEEDUP:g}")
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    session = open_session(SessionSettings(listen=(ep,)))
+    session, ep = open_hub()
     got: list[Any] = []
     lock = threading.Lock()
 
@@ -48,12 +48,12 @@ def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_
     sub = session.declare_subscriber(keys.measurement("payload", 1), on_measurement)
     try:
         # The payload's own link to the autopilot (the vehicle answers every UDP peer).
-        payload = Proc(["payload", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
-                        "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep])
+        payload = Proc(fimnav("payload", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
+                              "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep))
         procs.append(payload)
         payload.expect(r"\{\"event\": \"ready\".*\"key\": \"fimnav/payload/measurement/1\"", 30.0)
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
-                     "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep, "--log", str(tmp_path / "p.jsonl")])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}",
+                           "--speedup", f"{SPEEDUP:g}", "--zenoh-connect", ep, "--log", str(tmp_path / "p.jsonl")))
         procs.append(plan)
         assert plan.wait(60.0) == 0, plan.tail()
         payload.stop()

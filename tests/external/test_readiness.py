@@ -21,7 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from .helpers import Proc, SwarmPeer, write_mission
+from tests.external.helpers import SwarmPeer, write_mission
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -88,9 +89,9 @@ def planner_then_vehicle(tmp_path: Path, procs: list[Proc], flavour: str, peer: 
     port = hold.getsockname()[1]
     tlog = tmp_path / f"{flavour}.tlog"
     try:
-        planner = Proc(["plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP),
-                        "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60",
-                        "--mavlink", f"udpout:127.0.0.1:{port}"])
+        planner = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP),
+                              "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60",
+                              "--mavlink", f"udpout:127.0.0.1:{port}"))
         procs.append(planner)
         hold.settimeout(0.2)
         deadline = time.monotonic() + 60.0
@@ -103,9 +104,9 @@ def planner_then_vehicle(tmp_path: Path, procs: list[Proc], flavour: str, peer: 
                 continue
     finally:
         hold.close()
-    vehicle = Proc(["vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", f"udpin:127.0.0.1:{port}",
-                    "--profile", "pointmass", "--tlog", str(tlog), "--speedup", str(SPEEDUP), "--flavour", flavour,
-                    "--ready-after", str(READY_AFTER_S)])
+    vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", f"udpin:127.0.0.1:{port}",
+                          "--profile", "pointmass", "--tlog", str(tlog), "--speedup", str(SPEEDUP), "--flavour", flavour,
+                          "--ready-after", str(READY_AFTER_S)))
     procs.append(vehicle)
     vehicle.expect(r"\{\"event\": \"ready\"", 30.0)
     return planner, tlog

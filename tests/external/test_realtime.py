@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
-from .helpers import Proc, SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
+from tests.external.helpers import SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
@@ -34,9 +35,9 @@ MASK_POS_VEL, MASK_POS = 3520, 3576
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_NAV_TAKEOFF = 511, 22
 
 
-def plan_args(mission: Path, uav: int, peer: SwarmPeer, *extra: str, speedup: float = SPEEDUP) -> list[str]:
-    return ["plan", "--mission", str(mission), "--uav", str(uav), "--speedup", str(speedup),
-            "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60", *extra]
+def plan_argv(mission: Path, uav: int, peer: SwarmPeer, *extra: str, speedup: float = SPEEDUP) -> list[str]:
+    return fimnav("plan", "--mission", str(mission), "--uav", str(uav), "--speedup", str(speedup),
+                  "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60", *extra)
 
 
 def summary_of(p: Proc) -> dict:
@@ -67,7 +68,7 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
     flown.write_text(yaml.safe_dump(mission))
     peer = SwarmPeer("mixed", 2, {1: 70.0, 2: 72.0})
     try:
-        planners = [Proc([*plan_args(flown, i, peer, speedup=speedup), "--log", str(tmp_path / f"p{i}.jsonl")]) for i in (1, 2)]
+        planners = [Proc([*plan_argv(flown, i, peer, speedup=speedup), "--log", str(tmp_path / f"p{i}.jsonl")]) for i in (1, 2)]
         procs.extend(planners)
         for p in planners:
             assert p.wait(90.0) == 0, p.tail()
@@ -130,7 +131,7 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
     relay = UdpRelay(port)
     peer = SwarmPeer("loss", 1, {1: 80.0})
     try:
-        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{relay.port}"))
+        planner = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{relay.port}"))
         procs.append(planner)
         planner.expect(r"ready at the start position", 60.0, "err")
         deadline = time.monotonic() + 20.0
@@ -187,7 +188,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--signing-key", str(key))
     peer = SwarmPeer("signed", 1, {1: 75.0})
     try:
-        unsigned = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}"))
+        unsigned = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}"))
         procs.append(unsigned)
         assert unsigned.wait(30.0) == 1, unsigned.tail()
         assert "MAVLink 2 signing" in unsigned.err and "--signing-key" in unsigned.err
@@ -196,7 +197,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
         wrong.write_bytes(bytes(b ^ 0xFF for b in secret))
         wrong.chmod(0o600)
         t0 = time.monotonic()
-        mismatched = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(wrong),
+        mismatched = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(wrong),
                                     "--preflight-timeout", "60"))
         procs.append(mismatched)
         # Refused once every frame for 3 s failed the signature check, long before the 60 s timeout.
@@ -204,7 +205,7 @@ def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, pr
         assert time.monotonic() - t0 < 20.0
         assert "does not match our signing key" in mismatched.err and "another key" in mismatched.err, mismatched.tail()
         assert "Traceback" not in mismatched.err and "sig mismatch" not in mismatched.err
-        signed = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(key)))
+        signed = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--signing-key", str(key)))
         procs.append(signed)
         assert signed.wait(60.0) == 0, signed.tail()
     finally:
@@ -228,13 +229,13 @@ def test_group_or_world_readable_key_is_refused(tmp_path: Path, procs: list[Proc
     key.write_text(secret + "\n")
     key.chmod(mode)
     mission = write_mission(tmp_path / "m.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold")
-    cli = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", "udpout:127.0.0.1:9", "--signing-key", str(key)])
+    cli = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", "udpout:127.0.0.1:9", "--signing-key", str(key)))
     procs.append(cli)
     assert cli.wait(30.0) == 2, cli.tail()
     m = yaml.safe_load(mission.read_text())
     m["vehicles"] = {"overrides": [{"connection": "udpout:127.0.0.1:9", "signing_key_file": str(key)}]}
     from_mission = write_mission(tmp_path / "m2.yaml", "perm", [[10.0, 20.0, 8.0]], 5, "hold", vehicles=m["vehicles"])
-    via_mission = Proc(["plan", "--mission", str(from_mission), "--uav", "1", "--preflight-timeout", "5"])
+    via_mission = Proc(fimnav("plan", "--mission", str(from_mission), "--uav", "1", "--preflight-timeout", "5"))
     procs.append(via_mission)
     assert via_mission.wait(30.0) == 2, via_mission.tail()
     for p in (cli, via_mission):
@@ -276,7 +277,7 @@ def test_killed_planner_leaves_the_vehicle_holding_within_its_timeout(tmp_path: 
     watch = VehicleLink(f"udpout:127.0.0.1:{port}", 1, source_system=200)
     try:
         # (LOCAL_NED here: the simulated vehicle's EKF origin is the mission origin, checked)
-        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
+        planner = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
         procs.append(planner)
         planner.expect(r"ready at the start position", 60.0, "err")
         assert "(is the mission origin); setpoints in LOCAL_NED" in planner.err
@@ -311,18 +312,18 @@ def test_vehicle_restarted_on_the_same_tcp_port_is_reconnected_and_resumed(tmp_p
     TCP connection itself without blocking its loop, asks for its streams again and resumes."""
     mission = write_mission(tmp_path / "m.yaml", "tcp", [[10.0, 20.0, 8.0]], 60, "hold")
     args = ["--speedup", str(SPEEDUP)]
-    first = Proc(["vehicle", "--mission", str(mission), "--mavlink", "tcpin:127.0.0.1:0", "--profile", "pointmass", *args])
+    first = Proc(fimnav("vehicle", "--mission", str(mission), "--mavlink", "tcpin:127.0.0.1:0", "--profile", "pointmass", *args))
     procs.append(first)
-    ready = json.loads(first.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+    ready = first.ready(30.0)
     port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
     peer = SwarmPeer("tcp", 1, {1: 80.0})
     try:
-        planner = Proc(plan_args(mission, 1, peer, "--mavlink", f"tcp:127.0.0.1:{port}"))
+        planner = Proc(plan_argv(mission, 1, peer, "--mavlink", f"tcp:127.0.0.1:{port}"))
         procs.append(planner)
         planner.expect(r"ready at the start position", 60.0, "err")
         first.stop()
         planner.expect(r"vehicle link lost", 10.0, "err")
-        second = Proc(["vehicle", "--mission", str(mission), "--mavlink", f"tcpin:127.0.0.1:{port}", "--profile", "pointmass", "--airborne", *args])
+        second = Proc(fimnav("vehicle", "--mission", str(mission), "--mavlink", f"tcpin:127.0.0.1:{port}", "--profile", "pointmass", "--airborne", *args))
         procs.append(second)
         second.expect(r"\{\"event\": \"ready\"", 30.0)
         planner.expect(r"vehicle link back after", 20.0, "err")
@@ -344,7 +345,7 @@ def test_local_ned_is_refused_when_the_ekf_origin_is_not_the_mission_origin(tmp_
     _, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--origin=-35.3623610,149.165230,584")
     peer = SwarmPeer("origin", 1, {1: 80.0})
     try:
-        p = Proc(plan_args(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
+        p = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{port}", "--setpoint-frame", "local_ned"))
         procs.append(p)
         assert p.wait(60.0) == 1, p.tail()
     finally:

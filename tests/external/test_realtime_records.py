@@ -12,7 +12,7 @@ from comms.messages import Observation
 from missions.loader import load_mission
 from planner.node import NodeError, NodeOptions, PlannerNode
 
-from .helpers import write_mission
+from tests.external.helpers import write_mission
 
 
 def node(tmp_path: Path, speedup: float = 4.0) -> PlannerNode:

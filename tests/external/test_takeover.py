@@ -27,8 +27,10 @@ from typing import Any
 
 import pytest
 
-from .helpers import Proc, SwarmPeer, free_tcp_port, handback, start_vehicle, write_mission
-from tests.distributed.test_launch import wait_for
+from tests.external.helpers import SwarmPeer, handback, start_vehicle, write_mission
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
+from tests.support.zenoh import open_hub
 
 pytestmark = pytest.mark.integration
 
@@ -63,8 +65,8 @@ def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: lis
     peer = SwarmPeer("takeover", 1, {1: 75.0})
     gcs = None
     try:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
-                     "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
+                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")))
         procs.append(plan)
         log = tmp_path / "p.jsonl"
         wait_for(lambda: log.exists() and len(log.read_text().splitlines()) >= 10, 60.0, "ten planned steps")
@@ -123,12 +125,10 @@ class LockstepHub:
 
     def __init__(self, mission_id: str, count: int, dt_s: float) -> None:
         from comms import keys
-        from comms.session import SessionSettings, open_session
         from missions.clock import LockstepClock
 
-        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.session, self.endpoint = open_hub("router")
         self.mission_id, self.count = mission_id, count
-        self.session = open_session(SessionSettings(mode="router", listen=(self.endpoint,)))
         self.records: list[Any] = []
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(keys.record(mission_id), self._on_record)
@@ -169,16 +169,16 @@ def test_lockstep_take_over_is_seen_at_the_next_tick_and_the_clock_goes_on(tmp_p
     hub = LockstepHub("takeover-ls", 2, 1.0)
     gcs = None
     try:
-        vehicle = Proc(["vehicle", "--mission", str(mission), "--sysid", "1", "--count", "2", "--mavlink", "udpin:127.0.0.1:0",
-                        "--mavlink", "udpin:127.0.0.1:0", "--lockstep", "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client",
-                        "--tlog", str(tmp_path / "vehicle_{sysid}.tlog")])
+        vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--count", "2", "--mavlink", "udpin:127.0.0.1:0",
+                              "--mavlink", "udpin:127.0.0.1:0", "--lockstep", "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client",
+                              "--tlog", str(tmp_path / "vehicle_{sysid}.tlog")))
         procs.append(vehicle)
-        ready = json.loads(vehicle.expect(r"\{\"event\": \"ready\".*\}", 30.0).group(0))
+        ready = vehicle.ready(30.0)
         ports = {v["sysid"]: int(v["mavlink"].rsplit(":", 1)[1]) for v in ready["vehicles"]}
         plans = {}
         for uav in (1, 2):
-            plans[uav] = Proc(["plan", "--mission", str(mission), "--uav", str(uav), "--mavlink", f"udpout:127.0.0.1:{ports[uav]}",
-                               "--lockstep", *hub.client, "--log", str(tmp_path / f"p{uav}.jsonl"), "--step-timeout", "30"])
+            plans[uav] = Proc(fimnav("plan", "--mission", str(mission), "--uav", str(uav), "--mavlink", f"udpout:127.0.0.1:{ports[uav]}",
+                                     "--lockstep", *hub.client, "--log", str(tmp_path / f"p{uav}.jsonl"), "--step-timeout", "30"))
             procs.append(plans[uav])
         t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
         for k in range(first_taken):

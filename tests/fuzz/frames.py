@@ -18,16 +18,13 @@ mutations that would do so in the stream of the corpus sent before them are set 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-os.environ["MAVLINK20"] = "1"
-
-from vehicle_sim.link import mavlink_module  # noqa: E402
+from vehicle_sim.link import mavlink_module
 
 
 class _Sink:

@@ -19,19 +19,16 @@ appears, and ``pump`` never raises.
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 
 import numpy as np
 import pytest
 
-os.environ["MAVLINK20"] = "1"
+from comms.mavlink_client import VehicleLink
 
-from comms.mavlink_client import VehicleLink  # noqa: E402
-
-from fuzz import frames as F  # noqa: E402
-from fuzz.udp import udp_drops  # noqa: E402
+from tests.fuzz import frames as F
+from tests.fuzz.udp import udp_drops
 
 pytestmark = pytest.mark.integration
 

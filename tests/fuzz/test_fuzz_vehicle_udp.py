@@ -16,24 +16,21 @@ would have seen a leak.
 
 from __future__ import annotations
 
-import os
 import time
 from typing import Any
 
 import numpy as np
 import pytest
 
-os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
 
-from pymavlink import mavutil  # noqa: E402
+from vehicle_sim.clock import RealTimeClock
+from vehicle_sim.config import Geofence, VehicleConfig
+from vehicle_sim.host import VehicleHost, build_vehicle
+from vehicle_sim.vehicle import SimVehicle
 
-from vehicle_sim.clock import RealTimeClock  # noqa: E402
-from vehicle_sim.config import Geofence, VehicleConfig  # noqa: E402
-from vehicle_sim.host import VehicleHost, build_vehicle  # noqa: E402
-from vehicle_sim.vehicle import SimVehicle  # noqa: E402
-
-from fuzz import frames as F  # noqa: E402
-from fuzz.udp import recv_until, udp_drops  # noqa: E402
+from tests.fuzz import frames as F
+from tests.fuzz.udp import recv_until, udp_drops
 
 pytestmark = pytest.mark.integration
 

@@ -11,23 +11,20 @@ TEMPORARILY_REJECTED. NaN where the spec gives NaN a meaning (altitude of DO_REP
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 
-os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
 
-from pymavlink import mavutil  # noqa: E402
+from vehicle_sim.clock import RealTimeClock
+from vehicle_sim.config import Geofence, VehicleConfig
+from vehicle_sim.host import VehicleHost, build_vehicle
+from vehicle_sim.vehicle import SimVehicle
 
-from vehicle_sim.clock import RealTimeClock  # noqa: E402
-from vehicle_sim.config import Geofence, VehicleConfig  # noqa: E402
-from vehicle_sim.host import VehicleHost, build_vehicle  # noqa: E402
-from vehicle_sim.vehicle import SimVehicle  # noqa: E402
-
-from fuzz.udp import recv_until  # noqa: E402
+from tests.fuzz.udp import recv_until
 
 pytestmark = pytest.mark.integration
 

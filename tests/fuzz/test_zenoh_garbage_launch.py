@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import struct
 import threading
 from pathlib import Path
@@ -25,7 +24,9 @@ from comms.messages import Observation, Tick, encode
 from missions.loader import load_mission
 from missions.simulator import RunSpec, simulate
 
-from distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
+from tests.support.launch import PAPER, Launch, read_trajectories
+from tests.support.net import free_port
+from tests.support.zenoh import raw_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -68,16 +69,9 @@ def garbage(rng: np.random.Generator, count: int) -> list[tuple[str, bytes]]:
     return items
 
 
-def test_garbage_on_the_swarm_keys_changes_nothing(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
-    import zenoh
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    conf = zenoh.Config()
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    hub = zenoh.open(conf)
+def test_garbage_on_the_swarm_keys_changes_nothing(tmp_path: Path, launches: list[Launch]) -> None:
+    port = free_port()
+    hub = raw_session(listen=[f"tcp/127.0.0.1:{port}"])
     stop = threading.Event()
     sent = [0]
     items = garbage(np.random.default_rng(77), 10)

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from missions.liveview import STATE_COLOURS
-from tests.distributed.test_launch import PAPER, Launch, launches, processes_mentioning, wait_for  # noqa: F401 (fixture)
+from tests.support.launch import PAPER, Launch, processes_mentioning
+from tests.support.wait import wait_for
 
 #: The browser, named like the SITL binaries: the test takes about 40 s of the default run's
 #: 5 minutes on two cores, so it runs when asked (FIMNAV_CHROMIUM=/usr/bin/chromium).
@@ -46,7 +47,7 @@ def drone_pixels(png: bytes) -> int:
     return int((np.linalg.norm(img - np.array(STATE_COLOURS["alive"]), axis=-1) < 40.0).sum())
 
 
-def test_headless_chromium_shows_the_drones_during_a_launch(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_headless_chromium_shows_the_drones_during_a_launch(tmp_path: Path, launches: list[Launch]) -> None:
     from playwright.sync_api import sync_playwright
 
     out = tmp_path / "run"

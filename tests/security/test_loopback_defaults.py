@@ -18,8 +18,8 @@ from comms.session import SessionSettings, open_session
 from missions.loader import load_mission
 from missions.schema import ZenohSpec
 
-from security.proc import Fimnav
-from security.sockets import sockets_of
+from tests.security.sockets import sockets_of
+from tests.support.proc import Proc, fimnav
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = sorted((ROOT / "missions" / "paper").glob("*.yaml"))
@@ -59,14 +59,14 @@ def test_a_default_session_holds_only_loopback_sockets() -> None:
 @pytest.mark.integration
 def test_fimnav_vehicle_default_mavlink_binding_is_loopback() -> None:
     """No ``--mavlink``: tcpin on 127.0.0.1 (port 5760 + 10·(sysid − 1), as SITL)."""
-    proc = Fimnav(["vehicle", "--sysid", "201"])
+    proc = Proc(fimnav("vehicle", "--sysid", "201"), cwd=ROOT)
     try:
         ready = proc.ready()
         assert ready["vehicles"][0]["mavlink"] == "tcpin:127.0.0.1:7760"
         socks = [x for x in sockets_of(proc.p.pid) if x.listening]
         assert socks and all(x.loopback for x in socks), socks
     finally:
-        proc.stop()
+        proc.stop(signal.SIGINT, grace_s=20.0)
 
 
 @pytest.mark.integration

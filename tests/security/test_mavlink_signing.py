@@ -11,7 +11,7 @@ key handled as a secret (issue 7, security).
 
 from __future__ import annotations
 
-import os
+import signal
 import socket
 import time
 from collections.abc import Iterator
@@ -20,14 +20,13 @@ from typing import Any
 
 import pytest
 
-os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
 
-from pymavlink import mavutil  # noqa: E402
-
-from security.proc import Fimnav  # noqa: E402
+from tests.support.proc import Proc, fimnav
 
 pytestmark = pytest.mark.integration
 
+ROOT = Path(__file__).resolve().parents[2]
 R = mavutil.mavlink
 KEY = bytes.fromhex("5ec7e75ec7e70123456789abcdef0011223344556677889900aabbccddeeff42")
 WRONG = bytes(32)
@@ -65,19 +64,19 @@ def mode_of(c: Any) -> int:
 
 
 @pytest.fixture
-def signed_vehicle(tmp_path: Path) -> Iterator[tuple[Fimnav, int, Path]]:
+def signed_vehicle(tmp_path: Path) -> Iterator[tuple[Proc, int, Path]]:
     tlog = tmp_path / "vehicle.tlog"
-    proc = Fimnav(["vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key", str(key_file(tmp_path)),
-                   "--tlog", str(tlog), "--log-level", "DEBUG", "--speedup", "1"])
+    proc = Proc(fimnav("vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key", str(key_file(tmp_path)),
+                        "--tlog", str(tlog), "--log-level", "DEBUG", "--speedup", "1"), cwd=ROOT)
     try:
         ready = proc.ready()
         port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
         yield proc, port, tlog
     finally:
-        proc.stop()
+        proc.stop(signal.SIGINT, grace_s=20.0)
 
 
-def test_unsigned_and_wrongly_signed_commands_are_refused(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
+def test_unsigned_and_wrongly_signed_commands_are_refused(signed_vehicle: tuple[Proc, int, Path]) -> None:
     proc, port, tlog = signed_vehicle
     good = client(port, 250, KEY)
     unsigned = client(port, 251)
@@ -120,7 +119,7 @@ def _after_this_signing_tick() -> None:
         pass
 
 
-def test_replayed_signed_frame_on_the_same_stream_is_refused(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
+def test_replayed_signed_frame_on_the_same_stream_is_refused(signed_vehicle: tuple[Proc, int, Path]) -> None:
     proc, port, _ = signed_vehicle
     # signed before the client's own stream starts: the client's later frames are newer
     loiter = _signed_frame(KEY, 250, lambda e: e.command_long_encode(1, 1, R.MAV_CMD_DO_SET_MODE, 0, 1, 5, 0, 0, 0, 0, 0))
@@ -140,7 +139,7 @@ def test_replayed_signed_frame_on_the_same_stream_is_refused(signed_vehicle: tup
         good.close()
 
 
-def test_replayed_signed_frame_from_another_port_is_refused(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
+def test_replayed_signed_frame_from_another_port_is_refused(signed_vehicle: tuple[Proc, int, Path]) -> None:
     proc, port, _ = signed_vehicle
     loiter = _signed_frame(KEY, 250, lambda e: e.command_long_encode(1, 1, R.MAV_CMD_DO_SET_MODE, 0, 1, 5, 0, 0, 0, 0, 0))
     _after_this_signing_tick()
@@ -165,7 +164,7 @@ def _secret_forms(key: bytes) -> list[bytes]:
     return [key, key.hex().encode(), key.hex().upper().encode(), key[:16], key[16:]]
 
 
-def test_key_is_never_in_the_output_nor_in_the_tlog_of_normal_traffic(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
+def test_key_is_never_in_the_output_nor_in_the_tlog_of_normal_traffic(signed_vehicle: tuple[Proc, int, Path]) -> None:
     proc, port, tlog = signed_vehicle
     good = client(port, 250, KEY)
     try:
@@ -175,19 +174,19 @@ def test_key_is_never_in_the_output_nor_in_the_tlog_of_normal_traffic(signed_veh
         assert recv(good, lambda m: m.get_type() == "COMMAND_ACK", 5) is not None
     finally:
         good.close()
-    assert proc.stop() in (0, 130)  # SIGINT
+    assert proc.stop(signal.SIGINT, grace_s=20.0) in (0, 130)  # SIGINT
     data = tlog.read_bytes()
     assert len(data) > 500  # the tlog holds the traffic
     frames = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
     assert frames.recv_match(type="HEARTBEAT") is not None
-    logs = proc.out + proc.err
+    logs = proc.out_bytes + proc.err_bytes
     assert b"DEBUG" in logs or b"INFO" in logs or len(logs) > 0
     for secret in _secret_forms(KEY):
         assert secret not in data, "signing key found in the .tlog"
         assert secret not in logs, "signing key found in the vehicle's output"
 
 
-def test_setup_signing_frame_is_stripped_from_the_tlog(signed_vehicle: tuple[Fimnav, int, Path]) -> None:
+def test_setup_signing_frame_is_stripped_from_the_tlog(signed_vehicle: tuple[Proc, int, Path]) -> None:
     proc, port, tlog = signed_vehicle
     good = client(port, 250, KEY)
     try:
@@ -196,19 +195,19 @@ def test_setup_signing_frame_is_stripped_from_the_tlog(signed_vehicle: tuple[Fim
         assert mode_of(good) == 0
     finally:
         good.close()
-    assert proc.stop() in (0, 130)  # SIGINT
+    assert proc.stop(signal.SIGINT, grace_s=20.0) in (0, 130)  # SIGINT
     assert KEY not in tlog.read_bytes(), "signing key found in the .tlog"
 
 
 @pytest.mark.parametrize("mode", [0o640, 0o604])
 def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> None:
     path = key_file(tmp_path, mode=mode)
-    proc = Fimnav(["vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key", str(path), "--duration", "0.5"])
+    proc = Proc(fimnav("vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key", str(path), "--duration", "0.5"), cwd=ROOT)
     try:
         code = proc.wait(30)
     finally:
-        proc.kill()
-    err = proc.err.decode(errors="replace")
+        proc.stop(signal.SIGKILL)
+    err = proc.err
     assert code == 2, f"exit {code}: {err[-500:]}"
     assert str(path) in err and "Traceback" not in err and ("permission" in err.lower() or "readable" in err.lower())
     assert KEY.hex() not in err
@@ -216,8 +215,8 @@ def test_group_or_world_readable_key_is_refused(tmp_path: Path, mode: int) -> No
 
 def test_owner_only_key_in_hex_is_accepted(tmp_path: Path) -> None:
     """The reference for the test above: a 0600 key file (64 hex digits) starts the vehicle."""
-    proc = Fimnav(["vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key",
-                   str(key_file(tmp_path, mode=0o600, hex_text=True))])
+    proc = Proc(fimnav("vehicle", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--signing-key",
+                        str(key_file(tmp_path, mode=0o600, hex_text=True))), cwd=ROOT)
     try:
         ready = proc.ready()
         port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
@@ -227,5 +226,5 @@ def test_owner_only_key_in_hex_is_accepted(tmp_path: Path) -> None:
         finally:
             good.close()
     finally:
-        proc.stop()
-    assert KEY.hex().encode() not in proc.out + proc.err
+        proc.stop(signal.SIGINT, grace_s=20.0)
+    assert KEY.hex().encode() not in proc.out_bytes + proc.err_bytes

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import threading
 from pathlib import Path
 
@@ -26,8 +25,10 @@ from missions.loader import load_mission
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from missions.simulator import RunSpec, simulate
 
-from distributed.test_launch import PAPER, Launch, launches, read_trajectories  # noqa: F401 - fixture
-from security.certs import Authority
+from tests.security.certs import Authority
+from tests.support.launch import PAPER, Launch, read_trajectories
+from tests.support.net import free_port
+from tests.support.zenoh import raw_session
 
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -35,24 +36,18 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 MISSION_ID = "secured"
 
 
-def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Launch]) -> None:
     ca = Authority(tmp_path / "pki", "swarm-ca")
     node = ca.issue("swarm-node")
     password = tmp_path / "zenoh.password"
     password.write_text("launch-secret-771\n")
     password.chmod(0o600)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     spec = ZenohSpec(tls=ZenohTls(root_ca_certificate=ca.certificate, certificate=node.certificate, private_key=node.private_key),
                      auth=ZenohAuth(user="swarm", password_file=password))
     hub = open_session(SessionSettings.from_mission(spec, listen=[f"tcp/127.0.0.1:{port}"]))
-    conf = zenoh.Config()
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{port}", f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("transport/link/tls", json.dumps({"root_ca_certificate": str(ca.certificate)}))  # no client cert
-    intruder = zenoh.open(conf)
+    intruder = raw_session(connect=[f"tls/127.0.0.1:{port}", f"tcp/127.0.0.1:{port}"],
+                           tls={"root_ca_certificate": str(ca.certificate)})  # no client cert
     legit_heard: list[str] = []
     intruder_heard: list[bytes] = []
     subs = [hub.declare_subscriber(f"fimnav/{MISSION_ID}/record/*", lambda s: legit_heard.append(str(s.key_expr))),

@@ -14,20 +14,20 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-import zenoh
 
 from comms.messages import Observation, encode
 from comms.session import SessionSettings, open_session, zenoh_config
 from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
 from comms.errors import UsageError
 
-from security.certs import Authority, Node
+from tests.security.certs import Authority, Node
+from tests.support.net import free_port
+from tests.support.zenoh import raw_session
 
 
 pytestmark = pytest.mark.integration
@@ -36,27 +36,8 @@ MISSION = "sec"
 KEY = f"fimnav/{MISSION}/record"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def record(sender: int, x: float) -> bytes:
     return encode(Observation(sender, 1, 0.1, (x, 0.0, 10.0), True, False, True, 5.0, math.nan, math.nan), MISSION, 1)
-
-
-def raw_session(connect: str, tls: dict[str, Any] | None = None, auth: dict[str, Any] | None = None) -> Any:
-    """A zenoh peer configured by hand (the attacker: it does not go through fimnav)."""
-    c = zenoh.Config()
-    c.insert_json5("listen/endpoints", "[]")
-    c.insert_json5("connect/endpoints", json.dumps([connect]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    if tls is not None:
-        c.insert_json5("transport/link/tls", json.dumps(tls))
-    if auth is not None:
-        c.insert_json5("transport/auth/usrpwd", json.dumps(auth))
-    return zenoh.open(c)
 
 
 def secret(path: Path, text: str) -> Path:
@@ -118,11 +99,11 @@ def test_mutual_tls_keeps_out_a_peer_without_a_valid_certificate(pki: dict[str, 
     ca = str(pki["ca"].certificate)
     rogue: Node = pki["rogue"]
     if attack == "plain_tcp":
-        attacker = raw_session(f"tcp/127.0.0.1:{port}")
+        attacker = raw_session(connect=[f"tcp/127.0.0.1:{port}"])
     elif attack == "tls_without_client_certificate":
-        attacker = raw_session(f"tls/127.0.0.1:{port}", tls={"root_ca_certificate": ca})
+        attacker = raw_session(connect=[f"tls/127.0.0.1:{port}"], tls={"root_ca_certificate": ca})
     else:
-        attacker = raw_session(f"tls/127.0.0.1:{port}", tls={
+        attacker = raw_session(connect=[f"tls/127.0.0.1:{port}"], tls={
             "root_ca_certificate": ca, "enable_mtls": True,
             "connect_certificate": str(rogue.certificate), "connect_private_key": str(rogue.private_key)})
     try:
@@ -143,7 +124,7 @@ def test_user_password_keeps_out_a_peer_without_the_credentials(password_file: P
     spec = ZenohSpec(auth=ZenohAuth(user="swarm", password_file=password_file))
     creds = {"no_credentials": None, "wrong_password": {"user": "swarm", "password": "correct horse"},
              "wrong_user": {"user": "intruder", "password": "correct horse battery staple"}}[attack]
-    attacker = raw_session(f"tcp/127.0.0.1:{port}", auth=creds)
+    attacker = raw_session(connect=[f"tcp/127.0.0.1:{port}"], auth=creds)
     try:
         check_isolated(spec, attacker, port)
     finally:
@@ -155,7 +136,7 @@ def test_tls_and_password_together(pki: dict[str, Any], password_file: Path) -> 
     spec = ZenohSpec(tls=tls_spec(pki, pki["b"]).tls, auth=ZenohAuth(user="swarm", password_file=password_file))
     # the attacker even holds a valid certificate (a stolen node key), but not the password
     b: Node = pki["b"]
-    attacker = raw_session(f"tls/127.0.0.1:{port}", tls={
+    attacker = raw_session(connect=[f"tls/127.0.0.1:{port}"], tls={
         "root_ca_certificate": str(pki["ca"].certificate), "enable_mtls": True,
         "connect_certificate": str(b.certificate), "connect_private_key": str(b.private_key)})
     try:

@@ -13,7 +13,7 @@ the disarm on landing. Every time in the transcript is **sim time** (the vehicle
 vehicle must answer as ArduPilot does (``tests/vehicle_sim/test_vehicle_vs_ardupilot.py`` and
 ``tests/sitl/test_sitl_transcript.py`` use it). Run as a script to record a transcript::
 
-    python tests/sitl/gcs_script.py --connect tcp:127.0.0.1:5760 --speedup 10 --out t.json
+    python -m tests.sitl.gcs_script --connect tcp:127.0.0.1:5760 --speedup 10 --out t.json
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import statistics
 import sys
 import time
@@ -30,9 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-os.environ.setdefault("MAVLINK20", "1")
-
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
 mavlink = mavutil.mavlink
 

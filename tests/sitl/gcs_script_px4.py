@@ -14,7 +14,7 @@ landing. Every time in it is **sim time** (the vehicle's ``time_boot_ms``).
 
 :func:`compare` lists the differences on the points where fimnav's vehicle must answer as PX4
 does (``tests/vehicle_sim/test_vehicle_vs_px4.py``). Record a transcript with
-``tests/sitl/record_transcript_px4.py``.
+``python -m tests.sitl.record_transcript_px4``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from gcs_script import (  # noqa: E402  (tests/sitl on sys.path)
+from tests.sitl.gcs_script import (
     ARRIVED_M, ARRIVED_SPEED_MPS, GCS_COMPID, GCS_SYSID, MASK_POSITION, SENSOR_AHRS, SENSOR_GPS, SENSOR_PREARM,
     UNSUPPORTED_CMD, Observer, SequenceError, _hb_summary, _local, _offset_latlon, _speed, mavlink, mavutil)
 

@@ -39,7 +39,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from tests.sitl.sitl import console_tail, stop_group
+from tests.sitl.sitl import console_tail
+from tests.support.proc import stop_group
 
 ENV_BINARY = "FIMNAV_SITL_PX4"
 ENV_ETC = "FIMNAV_SITL_PX4_ETC"
@@ -158,7 +159,7 @@ class Px4Instance:
 
     def stop(self, grace_s: float = 5.0) -> None:
         """SIGTERM the process group ("PX4 Exiting..."), then SIGKILL it if still there; wait."""
-        stop_group(self.proc, grace_s)
+        stop_group(self.proc, grace_s=grace_s)
 
 
 def wait_for_startup(inst: Px4Instance, deadline_s: float) -> None:

@@ -2,8 +2,8 @@
 ``fimnav vehicle``, and print its differences from the recorded SITL transcript.
 
     FIMNAV_SITL_ARDUCOPTER=.../arducopter FIMNAV_SITL_ARDUCOPTER_DEFAULTS=.../copter.parm \\
-        python tests/sitl/record_transcript.py sitl --speedup 10 --out tests/data/ardupilot_sitl_4.5.5_transcript.json
-    python tests/sitl/record_transcript.py vehicle --out /tmp/vehicle.json
+        python -m tests.sitl.record_transcript sitl --speedup 10 --out tests/data/ardupilot_sitl_4.5.5_transcript.json
+    python -m tests.sitl.record_transcript vehicle --out /tmp/vehicle.json
 
 Both run on loopback, on free ports, in a temporary directory, and stop what they started.
 """
@@ -17,12 +17,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent.parent
-sys.path.insert(0, str(HERE))
+from tests.sitl import gcs_script
+from tests.sitl.sitl import sitl_config, start_sitl
+from tests.support.proc import Proc
 
-import gcs_script  # noqa: E402
-from sitl import sitl_config, start_sitl  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
 
 #: The recorded SITL transcript (test data: a measurement, not ArduPilot's code).
 REFERENCE = ROOT / "tests" / "data" / "ardupilot_sitl_4.5.5_transcript.json"
@@ -77,16 +76,13 @@ def main(argv: list[str] | None = None) -> int:
     if a.target == "sitl":
         tr = record_sitl(a.speedup, log)
     else:
-        sys.path.insert(0, str(ROOT / "tests" / "vehicle_sim"))
-        from procs import Proc  # noqa: PLC0415
-
         p = Proc(vehicle_argv(a.speedup), cwd=str(ROOT))
         try:
-            m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout=30)
+            m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
             tr = gcs_script.run_sequence(f"tcp:127.0.0.1:{m.group(1)}", speedup=a.speedup, log=log,
                                          vehicle={"kind": "fimnav_vehicle", "flavour": "ardupilot"})
         finally:
-            p.kill()
+            p.stop()
     text = json.dumps(tr, indent=1, sort_keys=True) + "\n"
     if a.out == "-":
         sys.stdout.write(text)

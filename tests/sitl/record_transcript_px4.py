@@ -3,8 +3,8 @@ or of ``fimnav vehicle --flavour px4``, and print the vehicle's differences from
 PX4 transcript.
 
     FIMNAV_SITL_PX4=.../bin/px4 FIMNAV_SITL_PX4_ETC=.../etc \\
-        python tests/sitl/record_transcript_px4.py px4 --speedup 5 --out tests/data/px4_sitl_1.15_transcript.json
-    python tests/sitl/record_transcript_px4.py vehicle --out /tmp/vehicle.json
+        python -m tests.sitl.record_transcript_px4 px4 --speedup 5 --out tests/data/px4_sitl_1.15_transcript.json
+    python -m tests.sitl.record_transcript_px4 vehicle --out /tmp/vehicle.json
 
 Both run on loopback, in a temporary directory, and stop what they started.
 """
@@ -18,12 +18,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent.parent
-sys.path.insert(0, str(HERE))
+from tests.sitl import gcs_script_px4
+from tests.sitl.px4 import px4_config, start_px4
+from tests.support.proc import Proc
 
-import gcs_script_px4  # noqa: E402
-from px4 import px4_config, start_px4  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
 
 #: The recorded PX4 transcript (test data: a measurement, not PX4's code).
 REFERENCE = ROOT / "tests" / "data" / "px4_sitl_1.15_transcript.json"
@@ -56,16 +55,13 @@ def vehicle_argv(speedup: float) -> list[str]:
 
 def record_vehicle(speedup: float, log: Any = None) -> dict[str, Any]:
     """Start ``fimnav vehicle --flavour px4``, fly the sequence, stop it; the transcript."""
-    sys.path.insert(0, str(ROOT / "tests" / "vehicle_sim"))
-    from procs import Proc  # noqa: PLC0415
-
     p = Proc(vehicle_argv(speedup), cwd=str(ROOT))
     try:
-        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout=30)
+        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
         return gcs_script_px4.run_sequence(f"udpout:127.0.0.1:{m.group(1)}", speedup=speedup, log=log,
                                            vehicle={"kind": "fimnav_vehicle", "flavour": "px4"})
     finally:
-        p.kill()
+        p.stop()
 
 
 def main(argv: list[str] | None = None) -> int:

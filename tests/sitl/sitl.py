@@ -18,13 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
 import socket
 import subprocess
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+
+from tests.support.net import free_port
+from tests.support.proc import stop_group
 
 ENV_BINARY = "FIMNAV_SITL_ARDUCOPTER"
 ENV_DEFAULTS = "FIMNAV_SITL_ARDUCOPTER_DEFAULTS"
@@ -53,36 +55,12 @@ def sitl_config() -> tuple[SitlConfig | None, str]:
     return SitlConfig(binary, defaults), ""
 
 
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A port free on every interface (SITL binds 0.0.0.0) for ``kind`` (TCP or UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("0.0.0.0", 0))
-        return int(s.getsockname()[1])
-
-
 def console_tail(path: Path, n: int = 3000) -> str:
     """The last ``n`` characters of a simulator's console log ("" when there is none)."""
     try:
         return path.read_text(errors="replace")[-n:]
     except OSError:
         return ""
-
-
-def stop_group(proc: subprocess.Popen[bytes], grace_s: float = 5.0) -> None:
-    """SIGTERM ``proc``'s process group, then SIGKILL it if still there after ``grace_s``; wait
-    for the process."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            break
-        try:
-            proc.wait(grace_s)
-            break
-        except subprocess.TimeoutExpired:
-            continue
-    if proc.poll() is None:
-        proc.wait(grace_s)
 
 
 @dataclass
@@ -104,7 +82,7 @@ class SitlInstance:
 
     def stop(self, grace_s: float = 5.0) -> None:
         """SIGTERM the process group, then SIGKILL it if still there; wait for the process."""
-        stop_group(self.proc, grace_s)
+        stop_group(self.proc, grace_s=grace_s)
 
 
 def wait_for_bind(inst: SitlInstance, deadline_s: float) -> None:
@@ -137,7 +115,7 @@ def start_sitl(cfg: SitlConfig, workdir: Path, *, speedup: float = 10.0, home: s
     inst: SitlInstance | None = None
     try:
         for attempt in range(attempts):
-            port, rc_port = free_port(), free_port(socket.SOCK_DGRAM)
+            port, rc_port = free_port(host="0.0.0.0"), free_port(socket.SOCK_DGRAM, host="0.0.0.0")  # SITL binds every interface
             argv = [str(cfg.binary), "--model", model, "--speedup", f"{speedup:g}", "--defaults", str(cfg.defaults),
                     "--home", home, "--sysid", str(sysid), "-w",
                     "--serial0", f"tcp:{port}:wait", "--serial1", "none:", "--serial2", "none:", "--rc-in-port", str(rc_port)]

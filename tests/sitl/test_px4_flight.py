@@ -27,13 +27,11 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc, read_tlog, start_vehicle
-
-from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
-
+from tests.external.helpers import read_tlog, start_vehicle
 from tests.sitl.px4 import Px4Instance, px4_config, start_px4
 from tests.sitl.test_sitl_flight import START, STEPS, V_MAX, tracking, write_mission
+from tests.support.launch import Launch, processes_mentioning
+from tests.support.proc import Proc, fimnav
 
 _CFG, _REASON = px4_config()
 
@@ -55,8 +53,8 @@ def fly(procs: list[Proc], mission: Path, conn: str, sysid: int, speedup: float,
     summary, the wall seconds from ``t0`` (default: the planner's start) to its ``ready; EKF
     origin`` line, and the process."""
     start = time.monotonic()
-    plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--sysid", str(sysid), "--mavlink", conn,
-                 "--speedup", f"{speedup:g}", "--log", str(log), "--preflight-timeout", "180"])
+    plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--sysid", str(sysid), "--mavlink", conn,
+                       "--speedup", f"{speedup:g}", "--log", str(log), "--preflight-timeout", "180"))
     procs.append(plan)
     plan.expect(r"ready; EKF origin", timeout_s, stream="err")
     ready_s = time.monotonic() - (start if t0 is None else t0)
@@ -70,7 +68,7 @@ def px4_texts(px4: Px4Instance) -> str:
 
 
 @pytest.mark.parametrize("speed", [pytest.param(5.0, id="x5"), pytest.param(1.0, id="x1", marks=pytest.mark.slow)])
-def test_one_drone_flies_a_short_mission_against_px4_sih(tmp_path: Path, procs: list[Proc], speed: float) -> None:  # noqa: F811
+def test_one_drone_flies_a_short_mission_against_px4_sih(tmp_path: Path, procs: list[Proc], speed: float) -> None:
     """30 steps of the heartbeat geometry (v_max 1 m/step, Δt 1 s), land: every step flown,
     landing confirmed (disarmed, ON_GROUND), OFFBOARD armed and PX4's own console saying it
     took off, landed and disarmed; the planner's step within v_max·Δt; then the same mission
@@ -115,12 +113,12 @@ def test_one_drone_flies_a_short_mission_against_px4_sih(tmp_path: Path, procs: 
     assert max(verr) <= V_MAX * 1.0, verr
 
 
-def test_px4_at_another_speed_factor_is_refused_before_take_off(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_px4_at_another_speed_factor_is_refused_before_take_off(tmp_path: Path, procs: list[Proc]) -> None:
     assert _CFG is not None
     mission = write_mission(tmp_path / "m.yaml")
     with start_px4(_CFG, tmp_path / "px4", home=home_below(mission, START), speed=1.0) as px4:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
-                     "--speedup", "5"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
+                           "--speedup", "5"))
         procs.append(plan)
         assert plan.wait(60.0) == 1, plan.tail()
         console = px4_texts(px4)
@@ -130,7 +128,7 @@ def test_px4_at_another_speed_factor_is_refused_before_take_off(tmp_path: Path, 
     assert "Armed by external command" not in console
 
 
-def test_mixed_fleet_of_two_px4_sih_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mixed_fleet_of_two_px4_sih_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:
     """The paper's heterogeneous mission, four drones, 30 steps, in real time at x4: drones 1
     and 2 are PX4 SIH quadrotors (MAV_SYS_ID 1 and 2, homes 6 m apart below their starts,
     each with ``fimnav payload`` on PX4's GCS link), 3 and 4 fimnav's simulated vehicles.

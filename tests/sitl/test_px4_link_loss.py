@@ -17,12 +17,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc, SwarmPeer
+from tests.external.helpers import SwarmPeer
 from tests.sitl.px4 import px4_config, start_px4
 from tests.sitl.test_px4_flight import home_below
 from tests.sitl.test_sitl_flight import START, write_mission
-from tests.distributed.test_launch import wait_for
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 _CFG, _REASON = px4_config()
 
@@ -31,7 +31,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG
 SPEEDUP = 5.0
 
 
-def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:
     assert _CFG is not None
     steps = 40
     mission = write_mission(tmp_path / "m.yaml", steps=steps)
@@ -39,8 +39,8 @@ def test_px4_silent_for_3_s_is_reported_records_go_stale_and_the_planner_resumes
     peer = SwarmPeer("sitl_one", 1, {1: 75.0})
     try:
         with start_px4(_CFG, tmp_path / "px4", home=home_below(mission, START), speed=SPEEDUP) as px4:
-            plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
-                         "--speedup", f"{SPEEDUP:g}", "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint])
+            plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--sysid", str(px4.sysid), "--mavlink", px4.offboard,
+                               "--speedup", f"{SPEEDUP:g}", "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint))
             procs.append(plan)
             wait_for(lambda: log.exists() and len(log.read_text().splitlines()) >= 8, 150.0, "eight planned steps")
             os.killpg(px4.proc.pid, signal.SIGSTOP)

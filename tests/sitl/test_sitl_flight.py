@@ -28,12 +28,11 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc, start_vehicle
-
-from tests.distributed.test_launch import Launch, launches, processes_mentioning  # noqa: F401 (fixture)
-
-from tests.sitl.sitl import SitlInstance, free_port, sitl_config, start_sitl, wait_for_bind
+from tests.external.helpers import start_vehicle
+from tests.sitl.sitl import SitlInstance, sitl_config, start_sitl, wait_for_bind
+from tests.support.launch import Launch, processes_mentioning
+from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
 
 _CFG, _REASON = sitl_config()
 
@@ -80,8 +79,8 @@ def fly(procs: list[Proc], mission: Path, conn: str, speedup: float, log: Path, 
     """Run ``fimnav plan`` to the end; return its summary, the wall seconds from its start to
     its ``ready; EKF origin`` line, and the process."""
     t0 = time.monotonic()
-    plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", conn, "--speedup", f"{speedup:g}",
-                 "--log", str(log), "--preflight-timeout", "180"])
+    plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", conn, "--speedup", f"{speedup:g}",
+                       "--log", str(log), "--preflight-timeout", "180"))
     procs.append(plan)
     plan.expect(r"ready; EKF origin", timeout_s, stream="err")
     ready_s = time.monotonic() - t0
@@ -117,7 +116,7 @@ def test_sitl_at_another_speed_up_is_refused_before_take_off(tmp_path: Path, pro
     assert _CFG is not None
     mission = write_mission(tmp_path / "m.yaml")
     with start_sitl(_CFG, tmp_path / "sitl", speedup=1.0, home=home_below(mission, START)) as sitl:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", "5"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", "5"))
         procs.append(plan)
         assert plan.wait(60.0) == 1, plan.tail()
     err = plan.err
@@ -131,7 +130,7 @@ def sitl_with_serial1(workdir: Path, speedup: float, home: str, sysid: int) -> I
     free TCP port too (the simulated payload's link); yields (instance, SERIAL1 address)."""
     assert _CFG is not None
     workdir.mkdir(parents=True, exist_ok=True)
-    port, port1, rc_port = free_port(), free_port(), free_port(socket.SOCK_DGRAM)
+    port, port1, rc_port = free_port(host="0.0.0.0"), free_port(host="0.0.0.0"), free_port(socket.SOCK_DGRAM, host="0.0.0.0")  # SITL binds every interface
     argv = [str(_CFG.binary), "--model", "+", "--speedup", f"{speedup:g}", "--defaults", str(_CFG.defaults), "--home", home,
             "--sysid", str(sysid), "-w", "--serial0", f"tcp:{port}:wait", "--serial1", f"tcp:{port1}", "--serial2", "none:",
             "--rc-in-port", str(rc_port)]
@@ -146,7 +145,7 @@ def sitl_with_serial1(workdir: Path, speedup: float, home: str, sysid: int) -> I
         inst.stop()
 
 
-def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:  # noqa: F811
+def test_mixed_fleet_of_two_sitl_copters_and_two_simulated_vehicles(tmp_path: Path, launches: list[Launch]) -> None:
     """The paper's heterogeneous mission, four drones, 30 steps, in real time at x{SPEEDUP}:
     drones 1 and 2 are SITL copters (own system ids, homes 6 m apart below their starts),
     3 and 4 fimnav's simulated vehicles. Every drone arms, takes off in GUIDED, reaches its

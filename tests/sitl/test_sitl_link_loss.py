@@ -26,30 +26,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.external.helpers import Proc
-
-from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, write_mission  # noqa: F401 (fixture)
-
-from tests.sitl.sitl import SitlInstance, free_port, wait_for_bind
+from tests.sitl.sitl import SitlInstance, wait_for_bind
+from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, write_mission
+from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
 SPEEDUP = 5.0
 
 
+def last_step(log: Path) -> int | None:
+    """The last step in the planner's step log (JSON lines); None before the first."""
+    try:
+        steps = [json.loads(line)["step"] for line in log.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError, KeyError):
+        steps = []  # not written yet, or a line being written
+    return max(steps, default=None)
+
+
 def wait_for_step(log: Path, step: int, timeout_s: float) -> None:
-    """Wait until the planner's step log (JSON lines) holds ``step``; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            steps = [json.loads(line)["step"] for line in log.read_text().splitlines() if line.strip()]
-        except (OSError, ValueError, KeyError):
-            steps = []  # not written yet, or a line being written
-        if steps and max(steps) >= step:
-            return
-        if time.monotonic() > deadline:
-            raise AssertionError(f"the planner did not log step {step} within {timeout_s} s (last: {max(steps, default=None)})")
-        time.sleep(0.05)  # polling the log file, with the deadline above
+    """Wait until the planner's step log holds ``step``; fail after ``timeout_s``."""
+    wait_for(lambda: (s := last_step(log)) is not None and s >= step, timeout_s, f"the planner to log step {step}",
+             detail=lambda: f"last: {last_step(log)}", interval_s=0.05)
 
 
 def start_sitl_on(workdir: Path, port: int, home: str, wipe: bool = True) -> SitlInstance:
@@ -58,7 +58,7 @@ def start_sitl_on(workdir: Path, port: int, home: str, wipe: bool = True) -> Sit
     workdir.mkdir(parents=True, exist_ok=True)
     argv = [str(_CFG.binary), "--model", "+", "--speedup", f"{SPEEDUP:g}", "--defaults", str(_CFG.defaults), "--home", home,
             "--sysid", "1", *(["-w"] if wipe else []), "--serial0", f"tcp:{port}:wait", "--serial1", "none:", "--serial2", "none:",
-            "--rc-in-port", str(free_port(socket.SOCK_DGRAM))]
+            "--rc-in-port", str(free_port(socket.SOCK_DGRAM, host="0.0.0.0"))]
     log_path = workdir / f"sitl-console-{time.monotonic_ns()}.log"
     with open(log_path, "wb") as out:
         proc = subprocess.Popen(argv, cwd=workdir, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -117,14 +117,14 @@ class TcpRelay:
         self.listen.close()
 
 
-def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc]) -> None:
     steps = 60
     mission = write_mission(tmp_path / "m.yaml", steps)
-    sitl = start_sitl_on(tmp_path / "sitl", free_port(), home_below(mission, START))
+    sitl = start_sitl_on(tmp_path / "sitl", free_port(host="0.0.0.0"), home_below(mission, START))
     relay = TcpRelay(sitl.port)
     try:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"tcp:127.0.0.1:{relay.port}",
-                     "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"tcp:127.0.0.1:{relay.port}",
+                           "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"))
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
         wait_for_step(tmp_path / "p.jsonl", 10, 30.0)
@@ -158,14 +158,14 @@ def test_cut_link_is_reported_records_go_stale_and_the_planner_resumes(tmp_path:
     assert drift < 1.0 + 3.0 + 0.5, drift
 
 
-def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_sitl_killed_and_restarted_is_found_disarmed_and_not_taken_off_again(tmp_path: Path, procs: list[Proc]) -> None:
     mission = write_mission(tmp_path / "m.yaml", 100)
-    port = free_port()
+    port = free_port(host="0.0.0.0")
     home = home_below(mission, START)
     sitl = start_sitl_on(tmp_path / "sitl", port, home)
     try:
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address,
-                     "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address,
+                           "--speedup", f"{SPEEDUP:g}", "--log", str(tmp_path / "p.jsonl"), "--preflight-timeout", "180"))
         procs.append(plan)
         plan.expect(r"ready at the start position; step 0", 90.0, stream="err")
         wait_for_step(tmp_path / "p.jsonl", 5, 30.0)  # mid-flight

@@ -27,10 +27,9 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from tests.external.conftest import procs  # noqa: F401 (fixture: every process stopped at the end)
-from tests.external.helpers import Proc
 from tests.sitl.sitl import sitl_config
 from tests.sitl.test_sitl_flight import START, home_below, sitl_with_serial1, write_mission
+from tests.support.proc import Proc, fimnav
 
 _CFG, _REASON = sitl_config()
 
@@ -73,7 +72,7 @@ def ack_within(conn: mavutil.mavfile, timeout_s: float) -> object | None:
     return None
 
 
-def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs: list[Proc]) -> None:
     assert _CFG is not None
     key = key_file(tmp_path / "key", b"fimnav sitl test")
     wrong = key_file(tmp_path / "wrong", b"another key")
@@ -99,8 +98,8 @@ def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs
             # The planner with the key flies the mission (first: SITL's signing clock follows its
             # sped-up GPS time, and refuses a new stream whose time is more than 60 s behind).
             t0 = time.monotonic()
-            plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}",
-                         "--signing-key", str(key), "--preflight-timeout", "120"])
+            plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}",
+                               "--signing-key", str(key), "--preflight-timeout", "120"))
             procs.append(plan)
             assert plan.wait(200.0) == 0, plan.tail()
             flight_s = time.monotonic() - t0
@@ -111,7 +110,7 @@ def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs
 
             # Without a key: refused at once, naming the option.
             t0 = time.monotonic()
-            nokey = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}"])
+            nokey = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}"))
             procs.append(nokey)
             assert nokey.wait(30.0) == 1, nokey.tail()
             nokey_s = time.monotonic() - t0
@@ -119,8 +118,8 @@ def test_signed_sitl_accepts_the_planner_with_its_key_only(tmp_path: Path, procs
 
             # Another key: refused within seconds, not at the 120 s heartbeat timeout.
             t0 = time.monotonic()
-            other = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}",
-                          "--signing-key", str(wrong), "--preflight-timeout", "120"])
+            other = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", serial1, "--speedup", f"{SPEEDUP:g}",
+                                "--signing-key", str(wrong), "--preflight-timeout", "120"))
             procs.append(other)
             assert other.wait(30.0) == 1, other.tail()
             wrong_s = time.monotonic() - t0

@@ -21,9 +21,10 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from tests.external.helpers import Proc, SwarmPeer, handback
-from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, procs, sitl_with_serial1, write_mission  # noqa: F401 (fixture)
-from tests.distributed.test_launch import wait_for
+from tests.external.helpers import SwarmPeer, handback
+from tests.sitl.test_sitl_flight import _CFG, _REASON, START, home_below, sitl_with_serial1, write_mission
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG is None, reason=_REASON)]
 
@@ -32,14 +33,14 @@ COPTER_BRAKE, COPTER_GUIDED = 17, 4
 MAV_CMD_DO_SET_MODE = 176
 
 
-def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_path: Path, procs: list[Proc]) -> None:  # noqa: F811
+def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_path: Path, procs: list[Proc]) -> None:
     steps = 40
     mission = write_mission(tmp_path / "m.yaml", steps=steps)
     log = tmp_path / "p.jsonl"
     peer = SwarmPeer("sitl_one", 1, {1: 75.0})
     with sitl_with_serial1(tmp_path / "sitl", SPEEDUP, home_below(mission, START), 1) as (sitl, serial1):
-        plan = Proc(["plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", f"{SPEEDUP:g}",
-                     "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint])
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", f"{SPEEDUP:g}",
+                           "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint))
         procs.append(plan)
         gcs = None
         try:

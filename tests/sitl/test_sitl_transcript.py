@@ -5,23 +5,18 @@ tests/vehicle_sim/test_vehicle_vs_ardupilot.py holds fimnav's vehicle to).
 Needs FIMNAV_SITL_ARDUCOPTER and FIMNAV_SITL_ARDUCOPTER_DEFAULTS; skipped otherwise. To refresh
 the recorded transcript (e.g. for another ArduPilot release)::
 
-    python tests/sitl/record_transcript.py sitl --speedup 10 --out tests/data/ardupilot_sitl_4.5.5_transcript.json
+    python -m tests.sitl.record_transcript sitl --speedup 10 --out tests/data/ardupilot_sitl_4.5.5_transcript.json
 """
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import gcs_script  # noqa: E402
-from record_transcript import REFERENCE, record_sitl  # noqa: E402
-from sitl import sitl_config  # noqa: E402
+from tests.sitl import gcs_script
+from tests.sitl.record_transcript import REFERENCE, record_sitl
+from tests.sitl.sitl import sitl_config
 
 _CFG, _REASON = sitl_config()
 

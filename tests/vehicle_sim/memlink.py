@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
-os.environ["MAVLINK20"] = "1"
-
-from vehicle_sim.config import VehicleConfig  # noqa: E402
-from vehicle_sim.link import MavlinkLink, Transport, mavlink_module  # noqa: E402
-from vehicle_sim.vehicle import SimVehicle  # noqa: E402
+from vehicle_sim.config import VehicleConfig
+from vehicle_sim.link import MavlinkLink, Transport, mavlink_module
+from vehicle_sim.vehicle import SimVehicle
 
 
 class MemoryTransport(Transport):

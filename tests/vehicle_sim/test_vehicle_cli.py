@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import connect_client, hello, mavlink as R, wait_msg
-from procs import Proc, fimnav
+from tests.support.net import free_port
+from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, mavlink as R, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -21,7 +22,7 @@ MISSION = ROOT / "missions" / "paper" / "ranging_nlos.yaml"
 
 
 def _ready(proc: Proc) -> dict:
-    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
+    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout_s=30).group(0)
     return json.loads(line)
 
 
@@ -44,7 +45,7 @@ def test_several_vehicles_in_one_process():
     finally:
         for c in clients:
             c.close()
-        proc.kill()
+        proc.stop()
 
 
 def test_mission_start_position_and_airborne():
@@ -69,13 +70,7 @@ def test_mission_start_position_and_airborne():
     finally:
         if c is not None:
             c.close()
-        proc.kill()
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+        proc.stop()
 
 
 def test_lockstep_process_advances_only_on_zenoh_ticks():
@@ -83,7 +78,7 @@ def test_lockstep_process_advances_only_on_zenoh_ticks():
 
     from vehicle_sim.clock import Tick, encode_tick, tick_key, zenoh_config
 
-    zport = _free_port()
+    zport = free_port()
     proc = Proc(fimnav("vehicle", "--lockstep", "--mission-id", "lk1", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
                        "--mavlink", "udpin:127.0.0.1:0", "--airborne", "--start", "0,0,5", "--profile", "ideal"))
     c = None
@@ -115,7 +110,7 @@ def test_lockstep_process_advances_only_on_zenoh_ticks():
             session.close()
         if c is not None:
             c.close()
-        proc.kill()
+        proc.stop()
 
 
 @pytest.mark.parametrize(
@@ -143,7 +138,7 @@ def test_bad_input_exits_2_without_traceback(args, fragment):
         assert "Traceback" not in proc.err
         assert fragment in proc.err
     finally:
-        proc.kill()
+        proc.stop()
 
 
 def test_port_in_use_is_a_clear_error():
@@ -154,7 +149,7 @@ def test_port_in_use_is_a_clear_error():
         try:
             rc = proc.wait(30)
         finally:
-            proc.kill()
+            proc.stop()
     assert rc == 2 and "Traceback" not in proc.err and "in use" in proc.err
 
 
@@ -177,7 +172,7 @@ def test_sigterm_stops_cleanly_and_flushes_the_tlogs(tmp_path):
     finally:
         for c in clients:
             c.close()
-        proc.kill()
+        proc.stop()
     for sysid in (1, 2):
         data = (tmp_path / f"v{sysid}.tlog").read_bytes()
         # uint64 BE time stamp then a MAVLink 2 frame: the first frame is ours or the client's

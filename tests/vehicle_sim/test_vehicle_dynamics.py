@@ -13,7 +13,7 @@ from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, PointMass, limit_velocity, max_speed_along
 from vehicle_sim.geo import LocalFrame
 
-from memlink import decode_all, gcs_encoder, memory_vehicle
+from tests.vehicle_sim.memlink import decode_all, gcs_encoder, memory_vehicle
 
 H = 0.02
 

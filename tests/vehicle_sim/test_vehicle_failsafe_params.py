@@ -20,8 +20,8 @@ import pytest
 
 from vehicle_sim.config import VehicleConfig
 
-from conftest import connect_client, drain, hello, mavlink, wait_msg
-from procs import Proc, fimnav
+from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, drain, hello, mavlink, wait_msg
 
 SPEEDUP = 10.0
 ARDUPILOT_GUIDED, ARDUPILOT_RTL, ARDUPILOT_LAND = 4, 6, 9
@@ -176,13 +176,11 @@ def test_px4_offboard_loss_timeout_and_action(make_rig, action: int, mode: int, 
 def test_boot_parameters_from_the_command_line() -> None:
     """``fimnav vehicle --param NAME=VALUE`` (as a SITL parameter file): the values are read
     back over PARAM_REQUEST_READ, integer parameters in the flavour's encoding (PX4 bytewise)."""
-    import json
-
     p = Proc(fimnav("vehicle", "--flavour", "px4", "--mavlink", "udpin:127.0.0.1:0", "--speedup", "5",
                     "--param", "COM_OF_LOSS_T=2.5", "--param", "com_obl_rc_act=4"))
     conn = None
     try:
-        ready = json.loads(p.expect(r"\{\"event\": \"ready\".*\}").group(0))
+        ready = p.ready(20.0)
         conn = connect_client(ready["vehicles"][0]["mavlink"])
         hello(conn, 1)
         values = {}
@@ -197,4 +195,4 @@ def test_boot_parameters_from_the_command_line() -> None:
     finally:
         if conn is not None:
             conn.close()
-        p.kill()
+        p.stop()

@@ -4,7 +4,7 @@ parameter protocol without waiting for their FTP timeout."""
 
 from __future__ import annotations
 
-from memlink import decode_all, gcs_encoder, memory_vehicle
+from tests.vehicle_sim.memlink import decode_all, gcs_encoder, memory_vehicle
 
 
 def _request(opcode: int, seq: int = 7, session: int = 3) -> list[int]:

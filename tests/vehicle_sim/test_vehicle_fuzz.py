@@ -17,8 +17,8 @@ import pytest
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.link import mavlink_module
 
-from conftest import mavlink as R, wait_msg
-from memlink import decode_all, gcs_encoder, memory_vehicle
+from tests.vehicle_sim.clients import mavlink as R, wait_msg
+from tests.vehicle_sim.memlink import decode_all, gcs_encoder, memory_vehicle
 
 
 def _state_without_time(v):
@@ -106,7 +106,7 @@ def test_thousands_of_malformed_frames_change_nothing(flavour):
     mem.outbox.clear()
     mem.inject(sink.frames[-1], peer="fresh")
     v.advance_to(v.t + 0.02)
-    from memlink import decode_all
+    from tests.vehicle_sim.memlink import decode_all
 
     types = {m.get_type() for m in decode_all(mem.outbox)}
     assert {"COMMAND_ACK", "AUTOPILOT_VERSION"} <= types

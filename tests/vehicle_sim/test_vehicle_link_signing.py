@@ -8,17 +8,14 @@ whichever peer socket it came — or, for a new stream, at most one minute old.
 
 from __future__ import annotations
 
-import os
 import struct
 import time
 from pathlib import Path
 from typing import Any
 
-os.environ["MAVLINK20"] = "1"
+from vehicle_sim.link import MavlinkLink, mavlink_module, signing_timestamp_now
 
-from vehicle_sim.link import MavlinkLink, mavlink_module, signing_timestamp_now  # noqa: E402
-
-from memlink import MemoryTransport, Sink  # noqa: E402
+from tests.vehicle_sim.memlink import MemoryTransport, Sink
 
 KEY = bytes(range(100, 132))
 MINUTE = 60 * 100_000  # signing timestamp units (10 µs)

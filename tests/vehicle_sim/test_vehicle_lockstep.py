@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import time
 
 import numpy as np
@@ -13,7 +12,9 @@ from vehicle_sim.clock import LockstepClock, Tick, ZenohTickSource, encode_tick,
 from vehicle_sim.config import Origin, VehicleConfig
 from vehicle_sim.geo import LocalFrame
 
-from conftest import mavlink as R, wait_msg, wait_until
+from tests.support.net import free_port
+from tests.support.wait import wait_for
+from tests.vehicle_sim.clients import mavlink as R, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -116,19 +117,13 @@ def test_tick_round_trip():
     assert json.loads(encode_tick(Tick(1, 0.25))) == {"step": 1, "t_s": 0.25}
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_zenoh_ticks_drive_the_vehicle_and_bad_ticks_are_dropped(make_rig, caplog):
     import zenoh
 
     cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(0.0, 0.0, 5.0))
     rig = make_rig(cfg, lockstep=True)
     clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
-    port = _free_port()
+    port = free_port()
     source = ZenohTickSource("m42", clock, listen=[f"tcp/127.0.0.1:{port}"])
     pub_session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
     try:
@@ -145,7 +140,7 @@ def test_zenoh_ticks_drive_the_vehicle_and_bad_ticks_are_dropped(make_rig, caplo
             pub.put(b'{"step": "two", "t_s": 2.0}')
             pub.put(b"garbage")
             pub.put(encode_tick(Tick(2, 2.5)))
-            wait_until(lambda: rig.vehicle.t == 2.5, 5, "tick 2")
+            wait_for(lambda: rig.vehicle.t == 2.5, 5, "tick 2", interval_s=0.005)
         assert "dropped bad tick" in caplog.text and "tick.step" in caplog.text
         assert clock.last == Tick(2, 2.5)
         wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 2500)

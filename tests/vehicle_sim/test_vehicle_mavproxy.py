@@ -12,8 +12,8 @@ from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from conftest import connect_client, hello, wait_msg
-from procs import MAVPROXY, Proc, fimnav
+from tests.support.proc import MAVPROXY, Proc, fimnav
+from tests.vehicle_sim.clients import connect_client, hello, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -25,20 +25,20 @@ def test_mavproxy_connects_arms_and_flies_guided():
     observer = None
     workdir = tempfile.mkdtemp(prefix="mavproxy-")
     try:
-        line = vehicle.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
+        line = vehicle.expect(r"\{\"event\": \"ready\".*\}\n", timeout_s=30).group(0)
         address = line.split('"mavlink": "')[1].split('"')[0]
         port = address.rsplit(":", 1)[1]
         gcs = Proc([MAVPROXY, f"--master=tcp:127.0.0.1:{port}", "--no-state", "--default-modules=mode,arm,cmdlong,param,misc"],
                    stdin=True, cwd=workdir)
-        gcs.expect(r"Detected vehicle 1:1|STABILIZE>", timeout=60)
+        gcs.expect_next(r"Detected vehicle 1:1|STABILIZE>", timeout_s=60)
         gcs.send("mode GUIDED")
-        gcs.expect(r"DO_SET_MODE: ACCEPTED")
-        gcs.expect(r"GUIDED>")
+        gcs.expect_next(r"DO_SET_MODE: ACCEPTED")
+        gcs.expect_next(r"GUIDED>")
         gcs.send("arm throttle")
-        gcs.expect(r"COMPONENT_ARM_DISARM: ACCEPTED")
-        gcs.expect(r"ARMED")
+        gcs.expect_next(r"COMPONENT_ARM_DISARM: ACCEPTED")
+        gcs.expect_next(r"ARMED")
         gcs.send("takeoff 5")
-        gcs.expect(r"NAV_TAKEOFF: ACCEPTED")
+        gcs.expect_next(r"NAV_TAKEOFF: ACCEPTED")
         # independent observer on a second TCP connection; ArduPilot's take-off ends silently
         observer = connect_client(address, source_system=250)
         hello(observer, 1)
@@ -46,7 +46,7 @@ def test_mavproxy_connects_arms_and_flies_guided():
         o = Origin()
         lon, lat, _ = Geod(ellps="WGS84").fwd(o.lon_deg, o.lat_deg, 45.0, 25.0)  # 25 m north-east
         gcs.send(f"guided {lat:.7f} {lon:.7f} 8")
-        gcs.expect(r"(DO_REPOSITION: ACCEPTED|Got MISSION_ACK: TYPE_MISSION: ACCEPTED)")
+        gcs.expect_next(r"(DO_REPOSITION: ACCEPTED|Got MISSION_ACK: TYPE_MISSION: ACCEPTED)")
         gp = wait_msg(
             observer,
             "GLOBAL_POSITION_INT",
@@ -55,11 +55,11 @@ def test_mavproxy_connects_arms_and_flies_guided():
         )
         assert gp.get_srcSystem() == 1
         gcs.send("status HEARTBEAT")
-        gcs.expect(r"HEARTBEAT \{type : 2, autopilot : 3")
+        gcs.expect_next(r"HEARTBEAT \{type : 2, autopilot : 3")
     finally:
         if observer is not None:
             observer.close()
         if gcs is not None:
-            gcs.kill()
-        vehicle.kill()
+            gcs.stop()
+        vehicle.stop()
         shutil.rmtree(workdir, ignore_errors=True)

@@ -4,14 +4,14 @@ and OFFBOARD (PX4). Positions are checked with pyproj's geodesic, not the vehicl
 
 from __future__ import annotations
 
-import time
 
 import pytest
 from pyproj import Geod
 
 from vehicle_sim.config import Origin
 
-from procs import Proc, fimnav
+from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 GEOD = Geod(ellps="WGS84")
@@ -19,7 +19,7 @@ GEOD = Geod(ellps="WGS84")
 
 def _start(*args: str, speedup: str = "5") -> tuple[Proc, str]:
     proc = Proc(fimnav("vehicle", "--mavlink", "tcpin:127.0.0.1:0", "--speedup", speedup, *args))
-    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout=30).group(0)
+    line = proc.expect(r"\{\"event\": \"ready\".*\}\n", timeout_s=30).group(0)
     port = line.split('"mavlink": "')[1].split('"')[0].rsplit(":", 1)[1]
     return proc, port
 
@@ -32,17 +32,6 @@ def _system(port: str):
     system = m.first_autopilot(15.0)
     assert system is not None, "MAVSDK found no autopilot"
     return m, system
-
-
-def _wait(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} not reached within {timeout} s")
-        time.sleep(0.05)
 
 
 def test_mavsdk_ardupilot_arm_takeoff_goto():
@@ -63,7 +52,7 @@ def test_mavsdk_ardupilot_arm_takeoff_goto():
         action.set_takeoff_altitude(6.0)
         action.arm()
         action.takeoff()
-        _wait(lambda: abs(telemetry.position().relative_altitude_m - 6.0) < 0.1, 30, "take-off altitude")
+        wait_for(lambda: abs(telemetry.position().relative_altitude_m - 6.0) < 0.1, 30, "take-off altitude", interval_s=0.05)
         o = Origin()
         lon, lat, _ = GEOD.fwd(o.lon_deg, o.lat_deg, 120.0, 30.0)
         action.goto_location(lat, lon, o.alt_m + 9.0, 0.0)
@@ -72,11 +61,11 @@ def test_mavsdk_ardupilot_arm_takeoff_goto():
             p = telemetry.position()
             return GEOD.inv(lon, lat, p.longitude_deg, p.latitude_deg)[2] < 0.3 and abs(p.relative_altitude_m - 9.0) < 0.1
 
-        _wait(arrived, 40, "goto target")
+        wait_for(arrived, 40, "goto target", interval_s=0.05)
     finally:
         if m is not None:
             m.destroy()
-        proc.kill()
+        proc.stop()
 
 
 def test_mavsdk_px4_offboard():
@@ -93,15 +82,16 @@ def test_mavsdk_px4_offboard():
         action, offboard, telemetry = Action(system), Offboard(system), Telemetry(system)
         action.arm()
         action.takeoff()
-        _wait(lambda: telemetry.position().relative_altitude_m > 2.0, 30, "PX4 take-off")
+        wait_for(lambda: telemetry.position().relative_altitude_m > 2.0, 30, "PX4 take-off", interval_s=0.05)
         target = PositionNedYaw(north_m=8.0, east_m=-3.0, down_m=-5.0, yaw_deg=0.0)
         offboard.set_position_ned(target)  # PX4 needs a setpoint before OFFBOARD
         offboard.start()
         assert offboard.is_active()
-        _wait(lambda: (lambda p: abs(p.position.north_m - 8.0) < 0.05 and abs(p.position.east_m + 3.0) < 0.05
-                       and abs(p.position.down_m + 5.0) < 0.05)(telemetry.position_velocity_ned()), 30, "OFFBOARD target")
+        wait_for(lambda: (lambda p: abs(p.position.north_m - 8.0) < 0.05 and abs(p.position.east_m + 3.0) < 0.05
+                          and abs(p.position.down_m + 5.0) < 0.05)(telemetry.position_velocity_ned()), 30, "OFFBOARD target",
+                 interval_s=0.05)
         offboard.stop()
     finally:
         if m is not None:
             m.destroy()
-        proc.kill()
+        proc.stop()

@@ -14,7 +14,7 @@ from planner.randomness import measurement_rng
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.payload import Measurement, Payload, PayloadWorld, roles_to_flags
 
-from memlink import memory_vehicle
+from tests.vehicle_sim.memlink import memory_vehicle
 
 CH = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=math.radians(10))
 

@@ -17,7 +17,8 @@ from pyproj import Geod
 
 from vehicle_sim.config import Geofence, Origin, VehicleConfig
 
-from conftest import hello, mavlink, wait_msg
+from tests.support.wait import wait_for
+from tests.vehicle_sim.clients import hello, mavlink, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -214,9 +215,7 @@ def test_guided_velocity_then_timeout_holds(make_rig):
 
 
 def wait_until_sim(rig, t_s: float, timeout: float = 5.0) -> None:
-    from conftest import wait_until
-
-    wait_until(lambda: rig.vehicle.t >= t_s, timeout, f"sim time {t_s}")
+    wait_for(lambda: rig.vehicle.t >= t_s, timeout, f"sim time {t_s}", interval_s=0.005)
 
 
 def test_guided_position_velocity_target_moves_until_the_guided_timeout(make_rig):
@@ -253,9 +252,7 @@ def test_relative_frames(make_rig, frame):
     n_off = 3 * math.cos(yaw) - 1 * math.sin(yaw)
     e_off = 3 * math.sin(yaw) + 1 * math.cos(yaw)
     expect = start + np.array([e_off, n_off, 2.0])
-    from conftest import wait_until
-
-    wait_until(lambda: np.linalg.norm(v.position - expect) < 1e-6, 5, f"{frame} target")
+    wait_for(lambda: np.linalg.norm(v.position - expect) < 1e-6, 5, f"{frame} target", interval_s=0.005)
 
 
 @pytest.mark.parametrize("frame", ["GLOBAL_INT", "GLOBAL_RELATIVE_ALT_INT"])
@@ -393,24 +390,18 @@ def test_geofence_clamps_and_rejects(make_rig):
     rig.local(lambda m: abs(m.x - 20) < 1e-3 and abs(m.z + 10) < 1e-3, timeout=10)
     # a velocity command out of the box stops at the boundary (10 m/s * 3 s guided timeout > 20 m)
     c.mav.set_position_target_local_ned_send(0, 1, 1, R.MAV_FRAME_LOCAL_NED, 0b110111000111, 0, 0, 0, 0, -10, 0, 0, 0, 0, 0, 0)
-    from conftest import wait_until
-
-    wait_until(lambda: rig.vehicle.position[0] <= -20 + 1e-9, 5, "west boundary")
+    wait_for(lambda: rig.vehicle.position[0] <= -20 + 1e-9, 5, "west boundary", interval_s=0.005)
     wait_until_sim(rig, rig.vehicle.t + 1.0)
     assert rig.vehicle.position[0] == pytest.approx(-20.0, abs=1e-9)
     # reject action
     rig2 = make_rig(VehicleConfig(sysid=2, geofence=Geofence(z_max_m=10.0, radius_m=15.0, action="reject"), profile="ideal"))
     rig2.fly_up(5.0)
-    from conftest import wait_until
-
-    wait_until(lambda: rig2.vehicle.position[2] == 5.0, 5, "take-off altitude")
+    wait_for(lambda: rig2.vehicle.position[2] == 5.0, 5, "take-off altitude", interval_s=0.005)
     here = rig2.vehicle.position.copy()
     rig2.clients[0].mav.set_position_target_local_ned_send(0, 2, 1, R.MAV_FRAME_LOCAL_NED, 0b110111111000, 30, 0, -5, 0, 0, 0, 0, 0, 0, 0, 0)
     wait_msg(rig2.clients[0], "STATUSTEXT", lambda m: "refused" in m.text)
     t = rig2.vehicle.t
-    from conftest import wait_until
-
-    wait_until(lambda: rig2.vehicle.t > t + 1.0, 5, "1 s of sim time")
+    wait_for(lambda: rig2.vehicle.t > t + 1.0, 5, "1 s of sim time", interval_s=0.005)
     np.testing.assert_allclose(rig2.vehicle.position, here, atol=1e-9)
 
 
@@ -435,7 +426,7 @@ def test_several_vehicles_distinct_ports_and_ids(make_rig):
 
 def test_tcp_several_clients(make_rig):
     rig = make_rig(kind="tcpin")
-    from conftest import connect_client
+    from tests.vehicle_sim.clients import connect_client
 
     second = connect_client(rig.vehicle.link.transport.address, source_system=254)
     try:

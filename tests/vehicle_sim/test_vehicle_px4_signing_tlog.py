@@ -15,7 +15,8 @@ from pymavlink import mavutil
 
 from vehicle_sim.config import VehicleConfig
 
-from conftest import connect_client, drain, mavlink as R, wait_msg, wait_until
+from tests.support.wait import wait_for
+from tests.vehicle_sim.clients import connect_client, drain, mavlink as R, wait_msg
 
 pytestmark = pytest.mark.integration
 
@@ -49,7 +50,7 @@ def test_px4_offboard_needs_stream_and_failsafe_on_loss(make_rig):
     # no stream: OFFBOARD refused; one stale setpoint (> 0.5 s old) is no stream either
     assert rig.set_mode("OFFBOARD") == R.MAV_RESULT_FAILED
     c.mav.set_position_target_local_ned_send(0, 1, 1, R.MAV_FRAME_LOCAL_NED, POS_MASK, 0, 0, -3, 0, 0, 0, 0, 0, 0, 0, 0)
-    wait_until(lambda t=v.t: v.t > t + 0.6, 5, "0.6 s of sim time")
+    wait_for(lambda t=v.t: v.t > t + 0.6, 5, "0.6 s of sim time", interval_s=0.005)
     assert rig.set_mode("OFFBOARD") == R.MAV_RESULT_FAILED
     # arm in POSCTL, take off (PX4: param7 is AMSL; NaN = MIS_TAKEOFF_ALT = 2.5 m)
     assert rig.arm() == 0
@@ -65,14 +66,14 @@ def test_px4_offboard_needs_stream_and_failsafe_on_loss(make_rig):
 
     t0 = v.t
     send()
-    wait_until(lambda: v.t > t0 + 0.2, 5, "sim time")
+    wait_for(lambda: v.t > t0 + 0.2, 5, "sim time", interval_s=0.005)
     send()
     assert rig.set_mode("OFFBOARD") == 0
     deadline = time.monotonic() + 10
     while np.linalg.norm(v.position - np.array([2.0, 5.0, 4.0])) > 1e-6:  # ENU of the NED target
         assert time.monotonic() < deadline, "OFFBOARD target not reached"
         send()
-        wait_until(lambda t=v.t: v.t > t + 0.1, 5, "sim time")
+        wait_for(lambda t=v.t: v.t > t + 0.1, 5, "sim time", interval_s=0.005)
     # stop streaming: after COM_OF_LOSS_T (1 s) the failsafe switches to hold (LOITER)
     wait_msg(c, "STATUSTEXT", lambda m: "offboard lost" in m.text, timeout=5)
     wait_msg(c, "HEARTBEAT", lambda m: mavutil.mode_string_v10(m) == "LOITER")

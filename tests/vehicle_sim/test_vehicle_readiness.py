@@ -19,8 +19,8 @@ from comms.geodesy import MissionFrame
 from comms.mavlink_client import EKF_CONST_POS_MODE, EKF_READY_FLAGS
 from vehicle_sim.config import Origin, VehicleConfig
 
-from conftest import mavlink, wait_msg
-from procs import Proc, fimnav
+from tests.support.proc import Proc, fimnav
+from tests.vehicle_sim.clients import mavlink, wait_msg
 
 #: 8 sim s at x4: 2 s of wall time (aligned after 1 s).
 READY_AFTER_S = 8.0
@@ -170,5 +170,5 @@ def test_bad_readiness_options_are_refused_clearly(args: list[str], message: str
     try:
         assert p.wait(30.0) == 2
     finally:
-        p.kill()
+        p.stop()
     assert message in p.err and "Traceback" not in p.err, p.err

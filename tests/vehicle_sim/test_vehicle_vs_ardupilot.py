@@ -13,18 +13,15 @@ recorded transcript against SITL itself).
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-from procs import Proc
+from tests.sitl import gcs_script
+from tests.sitl.record_transcript import REFERENCE, vehicle_argv
+from tests.support.proc import Proc
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "sitl"))
-
-import gcs_script  # noqa: E402
-from record_transcript import REFERENCE, vehicle_argv  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -37,11 +34,11 @@ def test_vehicle_answers_the_ground_station_as_ardupilot_sitl() -> None:
     assert ref["vehicle"]["kind"] == "ardupilot_sitl" and ref["vehicle"]["version"] == "ArduCopter V4.5.5"
     p = Proc(vehicle_argv(SPEEDUP), cwd=str(ROOT))
     try:
-        m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout=30)
+        m = p.expect(r'"mavlink": "tcpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
         got = gcs_script.run_sequence(f"tcp:127.0.0.1:{m.group(1)}", speedup=SPEEDUP,
                                       vehicle={"kind": "fimnav_vehicle", "flavour": "ardupilot"})
     finally:
-        p.kill()
+        p.stop()
     assert gcs_script.compare(ref, got) == []
     # The points the fixes were about, spelled out (the comparison above covers them too).
     R = gcs_script.mavlink

@@ -13,18 +13,15 @@ PX4 needed (tests/sitl/record_transcript_px4.py records the reference).
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-from procs import Proc
+from tests.sitl import gcs_script_px4
+from tests.sitl.record_transcript_px4 import REFERENCE, vehicle_argv
+from tests.support.proc import Proc
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests" / "sitl"))
-
-import gcs_script_px4  # noqa: E402
-from record_transcript_px4 import REFERENCE, vehicle_argv  # noqa: E402
 
 pytestmark = pytest.mark.integration
 
@@ -57,11 +54,11 @@ def test_vehicle_answers_an_offboard_ground_station_as_px4_sitl() -> None:
     assert ref["vehicle"]["kind"] == "px4_sitl" and ref["heartbeat"]["autopilot"] == 12
     p = Proc(vehicle_argv(SPEEDUP), cwd=str(ROOT))
     try:
-        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout=30)
+        m = p.expect(r'"mavlink": "udpin:127\.0\.0\.1:(\d+)"', timeout_s=30)
         got = gcs_script_px4.run_sequence(f"udpout:127.0.0.1:{m.group(1)}", speedup=SPEEDUP,
                                           vehicle={"kind": "fimnav_vehicle", "flavour": "px4"})
     finally:
-        p.kill()
+        p.stop()
     diffs = gcs_script_px4.compare(ref, got)
     keys = {d.split(": ", 1)[0] for d in diffs}
     assert keys == KNOWN, "\n".join(diffs)

@@ -1,0 +1,40 @@
+"""Fixtures shared by the test directories: the processes a test starts (:func:`procs`) and the
+launches it starts (:func:`launches`), all stopped at the end. (``MAVLINK20=1`` is set by
+``tests/__init__.py``, imported before this file and before any test module.)"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from tests.support.launch import Launch, processes_mentioning
+from tests.support.proc import Proc
+from tests.support.wait import wait_for
+
+
+@pytest.fixture
+def procs() -> Iterator[list[Proc]]:
+    """Every process a test starts; each process group is stopped at the end."""
+    started: list[Proc] = []
+    yield started
+    for p in reversed(started):
+        p.stop()
+
+
+@pytest.fixture
+def launches() -> Iterator[list[Launch]]:
+    """Started launches; at the end every process of every run must be gone (then killed)."""
+    started: list[Launch] = []
+    yield started
+    leftovers = {}
+    for run in started:
+        if run.proc.poll() is None:
+            run.kill()
+            run.proc.wait(10)
+        try:
+            wait_for(lambda r=run: not processes_mentioning(str(r.out)), 15.0, f"the processes of {run.out} to exit")
+        except AssertionError:
+            leftovers[str(run.out)] = processes_mentioning(str(run.out))
+            run.kill()
+    assert not leftovers, f"processes left behind: {leftovers}"
