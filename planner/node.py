@@ -884,6 +884,25 @@ class PlannerNode:
         meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los)
         return est.update(state, meas, self.config.channel, self.config.estimator), int(new.sum()) + len(late)
 
+    def _taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Observation:
+        """The record of step k while a pilot flies the drone: its position (m, ENU) at time
+        ``t_s``, flagged taken over, without a measurement (the pilot's flight is no planned
+        sensing)."""
+        nan = float("nan")
+        return Observation(
+            self.o.uav,
+            k,
+            t_s,
+            vec3(position_m),
+            bool(self.config.ranging[self.i]),
+            bool(self.config.bearing[self.i]),
+            True,
+            nan,
+            nan,
+            nan,
+            taken_over=True,
+        )
+
     def _track(self, k: int, own: np.ndarray) -> None:
         """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""
         self.own_track[k] = np.array(own, dtype=float)
@@ -952,22 +971,8 @@ class PlannerNode:
         draws of the step are skipped, so a handed-back planner draws those of its step."""
         for s in [s for s in self.measurements if s <= k]:
             del self.measurements[s]
-        nan = float("nan")
-        rec = Observation(
-            self.o.uav,
-            k,
-            t_k,
-            vec3(own),
-            bool(self.config.ranging[self.i]),
-            bool(self.config.bearing[self.i]),
-            True,
-            nan,
-            nan,
-            nan,
-            taken_over=True,
-        )
         self._track(k, own)
-        self._publish(self._pub_record, rec, MessageKind.RECORD)
+        self._publish(self._pub_record, self._taken_over_record(k, t_k, own), MessageKind.RECORD)
         self.ctrl_rng.random(CONTROL_DRAWS)
         self.taken_over_steps += 1
         self._publish(self._pub_done, Done(self.o.uav, k))
@@ -1349,22 +1354,8 @@ class PlannerNode:
                 # step, without a measurement (the pilot's flight is no planned sensing), so the
                 # others keep clear of where it is; without telemetry its last record, as stale.
                 pos = link.telemetry.position_enu_m
-                nan = float("nan")
                 if pos is not None and self.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S:  # a fresh position
-                    rec = Observation(
-                        self.o.uav,
-                        k,
-                        w0,
-                        vec3(pos),
-                        bool(self.config.ranging[self.i]),
-                        bool(self.config.bearing[self.i]),
-                        True,
-                        nan,
-                        nan,
-                        nan,
-                        taken_over=True,
-                    )
-                    self._publish(self._pub_record, rec, MessageKind.RECORD)
+                    self._publish(self._pub_record, self._taken_over_record(k, w0, pos), MessageKind.RECORD)
                 elif self.last_record is not None:
                     self._publish(
                         self._pub_record, dataclasses.replace(self.last_record, step=k, time_s=w0, stale=True, taken_over=True), MessageKind.RECORD
