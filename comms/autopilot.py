@@ -114,6 +114,17 @@ class FlavourInfo:
             custom_mode values used by the mode logic.
         flight_sw_version: AUTOPILOT_VERSION flight_sw_version (major.minor.patch, official).
         param_bytewise: PARAM_VALUE integer encoding (PX4 bytewise, ArduPilot C cast).
+        guided_needs_stream: the guided mode is entered only with setpoints already flowing
+            and left when they stop (PX4 OFFBOARD, COM_OF_LOSS_T); an ArduPilot GUIDED
+            position target holds without a stream.
+        takeoff_by_command: take-off is MAV_CMD_NAV_TAKEOFF in the guided mode (ArduPilot);
+            otherwise the vehicle climbs on guided-mode setpoints (PX4 OFFBOARD).
+        velocity_moves_target: a position + velocity setpoint moves its position along the
+            velocity (ArduPilot GUIDED); otherwise the position holds and the velocity is a
+            feed-forward (PX4).
+        streams_ekf_status: the autopilot streams EKF_STATUS_REPORT on request (PX4 refuses it).
+        link_loss_failsafe: what the autopilot's own failsafe does while the planner's link
+            is lost (for the planner's log).
     """
 
     autopilot: int
@@ -127,6 +138,11 @@ class FlavourInfo:
     rtl_mode: int
     flight_sw_version: int
     param_bytewise: bool
+    guided_needs_stream: bool
+    takeoff_by_command: bool
+    velocity_moves_target: bool
+    streams_ekf_status: bool
+    link_loss_failsafe: str
 
     def mode(self, custom_mode: int) -> Mode | None:
         """The mode with this custom_mode, or None."""
@@ -167,6 +183,12 @@ ARDUPILOT = FlavourInfo(
     rtl_mode=6,
     flight_sw_version=_version(4, 5, 7),
     param_bytewise=False,
+    guided_needs_stream=False,
+    takeoff_by_command=True,
+    velocity_moves_target=True,
+    streams_ekf_status=True,
+    link_loss_failsafe="ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
+    "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
 )
 
 PX4 = FlavourInfo(
@@ -181,6 +203,11 @@ PX4 = FlavourInfo(
     rtl_mode=px4_custom_mode(4, 5),
     flight_sw_version=_version(1, 15, 4),
     param_bytewise=True,
+    guided_needs_stream=True,
+    takeoff_by_command=False,
+    velocity_moves_target=False,
+    streams_ekf_status=False,
+    link_loss_failsafe="PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); a data-link loss (NAV_DLL_ACT) may follow",
 )
 
 

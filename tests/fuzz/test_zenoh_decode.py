@@ -1,5 +1,5 @@
 """Hostile Zenoh payloads at the decoder (``comms.messages.decode``) and at the planner's
-inbox (``planner.node._Inbox.decode``): property tests with hypothesis.
+inbox (``planner.node.inbox.Inbox.decode``): property tests with hypothesis.
 
 Properties: any byte string either decodes or raises :class:`MessageError` (never another
 exception); whatever decodes re-encodes to the same bytes (so nothing is silently
@@ -31,7 +31,7 @@ from comms.messages import (
     encode,
     mission_tag,
 )
-from planner.node import _Inbox
+from planner.node import Inbox
 
 MISSION = "alpha"
 N = 5
@@ -200,7 +200,7 @@ def test_tick_with_nan_time_is_refused() -> None:
 
 
 def test_inbox_drops_spoofed_sender_and_counts_it() -> None:
-    inbox = _Inbox(MISSION, N)
+    inbox = Inbox(MISSION, N)
     try:
         assert inbox.decode(keys.record(MISSION, 2), valid_record(2)) is not None
         assert inbox.decode(keys.record(MISSION, 3), valid_record(2)) is None  # sender 2 on drone 3's key
@@ -215,7 +215,7 @@ def test_inbox_drops_spoofed_sender_and_counts_it() -> None:
 @settings(max_examples=1000, deadline=None)
 @given(st.binary(max_size=120), st.sampled_from(["record/1", "record/4", "measurement/2", "clock/tick", "clock/done/3", "status/1"]))
 def test_inbox_never_raises_and_counts_every_drop(data: bytes, tail: str) -> None:
-    inbox = _Inbox(MISSION, N)
+    inbox = Inbox(MISSION, N)
     try:
         msg = inbox.decode(f"fimnav/{MISSION}/{tail}", data)
         assert (msg is None) == (sum(inbox.dropped.values()) == 1)
@@ -225,7 +225,7 @@ def test_inbox_never_raises_and_counts_every_drop(data: bytes, tail: str) -> Non
 
 def test_done_message_is_valid_reference() -> None:
     """The reference for the property above: valid messages pass the inbox."""
-    inbox = _Inbox(MISSION, N)
+    inbox = Inbox(MISSION, N)
     try:
         assert inbox.decode(keys.done(MISSION, 3), encode(Done(3, 4), MISSION, 1)) == Done(3, 4)
         assert inbox.decode(keys.tick(MISSION), encode(Tick(4, 0.4), MISSION, 1)) == Tick(4, 0.4)

@@ -1,0 +1,99 @@
+"""Pilot take-over, in both clocks (docs/in-the-field.md): a vehicle that leaves the guided
+mode (GUIDED/OFFBOARD) has been taken over; the planner stops commanding it and never switches
+it back on its own: only ``fimnav handback`` does."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from comms.mavlink_client import LinkError
+from planner.node.config import NodeError
+from planner.node.io import NodeIO
+
+log = logging.getLogger("fimnav.plan")
+
+
+class TakeoverWatch:
+    """Whether a pilot flies the drone, and every take-over and mode change seen.
+
+    Args:
+        io: the node's I/O (its link and profile).
+    """
+
+    def __init__(self, io: NodeIO) -> None:
+        self.io = io
+        self.uav = io.config.uav
+        #: The pilot's take-over in force ({"step", "mode"}), or None.
+        self.current: dict[str, Any] | None = None
+        #: Every take-over ({"step", "mode"}, and "handed_back_step" once handed back).
+        self.takeovers: list[dict[str, Any]] = []
+        #: Steps flown by a pilot.
+        self.steps = 0
+        #: Every mode the vehicle was seen in outside the guided mode.
+        self.mode_changes: list[str] = []
+        self._reported_mode: str | None = None
+
+    @property
+    def active(self) -> bool:
+        """Whether a pilot flies the drone now."""
+        return self.current is not None
+
+    def watch(self, k: int) -> None:
+        """A vehicle that left GUIDED/OFFBOARD while the link is up has been taken over (a
+        pilot, a ground station or a failsafe). The planner stops commanding it at once (the
+        setpoint stream ends), says so, and never switches it back on its own: only
+        ``fimnav handback`` does (:meth:`hand_back`). Mode changes while taken over are
+        reported too."""
+        link = self.io.require_link()
+        want = self.io.guided_mode
+        now = link.mode_name()
+        if not link.in_mode(want) and now != self._reported_mode:
+            self.mode_changes.append(now)
+            if self.current is None:
+                link.set_stream(None)
+                self.current = {"step": k, "mode": now}
+                self.takeovers.append(dict(self.current))
+                log.warning(
+                    "uav %d: taken over at step %d: the vehicle left %s (now %s); not commanding it; publishing its "
+                    "position without measurements; hand it back with: fimnav handback MISSION --uav %d",
+                    self.uav,
+                    k,
+                    want,
+                    now,
+                    self.uav,
+                )
+            else:
+                log.warning("uav %d: taken over, the vehicle is now in %s", self.uav, now)
+        self._reported_mode = now if not link.in_mode(want) else None
+
+    def still_taken_over(self, k: int, enter_guided: Callable[[np.ndarray], None]) -> bool:
+        """Whether the pilot still flies the drone at step ``k``: taken over and not handed
+        back by a ``fimnav handback`` that arrived (:meth:`hand_back`)."""
+        return self.current is not None and not (self.io.swarm.handback_requested() and self.hand_back(k, enter_guided))
+
+    def hand_back(self, k: int, enter_guided: Callable[[np.ndarray], None]) -> bool:
+        """``fimnav handback``: switch the vehicle back to GUIDED/OFFBOARD at its position
+        (``enter_guided(hold position m, ENU)``, the driver's sequence) and plan again from step
+        ``k``; False (logged) when the vehicle refuses or is not armed."""
+        link = self.io.require_link()
+        pos = link.telemetry.position_enu_m
+        if not link.telemetry.armed or pos is None:
+            log.error("uav %d: hand-back refused: the vehicle is %s", self.uav, "disarmed" if not link.telemetry.armed else "without a position")
+            return False
+        try:
+            enter_guided(pos.astype(float))
+        except LinkError as exc:
+            link.set_stream(None)
+            log.error("uav %d: hand-back refused: %s", self.uav, exc)
+            return False
+        if self.current is None:
+            raise NodeError(f"uav {self.uav}: internal: hand-back at step {k} of a drone not taken over")
+        self.takeovers[-1]["handed_back_step"] = k
+        self.current = None
+        self._reported_mode = None
+        log.warning("uav %d: handed back at step %d: in %s, planning again", self.uav, k, self.io.guided_mode)
+        return True
