@@ -44,7 +44,7 @@ UNSUPPORTED_CMD = 31010
 #: REQUEST_DATA_STREAM as MAVProxy sends it by default: every stream at 4 Hz.
 DATA_STREAM_ALL_HZ = 4
 #: SET_MESSAGE_INTERVAL requests (message id -> Hz), those fimnav's planner sends
-#: (planner/node.py ``_request_streams``) plus LOCAL_POSITION_NED.
+#: (planner/node/realtime_preflight.py ``RealtimePreflight.request_streams``) plus LOCAL_POSITION_NED.
 PLANNER_INTERVALS_HZ: dict[int, float] = {33: 10.0, 32: 10.0, 1: 1.0, 24: 1.0, 242: 0.5, 245: 1.0, 193: 1.0}
 #: SET_POSITION_TARGET type masks: position only (ignore velocity, acceleration, yaw, yaw rate).
 MASK_POSITION = 3576

@@ -35,7 +35,7 @@ POSCTL, OFFBOARD = (3, 0), (6, 0)
 AUTO_LOITER, AUTO_LAND = (4, 3), (4, 6)
 UNKNOWN_MODE = (99, 0)
 #: SET_MESSAGE_INTERVAL requests (message id -> Hz) of fimnav's planner on PX4
-#: (planner/node.py ``_request_streams``), EKF_STATUS_REPORT (193) too, which PX4 refuses.
+#: (planner/node/realtime_preflight.py ``RealtimePreflight.request_streams``), EKF_STATUS_REPORT (193) too, which PX4 refuses.
 INTERVALS_HZ: dict[int, float] = {33: 10.0, 32: 10.0, 1: 1.0, 24: 1.0, 242: 0.5, 245: 1.0, 193: 1.0}
 #: Setpoint stream rate (wall Hz): PX4 wants > 2 Hz of its own time; 20 Hz covers a ×5 clock.
 STREAM_HZ = 20.0
