@@ -43,8 +43,8 @@ def test_lossy_delayed_launch_matches_the_simulator(tmp_path: Path, launches: li
     penalty against the fault-free mission."""
     overrides = {"comms.faults.loss": LOSS, "comms.faults.extra_delay_steps": MAX_DELAY}
     if not _node_injects_faults(load_mission(PAPER / "heterogeneous.yaml", overrides)):
-        pytest.fail("planner/node.py: PlannerNode.__init__ must build DelayedView with "
-                    "faults=mission.comms.faults.to_model(), seed=mission.seed (issue 7)")
+        pytest.fail("planner.node.core.build_view must build the DelayedView with "
+                    "faults=mission.comms.faults.to_model(), seed=mission.seed")
     out = tmp_path / "faults"
     sets = [a for k, v in overrides.items() for a in ("--set", f"{k}={v}")]
     run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", str(STEPS), "--step-timeout", "60", *sets)
