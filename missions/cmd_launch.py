@@ -134,8 +134,9 @@ def run(args: argparse.Namespace) -> int:
     """Validate, launch, report."""
     from tqdm import tqdm
 
-    from missions.launcher import check_results_dir, launch, unique_results_dir
+    from missions.launcher import launch
     from missions.loader import load_mission, parse_overrides
+    from missions.rundir import check_results_dir, unique_results_dir
 
     overrides = parse_overrides(args.overrides)
     for name in ("steps", "seed"):
