@@ -20,6 +20,14 @@ def register(subparsers: Any) -> None:
         description="Validate the mission, start N simulated vehicles and N planner processes talking "
         "over Zenoh (loopback) and MAVLink, step them in lockstep, show progress and write the results.",
     )
+    _add_run_options(p)
+    _add_realtime_options(p)
+    _add_process_options(p)
+    p.set_defaults(func=run)
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """The mission, the results directory, the run's overrides and its failure policy."""
     p.add_argument("mission", type=Path, metavar="MISSION", help="a mission file, or the name of a shipped mission (fimnav missions list)")
     p.add_argument(
         "--out",
@@ -46,6 +54,10 @@ def register(subparsers: Any) -> None:
         "or also restart a failed planner, which rejoins at the current step; the summary lists every failure "
         "and the exit status is then 3",
     )
+
+
+def _add_realtime_options(p: argparse.ArgumentParser) -> None:
+    """Real time: the wall clock, a mixed fleet, the ground station."""
     rt = p.add_argument_group("real time (a mixed fleet: drones with vehicles.overrides[i].connection fly that autopilot)")
     rt.add_argument(
         "--realtime",
@@ -74,6 +86,10 @@ def register(subparsers: Any) -> None:
         help="real time: wall seconds from the launch to step 0 "
         "(default 30 s + 1 s per drone); a drone not at its start by then joins at the current step",
     )
+
+
+def _add_process_options(p: argparse.ArgumentParser) -> None:
+    """The live view and how the processes are started."""
     p.add_argument(
         "--view",
         action="store_true",
@@ -95,7 +111,6 @@ def register(subparsers: Any) -> None:
         help="start every planner as a fresh interpreter (about 0.45 s of CPU each to import) instead of forking it "
         "from a fork server that imported them once; each planner is its own process either way",
     )
-    p.set_defaults(func=run)
 
 
 def _sig(x: float | None, unit: str = " m") -> str:
@@ -130,12 +145,13 @@ def summary_line(summary: dict[str, Any], out: Path, stream: Any = None) -> str:
     return text
 
 
-def run(args: argparse.Namespace) -> int:
-    """Validate, launch, report."""
-    from tqdm import tqdm
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The mission overrides of ``--set``, ``--steps``, ``--seed`` and ``--criterion``.
 
-    from missions.launcher import check_results_dir, launch, unique_results_dir
-    from missions.loader import load_mission, parse_overrides
+    Raises:
+        UsageError: a malformed ``--set``, or ``--steps``/``--seed`` out of range.
+    """
+    from missions.loader import parse_overrides
 
     overrides = parse_overrides(args.overrides)
     for name in ("steps", "seed"):
@@ -146,6 +162,15 @@ def run(args: argparse.Namespace) -> int:
             overrides[name] = value
     if args.criterion:
         overrides["criterion"] = args.criterion
+    return overrides
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse options that do not go together or are out of range (before anything starts).
+
+    Raises:
+        UsageError: naming the option and why.
+    """
     if args.realtime and args.on_failure == "restart":
         raise UsageError("--on-failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     for name in ("speedup", "start_delay"):
@@ -168,12 +193,44 @@ def run(args: argparse.Namespace) -> int:
         require_rerun()
     elif args.view_port is not None:
         raise UsageError("--view-port: only with --view")
-    mission = load_mission(args.mission, overrides)
+
+
+def _results_dir(args: argparse.Namespace, mission_id: str) -> Path:
+    """``--out`` (checked: no previous run unless ``--overwrite``), or a new
+    ``results/<mission id>-<date>-<time>``."""
+    from missions.rundir import check_results_dir, unique_results_dir
+
     if args.out is None:
-        out = unique_results_dir(Path("results"), f"{mission.id}-{time.strftime('%Y%m%d-%H%M%S')}")
-    else:
-        out = args.out
-        check_results_dir(out, args.overwrite)  # before anything shows; the launcher claims it
+        return unique_results_dir(Path("results"), f"{mission_id}-{time.strftime('%Y%m%d-%H%M%S')}")
+    check_results_dir(args.out, args.overwrite)  # before anything shows; the launcher claims it
+    return Path(args.out)
+
+
+def _report(summary: dict[str, Any], out: Path) -> int:
+    """Print the summary and the failures; the exit status (3: completed with failures)."""
+    print(summary_line(summary, out, sys.stdout))
+    for f in summary["failures"]:
+        print(
+            f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}",
+            file=sys.stderr,
+        )
+    if summary["failures"]:
+        print(f"the mission completed with {len(summary['failures'])} failure(s): see {out / 'summary.json'}", file=sys.stderr)
+        return 3
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validate, launch, report."""
+    from tqdm import tqdm
+
+    from missions.launcher import launch
+    from missions.loader import load_mission
+
+    overrides = _overrides(args)
+    _check_options(args)
+    mission = load_mission(args.mission, overrides)
+    out = _results_dir(args, mission.id)
     bar = tqdm(total=mission.steps, unit="step", desc=f"launch {mission.id}", file=sys.stderr, disable=None)
 
     def progress(k: int, peb: float, err: float, alive: int) -> None:
@@ -203,13 +260,4 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         bar.close()
-    print(summary_line(summary, out, sys.stdout))
-    for f in summary["failures"]:
-        print(
-            f"failure: {f['process']} (drones {f['drones']}) at step {f['step']}, status {f['status']}: {f['reason']} -> {f['action']}",
-            file=sys.stderr,
-        )
-    if summary["failures"]:
-        print(f"the mission completed with {len(summary['failures'])} failure(s): see {out / 'summary.json'}", file=sys.stderr)
-        return 3
-    return 0
+    return _report(summary, out)

@@ -103,18 +103,12 @@ def build_payload(mission: Any, uav: int) -> Any:
     return Payload(world, uav - 1, sysid=uav, ranging=ranging, bearing=bearing)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
-    from comms.geodesy import MissionFrame
-    from comms.mavlink_client import MSG_GLOBAL_POSITION_INT, LinkError, VehicleLink, read_signing_key
-    from missions.forkspawn import watch_launcher
-    from missions.loader import load_mission, parse_overrides
-    from missions.process_args import setup_logging, zenoh_settings
-    from vehicle_sim.bridge import ZenohBridge
+def _check_options(args: argparse.Namespace, mission: Any) -> None:
+    """Refuse a drone id out of the mission, or a non-positive speed-up, timeout or duration.
 
-    setup_logging(args.log_level, f"payload[{args.uav}]")
-    watch_launcher()  # started by fimnav launch: stop when the launcher dies
-    mission = load_mission(args.mission, parse_overrides(args.overrides))
+    Raises:
+        UsageError: naming the option, what was expected and what was found.
+    """
     n = mission.drones.count
     if not 1 <= args.uav <= n:
         raise UsageError(f"--uav: expected a drone id in 1..{n}, found {args.uav}")
@@ -124,6 +118,95 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {v}")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration: expected a positive number of seconds, found {args.duration}")
+
+
+def _open_link(args: argparse.Namespace, mission: Any, conn: str, sysid: int, key: bytes | None) -> Any:
+    """The payload's own MAVLink link to the autopilot ``sysid`` at ``conn``: global frame
+    (the autopilot's position converted to the mission frame), our own component id.
+
+    Raises:
+        UsageError: the connection cannot be opened.
+    """
+    from comms.geodesy import MissionFrame
+    from comms.mavlink_client import LinkError, VehicleLink
+
+    resolved = mission.vehicles.for_drone(args.uav - 1)
+    try:
+        return VehicleLink(
+            conn,
+            sysid,
+            signing_key=key,
+            frame="global",
+            mission_frame=MissionFrame.of_mission(mission),
+            altitude_reference=mission.altitude_reference,
+            flavour=None if resolved.autopilot == "auto" else resolved.autopilot,
+            connect_timeout_s=args.connect_timeout,
+            source_component=PAYLOAD_COMPONENT,
+        )
+    except LinkError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _request_position(link: Any, sysid: int, conn: str, mission: Any, uav: int) -> None:
+    """Ask the autopilot for GLOBAL_POSITION_INT at 10 Hz (on its first heartbeat, and again
+    after a loss: the autopilot may have rebooted)."""
+    from comms.mavlink_client import MSG_GLOBAL_POSITION_INT, LinkError
+
+    try:
+        for note in link.request_streams({MSG_GLOBAL_POSITION_INT: 10.0}):
+            log.info("%s", note)
+    except LinkError as exc:
+        log.warning("position stream: %s", exc)
+    log.info(
+        "following system %d (autopilot %s) on %s; measurements on fimnav/%s/measurement/%d every %g s of mission time",
+        sysid,
+        link.flavour,
+        conn,
+        mission.id,
+        uav,
+        mission.dt_s,
+    )
+
+
+def _follow(link: Any, args: argparse.Namespace, mission: Any, conn: str, sysid: int, stop: threading.Event) -> int:
+    """Pump the link until ``stop``: the position stream requested while the autopilot is
+    heard, whether the position is fresh enough to measure at logged. Exit status: 0, or 1
+    when no heartbeat came within ``--connect-timeout``."""
+    deadline = link.wall() + args.connect_timeout
+    streaming = following = False
+    while not stop.is_set():
+        link.pump(0.1)
+        if link.telemetry.heartbeats == 0:
+            if link.wall() > deadline:
+                log.error("no heartbeat from system %d on %s within %g s", sysid, conn, args.connect_timeout)
+                return 1
+            continue
+        if link.lost and streaming:
+            streaming = False
+            log.warning("autopilot link lost (no heartbeat for %.1f s): no measurements until it returns", link.link_age_s())
+        if not streaming and not link.lost:
+            _request_position(link, sysid, conn, mission, args.uav)
+            streaming = True
+        fresh = link.telemetry.position_enu_m is not None and link.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
+        if fresh != following:
+            following = fresh
+            log.info("%s", "position fresh: measuring" if fresh else "no fresh position: not measuring")
+    log.info("stopped")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
+    from comms.mavlink_client import read_signing_key
+    from missions.forkspawn import watch_launcher
+    from missions.loader import load_mission, parse_overrides
+    from missions.process_args import setup_logging, zenoh_settings
+    from vehicle_sim.bridge import ZenohBridge
+
+    setup_logging(args.log_level, f"payload[{args.uav}]")
+    watch_launcher()  # started by fimnav launch: stop when the launcher dies
+    mission = load_mission(args.mission, parse_overrides(args.overrides))
+    _check_options(args, mission)
     resolved = mission.vehicles.for_drone(args.uav - 1)
     conn = args.mavlink or resolved.payload_connection
     if conn is None:
@@ -139,73 +222,22 @@ def run(args: argparse.Namespace) -> int:
         timer.daemon = True
         timer.start()
     sysid = args.sysid or args.uav
-    try:
-        link = VehicleLink(
-            conn,
-            sysid,
-            signing_key=key,
-            frame="global",
-            mission_frame=MissionFrame.of_mission(mission),
-            altitude_reference=mission.altitude_reference,
-            flavour=None if resolved.autopilot == "auto" else resolved.autopilot,
-            connect_timeout_s=args.connect_timeout,
-            source_component=PAYLOAD_COMPONENT,
-        )
-    except LinkError as exc:
-        raise UsageError(str(exc)) from None
+    link = _open_link(args, mission, conn, sysid, key)
     drone = FollowedDrone(args.uav, build_payload(mission, args.uav), link)
-    bridge = ZenohBridge(mission.id, n, mission.dt_s, None, [drone], settings)
+    bridge = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, [drone], settings)
     try:
-        print(
-            json.dumps(
-                {
-                    "event": "ready",
-                    "pid": os.getpid(),
-                    "uav": args.uav,
-                    "mavlink": conn,
-                    "sysid": sysid,
-                    "key": f"fimnav/{mission.id}/measurement/{args.uav}",
-                    "clock": f"realtime x{args.speedup:g}",
-                }
-            ),
-            flush=True,
-        )
+        ready = {
+            "event": "ready",
+            "pid": os.getpid(),
+            "uav": args.uav,
+            "mavlink": conn,
+            "sysid": sysid,
+            "key": f"fimnav/{mission.id}/measurement/{args.uav}",
+            "clock": f"realtime x{args.speedup:g}",
+        }
+        print(json.dumps(ready), flush=True)
         bridge.start_realtime([drone], args.speedup)
-        deadline = link.wall() + args.connect_timeout
-        streaming = following = False
-        while not stop.is_set():
-            link.pump(0.1)
-            if link.telemetry.heartbeats == 0:
-                if link.wall() > deadline:
-                    log.error("no heartbeat from system %d on %s within %g s", sysid, conn, args.connect_timeout)
-                    return 1
-                continue
-            if link.lost and streaming:
-                streaming = False
-                log.warning("autopilot link lost (no heartbeat for %.1f s): no measurements until it returns", link.link_age_s())
-            if not streaming and not link.lost:
-                # On its first heartbeat, and again after a loss (the autopilot may have rebooted).
-                try:
-                    for note in link.request_streams({MSG_GLOBAL_POSITION_INT: 10.0}):
-                        log.info("%s", note)
-                except LinkError as exc:
-                    log.warning("position stream: %s", exc)
-                streaming = True
-                log.info(
-                    "following system %d (autopilot %s) on %s; measurements on fimnav/%s/measurement/%d every %g s of mission time",
-                    sysid,
-                    link.flavour,
-                    conn,
-                    mission.id,
-                    args.uav,
-                    mission.dt_s,
-                )
-            fresh = link.telemetry.position_enu_m is not None and link.wall() - link.telemetry.position_wall_s <= POSITION_MAX_AGE_S
-            if fresh != following:
-                following = fresh
-                log.info("%s", "position fresh: measuring" if fresh else "no fresh position: not measuring")
-        log.info("stopped")
-        return 0
+        return _follow(link, args, mission, conn, sysid, stop)
     finally:
         bridge.close()
         link.close()

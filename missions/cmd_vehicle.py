@@ -160,16 +160,12 @@ def _connection_for(args: argparse.Namespace, i: int, sysid: int) -> str:
     return f"{kind}:{host}:{port}"
 
 
-def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[Any, Any]]:
-    """(VehicleConfig, Payload | None) of every hosted vehicle from the options (and mission).
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse vehicle options out of range (system ids, rates, the ready delay).
 
-    Drone ``i`` (0-based) of the mission has system id ``i + 1``.
+    Raises:
+        UsageError: naming the option, what was expected and what was found.
     """
-    from missions.process_args import payload_world
-    from planner.geometry import vec3
-    from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
-    from vehicle_sim.payload import Payload, roles_to_flags
-
     if args.count < 1:
         raise UsageError(f"--count: expected >= 1, found {args.count}")
     if not 1 <= args.sysid <= 255 or args.sysid + args.count - 1 > 255:
@@ -186,6 +182,18 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         raise UsageError("--ready-after: needs the real-time clock (in lockstep, sim time only advances once the planners fly)")
     if args.ready_after > 0 and args.airborne:
         raise UsageError("--ready-after: a vehicle booting --airborne is ready at boot")
+
+
+def _fleet_settings(args: argparse.Namespace, mission: Any | None) -> tuple[tuple[float, float, float] | None, dict[str, Any]]:
+    """(``--start`` or None, the :class:`VehicleConfig` fields every hosted vehicle shares): the
+    options, with the mission's origin and geofence (altitude limits, fence box) where the
+    options do not set them.
+
+    Raises:
+        UsageError: a malformed option, or an origin, limit or geofence the vehicle refuses.
+    """
+    from vehicle_sim.config import Geofence, Origin, VehicleLimits
+
     boot_params = _params(args.param)
     start = _xyz(args.start, "--start")
     wind = _xyz(args.wind, "--wind") or (0.0, 0.0, 0.0)
@@ -224,68 +232,179 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         fence = Geofence(**fence_kw, enabled=not args.no_fence, action=args.fence_action)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    shared = {
+        "airborne": args.airborne,
+        "ground_z_m": 0.0,
+        "origin": origin,
+        "limits": limits,
+        "geofence": fence,
+        "guided_timeout_s": args.guided_timeout,
+        "physics_hz": args.physics_hz,
+        "lag_s": args.lag,
+        "wind_enu_mps": wind,
+        "position_noise_m": args.noise,
+        "ready_after_s": args.ready_after,
+        "ekf_status_hz": args.ekf_status_hz,
+        "params": boot_params,
+    }
+    return start, shared
 
-    out: list[tuple[Any, Any]] = []
+
+def _tlog_of(args: argparse.Namespace, sysid: int) -> str | None:
+    """The .tlog path of vehicle ``sysid`` (``--tlog`` with ``{sysid}`` replaced), or None.
+
+    Raises:
+        UsageError: several vehicles and a path without ``{sysid}``.
+    """
+    tlog = args.tlog.replace("{sysid}", str(sysid)) if args.tlog else None
+    if tlog is not None and args.count > 1 and "{sysid}" not in args.tlog:
+        raise UsageError("--tlog: with --count > 1 the path must contain '{sysid}'")
+    return str(tlog) if tlog is not None else None
+
+
+def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[Any, Any]]:
+    """(VehicleConfig, Payload | None) of every hosted vehicle from the options (and mission).
+
+    Drone ``i`` (0-based) of the mission has system id ``i + 1``; its vehicle is the mission's
+    (:meth:`missions.schema.Mission.vehicle_config`) with the options' settings, its payload
+    the mission's simulated payload.
+    """
+    from missions.process_args import payload_world
+    from vehicle_sim.config import VehicleConfig
+    from vehicle_sim.payload import Payload, roles_to_flags
+
+    _check_options(args)
+    start, shared = _fleet_settings(args, mission)
     world = None
-    starts = None
     if mission is not None:
         n = mission.drones.count
         last = args.sysid + args.count - 1
         if last > n:
             raise UsageError(f"--sysid/--count: the mission has {n} drones (system ids 1..{n}), asked up to {last}")
-        starts = mission.drones.start_positions_m()
         world = payload_world(mission)
+    out: list[tuple[Any, Any]] = []
     for i in range(args.count):
         sysid = args.sysid + i
         drone = sysid - 1
-        flavour = args.flavour
-        profile = args.profile
-        key = args.signing_key
         payload = None
-        if mission is not None and starts is not None and world is not None:
-            pos = vec3(starts[drone]) if start is None else start
-            resolved = mission.vehicles.for_drone(drone)
-            flavour = flavour or resolved.flavour
-            profile = profile or resolved.profile
-            if key is None and resolved.signing_key_file is not None:
-                key = str(resolved.signing_key_file)
+        if mission is not None and world is not None:
             ranging, bearing = roles_to_flags(mission.drones.roles[drone])
             payload = Payload(world, drone, sysid=sysid, ranging=ranging, bearing=bearing)
-            seed = int(mission.seed) if args.seed is None else args.seed
-        else:
-            base = start or (0.0, 0.0, 0.0)
-            pos = (base[0] + i * args.spacing, base[1], base[2])
-            seed = 0 if args.seed is None else args.seed
-        tlog = args.tlog.replace("{sysid}", str(sysid)) if args.tlog else None
-        if tlog is not None and args.count > 1 and "{sysid}" not in args.tlog:
-            raise UsageError("--tlog: with --count > 1 the path must contain '{sysid}'")
+        tlog = _tlog_of(args, sysid)
         try:
-            cfg = VehicleConfig(
-                sysid=sysid,
-                flavour=flavour or "ardupilot",
-                start_enu_m=pos,
-                airborne=args.airborne,
-                ground_z_m=0.0,
-                origin=origin,
-                limits=limits,
-                geofence=fence,
-                guided_timeout_s=args.guided_timeout,
-                physics_hz=args.physics_hz,
-                profile=profile or "pointmass",
-                lag_s=args.lag,
-                wind_enu_mps=wind,
-                position_noise_m=args.noise,
-                seed=seed,
-                signing_key_path=key,
-                tlog_path=tlog,
-                ready_after_s=args.ready_after,
-                ekf_status_hz=args.ekf_status_hz,
-                params=boot_params,
-            )
+            if mission is not None:
+                given = {
+                    "start_enu_m": start,
+                    "flavour": args.flavour,
+                    "profile": args.profile,
+                    "signing_key_path": args.signing_key,
+                    "seed": args.seed,
+                }
+                options = {name: value for name, value in given.items() if value is not None}
+                cfg = mission.vehicle_config(drone, **shared, **options, tlog_path=tlog)
+            else:
+                base = start or (0.0, 0.0, 0.0)
+                cfg = VehicleConfig(
+                    sysid=sysid,
+                    flavour=args.flavour or "ardupilot",
+                    start_enu_m=(base[0] + i * args.spacing, base[1], base[2]),
+                    profile=args.profile or "pointmass",
+                    seed=0 if args.seed is None else args.seed,
+                    signing_key_path=args.signing_key,
+                    tlog_path=tlog,
+                    **shared,
+                )
         except ValueError as exc:
             raise UsageError(f"vehicle {sysid}: {exc}") from None
         out.append((cfg, payload))
     return out
+
+
+def _build_vehicles(args: argparse.Namespace, configs: list[tuple[Any, Any]], vehicles: list[Any]) -> None:
+    """Build every configured vehicle on its MAVLink connection, appended to ``vehicles`` as it
+    is built (those already built are closed by the caller if a later one fails).
+
+    Raises:
+        UsageError: a connection option or a ``--param`` the vehicle refuses.
+    """
+    from vehicle_sim.host import build_vehicle
+
+    for i, (cfg, payload) in enumerate(configs):
+        conn = _connection_for(args, i, cfg.sysid)
+        try:
+            vehicles.append(build_vehicle(cfg, conn, payload=payload))
+        except ValueError as exc:  # a --param the vehicle refuses
+            raise UsageError(f"vehicle {cfg.sysid}: {exc}") from None
+
+
+def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: list[Any]) -> tuple[Any, Any, Any, dict[str, Any]]:
+    """Lockstep: (clock, tick source, its per-tick hook or None, what the ready line says of
+    Zenoh). A mission run gets fimnav's clock protocol and the payload topics; without a
+    mission, ticks only.
+
+    Raises:
+        UsageError: no mission id, or the Zenoh session cannot be opened.
+    """
+    from vehicle_sim.clock import LockstepClock, ZenohTickSource, tick_key
+
+    mission_id = args.mission_id or (mission.id if mission is not None else None)
+    if not mission_id:
+        raise UsageError("--lockstep needs --mission or --mission-id (the tick key is fimnav/<id>/clock/tick)")
+    clock = LockstepClock()
+    listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
+    on_tick = None
+    try:
+        if mission is not None:
+            # A mission run: fimnav's clock protocol and the payload topics.
+            from vehicle_sim.bridge import ZenohBridge
+
+            source: Any = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, _bridge_settings(args, mission, listen))
+            on_tick = source.on_tick
+        else:
+            source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
+    except Exception as exc:  # zenoh raises its own error type for bad endpoints
+        raise UsageError(f"zenoh: cannot open the session ({exc})") from None
+    return clock, source, on_tick, {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
+
+
+def _realtime_bridge(args: argparse.Namespace, mission: Any, vehicles: list[Any]) -> tuple[Any, dict[str, Any]]:
+    """Real time with Zenoh: the bridge through which the payloads publish their measurements
+    (fimnav launch --realtime; presence tokens as in lockstep), not started yet, and what the
+    ready line says of Zenoh.
+
+    Raises:
+        UsageError: the Zenoh session cannot be opened.
+    """
+    from vehicle_sim.bridge import ZenohBridge
+
+    listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
+    try:
+        source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, vehicles, _bridge_settings(args, mission, listen))
+    except Exception as exc:  # zenoh raises its own error type for bad endpoints
+        raise UsageError(f"zenoh: cannot open the session ({exc})") from None
+    return source, {"listen": listen, "connect": args.zenoh_connect, "payload": "realtime"}
+
+
+def _serve(host: Any, duration_s: float | None) -> None:
+    """Run the host until SIGINT/SIGTERM or ``duration_s`` wall seconds."""
+
+    def _term(_sig: int, _frame: Any) -> None:
+        host.stop()
+
+    # SIGINT and SIGTERM both stop the vehicles cleanly (links closed, tlogs flushed), set
+    # explicitly: a process started from a script's background job inherits SIGINT ignored.
+    old = {sig: signal.signal(sig, _term) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        timer = threading.Timer(duration_s, host.stop) if duration_s is not None else None
+        if timer is not None:
+            timer.daemon = True
+            timer.start()
+        host.run()
+        if timer is not None:
+            timer.cancel()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def run_vehicle(args: argparse.Namespace) -> int:
@@ -304,53 +423,23 @@ def run_vehicle(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration: expected a positive number of seconds, found {args.duration}")
 
-    from vehicle_sim.clock import LockstepClock, RealTimeClock, ZenohTickSource, tick_key
-    from vehicle_sim.host import VehicleHost, build_vehicle
+    from vehicle_sim.clock import RealTimeClock
+    from vehicle_sim.host import VehicleHost
 
-    vehicles = []
+    vehicles: list[Any] = []
     source: Any = None
     on_tick = None
     try:
-        for i, (cfg, payload) in enumerate(configs):
-            conn = _connection_for(args, i, cfg.sysid)
-            try:
-                vehicles.append(build_vehicle(cfg, conn, payload=payload))
-            except ValueError as exc:  # a --param the vehicle refuses
-                raise UsageError(f"vehicle {cfg.sysid}: {exc}") from None
+        _build_vehicles(args, configs, vehicles)
         clock: Any
         zenoh_info: dict[str, Any] = {}
         if args.lockstep:
-            mission_id = args.mission_id or (mission.id if mission is not None else None)
-            if not mission_id:
-                raise UsageError("--lockstep needs --mission or --mission-id (the tick key is fimnav/<id>/clock/tick)")
-            clock = LockstepClock()
-            listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
-            try:
-                if mission is not None:
-                    # A mission run: fimnav's clock protocol and the payload topics.
-                    from vehicle_sim.bridge import ZenohBridge
-
-                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, _bridge_settings(args, mission, listen))
-                    on_tick = source.on_tick
-                else:
-                    source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
-            except Exception as exc:  # zenoh raises its own error type for bad endpoints
-                raise UsageError(f"zenoh: cannot open the session ({exc})") from None
-            zenoh_info = {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
+            clock, source, on_tick, zenoh_info = _lockstep_source(args, mission, vehicles)
         else:
             clock = RealTimeClock(args.speedup)
             if mission is not None and (args.zenoh_connect or args.zenoh_listen):
-                # Real time with Zenoh: the payloads publish their measurements (fimnav launch
-                # --realtime); presence tokens as in lockstep.
-                from vehicle_sim.bridge import ZenohBridge
-
-                listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
-                try:
-                    source = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, None, vehicles, _bridge_settings(args, mission, listen))
-                except Exception as exc:  # zenoh raises its own error type for bad endpoints
-                    raise UsageError(f"zenoh: cannot open the session ({exc})") from None
+                source, zenoh_info = _realtime_bridge(args, mission, vehicles)
                 source.start_realtime(vehicles, args.speedup)
-                zenoh_info = {"listen": listen, "connect": args.zenoh_connect, "payload": "realtime"}
         host = VehicleHost(vehicles, clock, on_tick=on_tick)
         ready = {
             "event": "ready",
@@ -361,24 +450,7 @@ def run_vehicle(args: argparse.Namespace) -> int:
             **zenoh_info,
         }
         print(json.dumps(ready), flush=True)
-
-        def _term(_sig: int, _frame: Any) -> None:
-            host.stop()
-
-        # SIGINT and SIGTERM both stop the vehicles cleanly (links closed, tlogs flushed), set
-        # explicitly: a process started from a script's background job inherits SIGINT ignored.
-        old = {sig: signal.signal(sig, _term) for sig in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            timer = threading.Timer(args.duration, host.stop) if args.duration is not None else None
-            if timer is not None:
-                timer.daemon = True
-                timer.start()
-            host.run()
-            if timer is not None:
-                timer.cancel()
-        finally:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
+        _serve(host, args.duration)
     finally:
         if source is not None:
             source.close()

@@ -458,13 +458,45 @@ def _annotate_ends(fig: Any, ax: Any, curves: Sequence[_Curve], colours: dict[st
 # Trajectories: the paper's Fig. 2
 
 
+def _trajectories_legend(m: Any, last_k: int, moving: bool, d_s: float) -> list[Any]:
+    """The legend of :func:`make_trajectories_figure`: a line per sensing role flown, start and
+    end markers (``last_k``: the last step), the source (a track when ``moving``), its keep-out
+    circle (radius ``d_s`` m, if any) and the buildings."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    roles = list(m.drones.roles)
+    handles: list[Any] = [
+        Line2D([], [], ls="--", marker="s", color=ROLE_COLOURS[role], label=f"{role} drones ({roles.count(role)}), path dashed")
+        for role in ROLE_COLOURS
+        if role in roles
+    ]
+    handles += [
+        Line2D([], [], ls="", marker="s", markersize=6, markerfacecolor="white", markeredgecolor="0.2", label="start, k = 0"),
+        Line2D([], [], ls="", marker="s", markersize=6, color="0.5", markeredgecolor="k", label=f"end, k = {last_k}"),
+        Line2D(
+            [],
+            [],
+            ls="-" if moving else "",
+            marker="^",
+            markersize=8,
+            color=SOURCE_COLOUR,
+            label="source (track; triangle: last position)" if moving else "source (true position)",
+        ),
+    ]
+    if d_s > 0:
+        handles.append(Line2D([], [], ls=":", color=SOURCE_COLOUR, label=f"source keep-out $d_S^*$ = {d_s:g} m (top view)"))
+    if m.obstacles:
+        handles.append(Patch(facecolor="0.6", edgecolor="0.35", alpha=0.5, label=f"building ({len(m.obstacles)})"))
+    return handles
+
+
 def make_trajectories_figure(result: SimulationResult, trial: int = 0) -> Any:
     """3-D trajectories of one trial (the paper's Fig. 2) beside a top view with the source's
     keep-out circle: buildings grey, the source a blue triangle, each drone's path dashed in its
     sensing role's colour, an open square at k = 0 and a filled square at the last step."""
     plt = _pyplot()
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Circle, Patch, Rectangle
+    from matplotlib.patches import Circle, Rectangle
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     m = result.spec.mission
@@ -518,29 +550,7 @@ def make_trajectories_figure(result: SimulationResult, trial: int = 0) -> Any:
     mode = "distributed run (fimnav launch)" if _distributed(result) else f"trial {trial} of {result.spec.trials}"
     fig.suptitle(f"Trajectories: {m.id} ({_roles_text(result)}), {crit}, {rule}\n{mode}, steps k = 0…{last_k}", fontsize=11)
 
-    roles = list(m.drones.roles)
-    handles: list[Any] = [
-        Line2D([], [], ls="--", marker="s", color=ROLE_COLOURS[role], label=f"{role} drones ({roles.count(role)}), path dashed")
-        for role in ROLE_COLOURS
-        if role in roles
-    ]
-    handles += [
-        Line2D([], [], ls="", marker="s", markersize=6, markerfacecolor="white", markeredgecolor="0.2", label="start, k = 0"),
-        Line2D([], [], ls="", marker="s", markersize=6, color="0.5", markeredgecolor="k", label=f"end, k = {last_k}"),
-        Line2D(
-            [],
-            [],
-            ls="-" if moving else "",
-            marker="^",
-            markersize=8,
-            color=SOURCE_COLOUR,
-            label="source (track; triangle: last position)" if moving else "source (true position)",
-        ),
-    ]
-    if d_s > 0:
-        handles.append(Line2D([], [], ls=":", color=SOURCE_COLOUR, label=f"source keep-out $d_S^*$ = {d_s:g} m (top view)"))
-    if m.obstacles:
-        handles.append(Patch(facecolor="0.6", edgecolor="0.35", alpha=0.5, label=f"building ({len(m.obstacles)})"))
+    handles = _trajectories_legend(m, last_k, moving, d_s)
     fig.legend(handles=handles, loc="outside lower center", ncol=min(4, len(handles)), fontsize=8.5)
     return fig
 

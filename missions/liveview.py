@@ -152,7 +152,7 @@ class ViewServer:
     (Linux); :meth:`close` stops it. Its output goes to ``log_path`` (default: discarded)."""
 
     def __init__(self, web_port: int | None = None, grpc_port: int | None = None, rrds: Sequence[Path] = (), log_path: Path | None = None) -> None:
-        from missions.launcher import free_port
+        from missions.supervisor import free_port
 
         self.web_port = web_port or free_port()
         self.grpc_port = grpc_port or free_port()

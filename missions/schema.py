@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,9 @@ from comms.faults import FaultModel
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+
+if TYPE_CHECKING:  # pragma: no cover - types only
+    from vehicle_sim.config import VehicleConfig
 
 #: Version of the mission format written by :func:`missions.loader.mission_to_yaml`.
 SCHEMA_VERSION: int = 1
@@ -709,6 +712,40 @@ class Mission(_Section):
             xi=self.controller.xi,
             perturbation_rad=self.controller.random_perturbation_rad,
         )
+
+    def vehicle_config(self, drone: int, **overrides: Any) -> VehicleConfig:
+        """The simulated vehicle of drone ``drone`` (0-based; MAVLink system id ``drone + 1``)
+        as this mission sets it up (:class:`vehicle_sim.config.VehicleConfig`): its start
+        position (m, ENU), the mission's origin, a geofence at the mission's altitude limits
+        (``constraints.z_min_m``/``z_max_m``) and fence box (m), its flavour, dynamics profile
+        and signing key (``vehicles``), and the mission's seed. ``overrides``: other
+        :class:`VehicleConfig` fields, or any of these given otherwise (e.g. on the command
+        line), which win.
+
+        Raises:
+            ValueError: the vehicle config refuses a value.
+        """
+        from planner.geometry import vec3
+        from vehicle_sim.config import Geofence, Origin, VehicleConfig
+
+        resolved = self.vehicles.for_drone(drone)
+        fields: dict[str, Any] = {
+            "sysid": drone + 1,
+            "flavour": resolved.flavour,
+            "profile": resolved.profile,
+            "start_enu_m": vec3(self.drones.start_positions_m()[drone]),
+            "signing_key_path": str(resolved.signing_key_file) if resolved.signing_key_file is not None else None,
+            "seed": int(self.seed),
+        }
+        if "origin" not in overrides:
+            fields["origin"] = Origin(self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m)
+        if "geofence" not in overrides:
+            c, f = self.constraints, self.fence
+            fields["geofence"] = Geofence(
+                z_min_m=c.z_min_m, z_max_m=c.z_max_m, x_min_m=f.x_min_m, x_max_m=f.x_max_m, y_min_m=f.y_min_m, y_max_m=f.y_max_m
+            )
+        fields.update(overrides)
+        return VehicleConfig(**fields)
 
     def obstacle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Obstacle corners (mins, maxs), each shape (B, 3), metres ENU; B may be 0."""

@@ -34,6 +34,7 @@ from comms.faults import FaultBuffer
 from missions.schema import Faults, Mission
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, PlanView, own_range_lower_bound_m, plan
+from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
@@ -191,6 +192,198 @@ class SimStep:
     view_los: NDArray[np.bool_]
 
 
+@dataclass(frozen=True)
+class _View:
+    """Every drone's delayed view at one step (M trials, N drones).
+
+    Attributes:
+        cut: (N, N) links cut by a partition at this step, or None.
+        hops: (M, N, N) hop counts on the disk graph of the current positions.
+        saved: (M, N, N) step of drone i's record of drone j (−1: none).
+        have: (M, N, N) drone i holds a record of drone j.
+        positions_m: (M, N, N, 3) the positions of those records (m, ENU). los: (M, N, N).
+    """
+
+    cut: NDArray[np.bool_] | None
+    hops: NDArray[np.int64]
+    saved: NDArray[np.int64]
+    have: NDArray[np.bool_]
+    positions_m: FloatArray
+    los: NDArray[np.bool_]
+
+
+class _Simulation:
+    """The state of :func:`simulate` between steps: the drones' positions, records, views,
+    estimators, and the arrays of the result (see :func:`simulate` for the arguments)."""
+
+    def __init__(self, spec: RunSpec, estimator_config: est.EstimatorConfig | None, oracle_estimate: bool, float32_positions: bool) -> None:
+        mission = spec.mission
+        M, K = spec.trials, spec.steps
+        N = mission.drones.count
+        self.spec = spec
+        self.config = config = mission.planner_config(spec.criterion)
+        self.channel = config.channel
+        self.bmin, self.bmax = config.boxes_min_m, config.boxes_max_m
+        self.ranging, self.bearing = config.ranging, config.bearing
+        self.comms = comms = mission.comms
+        self.estimator_config = config.estimator if estimator_config is None else estimator_config
+        self.oracle_estimate = oracle_estimate
+        self.float32_positions = float32_positions
+
+        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
+        self.ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
+
+        # Every drone's start position (the mission's; the planning step keeps clear of a peer not
+        # heard of yet there, planner.agent.plan).
+        pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
+        if float32_positions:
+            pos = pos.astype(np.float32).astype(np.float64)
+        self.pos = pos
+        self.prev_step = np.zeros((M, N, 3))
+        self.positions = np.empty((K + 1, M, N, 3))
+        self.positions[0] = pos
+        self.rec_range = np.full((K, M, N), np.nan)
+        self.rec_az = np.full((K, M, N), np.nan)
+        self.rec_el = np.full((K, M, N), np.nan)
+        self.rec_los = np.zeros((K, M, N), dtype=bool)
+        self.saved = np.full((M, N, N), -1, dtype=np.int64)
+        fault_model = comms.faults.to_model()
+        # A partition: drones 1..ceil(N/2) and the rest exchange nothing while it lasts; each drone
+        # knows it has lost them (as a planner node sees their planners leave the liveliness view).
+        self.partition = comms.faults.partition
+        half = np.arange(N) < (N + 1) // 2
+        self.partition_links = half[:, None] != half[None, :]
+        # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
+        self.faults = FaultBuffer(fault_model, mission.seed, range(M), range(N), N, comms.h_max) if fault_model is not None else None
+        self.used = np.full((M, N, N), -1, dtype=np.int64)
+        self.state = est.initial_state((M, N), self.estimator_config)
+        self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
+        self.rng_view = np.broadcast_to(self.ranging, (M, N, N))
+        self.brg_view = np.broadcast_to(self.bearing, (M, N, N))
+
+        self.estimates = np.empty((K, M, N, 3))
+        self.est_err = np.empty((K, M, N))
+        self.observable = np.empty((K, M, N), dtype=bool)
+        self.peb = np.empty((K, M, N))
+        self.sources = np.array([mission.source.position_at(k * mission.dt_s) for k in range(K + 1)])
+        self.active_counts = np.zeros((K, 4), dtype=np.int64)
+        self.fallback = np.empty((K, M, N), dtype=bool)
+        self.filtered = np.empty((K, M, N), dtype=bool)
+        self.ages = np.empty((K, M, N, N), dtype=np.int16)
+
+    def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
+        """Step k of every drone of every trial, in the order of the module doc."""
+        src = self.sources[k]
+        self._record(k, src)
+        view = self._delayed_view(k)
+        self._estimate(k, src, view)
+        step = self._plan(k, src, view)
+        self._accuracy(k, src, view, observer)
+        self._move(k, step)
+
+    def _record(self, k: int, src: FloatArray) -> None:
+        """1. Own record: position, LOS and measurement at step k."""
+        los = line_of_sight(self.pos, src, self.bmin, self.bmax)
+        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k])
+        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
+
+    def _delayed_view(self, k: int) -> _View:
+        """2. Delayed view (hop latency, memory buffer)."""
+        comms, partition = self.comms, self.partition
+        cut = self.partition_links if partition is not None and partition[0] <= k < partition[1] else None
+        hops = hop_counts(self.pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
+        saved = update_saved_steps(self.saved, hops, k, comms.h_max) if self.faults is None else self.faults.update(self.saved, hops, k)
+        self.saved = saved
+        have = saved >= 0
+        self.ages[k] = np.where(have, k - saved, -1)
+        return _View(cut, hops, saved, have, _gather(self.positions, saved), _gather(self.rec_los, saved))
+
+    def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
+        """3. Estimator: records new to each drone."""
+        saved = view.saved
+        new = saved > self.used
+        self.used = saved
+        nan = np.nan
+        meas = est.Measurements(
+            positions_m=np.where(new[..., None], view.positions_m, nan),
+            range_m=np.where(new, _gather(self.rec_range, saved), nan),
+            azimuth_rad=np.where(new, _gather(self.rec_az, saved), nan),
+            elevation_rad=np.where(new, _gather(self.rec_el, saved), nan),
+            los=view.los & new,
+        )
+        if self.faults is not None:
+            meas = _with_late_records(meas, self.faults.late_steps, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los)
+        self.state = est.update(self.state, meas, self.channel, self.estimator_config)
+        self.estimates[k] = self.state.estimate_m
+        self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
+        self.observable[k] = self.state.observable
+
+    def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
+        """4. Planning step from the view (shared with the planner node); returns the step."""
+        # Each drone's own last ranges bound its distance to the source (second keep-out).
+        lo = max(0, k - OWN_RANGE_WINDOW + 1)
+        own_lb = own_range_lower_bound_m(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
+        plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops)
+        planned = plan(
+            self.config,
+            self.pos,
+            self.prev_step,
+            plan_view,
+            self.state,
+            self.ctrl_u[k],
+            step_index=k,
+            oracle_source=src if self.oracle_estimate else None,
+            own_distance_lower_m=own_lb,
+            lost_contact=view.cut,
+            own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
+        )
+        step = planned.step
+        self.fallback[k] = step.singular
+        self.filtered[k] = step.filtered
+        self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
+        return step
+
+    def _accuracy(self, k: int, src: FloatArray, view: _View, observer: Callable[[SimStep], None] | None) -> None:
+        """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
+        J_true = fisher_information(src, view.positions_m, self.rng_view & view.have, self.brg_view & view.have, view.los, self.channel)
+        self.peb[k] = position_error_bound(J_true)[0]
+        if observer is not None:
+            observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
+
+    def _move(self, k: int, step: StepResult) -> None:
+        """The drones fly their steps: positions at step k + 1."""
+        u = step.displacement
+        pos = step.next_position
+        if self.float32_positions:
+            # The vehicle lands on the float32 setpoint; the drone keeps its planned step as
+            # its previous direction, as the planner node does.
+            pos = pos.astype(np.float32).astype(np.float64)
+        self.prev_step = u
+        self.pos = pos
+        self.positions[k + 1] = pos
+
+    def result(self, t0: float) -> SimulationResult:
+        """The :class:`SimulationResult` of the steps run (``t0``: ``time.perf_counter()`` at
+        the start, for the runtime)."""
+        margins = safety_margins(self.positions, self.sources, self.config.limits, self.bmin, self.bmax)
+        return SimulationResult(
+            spec=self.spec,
+            positions_m=self.positions,
+            estimates_m=self.estimates,
+            estimate_error_m=self.est_err,
+            observable=self.observable,
+            peb_m=self.peb,
+            source_m=self.sources,
+            margins_m=margins,
+            active=self.active_counts,
+            singular_fallback=self.fallback,
+            filtered=self.filtered,
+            record_ages=self.ages,
+            runtime_s=time.perf_counter() - t0,
+            extra=_extra(self.oracle_estimate, self.float32_positions, self.faults),
+        )
+
+
 def simulate(
     spec: RunSpec,
     progress: Callable[[int], None] | None = None,
@@ -219,152 +412,12 @@ def simulate(
         The :class:`SimulationResult`.
     """
     t0 = time.perf_counter()
-    mission = spec.mission
-    M, K = spec.trials, spec.steps
-    N = mission.drones.count
-    config = mission.planner_config(spec.criterion)
-    channel = config.channel
-    bmin, bmax = config.boxes_min_m, config.boxes_max_m
-    ranging, bearing = config.ranging, config.bearing
-    comms = mission.comms
-    dt = mission.dt_s
-    if estimator_config is None:
-        estimator_config = config.estimator
-
-    meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
-    ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
-
-    # Every drone's start position (the mission's; the planning step keeps clear of a peer not
-    # heard of yet there, planner.agent.plan).
-    pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
-    if float32_positions:
-        pos = pos.astype(np.float32).astype(np.float64)
-    prev_step = np.zeros((M, N, 3))
-    positions = np.empty((K + 1, M, N, 3))
-    positions[0] = pos
-    rec_range = np.full((K, M, N), np.nan)
-    rec_az = np.full((K, M, N), np.nan)
-    rec_el = np.full((K, M, N), np.nan)
-    rec_los = np.zeros((K, M, N), dtype=bool)
-    saved = np.full((M, N, N), -1, dtype=np.int64)
-    fault_model = comms.faults.to_model()
-    # A partition: drones 1..ceil(N/2) and the rest exchange nothing while it lasts; each drone
-    # knows it has lost them (as a planner node sees their planners leave the liveliness view).
-    partition = comms.faults.partition
-    half = np.arange(N) < (N + 1) // 2
-    partition_links = half[:, None] != half[None, :]
-    # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
-    faults = FaultBuffer(fault_model, mission.seed, range(M), range(N), N, comms.h_max) if fault_model is not None else None
-    used = np.full((M, N, N), -1, dtype=np.int64)
-    state = est.initial_state((M, N), estimator_config)
-    eye = np.eye(N, dtype=bool)
-    eye_b = np.broadcast_to(eye, (M, N, N))
-    rng_view = np.broadcast_to(ranging, (M, N, N))
-    brg_view = np.broadcast_to(bearing, (M, N, N))
-
-    estimates = np.empty((K, M, N, 3))
-    est_err = np.empty((K, M, N))
-    observable = np.empty((K, M, N), dtype=bool)
-    peb = np.empty((K, M, N))
-    sources = np.array([mission.source.position_at(k * dt) for k in range(K + 1)])
-    active_counts = np.zeros((K, 4), dtype=np.int64)
-    fallback = np.empty((K, M, N), dtype=bool)
-    filtered = np.empty((K, M, N), dtype=bool)
-    ages = np.empty((K, M, N, N), dtype=np.int16)
-
-    for k in range(K):
-        src = sources[k]
-        # 1. Own record: position, LOS and measurement at step k.
-        los = line_of_sight(pos, src, bmin, bmax)
-        obs = observe_from_uniforms(src, pos, ranging, bearing, los, channel, meas_u[k])
-        rec_range[k], rec_az[k], rec_el[k], rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
-
-        # 2. Delayed view (hop latency, memory buffer).
-        cut = partition_links if partition is not None and partition[0] <= k < partition[1] else None
-        hops = hop_counts(pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
-        saved = update_saved_steps(saved, hops, k, comms.h_max) if faults is None else faults.update(saved, hops, k)
-        have = saved >= 0
-        ages[k] = np.where(have, k - saved, -1)
-        view_pos = _gather(positions, saved)  # (M, N, N, 3)
-        view_los = _gather(rec_los, saved)
-
-        # 3. Estimator: records new to each drone.
-        new = saved > used
-        used = saved
-        nan = np.nan
-        meas = est.Measurements(
-            positions_m=np.where(new[..., None], view_pos, nan),
-            range_m=np.where(new, _gather(rec_range, saved), nan),
-            azimuth_rad=np.where(new, _gather(rec_az, saved), nan),
-            elevation_rad=np.where(new, _gather(rec_el, saved), nan),
-            los=view_los & new,
-        )
-        if faults is not None:
-            meas = _with_late_records(meas, faults.late_steps, positions, rec_range, rec_az, rec_el, rec_los)
-        state = est.update(state, meas, channel, estimator_config)
-        estimates[k] = state.estimate_m
-        est_err[k] = np.linalg.norm(state.estimate_m - src, axis=-1)
-        observable[k] = state.observable
-
-        # 4. Planning step from the view (shared with the planner node).
-        view_rng = rng_view & have
-        view_brg = brg_view & have
-        # Each drone's own last ranges bound its distance to the source (second keep-out).
-        lo = max(0, k - OWN_RANGE_WINDOW + 1)
-        own_lb = own_range_lower_bound_m(np.moveaxis(rec_range[lo : k + 1], 0, -1), np.moveaxis(rec_los[lo : k + 1], 0, -1), channel)
-        view = PlanView(eye_b, view_pos, have, view_los, np.where(have, k - saved, 0), hops)
-        planned = plan(
-            config,
-            pos,
-            prev_step,
-            view,
-            state,
-            ctrl_u[k],
-            step_index=k,
-            oracle_source=src if oracle_estimate else None,
-            own_distance_lower_m=own_lb,
-            lost_contact=cut,
-            own_then_m=None if cut is None else _own_at(positions, saved),
-        )
-        step = planned.step
-        fallback[k] = step.singular
-        filtered[k] = step.filtered
-        active_counts[k] = step.active.reshape(-1, 4).sum(0)
-
-        # 5. Accuracy at the true source with the positions known to each drone (eq. 18).
-        J_true = fisher_information(src, view_pos, view_rng, view_brg, view_los, channel)
-        peb[k] = position_error_bound(J_true)[0]
-        if observer is not None:
-            observer(SimStep(k, positions[k], state.estimate_m, view_pos, have, view_los))
-
-        u = step.displacement
-        pos = step.next_position
-        if float32_positions:
-            # The vehicle lands on the float32 setpoint; the drone keeps its planned step as
-            # its previous direction, as the planner node does.
-            pos = pos.astype(np.float32).astype(np.float64)
-        prev_step = u
-        positions[k + 1] = pos
+    sim = _Simulation(spec, estimator_config, oracle_estimate, float32_positions)
+    for k in range(spec.steps):
+        sim.step(k, observer)
         if progress is not None:
             progress(1)
-
-    margins = safety_margins(positions, sources, config.limits, bmin, bmax)
-    return SimulationResult(
-        spec=spec,
-        positions_m=positions,
-        estimates_m=estimates,
-        estimate_error_m=est_err,
-        observable=observable,
-        peb_m=peb,
-        source_m=sources,
-        margins_m=margins,
-        active=active_counts,
-        singular_fallback=fallback,
-        filtered=filtered,
-        record_ages=ages,
-        runtime_s=time.perf_counter() - t0,
-        extra=_extra(oracle_estimate, float32_positions, faults),
-    )
+    return sim.result(t0)
 
 
 def _extra(oracle_estimate: bool, float32_positions: bool, faults: FaultBuffer | None) -> dict[str, float]:

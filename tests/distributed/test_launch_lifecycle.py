@@ -29,9 +29,9 @@ from typing import NamedTuple
 
 import pytest
 
-from missions.launcher import _ready_line, claim_results_dir, previous_run, unique_results_dir
 from comms.errors import UsageError
-
+from missions.rundir import claim_results_dir, previous_run, unique_results_dir
+from missions.supervisor import ready_line
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav
@@ -217,8 +217,8 @@ def test_results_directory_rules(tmp_path: Path) -> None:
     # A vehicle's ready line is its own: a line of another process (an older run) is skipped.
     log = tmp_path / "vehicles.log"
     log.write_text('{"event": "ready", "pid": 11, "vehicles": []}\nnoise\n{"event": "ready", "pid": 22, "vehicles": [{"sysid": 1}]}\n')
-    assert _ready_line(log, 22) == {"event": "ready", "pid": 22, "vehicles": [{"sysid": 1}]}
-    assert _ready_line(log, 33) is None
+    assert ready_line(log, 22) == {"event": "ready", "pid": 22, "vehicles": [{"sysid": 1}]}
+    assert ready_line(log, 33) is None
 
 
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
