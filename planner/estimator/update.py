@@ -403,6 +403,20 @@ def _consistency(
     return score_H, score_v, consistency, suspect, fisher
 
 
+def _reported(
+    x_prev: FloatArray, x: FloatArray, fisher: FloatArray, active: BoolArray, config: EstimatorConfig
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """The estimate (..., 3), m, ENU, its information (..., 3, 3), m⁻² (symmetrised; 0 where
+    not initialised) and observability (package doc, step 5): initialised, finite and
+    det J/(tr J/3)³ ≥ ``min_rcond``. A non-finite result keeps the previous estimate ``x_prev``."""
+    fisher = 0.5 * (fisher + np.swapaxes(fisher, -1, -2))
+    finite = np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(fisher), axis=(-1, -2))
+    x = np.where(finite[..., None], x, x_prev)
+    info = np.where((active & finite)[..., None, None], fisher, 0.0)
+    observable = active & finite & (_normalised_det(info) >= config.min_rcond)
+    return x, info, observable
+
+
 def _head(m: Measurements, n: int) -> Measurements:
     """The first ``n`` rows of ``m``."""
     return Measurements(m.positions_m[..., :n, :], m.range_m[..., :n], m.azimuth_rad[..., :n], m.elevation_rad[..., :n], m.los[..., :n])
@@ -517,11 +531,7 @@ def update(
     if n_leave > 0:
         prior, dropped = _marginalise_leaving(refined, start.prior, active, (allm, weight), n_leave, dropped, channel, config)
     score_H, score_v, consistency, suspect, fisher = _consistency(state, refined, start.prior, active, suspect, fisher, config, M)
-    fisher = 0.5 * (fisher + np.swapaxes(fisher, -1, -2))
-    finite = np.all(np.isfinite(refined.x), axis=-1) & np.all(np.isfinite(fisher), axis=(-1, -2))
-    x = np.where(finite[..., None], refined.x, state.estimate_m)
-    info = np.where((active & finite)[..., None, None], fisher, 0.0)
-    observable = active & finite & (_normalised_det(info) >= config.min_rcond)
+    x, info, observable = _reported(state.estimate_m, refined.x, fisher, active, config)
 
     range_window, range_window_weight, pr_A, pr_b = _advance_range_window(
         state, new, new_row_ok, range_weight, pr, x, start.initialised, channel, config
