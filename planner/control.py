@@ -658,6 +658,74 @@ def _active_families(active_all: BoolArray, safe: bool) -> BoolArray:
     return active
 
 
+def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) -> tuple[FloatArray, FloatArray]:
+    """The kinematic envelope's candidate steps (n, C, 3), m, and their tilts (n, C), rad:
+    9 headings × 5 tilts across the allowed turn from the previous step ``prev`` (n, 3) (a full
+    circle of headings, tilts within ±θ_max of level, before the first step) × {v_min, v_max}·Δt."""
+    _, prev_psi, prev_theta = _spherical(prev)
+    fr_h = np.linspace(-1.0, 1.0, 9)
+    fr_t = np.linspace(-1.0, 1.0, 5)
+    speeds = np.array([limits.step_min_m, limits.step_max_m])
+    H, T, S = np.meshgrid(fr_h, fr_t, speeds, indexing="ij")
+    H, T, S = H.ravel(), T.ravel(), S.ravel()
+    psi = np.where(has_prev[:, None], prev_psi[:, None] + H * limits.heading_change_max_rad, np.pi * (H[None, :] + 1.0))
+    th = np.where(
+        has_prev[:, None],
+        np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
+        T * limits.tilt_change_max_rad,
+    )
+    return _cartesian(np.broadcast_to(S, psi.shape), psi, th), th
+
+
+def _relaxation_tiers(
+    p: FloatArray,
+    cand: FloatArray,
+    u: FloatArray,
+    margins: FloatArray,
+    slack: FloatArray,
+    strict: BoolArray,
+    strict_uav: FloatArray,
+    need: FloatArray,
+    hard: _Clearances | None,
+    limits: Limits,
+) -> tuple[list[tuple[BoolArray, FloatArray]], FloatArray]:
+    """The tiers of :func:`_envelope_search`, most demanding first: per tier, which candidates
+    (n, C) pass it and the score (n, C) the pick maximises among them; and the physical margin
+    of the exactly known clearances (n, C), m, the last resort's score. ``margins`` (n, C, 4)
+    per family, the peers' against ``loose``; ``slack`` = margins − need; ``strict`` the
+    candidates passing every strict requirement and ``strict_uav`` their strict peer slack."""
+    # The peers' reachable balls and the source keep-out without their turn-away buffers
+    # (2b, b): still the safety distances (the source's while the estimate's error is within
+    # the keep-out's inflation). A margin already below one of them may not shrink.
+    tb = limits.turn_buffer_m
+    uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
+    src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
+    # Physical margins of the exactly known clearances: without the recursive-feasibility
+    # buffers (turn away, segment interior, tilt swing back).
+    z = p[:, None, 2] + cand[..., 2]
+    phys_obstacle = slack[..., OBSTACLE] + 0.5 * limits.step_max_m + limits.turn_buffer_m
+    phys_altitude = np.minimum(limits.z_max_m - z, z - limits.z_min_m) - np.minimum(need[:, None, ALTITUDE], 0.0)
+    exact = np.minimum(slack[..., OBSTACLE], slack[..., ALTITUDE])
+    exact_phys = np.minimum(np.minimum(phys_obstacle, 0.5 * limits.step_max_m + limits.turn_buffer_m), phys_altitude)
+    closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
+    # Tiers, most demanding first; within a tier the pick is the closest to the desired step
+    # (tier 1) or the one that best restores what the tier gave up.
+    tiers = [
+        (strict, -closeness),  # 1. every clearance with its buffers, the peers' balls of now
+        ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
+        # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
+        ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
+        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
+        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
+        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
+        #    allowances leave real room); the altitude keeps its tilt buffer, which is the
+        #    climb that cannot be avoided next step.
+        ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
+        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
+    ]
+    return tiers, exact_phys
+
+
 def _envelope_search(
     p: FloatArray,
     u: FloatArray,
@@ -692,57 +760,17 @@ def _envelope_search(
     (n, 3), its margins (n, 4, the peers' against ``loose``) and its infeasibility (n,): no
     step keeps every clearance with ``loose``.
     """
-    _, prev_psi, prev_theta = _spherical(prev)
-    fr_h = np.linspace(-1.0, 1.0, 9)
-    fr_t = np.linspace(-1.0, 1.0, 5)
-    speeds = np.array([limits.step_min_m, limits.step_max_m])
-    H, T, S = np.meshgrid(fr_h, fr_t, speeds, indexing="ij")
-    H, T, S = H.ravel(), T.ravel(), S.ravel()
-    psi = np.where(has_prev[:, None], prev_psi[:, None] + H * limits.heading_change_max_rad, np.pi * (H[None, :] + 1.0))
-    th = np.where(
-        has_prev[:, None],
-        np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
-        T * limits.tilt_change_max_rad,
-    )
-    cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
+    cand, th = _envelope_candidates(prev, has_prev, limits)  # (n, C, 3), (n, C)
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
-    strict = (margins - need[:, None, :] >= 0.0).all(-1)
+    strict = np.asarray((margins - need[:, None, :] >= 0.0).all(-1))
     strict_uav = margins[..., UAV] - need[:, None, UAV]
     if loose is not None:
         margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
-    # The peers' reachable balls and the source keep-out without their turn-away buffers
-    # (2b, b): still the safety distances (the source's while the estimate's error is within
-    # the keep-out's inflation). A margin already below one of them may not shrink.
-    tb = limits.turn_buffer_m
-    uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
-    src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
-    # Physical margins of the exactly known clearances: without the recursive-feasibility
-    # buffers (turn away, segment interior, tilt swing back).
-    z = p[:, None, 2] + cand[..., 2]
-    phys_obstacle = slack[..., OBSTACLE] + 0.5 * limits.step_max_m + limits.turn_buffer_m
-    phys_altitude = np.minimum(limits.z_max_m - z, z - limits.z_min_m) - np.minimum(need[:, None, ALTITUDE], 0.0)
-    exact = np.minimum(slack[..., OBSTACLE], slack[..., ALTITUDE])
-    exact_phys = np.minimum(np.minimum(phys_obstacle, 0.5 * limits.step_max_m + limits.turn_buffer_m), phys_altitude)
-    closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
-    # Tiers, most demanding first; within a tier the pick is the closest to the desired step
-    # (tier 1) or the one that best restores what the tier gave up.
-    tiers = [
-        (strict, -closeness),  # 1. every clearance with its buffers, the peers' balls of now
-        ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
-        # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
-        ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
-        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
-        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
-        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
-        #    allowances leave real room); the altitude keeps its tilt buffer, which is the
-        #    climb that cannot be avoided next step.
-        ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
-        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
-    ]
+    tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
     pick = exact_phys.argmax(-1)  # 8. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
-    infeasible = ~tiers[1][0].any(-1)
+    infeasible = np.asarray(~tiers[1][0].any(-1))
     rows = np.arange(p.shape[0])
     return cand[rows, pick], margins[rows, pick], infeasible
