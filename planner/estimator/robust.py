@@ -10,9 +10,10 @@ from typing import Literal, overload
 
 import numpy as np
 
-from planner.estimator.linalg import _inv3_spd, _wrap
+from planner.estimator.linalg import _inv3_spd
 from planner.estimator.state import BoolArray, EstimatorConfig, FloatArray, Measurements
 from planner.params import Channel
+from planner.sensing import BEARING, RANGE
 
 #: Floors (m) keeping the model finite when a drone sits on the source or right above it.
 _RHO2_FLOOR_M2: float = 1e-12
@@ -238,12 +239,8 @@ def _residuals(x: FloatArray, rows: _Rows, channel: Channel, d_var: FloatArray |
     sr = rows.s0 * (dv if gamma == 2.0 else dv ** (0.5 * gamma))
     inv_sr = 1.0 / sr
     inv_sb = 1.0 / channel.sigma_bearing_rad
-    er = rows.zr - d
-    er *= inv_sr
-    ea = _wrap(rows.za - np.arctan2(ry, rx))
-    ea *= inv_sb
-    ee = rows.ze - np.arctan2(rz, rho)
-    ee *= inv_sb
+    er = RANGE.normalised_residual(rows.zr, d, inv_sr)
+    ea, ee = BEARING.normalised_residuals(rows.za, rows.ze, rx, ry, rz, rho, inv_sb)
     return _Residuals(rx, ry, rz, rho2, rho, d2, d, dv, sr, inv_sr, inv_sb, er, ea, ee)
 
 
