@@ -34,7 +34,6 @@ from types import MappingProxyType
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import ndtri
 
 from planner.params import Channel
 
@@ -133,6 +132,8 @@ class RangeModel:
 
     def simulate(self, d: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> FloatArray:
         """d̂ (m) of true distances d (..., N), m, from the uniforms (..., N, 5) (eq. 3)."""
+        from scipy.special import ndtri  # imported here: the planner node never simulates
+
         z = ndtri(np.clip(uniforms[..., :1], 1e-300, None))[..., 0]
         return d + self.std_m(d, los, channel) * z
 
@@ -186,6 +187,8 @@ class BearingModel:
 
     def simulate(self, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
+        from scipy.special import ndtri  # imported here: the planner node never simulates
+
         z = ndtri(np.clip(uniforms[..., 1:3], 1e-300, None))
         sb = channel.sigma_bearing_rad
         az_los = np.angle(np.exp(1j * (phi + sb * z[..., 0])))
