@@ -232,9 +232,12 @@ RolesField = Annotated[
 class Drones(_Section):
     """The swarm: size N, per-drone sensing role and start positions.
 
-    Roles (paper section II-B; the table is :data:`planner.sensing.ROLES`): ``ranging`` ∈ N_R
-    (κ_j = 1), ``bearing`` ∈ N_B (β_j = 1), ``joint`` ∈ N_J (κ_j = β_j = 1).
+    Roles (paper section II-B): ``ranging`` ∈ N_R (κ_j = 1), ``bearing`` ∈ N_B (β_j = 1),
+    ``joint`` ∈ N_J (κ_j = β_j = 1).
     """
+
+    # The role names and their (κ, β) come from the role table, planner.sensing.ROLES (this
+    # docstring is the JSON Schema's description of the section).
 
     count: Int = Field(..., ge=1, le=MAX_DRONES, description="Number of drones N.")
     roles: RolesField = Field(..., description="Sensing role of every drone (one string for all, or a list).")
