@@ -245,25 +245,8 @@ def control_step(
         return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes)
     prev = np.asarray(previous_step, dtype=float)
     grad = np.asarray(gradient, dtype=float)
-    age = np.asarray(peer_age_steps, dtype=float)
-    # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
-    # per drone (without this, a (3,) estimate with batched drones raised in _subset).
-    src = np.broadcast_to(np.asarray(source_estimate, dtype=float), p.shape)
-    keepout = np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1])
-    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
-    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    scene = _scene(p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max)
     batch = p.shape[:-1]
-    scene = _Scene(
-        p,
-        np.asarray(peers, dtype=float),
-        np.asarray(peer_mask, dtype=bool),
-        age,
-        None if peer_planes is None else np.asarray(peer_planes, dtype=float),
-        src,
-        keepout,
-        bmin,
-        bmax,
-    )
 
     # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
     cons = _constraints(scene, limits)
@@ -353,6 +336,33 @@ class _Scene:
     keepout: FloatArray
     bmin: FloatArray
     bmax: FloatArray
+
+
+def _scene(
+    p: FloatArray,
+    peers: ArrayLike,
+    peer_mask: ArrayLike,
+    peer_age_steps: ArrayLike,
+    peer_planes: ArrayLike | None,
+    source_estimate: ArrayLike,
+    source_keepout_m: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+) -> _Scene:
+    """:func:`control_step`'s inputs as a :class:`_Scene` of arrays (same units and shapes)."""
+    # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
+    # per drone (without this, a (3,) estimate with batched drones raised in _subset).
+    return _Scene(
+        p,
+        np.asarray(peers, dtype=float),
+        np.asarray(peer_mask, dtype=bool),
+        np.asarray(peer_age_steps, dtype=float),
+        None if peer_planes is None else np.asarray(peer_planes, dtype=float),
+        np.broadcast_to(np.asarray(source_estimate, dtype=float), p.shape),
+        np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1]),
+        np.asarray(boxes_min, dtype=float).reshape(-1, 3),
+        np.asarray(boxes_max, dtype=float).reshape(-1, 3),
+    )
 
 
 @dataclass(frozen=True)
