@@ -24,10 +24,14 @@ from __future__ import annotations
 import math
 import struct
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import IntEnum
+from types import MappingProxyType
 
 import numpy as np
+
+from planner.sensing import ROLES, SensingRole, role_from_flags
 
 MAGIC = b"FN"
 SCHEMA_VERSION = 1
@@ -54,12 +58,20 @@ class MessageError(ValueError):
     """A received message is malformed, of another mission, or implausible."""
 
 
-RANGING_BIT = 1
-BEARING_BIT = 2
 LOS_FLAG = 1
 STALE_FLAG = 2
 #: A pilot flies the drone (it left the planner's mode): the record is its position, no measurement.
 TAKEN_OVER_FLAG = 4
+
+
+#: Wire role byte -> sensing role, from the role table of :mod:`planner.sensing` (read-only).
+_ROLE_OF_BITS: Mapping[int, SensingRole] = MappingProxyType({r.wire_bits: r for r in ROLES.values()})
+
+
+def _known_role_bits() -> str:
+    """``1 (ranging), 2 (bearing) or 3 (joint)``: the role bytes a record may carry."""
+    items = [f"{bits} ({role.name})" for bits, role in sorted(_ROLE_OF_BITS.items())]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
 
 
 def mission_tag(mission_id: str) -> int:
@@ -147,7 +159,7 @@ def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = N
     """Serialise a message (``kind`` picks RECORD or MEASUREMENT for an Observation)."""
     if isinstance(msg, Observation):
         k = kind or MessageKind.RECORD
-        role = (RANGING_BIT if msg.ranging else 0) | (BEARING_BIT if msg.bearing else 0)
+        role = role_from_flags(msg.ranging, msg.bearing).wire_bits if (msg.ranging or msg.bearing) else 0
         flags = (LOS_FLAG if msg.los else 0) | (STALE_FLAG if msg.stale else 0) | (TAKEN_OVER_FLAG if msg.taken_over else 0)
         body = _OBS.pack(msg.step, msg.time_s, *msg.position_m, role, flags, msg.range_m, msg.azimuth_rad, msg.elevation_rad)
         return _header(k, mission_id, msg.sender, seq) + body
@@ -198,11 +210,11 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
             _finite(f"position {name}", v)
             if abs(v) > MAX_COORD_M:
                 raise MessageError(f"position {name} = {v:g} m is outside ±{MAX_COORD_M:g} m")
-        if role & ~(RANGING_BIT | BEARING_BIT) or role == 0:
-            raise MessageError(f"role bits {role:#x}: expected 1 (ranging), 2 (bearing) or 3 (joint)")
+        if role not in _ROLE_OF_BITS:
+            raise MessageError(f"role bits {role:#x}: expected {_known_role_bits()}")
         if flags & ~(LOS_FLAG | STALE_FLAG | TAKEN_OVER_FLAG):
             raise MessageError(f"unknown flag bits {flags:#x}")
-        ranging, bearing = bool(role & RANGING_BIT), bool(role & BEARING_BIT)
+        ranging, bearing = _ROLE_OF_BITS[role].ranging, _ROLE_OF_BITS[role].bearing
         # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
         # negative. Any finite value of plausible size is a measurement.
         if ranging and not (math.isnan(rng) or (math.isfinite(rng) and abs(rng) <= 2 * MAX_COORD_M)):

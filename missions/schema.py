@@ -43,6 +43,7 @@ from comms.faults import FaultModel
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+from planner.sensing import ROLE_NAMES, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only
     from vehicle_sim.config import VehicleConfig
@@ -59,8 +60,12 @@ DEFAULT_ORIGIN_LAT_DEG: float = -35.363261
 DEFAULT_ORIGIN_LON_DEG: float = 149.165230
 DEFAULT_ORIGIN_ALT_M: float = 584.0
 
-Role = Literal["ranging", "bearing", "joint"]
-ROLES: tuple[str, ...] = ("ranging", "bearing", "joint")
+#: The sensing role names, from the role table of :mod:`planner.sensing` (one place to add a role).
+ROLES: tuple[str, ...] = ROLE_NAMES
+if TYPE_CHECKING:
+    Role = str
+else:
+    Role = Literal[ROLE_NAMES]  # validated against the table; the JSON Schema's enum is ROLES
 
 # --- scalar and vector types -------------------------------------------------------------
 # Numbers are strict: YAML ``"10"`` (a string) or ``true`` is not a number. An int is a valid
@@ -205,7 +210,8 @@ def _expand_roles(data: Any) -> Any:
     if isinstance(data, dict) and isinstance(data.get("roles"), str):
         role = data["roles"]
         if role not in ROLES:
-            raise fail("roles", "one of 'ranging', 'bearing', 'joint' (or a list of them, one per drone)", repr(role))
+            names = ", ".join(repr(name) for name in ROLES)
+            raise fail("roles", f"one of {names} (or a list of them, one per drone)", repr(role))
         count = data.get("count")
         if not (isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES):
             count = 1
@@ -232,6 +238,9 @@ class Drones(_Section):
     Roles (paper section II-B): ``ranging`` ∈ N_R (κ_j = 1), ``bearing`` ∈ N_B (β_j = 1),
     ``joint`` ∈ N_J (κ_j = β_j = 1).
     """
+
+    # The role names and their (κ, β) come from the role table, planner.sensing.ROLES (this
+    # docstring is the JSON Schema's description of the section).
 
     count: Int = Field(..., ge=1, le=MAX_DRONES, description="Number of drones N.")
     roles: RolesField = Field(..., description="Sensing role of every drone (one string for all, or a list).")
@@ -264,12 +273,12 @@ class Drones(_Section):
         return ellipse.positions_m(self.count)
 
     def ranging_mask(self) -> NDArray[np.bool_]:
-        """κ_j of eq. (10): True where drone j measures range ('ranging' or 'joint'), shape (count,)."""
-        return np.array([r in ("ranging", "joint") for r in self.roles], dtype=bool)
+        """κ_j of eq. (10): True where drone j's role measures range (:data:`planner.sensing.ROLES`), shape (count,)."""
+        return role_masks(self.roles)[0]
 
     def bearing_mask(self) -> NDArray[np.bool_]:
-        """β_j of eq. (10): True where drone j measures bearing ('bearing' or 'joint'), shape (count,)."""
-        return np.array([r in ("bearing", "joint") for r in self.roles], dtype=bool)
+        """β_j of eq. (10): True where drone j's role measures bearing (:data:`planner.sensing.ROLES`), shape (count,)."""
+        return role_masks(self.roles)[1]
 
 
 class SearchBox(_Section):

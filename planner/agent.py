@@ -334,6 +334,72 @@ def records_as_arrays(records: Sequence[_Record | None]) -> tuple[FloatArray, ND
     return positions, valid, los
 
 
+def _status_and_keepout(
+    cg: CostGradient,
+    own_position: ArrayLike,
+    p_hat: FloatArray,
+    estimate: SourceEstimate,
+    limits: Limits,
+    *,
+    oracle: bool,
+    own_distance_lower_m: ArrayLike | None,
+) -> tuple[NDArray[np.int8], FloatArray]:
+    """The FIM status the control step sees and the source keep-out radius (...), m.
+
+    With an oracle source: the cost's status and the plain d_S*. Otherwise an estimate that is
+    not observable counts as a singular FIM (the paper's fallback) and has no keep-out (−inf);
+    an observable one has :func:`source_keepout_m` of its largest σ, or with the drone's own
+    range bound (``own_distance_lower_m``, m) :func:`source_keepout_with_own_range_m`.
+    """
+    obs = np.asarray(estimate.observable, dtype=bool)
+    batch = np.shape(own_position)[:-1]
+    if oracle:
+        return cg.status, np.full(batch, limits.d_source_m)
+    status = np.where(obs, cg.status, np.int8(FimStatus.SINGULAR))
+    sigma = estimate_sigma_m(estimate.information)
+    if own_distance_lower_m is None:
+        return status, np.where(obs, source_keepout_m(limits, sigma), -np.inf)
+    d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
+    return status, np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
+
+
+def _peer_constraints(
+    config: PlannerConfig,
+    view: PlanView,
+    step_index: int,
+    lost_contact: ArrayLike | None,
+    own_then_m: ArrayLike | None,
+) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.int64], FloatArray | None]:
+    """The peer rows of the anti-collision constraint: (rows (..., N, 3), m, ENU, mask (..., N),
+    ages (..., N) in steps, plane normals (..., N, 3) or None).
+
+    Peers heard directly (:func:`collision_relevant`); a lost-contact peer as its bisector
+    plane (:func:`planner.control.lost_contact_planes`, age 0); a peer never heard of at its
+    start position of ``config.start_positions_m``, aged ``step_index`` steps (see :func:`plan`).
+    """
+    valid = np.asarray(view.valid, dtype=bool)
+    own = np.asarray(view.own_mask, dtype=bool)
+    relevant = collision_relevant(view.hops, config.d_hop_m, config.limits)
+    peer_rows = np.asarray(view.positions_m, dtype=float)
+    ages = np.where(valid, view.age_steps, 0)
+    planes = None
+    if lost_contact is not None and np.asarray(lost_contact).any():
+        if own_then_m is None:
+            raise ValueError("plan: lost_contact needs own_then_m (the drone's positions at the peers' last records)")
+        lost = np.asarray(lost_contact, dtype=bool) & valid & ~own
+        peer_rows, planes = lost_contact_planes(own_then_m, peer_rows, lost)
+        relevant = relevant | lost
+        ages = np.where(lost, 0, ages)
+    peers = valid & ~own & relevant
+    if config.start_positions_m is not None:
+        unheard = ~valid & ~own & relevant
+        start = np.broadcast_to(np.asarray(config.start_positions_m, dtype=float), peer_rows.shape)
+        peer_rows = np.where(unheard[..., None], start, peer_rows)
+        ages = np.where(unheard, int(step_index), ages)
+        peers = peers | unheard
+    return peer_rows, peers, ages, planes
+
+
 def plan(
     config: PlannerConfig,
     own_position: ArrayLike,
@@ -383,62 +449,35 @@ def plan(
     """
     channel, limits, criterion = config.channel, config.limits, config.criterion
     boxes_min, boxes_max = config.boxes_min_m, config.boxes_max_m
-    ranging, bearing = config.ranging, config.bearing
-    own_mask, view_positions, view_valid, view_los, view_age_steps, hops = (
-        view.own_mask,
-        view.positions_m,
-        view.valid,
-        view.los,
-        view.age_steps,
-        view.hops,
-    )
-    estimate_m, estimate_information, observable = estimate.estimate_m, estimate.information, estimate.observable
-    start_positions_m = config.start_positions_m
-    own = np.asarray(own_mask, dtype=bool)
-    valid = np.asarray(view_valid, dtype=bool)
-    rng_view = np.asarray(ranging, dtype=bool) & valid
-    brg_view = np.asarray(bearing, dtype=bool) & valid
-    own_ranging = (np.asarray(ranging, dtype=bool) & own).any(-1)
-    own_bearing = (np.asarray(bearing, dtype=bool) & own).any(-1)
+    own = np.asarray(view.own_mask, dtype=bool)
+    valid = np.asarray(view.valid, dtype=bool)
+    ranging, bearing = np.asarray(config.ranging, dtype=bool), np.asarray(config.bearing, dtype=bool)
+    own_ranging, own_bearing = (ranging & own).any(-1), (bearing & own).any(-1)
+    estimate_m = estimate.estimate_m
     p_hat = (
         np.asarray(estimate_m, dtype=float)
         if oracle_source is None
         else np.broadcast_to(np.asarray(oracle_source, dtype=float), np.shape(estimate_m))
     )
     cg = _planning_cost(
-        p_hat, own_position, own, view_positions, rng_view, brg_view, view_los, own_ranging, own_bearing, channel, criterion, boxes_min, boxes_max
+        p_hat,
+        own_position,
+        own,
+        view.positions_m,
+        ranging & valid,
+        bearing & valid,
+        view.los,
+        own_ranging,
+        own_bearing,
+        channel,
+        criterion,
+        boxes_min,
+        boxes_max,
     )
-    obs = np.asarray(observable, dtype=bool)
-    batch = np.shape(own_position)[:-1]
-    if oracle_source is not None:
-        status = cg.status
-        keepout = np.full(batch, limits.d_source_m)
-    else:
-        status = np.where(obs, cg.status, np.int8(FimStatus.SINGULAR))
-        sigma = estimate_sigma_m(estimate_information)
-        if own_distance_lower_m is None:
-            keepout = np.where(obs, source_keepout_m(limits, sigma), -np.inf)
-        else:
-            d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
-            keepout = np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
-    relevant = collision_relevant(hops, config.d_hop_m, limits)
-    peer_rows = np.asarray(view_positions, dtype=float)
-    ages = np.where(valid, view_age_steps, 0)
-    planes = None
-    if lost_contact is not None and np.asarray(lost_contact).any():
-        if own_then_m is None:
-            raise ValueError("plan: lost_contact needs own_then_m (the drone's positions at the peers' last records)")
-        lost = np.asarray(lost_contact, dtype=bool) & valid & ~own
-        peer_rows, planes = lost_contact_planes(own_then_m, peer_rows, lost)
-        relevant = relevant | lost
-        ages = np.where(lost, 0, ages)
-    peers = valid & ~own & relevant
-    if start_positions_m is not None:
-        unheard = ~valid & ~own & relevant
-        start = np.broadcast_to(np.asarray(start_positions_m, dtype=float), peer_rows.shape)
-        peer_rows = np.where(unheard[..., None], start, peer_rows)
-        ages = np.where(unheard, int(step_index), ages)
-        peers = peers | unheard
+    status, keepout = _status_and_keepout(
+        cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own_distance_lower_m=own_distance_lower_m
+    )
+    peer_rows, peers, ages, planes = _peer_constraints(config, view, step_index, lost_contact, own_then_m)
     step = control_step(
         own_position,
         previous_step,

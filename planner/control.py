@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -240,249 +241,39 @@ def control_step(
     p = np.asarray(own_position, dtype=float)
     if p.ndim == 1:
         # One drone: run the batched code on a batch of one and unwrap.
-        r = control_step(
-            p[None],
-            np.asarray(previous_step, dtype=float)[None],
-            np.asarray(gradient, dtype=float)[None],
-            np.asarray(status)[None],
-            np.asarray(peers, dtype=float)[None],
-            np.asarray(peer_mask)[None],
-            np.asarray(peer_age_steps)[None],
-            np.asarray(source_estimate, dtype=float)[None],
-            np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1],
-            boxes_min,
-            boxes_max,
-            limits,
-            np.asarray(perturbation_uniforms, dtype=float)[None],
-            xi,
-            perturbation_rad,
-            None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
-        )
-        return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
+        one = (previous_step, gradient, status, peers, peer_mask, peer_age_steps, source_estimate, source_keepout_m)
+        return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes)
     prev = np.asarray(previous_step, dtype=float)
     grad = np.asarray(gradient, dtype=float)
-    q = np.asarray(peers, dtype=float)
-    mask = np.asarray(peer_mask, dtype=bool)
-    age = np.asarray(peer_age_steps, dtype=float)
-    # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
-    # per drone (without this, a (3,) estimate with batched drones raised in _subset).
-    src = np.broadcast_to(np.asarray(source_estimate, dtype=float), p.shape)
-    keepout = np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1])
-    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
-    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    scene = _scene(p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max)
     batch = p.shape[:-1]
-    safe = limits.activation == "safe"
-    smax, smin = limits.step_max_m, limits.step_min_m
-    tb = limits.turn_buffer_m
 
     # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
-    planes = None if peer_planes is None else np.asarray(peer_planes, dtype=float)
-    diff = p[..., None, :] - q
-    dist = peer_distance(p, q, planes, limits.d_uav_m)
-    n_u = diff / np.where(dist > 0.0, dist, 1.0)[..., None]
-    if planes is not None:
-        n_u = np.where((planes != 0.0).any(-1)[..., None], planes, n_u)
-    g_u = np.where(mask, dist - limits.d_uav_m, np.inf)
-    ds = p - src
-    dist_s = np.sqrt((ds * ds).sum(-1))
-    n_s = ds / np.where(dist_s > 0.0, dist_s, 1.0)[..., None]
-    g_s = dist_s - keepout
-    sd, n_o = distance_to_boxes_with_gradient(p, bmin, bmax)
-    g_o = sd - limits.d_obstacle_m
-    # Altitude box as two more constraints (safe rule only; the paper clamps z afterwards).
-    n_alt = 2 if safe else 0
-    G = np.concatenate(
-        [g_u, g_s[..., None], g_o[..., None]] + ([limits.z_max_m - p[..., 2:3], p[..., 2:3] - limits.z_min_m] if safe else []), axis=-1
-    )
-    parts = [n_u, n_s[..., None, :], n_o[..., None, :]]
-    if safe:
-        up = np.zeros(batch + (2, 3))
-        up[..., 0, 2] = -1.0
-        up[..., 1, 2] = 1.0
-        parts.append(up)
-    normals = np.concatenate(parts, axis=-2)
-    fam = slice(None, G.shape[-1] - n_alt)  # the uav, source and obstacle columns
-    if safe:
-        gt = G.copy()
-        gt[..., : -2 - n_alt] -= smax * (2.0 + age) + 2.0 * tb
-        gt[..., -2 - n_alt :] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
-    else:
-        gt = G
-    active_all = gt < 0.0
-
+    cons = _constraints(scene, limits)
     # 2. Projection onto the active constraints (at most the three most violated).
-    k = min(3, G.shape[-1])
-    any_active = active_all.any(-1)
-    P_sub = None
-    correction = np.zeros_like(p)
-    if any_active.any():
-        sub = np.nonzero(any_active)
-        gt_s = gt[sub]
-        sel = np.argsort(gt_s, axis=-1)[..., :k]
-        g_sel = np.take_along_axis(gt_s, sel, -1)
-        on = g_sel < 0.0
-        Nm = np.swapaxes(np.take_along_axis(normals[sub], sel[..., None], -2), -1, -2) * on[..., None, :]  # (n, 3, k)
-        # (n, k, 3) = (NᵀN)⁻¹Nᵀ for independent normals; nearly dependent normals (singular
-        # values below 1e-6 of the largest) count as dependent, so P stays well conditioned.
-        pinv = np.linalg.pinv(Nm, rcond=PINV_RCOND)
-        P_sub = np.eye(3) - Nm @ pinv
-        correction[sub] = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
-
-    def project(v: FloatArray) -> FloatArray:
-        if P_sub is None:
-            return v
-        out = v.copy()
-        out[sub] = np.einsum("...ij,...j->...i", P_sub, v[sub])
-        return out
-
+    project, correction = _projection(cons.gt, cons.normals, cons.active_all, p)
     singular = np.asarray(status) == int(FimStatus.SINGULAR)
-    pg = project(grad)
-    pg_norm = np.sqrt((pg * pg).sum(-1))
-    # A projected gradient at round-off level (the active constraints leave no descent
-    # direction) is zero: normalising it would turn numerical noise into a full step.
-    g_norm = np.sqrt((grad * grad).sum(-1))
-    pg = np.where((pg_norm <= PG_REL_TOL * g_norm)[..., None], 0.0, pg)
-    pg_norm = np.where(pg_norm <= PG_REL_TOL * g_norm, 0.0, pg_norm)
-    descent = -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None] if xi is None else -float(xi) * pg
     prev_s, prev_psi, prev_theta = _spherical(prev)
     has_prev = prev_s > 0.0
+    descent = _descent(grad, project, xi, limits)
     if singular.any():
-        uni = np.asarray(perturbation_uniforms, dtype=float)
-        jitter = (2.0 * uni - 1.0) * perturbation_rad
-        psi_r = np.where(has_prev, prev_psi + jitter[..., 0], 2.0 * np.pi * uni[..., 0])
-        th_r = np.where(has_prev, np.clip(prev_theta + jitter[..., 1], -0.5 * np.pi, 0.5 * np.pi), 0.0)
-        wander = project(_cartesian(np.full(batch, smax), psi_r, th_r))
-        descent = np.where(singular[..., None], wander, descent)
-    u_d = descent + correction
-
+        wander = _wander(prev_psi, prev_theta, has_prev, np.asarray(perturbation_uniforms, dtype=float), perturbation_rad, limits)
+        descent = np.where(singular[..., None], project(wander), descent)
     # 3. Kinematic limits (eq. 2): speed, heading and tilt rates.
-    s, psi, theta = _spherical(u_d)
-    tiny = s < 1e-12
-    psi = np.where(tiny, prev_psi, psi)
-    theta = np.where(tiny, prev_theta, theta)
-    s = np.minimum(np.maximum(s, smin), smax)
-    hmax, tmax = limits.heading_change_max_rad, limits.tilt_change_max_rad
-    dpsi = np.minimum(np.maximum(_wrap(psi - prev_psi), -hmax), hmax)
-    psi = np.where(has_prev, prev_psi + dpsi, psi)
-    theta = np.where(has_prev, np.minimum(np.maximum(theta, prev_theta - tmax), prev_theta + tmax), theta)
-    u = _cartesian(s, psi, theta)
+    u, theta = _kinematic_limits(descent + correction, prev_psi, prev_theta, has_prev, limits)
 
-    active = np.zeros(batch + (4,), dtype=bool)
-    fam_active = active_all[..., fam]
-    active[..., UAV] = fam_active[..., :-2].any(-1)
-    active[..., SOURCE] = fam_active[..., -2]
-    active[..., OBSTACLE] = fam_active[..., -1]
-    if safe:
-        active[..., ALTITUDE] = active_all[..., -2:].any(-1)
+    active = _active_families(cons.active_all, limits.activation == "safe")
     filtered = np.zeros(batch, dtype=bool)
     infeasible = np.zeros(batch, dtype=bool)
-
-    if not safe:
+    if limits.activation != "safe":
         # The paper clamps the altitude to its box.
         z_next = p[..., 2] + u[..., 2]
         clamped = np.clip(z_next, limits.z_min_m, limits.z_max_m)
         active[..., ALTITUDE] = clamped != z_next
-        u = u.copy()
-        u[..., 2] = clamped - p[..., 2]
+        u = np.concatenate((u[..., :2], (clamped - p[..., 2])[..., None]), axis=-1)
     else:
         # 4. Safety filter over the kinematic envelope.
-        clear = _Clearances(
-            peers=q,
-            peer_required=np.where(mask, limits.d_uav_m + (age + 1.0) * smax + 2.0 * tb, -np.inf),
-            source=src,
-            source_required=keepout + tb,
-            obstacle_required=limits.d_obstacle_m + 0.5 * smax + tb,
-            planes=planes,
-            d_uav_m=limits.d_uav_m,
-        )
-        # Margins now, per family, from the constraint values already computed, each against its
-        # end-of-step requirement. A step may not make a family's margin negative, nor more
-        # negative than it already is (``need``).
-        now = np.empty(batch + (4,))
-        now[..., SOURCE] = g_s - tb
-        now[..., OBSTACLE] = g_o - (clear.obstacle_required - limits.d_obstacle_m)
-        now[..., ALTITUDE] = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
-        # Peers, one by one. Peer j's record q_j of age a_j: j is within (a_j + 1) v_max Δt of
-        # q_j at the end of the step, within a_j v_max Δt now, so L_j = |p − q_j| − a_j v_max Δt
-        # bounds the true distance now from below. A step keeps every peer's end-of-step margin
-        # |p' − q_j| − (d_U* + (a_j + 1) v_max Δt + 2b) at least min(0, L_j − d_U* − 2b): L_j
-        # never shrinks below d_U* + 2b, whatever the records' delays (``peer_need``). Measured
-        # against the end-of-step ball instead (``peer_need_loose``, fimnav before: "no nearer
-        # to the old record"), a margin in deficit could lose v_max Δt per step of a record's
-        # age, and drones with records 0-3 steps late met (docs/control.md). Per peer, not over
-        # the family's smallest margin: a deficit with one peer must not license an approach to
-        # another. A plane row (a lost peer, age 0) does not grow: its margin now is against
-        # the same requirement.
-        point = np.ones(q.shape[:-1], dtype=bool) if planes is None else ~(planes != 0.0).any(-1)
-        peer_now = G[..., : -2 - n_alt] - (clear.peer_required - limits.d_uav_m)  # +inf for masked peers
-        # The bisector planes of a partition, together: a drone off its side of several may let
-        # each come back to the worst of them (it started off its sides as it moved since the
-        # cut; held one by one, planes and keep-out boxed drones in and the keep-out gave way).
-        plane_now = np.where(point, np.inf, peer_now).min(-1, keepdims=True, initial=np.inf)
-        peer_now_eff = np.where(point, peer_now, np.minimum(peer_now, plane_now))
-        peer_need_loose = np.minimum(peer_now_eff, 0.0)
-        peer_need = np.minimum(peer_now_eff + np.where(point, smax, 0.0), 0.0)
-        now[..., UAV] = (peer_now - peer_need).min(-1, initial=np.inf)
-        need = np.minimum(now, 0.0)
-        need[..., UAV] = 0.0
-        strict_clear = dataclasses.replace(clear, peer_required=clear.peer_required + peer_need)
-        loose_clear = dataclasses.replace(clear, peer_required=clear.peer_required + peer_need_loose)
-        # Without the turn-away buffers 2b: the reachable ball itself, the end-of-step distance that
-        # still keeps d_U* whatever the peer does (a margin already below it may not shrink).
-        hard_clear = dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now_eff + 2.0 * tb, 0.0))
-        # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
-        # s_max of a clearance need their step scored; the altitude box is checked for all.
-        z_next = p[..., 2] + u[..., 2]
-        alt = np.minimum(limits.z_max_m - z_next - _tilt_buffer(theta, limits), z_next - limits.z_min_m - _tilt_buffer(-theta, limits))
-        bad = alt < need[..., ALTITUDE]
-        near = (now[..., :ALTITUDE] - smax < need[..., :ALTITUDE]).any(-1)
-        # Peers whose clearance now exceeds the smallest by more than 2 s_max can never be the
-        # nearest for a position reachable in one step (clearances are 1-Lipschitz, |u| <= s_max):
-        # score candidates against the others only. Exact (same minimum), and O(C k) instead of
-        # O(C N) for C candidates: at N = 1000 the filtered step went from ~5 ms to ~0.6 ms.
-        # (Per peer requirement variant, strict, loose and hard: the union of their columns.)
-        if q.shape[-2] > 32 and (near.any() or bad.any()):
-            cols = np.zeros(q.shape[-2], dtype=bool)
-            for c in (strict_clear, loose_clear, hard_clear):
-                m_now = dist - c.peer_required
-                cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
-            strict_clear, loose_clear, hard_clear = (
-                _Clearances(
-                    q[..., cols, :],
-                    c.peer_required[..., cols],
-                    src,
-                    c.source_required,
-                    c.obstacle_required,
-                    None if planes is None else planes[..., cols, :],
-                    limits.d_uav_m,
-                )
-                for c in (strict_clear, loose_clear, hard_clear)
-            )
-        if near.any():
-            idx = np.nonzero(near)
-            score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(strict_clear, idx), bmin, bmax, limits)
-            bad[idx] |= (score[..., 0, :] < need[idx]).any(-1)
-        active[..., ALTITUDE] |= alt < 0.0
-        if bad.any():
-            idx = np.nonzero(bad)
-            u_b, margins_b, inf_b = _envelope_search(
-                p[idx],
-                u[idx],
-                prev[idx],
-                has_prev[idx],
-                need[idx],
-                _subset(strict_clear, idx),
-                bmin,
-                bmax,
-                limits,
-                _subset(loose_clear, idx),
-                _subset(hard_clear, idx),
-            )
-            u = u.copy()
-            u[idx] = u_b
-            filtered[idx] = True
-            infeasible[idx] = inf_b
-            active[idx] |= margins_b < 0.0
+        u, active, filtered, infeasible = _safety_filter(scene, cons, u, theta, prev, has_prev, limits, active)
     return StepResult(
         next_position=p + u,
         displacement=u,
@@ -491,6 +282,458 @@ def control_step(
         filtered=filtered,
         infeasible=infeasible,
     )
+
+
+def _one_drone(
+    p: FloatArray,
+    per_drone: tuple[ArrayLike, ...],
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+    limits: Limits,
+    perturbation_uniforms: ArrayLike,
+    xi: float | None,
+    perturbation_rad: float,
+    peer_planes: ArrayLike | None,
+) -> StepResult:
+    """:func:`control_step` of one drone (``p`` (3,)): the batched code on a batch of one,
+    unwrapped. ``per_drone``: previous step, gradient, status, peers, peer mask, peer ages,
+    source estimate and keep-out, in :func:`control_step`'s order and units."""
+    previous_step, gradient, status, peers, peer_mask, peer_age_steps, source_estimate, source_keepout_m = per_drone
+    r = control_step(
+        p[None],
+        np.asarray(previous_step, dtype=float)[None],
+        np.asarray(gradient, dtype=float)[None],
+        np.asarray(status)[None],
+        np.asarray(peers, dtype=float)[None],
+        np.asarray(peer_mask)[None],
+        np.asarray(peer_age_steps)[None],
+        np.asarray(source_estimate, dtype=float)[None],
+        np.asarray(source_keepout_m, dtype=float).reshape(-1)[:1],
+        boxes_min,
+        boxes_max,
+        limits,
+        np.asarray(perturbation_uniforms, dtype=float)[None],
+        xi,
+        perturbation_rad,
+        None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
+    )
+    return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """What one control step keeps clear of, batched (internal): own position p (..., 3), m,
+    ENU; peer rows (..., N, 3), m, their mask (..., N) and age in steps (..., N); the unit
+    normals of lost-contact plane rows (..., N, 3) or None; the source estimate (..., 3), m,
+    its keep-out (...), m; obstacle boxes (B, 3), m, ENU."""
+
+    p: FloatArray
+    peers: FloatArray
+    mask: BoolArray
+    age: FloatArray
+    planes: FloatArray | None
+    source: FloatArray
+    keepout: FloatArray
+    bmin: FloatArray
+    bmax: FloatArray
+
+
+def _scene(
+    p: FloatArray,
+    peers: ArrayLike,
+    peer_mask: ArrayLike,
+    peer_age_steps: ArrayLike,
+    peer_planes: ArrayLike | None,
+    source_estimate: ArrayLike,
+    source_keepout_m: ArrayLike,
+    boxes_min: ArrayLike,
+    boxes_max: ArrayLike,
+) -> _Scene:
+    """:func:`control_step`'s inputs as a :class:`_Scene` of arrays (same units and shapes)."""
+    # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
+    # per drone (without this, a (3,) estimate with batched drones raised in _subset).
+    return _Scene(
+        p,
+        np.asarray(peers, dtype=float),
+        np.asarray(peer_mask, dtype=bool),
+        np.asarray(peer_age_steps, dtype=float),
+        None if peer_planes is None else np.asarray(peer_planes, dtype=float),
+        np.broadcast_to(np.asarray(source_estimate, dtype=float), p.shape),
+        np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1]),
+        np.asarray(boxes_min, dtype=float).reshape(-1, 3),
+        np.asarray(boxes_max, dtype=float).reshape(-1, 3),
+    )
+
+
+@dataclass(frozen=True)
+class _Constraints:
+    """Constraint values and normals of eqs. 15-17 at p (internal).
+
+    ``G`` (..., C) = d − d* in the column order peers (N), source, obstacle, then with the safe
+    rule the altitude box's top and bottom; ``normals`` (..., C, 3) their unit gradients
+    w.r.t. p; ``gt`` the values less the activation margins (safe rule) and ``active_all``
+    (..., C) = gt < 0; ``dist`` (..., N) the peer distances, m; ``g_s``, ``g_o`` (...) the source
+    and obstacle values, m; ``n_alt`` the number of altitude columns (2 safe, 0 paper)."""
+
+    G: FloatArray
+    normals: FloatArray
+    gt: FloatArray
+    active_all: BoolArray
+    dist: FloatArray
+    g_s: FloatArray
+    g_o: FloatArray
+    n_alt: int
+
+
+def _constraints(scene: _Scene, limits: Limits) -> _Constraints:
+    """Constraint values g = d − d* of eqs. 15-17 and their unit normals w.r.t. p_i: every
+    peer (d_U*), the source (its keep-out), the nearest obstacle (d_O*), and with the safe rule
+    the altitude box. With the safe rule a constraint is active within a margin of one step of
+    motion of both parties, v_max Δt (2 + age) + 2b (b the turn-away buffer); with the paper's
+    rule once violated."""
+    p, q, planes = scene.p, scene.peers, scene.planes
+    safe = limits.activation == "safe"
+    smax, tb = limits.step_max_m, limits.turn_buffer_m
+    diff = p[..., None, :] - q
+    dist = peer_distance(p, q, planes, limits.d_uav_m)
+    n_u = diff / np.where(dist > 0.0, dist, 1.0)[..., None]
+    if planes is not None:
+        n_u = np.where((planes != 0.0).any(-1)[..., None], planes, n_u)
+    g_u = np.where(scene.mask, dist - limits.d_uav_m, np.inf)
+    ds = p - scene.source
+    dist_s = np.sqrt((ds * ds).sum(-1))
+    n_s = ds / np.where(dist_s > 0.0, dist_s, 1.0)[..., None]
+    g_s = dist_s - scene.keepout
+    sd, n_o = distance_to_boxes_with_gradient(p, scene.bmin, scene.bmax)
+    g_o = sd - limits.d_obstacle_m
+    # Altitude box as two more constraints (safe rule only; the paper clamps z afterwards).
+    n_alt = 2 if safe else 0
+    G = np.concatenate(
+        [g_u, g_s[..., None], g_o[..., None]] + ([limits.z_max_m - p[..., 2:3], p[..., 2:3] - limits.z_min_m] if safe else []), axis=-1
+    )
+    parts = [n_u, n_s[..., None, :], n_o[..., None, :]]
+    if safe:
+        up = np.zeros(p.shape[:-1] + (2, 3))
+        up[..., 0, 2] = -1.0
+        up[..., 1, 2] = 1.0
+        parts.append(up)
+    normals = np.concatenate(parts, axis=-2)
+    if safe:
+        gt = G.copy()
+        gt[..., : -2 - n_alt] -= smax * (2.0 + scene.age) + 2.0 * tb
+        gt[..., -2 - n_alt :] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
+    else:
+        gt = G
+    return _Constraints(G, normals, gt, gt < 0.0, dist, g_s, g_o, n_alt)
+
+
+def _projection(gt: FloatArray, normals: FloatArray, active_all: BoolArray, p: FloatArray) -> tuple[Callable[[FloatArray], FloatArray], FloatArray]:
+    """Eq. 14's projection onto the active constraints (at most the three most violated):
+    P = I − N (NᵀN)⁻¹ Nᵀ as a function of a vector field (..., 3), and the correction
+    −N (NᵀN)⁻¹ g̃ (..., 3), m, that brings violated constraints back."""
+    k = min(3, gt.shape[-1])
+    any_active = active_all.any(-1)
+    correction = np.zeros_like(p)
+    if not any_active.any():
+        return lambda v: v, correction
+    sub = np.nonzero(any_active)
+    gt_s = gt[sub]
+    sel = np.argsort(gt_s, axis=-1)[..., :k]
+    g_sel = np.take_along_axis(gt_s, sel, -1)
+    on = g_sel < 0.0
+    Nm = np.swapaxes(np.take_along_axis(normals[sub], sel[..., None], -2), -1, -2) * on[..., None, :]  # (n, 3, k)
+    # (n, k, 3) = (NᵀN)⁻¹Nᵀ for independent normals; nearly dependent normals (singular
+    # values below 1e-6 of the largest) count as dependent, so P stays well conditioned.
+    pinv = np.linalg.pinv(Nm, rcond=PINV_RCOND)
+    P_sub = np.eye(3) - Nm @ pinv
+    correction[sub] = -np.einsum("...ki,...k->...i", pinv, np.where(on, g_sel, 0.0))
+
+    def project(v: FloatArray) -> FloatArray:
+        out = v.copy()
+        out[sub] = np.einsum("...ij,...j->...i", P_sub, v[sub])
+        return out
+
+    return project, correction
+
+
+def _descent(grad: FloatArray, project: Callable[[FloatArray], FloatArray], xi: float | None, limits: Limits) -> FloatArray:
+    """The gradient step of eq. 14, −ξ P∇C (..., 3), m: ξ given (m per unit gradient), or
+    normalised to v_max Δt. A projected gradient at round-off level (the active constraints
+    leave no descent direction) is zero: normalising it would turn numerical noise into a full
+    step."""
+    smax = limits.step_max_m
+    pg = project(grad)
+    pg_norm = np.sqrt((pg * pg).sum(-1))
+    g_norm = np.sqrt((grad * grad).sum(-1))
+    pg = np.where((pg_norm <= PG_REL_TOL * g_norm)[..., None], 0.0, pg)
+    pg_norm = np.where(pg_norm <= PG_REL_TOL * g_norm, 0.0, pg_norm)
+    return -smax * pg / np.where(pg_norm > 0.0, pg_norm, 1.0)[..., None] if xi is None else -float(xi) * pg
+
+
+def _wander(
+    prev_psi: FloatArray, prev_theta: FloatArray, has_prev: BoolArray, uni: FloatArray, perturbation_rad: float, limits: Limits
+) -> FloatArray:
+    """The singular fallback (paper Sec. V), before projection: a step of v_max Δt along the
+    last heading and tilt perturbed uniformly by ±``perturbation_rad`` (``uni`` (..., 2) in
+    [0, 1)); a random heading, level, before the first step."""
+    jitter = (2.0 * uni - 1.0) * perturbation_rad
+    psi_r = np.where(has_prev, prev_psi + jitter[..., 0], 2.0 * np.pi * uni[..., 0])
+    th_r = np.where(has_prev, np.clip(prev_theta + jitter[..., 1], -0.5 * np.pi, 0.5 * np.pi), 0.0)
+    return _cartesian(np.full(prev_psi.shape, limits.step_max_m), psi_r, th_r)
+
+
+def _kinematic_limits(
+    u_d: FloatArray, prev_psi: FloatArray, prev_theta: FloatArray, has_prev: BoolArray, limits: Limits
+) -> tuple[FloatArray, FloatArray]:
+    """Eq. 2's limits on the desired step u_d (..., 3), m: length in [v_min, v_max] Δt, heading
+    change within ±φ_max and tilt change within ±θ_max of the previous step (rad). Returns the
+    step (..., 3), m, and its tilt Θ (...), rad."""
+    s, psi, theta = _spherical(u_d)
+    tiny = s < 1e-12
+    psi = np.where(tiny, prev_psi, psi)
+    theta = np.where(tiny, prev_theta, theta)
+    s = np.minimum(np.maximum(s, limits.step_min_m), limits.step_max_m)
+    hmax, tmax = limits.heading_change_max_rad, limits.tilt_change_max_rad
+    dpsi = np.minimum(np.maximum(_wrap(psi - prev_psi), -hmax), hmax)
+    psi = np.where(has_prev, prev_psi + dpsi, psi)
+    theta = np.where(has_prev, np.minimum(np.maximum(theta, prev_theta - tmax), prev_theta + tmax), theta)
+    return _cartesian(s, psi, theta), theta
+
+
+@dataclass(frozen=True)
+class _Requirements:
+    """The safety filter's requirements (internal): margins a step may not make negative, nor
+    more negative than they are (``need`` (..., 4), m, per family), and the peers' clearances
+    in three variants: ``strict`` (a margin in deficit may not shrink against the peer's
+    ball of now), ``loose`` (nor against its end-of-step ball) and ``hard`` (without the
+    turn-away buffers 2b); ``now`` (..., 4), m, the margins now against the end-of-step
+    requirements."""
+
+    now: FloatArray
+    need: FloatArray
+    strict: _Clearances
+    loose: _Clearances
+    hard: _Clearances
+
+
+def _filter_requirements(scene: _Scene, cons: _Constraints, limits: Limits) -> _Requirements:
+    """The safety filter's margins now and requirements (docs/control.md).
+
+    Peers, one by one: peer j's record q_j of age a_j puts j within (a_j + 1) v_max Δt of q_j at
+    the end of the step, within a_j v_max Δt now, so L_j = |p − q_j| − a_j v_max Δt bounds the
+    true distance now from below. A step keeps every peer's end-of-step margin
+    |p' − q_j| − (d_U* + (a_j + 1) v_max Δt + 2b) at least min(0, L_j − d_U* − 2b): L_j never
+    shrinks below d_U* + 2b, whatever the records' delays. Measured against the end-of-step
+    ball instead (``loose``), a margin in deficit could lose v_max Δt per step of a record's
+    age. Per peer, not over the family's smallest margin: a deficit with one peer must not
+    license an approach to another. A plane row (a lost peer, age 0) does not grow: its margin
+    now is against the same requirement.
+    """
+    p, q, planes = scene.p, scene.peers, scene.planes
+    smax, tb = limits.step_max_m, limits.turn_buffer_m
+    clear = _Clearances(
+        peers=q,
+        peer_required=np.where(scene.mask, limits.d_uav_m + (scene.age + 1.0) * smax + 2.0 * tb, -np.inf),
+        source=scene.source,
+        source_required=scene.keepout + tb,
+        obstacle_required=limits.d_obstacle_m + 0.5 * smax + tb,
+        planes=planes,
+        d_uav_m=limits.d_uav_m,
+    )
+    # Margins now, per family, from the constraint values already computed, each against its
+    # end-of-step requirement.
+    now = np.empty(p.shape[:-1] + (4,))
+    now[..., SOURCE] = cons.g_s - tb
+    now[..., OBSTACLE] = cons.g_o - (clear.obstacle_required - limits.d_obstacle_m)
+    now[..., ALTITUDE] = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
+    point = np.ones(q.shape[:-1], dtype=bool) if planes is None else ~(planes != 0.0).any(-1)
+    peer_now = cons.G[..., : -2 - cons.n_alt] - (clear.peer_required - limits.d_uav_m)  # +inf for masked peers
+    # The bisector planes of a partition, together: a drone off its side of several may let
+    # each come back to the worst of them (it started off its sides as it moved since the
+    # cut; held one by one, planes and keep-out boxed drones in and the keep-out gave way).
+    plane_now = np.where(point, np.inf, peer_now).min(-1, keepdims=True, initial=np.inf)
+    peer_now_eff = np.where(point, peer_now, np.minimum(peer_now, plane_now))
+    peer_need_loose = np.minimum(peer_now_eff, 0.0)
+    peer_need = np.minimum(peer_now_eff + np.where(point, smax, 0.0), 0.0)
+    now[..., UAV] = (peer_now - peer_need).min(-1, initial=np.inf)
+    need = np.minimum(now, 0.0)
+    need[..., UAV] = 0.0
+    return _Requirements(
+        now,
+        need,
+        dataclasses.replace(clear, peer_required=clear.peer_required + peer_need),
+        dataclasses.replace(clear, peer_required=clear.peer_required + peer_need_loose),
+        # Without the turn-away buffers 2b: the reachable ball itself, the end-of-step distance
+        # that still keeps d_U* whatever the peer does (a margin already below it may not shrink).
+        dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now_eff + 2.0 * tb, 0.0)),
+    )
+
+
+def _near_peers_only(req: _Requirements, scene: _Scene, dist: FloatArray, limits: Limits) -> _Requirements:
+    """The requirements against the peers that can be nearest after one step only.
+
+    Peers whose clearance now exceeds the smallest by more than 2 s_max can never be the
+    nearest for a position reachable in one step (clearances are 1-Lipschitz, |u| <= s_max):
+    candidates are scored against the others only. Exact (same minimum), and O(C k) instead of
+    O(C N) for C candidates: at N = 1000 the filtered step went from ~5 ms to ~0.6 ms. (Per
+    peer requirement variant, strict, loose and hard: the union of their columns.)
+    """
+    q, planes, smax = scene.peers, scene.planes, limits.step_max_m
+    cols = np.zeros(q.shape[-2], dtype=bool)
+    for c in (req.strict, req.loose, req.hard):
+        m_now = dist - c.peer_required
+        cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
+    strict, loose, hard = (
+        _Clearances(
+            q[..., cols, :],
+            c.peer_required[..., cols],
+            scene.source,
+            c.source_required,
+            c.obstacle_required,
+            None if planes is None else planes[..., cols, :],
+            limits.d_uav_m,
+        )
+        for c in (req.strict, req.loose, req.hard)
+    )
+    return _Requirements(req.now, req.need, strict, loose, hard)
+
+
+def _safety_filter(
+    scene: _Scene,
+    cons: _Constraints,
+    u: FloatArray,
+    theta: FloatArray,
+    prev: FloatArray,
+    has_prev: BoolArray,
+    limits: Limits,
+    active: BoolArray,
+) -> tuple[FloatArray, BoolArray, BoolArray, BoolArray]:
+    """Step 4 (safe rule): check the limited step u (..., 3), m, of tilt Θ (rad) against every
+    safety distance (:func:`_filter_requirements`); where it fails, take the best step of the
+    kinematic envelope instead (:func:`_envelope_search`). Returns the step, the active
+    families (``active`` with the filter's), filtered and infeasible flags (...)."""
+    p, bmin, bmax, smax = scene.p, scene.bmin, scene.bmax, limits.step_max_m
+    req = _filter_requirements(scene, cons, limits)
+    need = req.need
+    active = active.copy()
+    filtered = np.zeros(p.shape[:-1], dtype=bool)
+    infeasible = np.zeros(p.shape[:-1], dtype=bool)
+    # Every clearance is 1-Lipschitz in the position and |u| <= s_max: only drones within
+    # s_max of a clearance need their step scored; the altitude box is checked for all.
+    z_next = p[..., 2] + u[..., 2]
+    alt = np.minimum(limits.z_max_m - z_next - _tilt_buffer(theta, limits), z_next - limits.z_min_m - _tilt_buffer(-theta, limits))
+    bad = alt < need[..., ALTITUDE]
+    near = (req.now[..., :ALTITUDE] - smax < need[..., :ALTITUDE]).any(-1)
+    if scene.peers.shape[-2] > 32 and (near.any() or bad.any()):
+        req = _near_peers_only(req, scene, cons.dist, limits)
+    if near.any():
+        idx = np.nonzero(near)
+        score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(req.strict, idx), bmin, bmax, limits)
+        bad[idx] |= (score[..., 0, :] < need[idx]).any(-1)
+    active[..., ALTITUDE] |= alt < 0.0
+    if bad.any():
+        idx = np.nonzero(bad)
+        u_b, margins_b, inf_b = _envelope_search(
+            p[idx],
+            u[idx],
+            prev[idx],
+            has_prev[idx],
+            need[idx],
+            _subset(req.strict, idx),
+            bmin,
+            bmax,
+            limits,
+            _subset(req.loose, idx),
+            _subset(req.hard, idx),
+        )
+        u = u.copy()
+        u[idx] = u_b
+        filtered[idx] = True
+        infeasible[idx] = inf_b
+        active[idx] |= margins_b < 0.0
+    return u, active, filtered, infeasible
+
+
+def _active_families(active_all: BoolArray, safe: bool) -> BoolArray:
+    """(..., 4) the constraint families (:data:`FAMILIES`) active in the projection, from the
+    active columns (..., C) of :class:`_Constraints`."""
+    n_alt = 2 if safe else 0
+    active = np.zeros(active_all.shape[:-1] + (4,), dtype=bool)
+    fam_active = active_all[..., : active_all.shape[-1] - n_alt]
+    active[..., UAV] = fam_active[..., :-2].any(-1)
+    active[..., SOURCE] = fam_active[..., -2]
+    active[..., OBSTACLE] = fam_active[..., -1]
+    if safe:
+        active[..., ALTITUDE] = active_all[..., -2:].any(-1)
+    return active
+
+
+def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) -> tuple[FloatArray, FloatArray]:
+    """The kinematic envelope's candidate steps (n, C, 3), m, and their tilts (n, C), rad:
+    9 headings × 5 tilts across the allowed turn from the previous step ``prev`` (n, 3) (a full
+    circle of headings, tilts within ±θ_max of level, before the first step) × {v_min, v_max}·Δt."""
+    _, prev_psi, prev_theta = _spherical(prev)
+    fr_h = np.linspace(-1.0, 1.0, 9)
+    fr_t = np.linspace(-1.0, 1.0, 5)
+    speeds = np.array([limits.step_min_m, limits.step_max_m])
+    H, T, S = np.meshgrid(fr_h, fr_t, speeds, indexing="ij")
+    H, T, S = H.ravel(), T.ravel(), S.ravel()
+    psi = np.where(has_prev[:, None], prev_psi[:, None] + H * limits.heading_change_max_rad, np.pi * (H[None, :] + 1.0))
+    th = np.where(
+        has_prev[:, None],
+        np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
+        T * limits.tilt_change_max_rad,
+    )
+    return _cartesian(np.broadcast_to(S, psi.shape), psi, th), th
+
+
+def _relaxation_tiers(
+    p: FloatArray,
+    cand: FloatArray,
+    u: FloatArray,
+    margins: FloatArray,
+    slack: FloatArray,
+    strict: BoolArray,
+    strict_uav: FloatArray,
+    need: FloatArray,
+    hard: _Clearances | None,
+    limits: Limits,
+) -> tuple[list[tuple[BoolArray, FloatArray]], FloatArray]:
+    """The tiers of :func:`_envelope_search`, most demanding first: per tier, which candidates
+    (n, C) pass it and the score (n, C) the pick maximises among them; and the physical margin
+    of the exactly known clearances (n, C), m, the last resort's score. ``margins`` (n, C, 4)
+    per family, the peers' against ``loose``; ``slack`` = margins − need; ``strict`` the
+    candidates passing every strict requirement and ``strict_uav`` their strict peer slack."""
+    # The peers' reachable balls and the source keep-out without their turn-away buffers
+    # (2b, b): still the safety distances (the source's while the estimate's error is within
+    # the keep-out's inflation). A margin already below one of them may not shrink.
+    tb = limits.turn_buffer_m
+    uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
+    src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
+    # Physical margins of the exactly known clearances: without the recursive-feasibility
+    # buffers (turn away, segment interior, tilt swing back).
+    z = p[:, None, 2] + cand[..., 2]
+    phys_obstacle = slack[..., OBSTACLE] + 0.5 * limits.step_max_m + limits.turn_buffer_m
+    phys_altitude = np.minimum(limits.z_max_m - z, z - limits.z_min_m) - np.minimum(need[:, None, ALTITUDE], 0.0)
+    exact = np.minimum(slack[..., OBSTACLE], slack[..., ALTITUDE])
+    exact_phys = np.minimum(np.minimum(phys_obstacle, 0.5 * limits.step_max_m + limits.turn_buffer_m), phys_altitude)
+    closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
+    # Tiers, most demanding first; within a tier the pick is the closest to the desired step
+    # (tier 1) or the one that best restores what the tier gave up.
+    tiers = [
+        (strict, -closeness),  # 1. every clearance with its buffers, the peers' balls of now
+        ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
+        # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
+        ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
+        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
+        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
+        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
+        #    allowances leave real room); the altitude keeps its tilt buffer, which is the
+        #    climb that cannot be avoided next step.
+        ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
+        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
+    ]
+    return tiers, exact_phys
 
 
 def _envelope_search(
@@ -527,57 +770,17 @@ def _envelope_search(
     (n, 3), its margins (n, 4, the peers' against ``loose``) and its infeasibility (n,): no
     step keeps every clearance with ``loose``.
     """
-    _, prev_psi, prev_theta = _spherical(prev)
-    fr_h = np.linspace(-1.0, 1.0, 9)
-    fr_t = np.linspace(-1.0, 1.0, 5)
-    speeds = np.array([limits.step_min_m, limits.step_max_m])
-    H, T, S = np.meshgrid(fr_h, fr_t, speeds, indexing="ij")
-    H, T, S = H.ravel(), T.ravel(), S.ravel()
-    psi = np.where(has_prev[:, None], prev_psi[:, None] + H * limits.heading_change_max_rad, np.pi * (H[None, :] + 1.0))
-    th = np.where(
-        has_prev[:, None],
-        np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
-        T * limits.tilt_change_max_rad,
-    )
-    cand = _cartesian(np.broadcast_to(S, psi.shape), psi, th)  # (n, C, 3)
+    cand, th = _envelope_candidates(prev, has_prev, limits)  # (n, C, 3), (n, C)
     margins = _score(p[:, None, :] + cand, th, clear, bmin, bmax, limits)  # (n, C, 4)
-    strict = (margins - need[:, None, :] >= 0.0).all(-1)
+    strict = np.asarray((margins - need[:, None, :] >= 0.0).all(-1))
     strict_uav = margins[..., UAV] - need[:, None, UAV]
     if loose is not None:
         margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
-    # The peers' reachable balls and the source keep-out without their turn-away buffers
-    # (2b, b): still the safety distances (the source's while the estimate's error is within
-    # the keep-out's inflation). A margin already below one of them may not shrink.
-    tb = limits.turn_buffer_m
-    uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
-    src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
-    # Physical margins of the exactly known clearances: without the recursive-feasibility
-    # buffers (turn away, segment interior, tilt swing back).
-    z = p[:, None, 2] + cand[..., 2]
-    phys_obstacle = slack[..., OBSTACLE] + 0.5 * limits.step_max_m + limits.turn_buffer_m
-    phys_altitude = np.minimum(limits.z_max_m - z, z - limits.z_min_m) - np.minimum(need[:, None, ALTITUDE], 0.0)
-    exact = np.minimum(slack[..., OBSTACLE], slack[..., ALTITUDE])
-    exact_phys = np.minimum(np.minimum(phys_obstacle, 0.5 * limits.step_max_m + limits.turn_buffer_m), phys_altitude)
-    closeness = ((cand - u[:, None, :]) ** 2).sum(-1)
-    # Tiers, most demanding first; within a tier the pick is the closest to the desired step
-    # (tier 1) or the one that best restores what the tier gave up.
-    tiers = [
-        (strict, -closeness),  # 1. every clearance with its buffers, the peers' balls of now
-        ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
-        # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
-        ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
-        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
-        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
-        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
-        #    allowances leave real room); the altitude keeps its tilt buffer, which is the
-        #    climb that cannot be avoided next step.
-        ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
-        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
-    ]
+    tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
     pick = exact_phys.argmax(-1)  # 8. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
-    infeasible = ~tiers[1][0].any(-1)
+    infeasible = np.asarray(~tiers[1][0].any(-1))
     rows = np.arange(p.shape[0])
     return cand[rows, pick], margins[rows, pick], infeasible

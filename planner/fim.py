@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from planner.geometry import RHO_FLOOR_M
 from planner.params import Channel, Criterion
+from planner.sensing import BEARING, RANGE
 
 FloatArray = NDArray[np.float64]
 
@@ -111,14 +112,11 @@ def fisher_information(
     r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
     los_w = _los_weight(los)
     V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
-    gamma = channel.gamma
     w = np.empty(V.shape[:-1])
     # Ranging: A_r a aᵀ = (A_r / d²) r rᵀ.
-    w[..., 0] = np.asarray(ranging, dtype=bool) * (d ** (-gamma) * inv_s0sq + gamma * gamma / (2.0 * d2)) / d2
+    w[..., 0] = np.asarray(ranging, dtype=bool) * RANGE.fim_weight(d, d2, inv_s0sq, channel.gamma) / d2
     # Bearing (LOS only): ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²).
-    w_b = (np.asarray(bearing, dtype=bool) * los_w) / (channel.sigma_bearing_rad**2 * rho2)
-    w[..., 1] = w_b / rho2
-    w[..., 2] = w_b / (d2 * d2)
+    w[..., 1], w[..., 2] = BEARING.fim_weights(rho2, d2, np.asarray(bearing, dtype=bool) * los_w, channel)
     Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
     return np.swapaxes(Vs, -1, -2) @ Vs
 
@@ -240,60 +238,40 @@ def cost_gradient(
         fast = _cost_gradient_one(fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion, own_los_gradient)
         if fast is not None:
             return fast
-    inv = invert_fim(fim)
+    inv, value, M = _criterion_derivative(fim, criterion)
     singular = inv.status == _SINGULAR
-    Jinv = inv.inverse
-    if criterion == "A":
-        value = np.trace(Jinv, axis1=-2, axis2=-1)
-        M = -Jinv @ Jinv
-    elif criterion == "D":
-        value = -inv.logdet
-        M = -Jinv
-    else:
-        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
     r = np.asarray(source, dtype=float) - np.asarray(own_position, dtype=float)
     los_w = _los_weight(own_los)
     V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
-    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
-    gamma = channel.gamma
     MV = V @ M  # rows: M r, M b, M v (M symmetric)
     q = (V * MV).sum(-1)  # rᵀMr, bᵀMb, vᵀMv
     Mr, Mb, Mv = MV[..., 0, :], MV[..., 1, :], MV[..., 2, :]
-    # Ranging term J_r = h r rᵀ, h = d^-γ/(σ_r0² d²) + γ²/(2 d⁴).
-    h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
-    dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
-    g_r = (dh / d * q[..., 0])[..., None] * r + 2.0 * h[..., None] * Mr
-    # Azimuth term w b bᵀ with w = 1/(σ_b² ρ⁴); ∂b/∂r = R, Rᵀx = [x_y, -x_x, 0].
-    sb2 = channel.sigma_bearing_rad**2
-    w_az = 1.0 / (sb2 * rho2 * rho2)
-    horiz = r.copy()
-    horiz[..., 2] = 0.0
-    RtMb = np.empty_like(r)
-    RtMb[..., 0] = Mb[..., 1]
-    RtMb[..., 1] = -Mb[..., 0]
-    RtMb[..., 2] = 0.0
-    g_az = 2.0 * w_az[..., None] * RtMb - (4.0 * w_az * q[..., 1] / rho2)[..., None] * horiz
-    # Elevation term c² v vᵀ/σ_b² with c = 1/(d² ρ); ∂v/∂r = [[-r_z,0,-r_x],[0,-r_z,-r_y],[2r_x,2r_y,0]].
-    c2 = 1.0 / (d2 * d2 * rho2)
-    VtMv = np.empty_like(r)
-    VtMv[..., 0] = -rz * Mv[..., 0] + 2.0 * rx * Mv[..., 2]
-    VtMv[..., 1] = -rz * Mv[..., 1] + 2.0 * ry * Mv[..., 2]
-    VtMv[..., 2] = -rx * Mv[..., 0] - ry * Mv[..., 1]
-    grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
-    g_el = (2.0 * c2[..., None] * VtMv + q[..., 2, None] * grad_c2) / sb2
+    g_r = RANGE.cost_gradient(r, d, d2, q[..., 0], Mr, inv_s0sq, channel.gamma)
+    g_b, tr_b = BEARING.cost_gradient(r, rho2, d2, q[..., 1], q[..., 2], Mb, Mv, channel)
     use_r = np.asarray(own_ranging, dtype=bool)[..., None]
     use_b = (np.asarray(own_bearing, dtype=bool) * los_w)[..., None]
-    gradient = -(use_r * g_r + use_b * (g_az + g_el))
+    gradient = -(use_r * g_r + use_b * g_b)
     if own_los_gradient is not None:
         # tr(M (J_LOS − J_NLOS)): the ranging term's LOS/NLOS difference and the bearing terms.
-        dr = d ** (-gamma) * (1.0 / channel.sigma_r0_los**2 - 1.0 / channel.sigma_r0_nlos**2) / d2 * q[..., 0]
-        db = w_az * q[..., 1] + c2 * q[..., 2] / sb2
-        tr = use_r[..., 0] * dr + np.asarray(own_bearing, dtype=bool) * db
+        dr = RANGE.los_trace(d, d2, q[..., 0], channel)
+        tr = use_r[..., 0] * dr + np.asarray(own_bearing, dtype=bool) * tr_b
         gradient = gradient + tr[..., None] * np.asarray(own_los_gradient, dtype=float)
     if singular.any():
         gradient = np.where(singular[..., None], 0.0, gradient)
         value = np.where(singular, np.inf, value)
     return CostGradient(value=value, gradient=gradient, status=inv.status)
+
+
+def _criterion_derivative(fim: ArrayLike, criterion: Criterion) -> tuple[FimInverse, FloatArray, FloatArray]:
+    """J's inverse and health (:func:`invert_fim`), the cost C of eq. 6 and M = ∂C/∂J:
+    C = tr J⁻¹, M = −J⁻² for A; C = −ln det J, M = −J⁻¹ for D."""
+    inv = invert_fim(fim)
+    Jinv = inv.inverse
+    if criterion == "A":
+        return inv, np.trace(Jinv, axis1=-2, axis2=-1), -Jinv @ Jinv
+    if criterion == "D":
+        return inv, -inv.logdet, -Jinv
+    raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
 
 
 def _cost_gradient_one(
@@ -333,50 +311,24 @@ def _cost_gradient_one(
     else:
         value = -np.log(eig).sum(axis=-1)
         M = -Jinv
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = M.tolist()
+    m = M.tolist()
     s = np.asarray(source, dtype=float)
     o = np.asarray(own_position, dtype=float)
-    rx, ry, rz = float(s[0] - o[0]), float(s[1] - o[1]), float(s[2] - o[2])
-    rho2 = max(rx * rx + ry * ry, RHO_FLOOR_M**2)
-    d2 = rho2 + rz * rz
+    r = (float(s[0] - o[0]), float(s[1] - o[1]), float(s[2] - o[2]))
+    rho2 = max(r[0] * r[0] + r[1] * r[1], RHO_FLOOR_M**2)
+    d2 = rho2 + r[2] * r[2]
     d = math.sqrt(d2)
     los = float(np.asarray(own_los, dtype=float))
     tr = 0.0  # tr(M (J_LOS − J_NLOS)) of the own term
     gx = gy = gz = 0.0
     if bool(own_ranging):
-        # Ranging term J_r = h r rᵀ (see cost_gradient).
-        gamma = channel.gamma
-        inv_los, inv_nlos = 1.0 / channel.sigma_r0_los**2, 1.0 / channel.sigma_r0_nlos**2
-        inv_s0sq = los * inv_los + (1.0 - los) * inv_nlos
-        mrx, mry, mrz = m00 * rx + m01 * ry + m02 * rz, m10 * rx + m11 * ry + m12 * rz, m20 * rx + m21 * ry + m22 * rz
-        q_r = rx * mrx + ry * mry + rz * mrz
-        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
-        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
-        c = dh / d * q_r
-        gx, gy, gz = c * rx + 2.0 * h * mrx, c * ry + 2.0 * h * mry, c * rz + 2.0 * h * mrz
-        tr += d ** (-gamma) * (inv_los - inv_nlos) / d2 * q_r
+        gx, gy, gz, tr_r = RANGE.cost_gradient_one(r, d, d2, m, los, channel)
+        tr += tr_r
     if bool(own_bearing) and (los > 0.0 or own_los_gradient is not None):
-        sb2 = channel.sigma_bearing_rad**2
-        # Azimuth term w b bᵀ, b = [-r_y, r_x, 0], w = 1/(σ_b² ρ⁴).
-        bx, by = -ry, rx
-        mbx, mby = m00 * bx + m01 * by, m10 * bx + m11 * by
-        q_b = bx * mbx + by * mby
-        w_az = 1.0 / (sb2 * rho2 * rho2)
-        k_az = 4.0 * w_az * q_b / rho2
-        bgx = 2.0 * w_az * mby - k_az * rx
-        bgy = -2.0 * w_az * mbx - k_az * ry
-        bgz = 0.0
-        # Elevation term c² v vᵀ/σ_b², v = [-r_x r_z, -r_y r_z, ρ²], c = 1/(d² ρ).
-        vx, vy, vz = -rx * rz, -ry * rz, rho2
-        mvx, mvy, mvz = m00 * vx + m01 * vy + m02 * vz, m10 * vx + m11 * vy + m12 * vz, m20 * vx + m21 * vy + m22 * vz
-        q_v = vx * mvx + vy * mvy + vz * mvz
-        c2 = 1.0 / (d2 * d2 * rho2)
-        bgx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
-        bgy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
-        bgz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
+        bgx, bgy, bgz, tr_b = BEARING.cost_gradient_one(r, rho2, d2, m, channel)
         # The bearing terms carry the LOS weight q (an NLOS bearing carries no information).
         gx, gy, gz = gx + los * bgx, gy + los * bgy, gz + los * bgz
-        tr += w_az * q_b + c2 * q_v / sb2
+        tr += tr_b
     gradient = np.array([-gx, -gy, -gz])
     if own_los_gradient is not None:
         gradient = gradient + tr * np.asarray(own_los_gradient, dtype=float)

@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import ndtri
 
 from planner.geometry import line_of_sight, ranges_angles
 from planner.params import Channel
 from planner.randomness import MEASUREMENT_DRAWS
+from planner.sensing import BEARING, RANGE
 
 FloatArray = NDArray[np.float64]
 
@@ -49,8 +49,7 @@ class Observation:
 
 def ranging_std(d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
     """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
-    s0 = channel.sigma_r0(los)
-    return s0 * np.asarray(d, dtype=float) ** (0.5 * channel.gamma)
+    return RANGE.std_m(d, los, channel)
 
 
 def observe_from_uniforms(
@@ -77,20 +76,14 @@ def observe_from_uniforms(
         The :class:`Observation`.
     """
     u = np.asarray(uniforms, dtype=float)
-    # Keep the quantile finite: Generator.random() can return exactly 0.
-    z = ndtri(np.clip(u[..., :3], 1e-300, None))
     d, phi, theta = ranges_angles(source, positions)
     los_b = np.asarray(los, dtype=bool)
     rng_mask = np.broadcast_to(np.asarray(ranging, dtype=bool), d.shape)
     brg_mask = np.broadcast_to(np.asarray(bearing, dtype=bool), d.shape)
-    d_hat = d + ranging_std(d, los_b, channel) * z[..., 0]
-    sb = channel.sigma_bearing_rad
-    az_los = np.angle(np.exp(1j * (phi + sb * z[..., 1])))
-    el_los = np.clip(theta + sb * z[..., 2], -0.5 * np.pi, 0.5 * np.pi)
-    az_out = -np.pi + 2.0 * np.pi * u[..., 3]
-    el_out = -0.5 * np.pi + np.pi * u[..., 4]
-    az = np.where(los_b, az_los, az_out)
-    el = np.where(los_b, el_los, el_out)
+    # Each component draws its variates from the uniforms it owns (planner.sensing); the
+    # normal quantiles are kept finite (Generator.random() can return exactly 0).
+    d_hat = RANGE.simulate(d, los_b, channel, u)
+    az, el = BEARING.simulate(phi, theta, los_b, channel, u)
     nan = np.nan
     return Observation(
         range_m=np.where(rng_mask, d_hat, nan),

@@ -257,6 +257,39 @@ def _soft_los(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray, 
     return q, q[:, None] * (mills[..., None] * gc).sum(-2) / softness_m
 
 
+def _source_jacobian(p: FloatArray, source: FloatArray) -> FloatArray:
+    """∂|p_j − p_0|/∂x (N, 3N): the unit vector from the source, in drone j's block."""
+    n = p.shape[0]
+    ds = p - source
+    dist = np.linalg.norm(ds, axis=-1)
+    js = np.zeros((n, n, 3))
+    js[np.arange(n), np.arange(n)] = ds / np.where(dist > 0.0, dist, 1.0)[:, None]
+    return js.reshape(n, 3 * n)
+
+
+def _pair_jacobian(p: FloatArray, pairs: tuple[NDArray[np.intp], NDArray[np.intp]]) -> FloatArray:
+    """∂|p_i − p_j|/∂x (pairs, 3N): ± the unit vector between the pair, in their blocks."""
+    n = p.shape[0]
+    i, j = pairs
+    dp = p[i] - p[j]
+    dd = np.linalg.norm(dp, axis=-1)
+    unit = dp / np.where(dd > 0.0, dd, 1.0)[:, None]
+    jp = np.zeros((i.size, n, 3))
+    k = np.arange(i.size)
+    jp[k, i] = unit
+    jp[k, j] = -unit
+    return jp.reshape(i.size, 3 * n)
+
+
+def _obstacle_jacobian(p: FloatArray, bmin: FloatArray, bmax: FloatArray) -> FloatArray:
+    """∂(distance to the nearest building)/∂x (N, 3N), in drone j's block."""
+    n = p.shape[0]
+    _, g = distance_to_boxes_with_gradient(p, bmin, bmax)
+    jo = np.zeros((n, n, 3))
+    jo[np.arange(n), np.arange(n)] = g
+    return jo.reshape(n, 3 * n)
+
+
 class _Problem:
     """Cost and constraints of one optimisation, in the flat variables x = q.ravel() (3N,)."""
 
@@ -312,28 +345,10 @@ class _Problem:
 
     def constraints_jacobian(self, x: FloatArray) -> FloatArray:
         """∂(margins)/∂x, (rows of :meth:`constraints`, 3N)."""
-        n = self.n
-        p = x.reshape(n, 3)
-        rows = []
-        ds = p - self.source
-        dist = np.linalg.norm(ds, axis=-1)
-        js = np.zeros((n, n, 3))
-        js[np.arange(n), np.arange(n)] = ds / np.where(dist > 0.0, dist, 1.0)[:, None]
-        rows.append(js.reshape(n, 3 * n))
-        i, j = self.pairs
-        dp = p[i] - p[j]
-        dd = np.linalg.norm(dp, axis=-1)
-        unit = dp / np.where(dd > 0.0, dd, 1.0)[:, None]
-        jp = np.zeros((i.size, n, 3))
-        k = np.arange(i.size)
-        jp[k, i] = unit
-        jp[k, j] = -unit
-        rows.append(jp.reshape(i.size, 3 * n))
+        p = x.reshape(self.n, 3)
+        rows = [_source_jacobian(p, self.source), _pair_jacobian(p, self.pairs)]
         if self.bmin.shape[0]:
-            _, g = distance_to_boxes_with_gradient(p, self.bmin, self.bmax)
-            jo = np.zeros((n, n, 3))
-            jo[np.arange(n), np.arange(n)] = g
-            rows.append(jo.reshape(n, 3 * n))
+            rows.append(_obstacle_jacobian(p, self.bmin, self.bmax))
         return np.concatenate(rows, axis=0)
 
     def exact(self, p: FloatArray) -> tuple[float, float, BoolArray]:
@@ -363,6 +378,35 @@ def _random_start(gen: np.random.Generator, source: FloatArray, n: int, bounds: 
             if bmin.shape[0] == 0 or bool(line_of_sight(out[j], source, bmin, bmax)):
                 break
     return out
+
+
+def _check_placement_arguments(rng_m: BoolArray, brg_m: BoolArray, criterion: Criterion, starts: int) -> None:
+    """Raise ValueError for masks of different shapes or no drone, a drone without a role, an
+    unknown criterion or no start (:func:`optimal_placement`)."""
+    if rng_m.shape != brg_m.shape or rng_m.size == 0:
+        raise ValueError(f"ranging and bearing: expected two (N,) masks with N >= 1, found {rng_m.shape} and {brg_m.shape}")
+    if not (rng_m | brg_m).all():
+        raise ValueError("every drone must range, sense bearings, or both")
+    if criterion not in ("A", "D"):
+        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
+    if starts < 1:
+        raise ValueError(f"starts: expected a positive integer, found {starts}")
+
+
+def _solve_from(prob: _Problem, x0: FloatArray) -> FloatArray:
+    """SLSQP from the start ``x0`` (N, 3), m, ENU, through the LOS softness schedule
+    (:data:`LOS_SOFTNESS_SCHEDULE_M`; its first stage only without buildings), each stage
+    warm-started from the last; the altitude box as variable bounds. Returns (N, 3), m."""
+    n, bounds = prob.n, prob.bounds
+    cons = {"type": "ineq", "fun": prob.constraints, "jac": prob.constraints_jacobian}
+    zb = [(None, None), (None, None), (bounds.z_min_m, bounds.z_max_m)] * n
+    stages = LOS_SOFTNESS_SCHEDULE_M if prob.bmin.shape[0] else LOS_SOFTNESS_SCHEDULE_M[:1]
+    x = x0.reshape(-1).copy()
+    for s in stages:
+        prob.softness_m = s
+        res = minimize(prob.cost, x, jac=True, method="SLSQP", bounds=zb, constraints=[cons], options={"maxiter": SLSQP_MAXITER, "ftol": SLSQP_FTOL})
+        x = np.asarray(res.x, dtype=float)
+    return x.reshape(n, 3)
 
 
 def optimal_placement(
@@ -403,37 +447,20 @@ def optimal_placement(
     src = np.asarray(source, dtype=float).reshape(3)
     rng_m = np.asarray(ranging, dtype=bool).reshape(-1)
     brg_m = np.asarray(bearing, dtype=bool).reshape(-1)
-    if rng_m.shape != brg_m.shape or rng_m.size == 0:
-        raise ValueError(f"ranging and bearing: expected two (N,) masks with N >= 1, found {rng_m.shape} and {brg_m.shape}")
-    if not (rng_m | brg_m).all():
-        raise ValueError("every drone must range, sense bearings, or both")
-    if criterion not in ("A", "D"):
-        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
-    if starts < 1:
-        raise ValueError(f"starts: expected a positive integer, found {starts}")
+    _check_placement_arguments(rng_m, brg_m, criterion, starts)
     bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
     bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
     n = rng_m.size
     prob = _Problem(src, rng_m, brg_m, channel, criterion, bounds, bmin, bmax)
-    cons = {"type": "ineq", "fun": prob.constraints, "jac": prob.constraints_jacobian}
-    zb = [(None, None), (None, None), (bounds.z_min_m, bounds.z_max_m)] * n
     gen = np.random.default_rng(seed)
     x0s = [_random_start(gen, src, n, bounds, bmin, bmax) for _ in range(starts)]
     if initial_positions is not None:
         x0s.insert(0, np.asarray(initial_positions, dtype=float).reshape(n, 3))
-    stages = LOS_SOFTNESS_SCHEDULE_M if bmin.shape[0] else LOS_SOFTNESS_SCHEDULE_M[:1]
     costs = np.full(len(x0s), np.inf)
     best: tuple[float, FloatArray, float, BoolArray] | None = None
     best_k = -1
     for k, x0 in enumerate(x0s):
-        x = x0.reshape(-1).copy()
-        for s in stages:
-            prob.softness_m = s
-            res = minimize(
-                prob.cost, x, jac=True, method="SLSQP", bounds=zb, constraints=[cons], options={"maxiter": SLSQP_MAXITER, "ftol": SLSQP_FTOL}
-            )
-            x = np.asarray(res.x, dtype=float)
-        p = x.reshape(n, 3)
+        p = _solve_from(prob, x0)
         margins = placement_margins(p, src, bounds, bmin, bmax)
         if min(margins.values()) < -FEASIBILITY_TOL_M:
             continue

@@ -235,8 +235,12 @@ class Payload:
 
 
 def roles_to_flags(role: str) -> tuple[bool, bool]:
-    """(ranging, bearing) of a mission role ``'ranging' | 'bearing' | 'joint'``."""
-    table = {"ranging": (True, False), "bearing": (False, True), "joint": (True, True)}
-    if role not in table:
-        raise ValueError(f"role: expected one of {sorted(table)}, found {role!r}")
-    return table[role]
+    """(ranging, bearing) of a mission role, from the role table :data:`planner.sensing.ROLES`.
+
+    Raises:
+        ValueError: an unknown role (the message lists the known ones).
+    """
+    from planner.sensing import sensing_role  # imported here: see Payload.__init__
+
+    found = sensing_role(role)
+    return found.ranging, found.bearing

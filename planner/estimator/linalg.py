@@ -50,9 +50,3 @@ def _normalised_det(a: FloatArray) -> FloatArray:
     tr = np.einsum("...ii->...", a) / 3.0
     safe = np.where(tr > 0.0, tr, 1.0)
     return np.where(tr > 0.0, _det3(a) / safe**3, 0.0)
-
-
-# --------------------------------------------------------------------------- measurement model
-def _wrap(angle: FloatArray) -> FloatArray:
-    """Wrap an angle difference to [-π, π] (radians)."""
-    return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))

@@ -10,9 +10,10 @@ from typing import Literal, overload
 
 import numpy as np
 
-from planner.estimator.linalg import _inv3_spd, _wrap
+from planner.estimator.linalg import _inv3_spd
 from planner.estimator.state import BoolArray, EstimatorConfig, FloatArray, Measurements
 from planner.params import Channel
+from planner.sensing import BEARING, RANGE
 
 #: Floors (m) keeping the model finite when a drone sits on the source or right above it.
 _RHO2_FLOOR_M2: float = 1e-12
@@ -178,6 +179,51 @@ def _evaluate(
     ``gate.max_fraction`` of the element's components are gated. ``cost_only``: return the
     summed cost (...,) only.
     """
+    res = _residuals(x, rows, channel, d_var)
+    ar, aa, ae = rows.ar, rows.aa, rows.ae
+    if gate is not None:
+        ar, aa, ae = _gated_weights(res, ar, aa, ae, gate)
+    rr_, pr_, wr_ = _loss(res.er, k, tukey_c, redescend)
+    ra_, pa_, wa_ = _loss(res.ea, k, tukey_c, redescend)
+    re_, pe_, we_ = _loss(res.ee, k, tukey_c, redescend)
+    cr = ar * rr_
+    if ml:
+        cr += ar * np.log(res.sr)
+    cost = np.einsum("...k,...k->...", aa, ra_)
+    cost += np.einsum("...k,...k->...", ae, re_)
+    cost += cr.sum(axis=-1)
+    if cost_only:
+        return cost
+    return _factors(res, cost, (ar, aa, ae), (pr_, pa_, pe_), (wr_, wa_, we_), channel.gamma, ml, suspect_sigma)
+
+
+@dataclass(frozen=True)
+class _Residuals:
+    """Geometry and normalised residuals of the rows at one source position (internal; arrays
+    (..., K)): r = x − p (rx, ry, rz), m; ρ² (floored) and ρ, d² and d, m², m; ``dv`` the
+    distance σ_r is evaluated at, m; σ_r = σ_r0 dv^{γ/2} (eq. 5) and 1/σ_r, m, m⁻¹; 1/σ_b,
+    rad⁻¹ (scalar); e = (z − h)/σ for range, azimuth (wrapped) and elevation."""
+
+    rx: FloatArray
+    ry: FloatArray
+    rz: FloatArray
+    rho2: FloatArray
+    rho: FloatArray
+    d2: FloatArray
+    d: FloatArray
+    dv: FloatArray
+    sr: FloatArray
+    inv_sr: FloatArray
+    inv_sb: float
+    er: FloatArray
+    ea: FloatArray
+    ee: FloatArray
+
+
+def _residuals(x: FloatArray, rows: _Rows, channel: Channel, d_var: FloatArray | None) -> _Residuals:
+    """Normalised residuals e = (z − h(x))/σ of every row at source ``x`` (..., 3), m, ENU:
+    h = d, φ = atan2(r_y, r_x), θ = atan2(r_z, ρ) (eq. 3), σ_r = σ_r0 d^{γ/2} (eq. 5) at
+    ``d_var`` if given (GLS), σ_b constant."""
     rx = x[..., 0, None] - rows.px
     ry = x[..., 1, None] - rows.py
     rz = x[..., 2, None] - rows.pz
@@ -193,40 +239,51 @@ def _evaluate(
     sr = rows.s0 * (dv if gamma == 2.0 else dv ** (0.5 * gamma))
     inv_sr = 1.0 / sr
     inv_sb = 1.0 / channel.sigma_bearing_rad
-    er = rows.zr - d
-    er *= inv_sr
-    ea = _wrap(rows.za - np.arctan2(ry, rx))
-    ea *= inv_sb
-    ee = rows.ze - np.arctan2(rz, rho)
-    ee *= inv_sb
-    ar, aa, ae = rows.ar, rows.aa, rows.ae
-    if gate is not None:
-        g2 = gate.sigma * gate.sigma
-        tv = gate.var_bound_m2[..., None]
-        tb = tv * (inv_sb * inv_sb)
-        out_r = (er * er > g2 * (1.0 + tv * inv_sr * inv_sr)) & (ar > 0.0)
-        out_a = (ea * ea > g2 * (1.0 + tb / rho2)) & (aa > 0.0)
-        out_e = (ee * ee > g2 * (1.0 + tb / d2)) & (ae > 0.0)
-        n_out = out_r.sum(axis=-1) + out_a.sum(axis=-1) + out_e.sum(axis=-1)
-        n_all = (ar > 0.0).sum(axis=-1) + (aa > 0.0).sum(axis=-1) + (ae > 0.0).sum(axis=-1)
-        apply = (gate.use & (n_out <= gate.max_fraction * n_all))[..., None]
-        if np.any(apply):
-            ar = np.where(out_r & apply, 0.0, ar)
-            aa = np.where(out_a & apply, 0.0, aa)
-            ae = np.where(out_e & apply, 0.0, ae)
-    rr_, pr_, wr_ = _loss(er, k, tukey_c, redescend)
-    ra_, pa_, wa_ = _loss(ea, k, tukey_c, redescend)
-    re_, pe_, we_ = _loss(ee, k, tukey_c, redescend)
-    cr = ar * rr_
-    if ml:
-        cr += ar * np.log(sr)
-    cost = np.einsum("...k,...k->...", aa, ra_)
-    cost += np.einsum("...k,...k->...", ae, re_)
-    cost += cr.sum(axis=-1)
-    if cost_only:
-        return cost
-    inv_d = 1.0 / d
-    inv_rho = 1.0 / rho
+    er = RANGE.normalised_residual(rows.zr, d, inv_sr)
+    ea, ee = BEARING.normalised_residuals(rows.za, rows.ze, rx, ry, rz, rho, inv_sb)
+    return _Residuals(rx, ry, rz, rho2, rho, d2, d, dv, sr, inv_sr, inv_sb, er, ea, ee)
+
+
+def _gated_weights(res: _Residuals, ar: FloatArray, aa: FloatArray, ae: FloatArray, gate: _Gate) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Component weights after the innovation gate: 0 for a component whose innovation exceeds
+    ``gate.sigma`` standard deviations of σ² + tr(Σ)‖∇h‖² (‖∇φ‖² = 1/ρ², ‖∇θ‖² = 1/d²), where
+    ``gate.use`` and at most ``gate.max_fraction`` of the element's components are gated."""
+    g2 = gate.sigma * gate.sigma
+    tv = gate.var_bound_m2[..., None]
+    tb = tv * (res.inv_sb * res.inv_sb)
+    out_r = (res.er * res.er > g2 * (1.0 + tv * res.inv_sr * res.inv_sr)) & (ar > 0.0)
+    out_a = (res.ea * res.ea > g2 * (1.0 + tb / res.rho2)) & (aa > 0.0)
+    out_e = (res.ee * res.ee > g2 * (1.0 + tb / res.d2)) & (ae > 0.0)
+    n_out = out_r.sum(axis=-1) + out_a.sum(axis=-1) + out_e.sum(axis=-1)
+    n_all = (ar > 0.0).sum(axis=-1) + (aa > 0.0).sum(axis=-1) + (ae > 0.0).sum(axis=-1)
+    apply = (gate.use & (n_out <= gate.max_fraction * n_all))[..., None]
+    if np.any(apply):
+        ar = np.where(out_r & apply, 0.0, ar)
+        aa = np.where(out_a & apply, 0.0, aa)
+        ae = np.where(out_e & apply, 0.0, ae)
+    return ar, aa, ae
+
+
+def _factors(
+    res: _Residuals,
+    cost: FloatArray,
+    weights: tuple[FloatArray, FloatArray, FloatArray],
+    psi: tuple[FloatArray, FloatArray, FloatArray],
+    irls: tuple[FloatArray, FloatArray, FloatArray],
+    gamma: float,
+    ml: bool,
+    suspect_sigma: float,
+) -> _Eval:
+    """The per-row gradient and scoring factors of :class:`_Eval` (see :func:`_evaluate`) from
+    the residuals, the component weights a, the influences ψ and IRLS weights w = ψ/e (range,
+    azimuth, elevation), and the weighted counts of used and suspect (|e| > ``suspect_sigma``)
+    components per type."""
+    ar, aa, ae = weights
+    pr_, pa_, pe_ = psi
+    wr_, wa_, we_ = irls
+    inv_sr, inv_sb = res.inv_sr, res.inv_sb
+    inv_d = 1.0 / res.d
+    inv_rho = 1.0 / res.rho
     inv_d2 = inv_d * inv_d
     inv_rho2 = inv_rho * inv_rho
     sb2inv = inv_sb * inv_sb
@@ -237,23 +294,23 @@ def _evaluate(
     gr = -wr * pr_
     ga = (aa * -inv_sb) * pa_
     ge = (ae * -inv_sb) * pe_
-    gd = (0.5 * gamma) / dv
+    gd = (0.5 * gamma) / res.dv
     extra = ar * (2.0 * gd * gd)
     if ml:
-        gr += ar * gd * (1.0 - pr_ * er)
+        gr += ar * gd * (1.0 - pr_ * res.er)
         ir += extra
         extra = np.zeros_like(extra)
     # Weighted counts (weights are 0 or λ^age ≤ 1): used components and those beyond the
     # suspect threshold, per type.
     c2 = suspect_sigma * suspect_sigma
     n_used = np.stack((ar.sum(axis=-1), aa.sum(axis=-1), ae.sum(axis=-1)), axis=-1)
-    n_big = np.stack((_sum(ar, er * er > c2), _sum(aa, ea * ea > c2), _sum(ae, ee * ee > c2)), axis=-1)
+    n_big = np.stack((_sum(ar, res.er * res.er > c2), _sum(aa, res.ea * res.ea > c2), _sum(ae, res.ee * res.ee > c2)), axis=-1)
     return _Eval(
         cost=cost,
-        rx=rx,
-        ry=ry,
-        rz=rz,
-        rho2=rho2,
+        rx=res.rx,
+        ry=res.ry,
+        rz=res.rz,
+        rho2=res.rho2,
         gA=gr * inv_d,
         gB=ga * inv_rho2,
         gC=ge * (inv_d2 * inv_rho),
@@ -261,7 +318,7 @@ def _evaluate(
         hB=ia * (inv_rho2 * inv_rho2),
         hC=ie * (inv_d2 * inv_d2 * inv_rho2),
         hF=extra * inv_d2,
-        d=d,
+        d=res.d,
         ar=ar,
         aa=aa,
         ae=ae,

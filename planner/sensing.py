@@ -1,0 +1,291 @@
+r"""Sensing models: the roles a drone can have and the physics of what each role measures.
+
+A drone's *role* (paper sec. II-B) says which measurement *components* it takes: ``ranging``
+(κ_j = 1) measures the distance d̂, ``bearing`` (β_j = 1) the azimuth φ̂ and elevation θ̂,
+``joint`` both. Everything that depends on a role reads it from here:
+
+* :data:`ROLES`, the role table: the mission schema's role names (``missions/schema.py``),
+  the payload's and the planner's (κ, β) flags (``vehicle_sim/payload.py``,
+  :class:`planner.config.PlannerConfig`), the wire format's role bits (``comms/messages.py``).
+* :data:`RANGE` and :data:`BEARING`, the measurement components, each with its Fisher
+  information term and its gradient (eqs. 10-14, used by :mod:`planner.fim`), its measurement
+  simulation (eqs. 3-5, used by :mod:`planner.observation`) and its normalised residual
+  (the estimator's likelihood, used by :mod:`planner.estimator.robust`).
+
+Notation (mission ENU frame, metres, radians): drone at p, source p0, r = p0 − p, d = ‖r‖,
+ρ = √(r_x² + r_y²), b = (−r_y, r_x, 0) = ∇φ·ρ², v = (−r_x r_z, −r_y r_z, ρ²) = ∇θ·d²ρ:
+
+.. math::
+    J = \sum_j \kappa_j A_{r,j}\,\mathbf a_j\mathbf a_j^T
+        + \beta_j p_j \frac{1}{\sigma_{b,0}^2}\big(\nabla\phi_j\nabla\phi_j^T
+        + \nabla\theta_j\nabla\theta_j^T\big),\qquad
+    A_{r} = \frac{1}{\sigma_{r}^2} + \frac{\gamma^2}{2 d^2},\quad
+    \sigma_{r}^2 = \sigma_{r,0}^2 d^{\gamma}
+
+See ``docs/sensing-models.md`` for adding a sensing model.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planner.params import Channel
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Role bits of the wire format (``comms/messages.py``): one bit per measurement component.
+RANGING_BIT: int = 1
+BEARING_BIT: int = 2
+
+
+@dataclass(frozen=True)
+class SensingRole:
+    """One sensing role of the role table.
+
+    Attributes:
+        name: the role's name in mission files and user-facing text.
+        ranging: κ_j, the drone measures range (:data:`RANGE`).
+        bearing: β_j, the drone measures azimuth and elevation (:data:`BEARING`).
+        description: one line for the mission schema and the docs.
+    """
+
+    name: str
+    ranging: bool
+    bearing: bool
+    description: str
+
+    @property
+    def wire_bits(self) -> int:
+        """The role byte of a record on the wire: :data:`RANGING_BIT` | :data:`BEARING_BIT`."""
+        return (RANGING_BIT if self.ranging else 0) | (BEARING_BIT if self.bearing else 0)
+
+
+#: The role table, in the order the docs and the schema list it (read-only).
+ROLES: Mapping[str, SensingRole] = MappingProxyType(
+    {
+        role.name: role
+        for role in (
+            SensingRole("ranging", True, False, "RSS ranging d̂ (paper N_R, κ_j = 1)"),
+            SensingRole("bearing", False, True, "azimuth and elevation φ̂, θ̂ (paper N_B, β_j = 1)"),
+            SensingRole("joint", True, True, "ranging and bearing (κ_j = β_j = 1)"),
+        )
+    }
+)
+#: The role names, in table order.
+ROLE_NAMES: tuple[str, ...] = tuple(ROLES)
+
+
+def sensing_role(name: str) -> SensingRole:
+    """The role called ``name``.
+
+    Raises:
+        ValueError: an unknown name; the message lists the roles and suggests the nearest.
+    """
+    role = ROLES.get(name)
+    if role is None:
+        near = difflib.get_close_matches(str(name), ROLE_NAMES, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise ValueError(f"role: expected one of {sorted(ROLE_NAMES)}, found {name!r}{hint}")
+    return role
+
+
+def role_from_flags(ranging: bool, bearing: bool) -> SensingRole:
+    """The role with the flags (κ, β).
+
+    Raises:
+        ValueError: no role has them (a drone that measures nothing).
+    """
+    for role in ROLES.values():
+        if role.ranging == bool(ranging) and role.bearing == bool(bearing):
+            return role
+    raise ValueError(f"no sensing role measures ranging={bool(ranging)}, bearing={bool(bearing)}")
+
+
+def role_masks(names: Iterable[str]) -> tuple[BoolArray, BoolArray]:
+    """(κ, β) masks, each (N,) bool, of N drones' role names."""
+    roles = [sensing_role(n) for n in names]
+    return np.array([r.ranging for r in roles], dtype=bool), np.array([r.bearing for r in roles], dtype=bool)
+
+
+def wrap_angle(angle: FloatArray) -> FloatArray:
+    """Wrap an angle difference to [-π, π] (radians)."""
+    return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))
+
+
+# --------------------------------------------------------------------------- components
+@dataclass(frozen=True)
+class RangeModel:
+    """Ranging component d̂ = d + n_r, n_r ~ N(0, σ_r0² d^γ) (eqs. 3, 5), σ_r0 = (ln10/10)(σ_sh/γ)
+    of the link's LOS or NLOS ratio. It uses uniform variate 0 of a drone's five per step."""
+
+    def std_m(self, d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
+        """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
+        s0 = channel.sigma_r0(los)
+        return s0 * np.asarray(d, dtype=float) ** (0.5 * channel.gamma)
+
+    def simulate(self, d: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> FloatArray:
+        """d̂ (m) of true distances d (..., N), m, from the uniforms (..., N, 5) (eq. 3)."""
+        from scipy.special import ndtri  # imported here: the planner node never simulates
+
+        z = ndtri(np.clip(uniforms[..., :1], 1e-300, None))[..., 0]
+        return d + self.std_m(d, los, channel) * z
+
+    def fim_weight(self, d: FloatArray, d2: FloatArray, inv_s0sq: FloatArray, gamma: float) -> FloatArray:
+        """A_r = d^−γ/σ_r0² + γ²/(2d²) (eq. 12 with the variance term), m⁻²: J_r = A_r a aᵀ
+        = (A_r/d²) r rᵀ. ``inv_s0sq``: 1/σ_r0² (LOS/NLOS mix by the LOS weight)."""
+        return d ** (-gamma) * inv_s0sq + gamma * gamma / (2.0 * d2)
+
+    def cost_gradient(
+        self, r: FloatArray, d: FloatArray, d2: FloatArray, q_r: FloatArray, Mr: FloatArray, inv_s0sq: FloatArray, gamma: float
+    ) -> FloatArray:
+        """∂ tr(M J_r)/∂r (..., 3) for J_r = h(d) r rᵀ, h = d^−γ/(σ_r0² d²) + γ²/(2d⁴):
+        (h'(d)/d)(rᵀMr) r + 2h M r (eq. 14's own term). ``q_r`` = rᵀMr, ``Mr`` = M r."""
+        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
+        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+        return (dh / d * q_r)[..., None] * r + 2.0 * h[..., None] * Mr
+
+    def los_trace(self, d: FloatArray, d2: FloatArray, q_r: FloatArray, channel: Channel) -> FloatArray:
+        """tr(M (J_r,LOS − J_r,NLOS)) = d^−γ (1/σ_r0,LOS² − 1/σ_r0,NLOS²)/d² · rᵀMr."""
+        return d ** (-channel.gamma) * (1.0 / channel.sigma_r0_los**2 - 1.0 / channel.sigma_r0_nlos**2) / d2 * q_r
+
+    def cost_gradient_one(
+        self, r: tuple[float, float, float], d: float, d2: float, m: list[list[float]], los: float, channel: Channel
+    ) -> tuple[float, float, float, float]:
+        """:meth:`cost_gradient` and :meth:`los_trace` for one drone in Python floats (the
+        planner node's hot path): (g_x, g_y, g_z, trace); ``m`` = M as nested lists."""
+        rx, ry, rz = r
+        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+        gamma = channel.gamma
+        inv_los, inv_nlos = 1.0 / channel.sigma_r0_los**2, 1.0 / channel.sigma_r0_nlos**2
+        inv_s0sq = los * inv_los + (1.0 - los) * inv_nlos
+        mrx, mry, mrz = m00 * rx + m01 * ry + m02 * rz, m10 * rx + m11 * ry + m12 * rz, m20 * rx + m21 * ry + m22 * rz
+        q_r = rx * mrx + ry * mry + rz * mrz
+        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
+        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+        c = dh / d * q_r
+        return c * rx + 2.0 * h * mrx, c * ry + 2.0 * h * mry, c * rz + 2.0 * h * mrz, d ** (-gamma) * (inv_los - inv_nlos) / d2 * q_r
+
+    def normalised_residual(self, z: FloatArray, d: FloatArray, inv_sr: FloatArray) -> FloatArray:
+        """e = (d̂ − d)/σ_r, the estimator's normalised range residual (σ_r: 1/``inv_sr``, m)."""
+        e = z - d
+        e *= inv_sr
+        return e
+
+
+@dataclass(frozen=True)
+class BearingModel:
+    """Bearing component (φ̂, θ̂) = (φ, θ) + n_b, n_b ~ N(0, σ_b,0² I₂) in LOS, the uniform
+    outlier ω (azimuth on [−π, π), elevation on [−π/2, π/2]) in NLOS (eq. 3). It uses uniform
+    variates 1, 2 (noise) and 3, 4 (outlier) of a drone's five per step."""
+
+    def simulate(self, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
+        from scipy.special import ndtri  # imported here: the planner node never simulates
+
+        z = ndtri(np.clip(uniforms[..., 1:3], 1e-300, None))
+        sb = channel.sigma_bearing_rad
+        az_los = np.angle(np.exp(1j * (phi + sb * z[..., 0])))
+        el_los = np.clip(theta + sb * z[..., 1], -0.5 * np.pi, 0.5 * np.pi)
+        az_out = -np.pi + 2.0 * np.pi * uniforms[..., 3]
+        el_out = -0.5 * np.pi + np.pi * uniforms[..., 4]
+        return np.where(los, az_los, az_out), np.where(los, el_los, el_out)
+
+    def fim_weights(self, rho2: FloatArray, d2: FloatArray, bearing_los: FloatArray, channel: Channel) -> tuple[FloatArray, FloatArray]:
+        """Weights of b bᵀ and v vᵀ in J (eqs. 10-11, Cartesian form), m⁻⁴ and m⁻⁶:
+        ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²), times ``bearing_los``
+        = β p (an NLOS bearing carries no information; a LOS weight q gives q)."""
+        w_b = bearing_los / (channel.sigma_bearing_rad**2 * rho2)
+        return w_b / rho2, w_b / (d2 * d2)
+
+    def cost_gradient(
+        self, r: FloatArray, rho2: FloatArray, d2: FloatArray, q_b: FloatArray, q_v: FloatArray, Mb: FloatArray, Mv: FloatArray, channel: Channel
+    ) -> tuple[FloatArray, FloatArray]:
+        """∂ tr(M (J_az + J_el))/∂r (..., 3) of the azimuth term w b bᵀ, w = 1/(σ_b² ρ⁴)
+        (∂b/∂r = R, Rᵀx = (x_y, −x_x, 0)), and of the elevation term c² v vᵀ/σ_b², c = 1/(d² ρ)
+        (∂v/∂r = [[−r_z, 0, −r_x], [0, −r_z, −r_y], [2r_x, 2r_y, 0]]); and the trace
+        tr(M (J_az + J_el)) (the LOS weight's term). ``q_b``, ``q_v`` = bᵀMb, vᵀMv; ``Mb``,
+        ``Mv`` = M b, M v."""
+        rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+        sb2 = channel.sigma_bearing_rad**2
+        w_az = 1.0 / (sb2 * rho2 * rho2)
+        horiz = r.copy()
+        horiz[..., 2] = 0.0
+        RtMb = np.empty_like(r)
+        RtMb[..., 0] = Mb[..., 1]
+        RtMb[..., 1] = -Mb[..., 0]
+        RtMb[..., 2] = 0.0
+        g_az = 2.0 * w_az[..., None] * RtMb - (4.0 * w_az * q_b / rho2)[..., None] * horiz
+        c2 = 1.0 / (d2 * d2 * rho2)
+        VtMv = np.empty_like(r)
+        VtMv[..., 0] = -rz * Mv[..., 0] + 2.0 * rx * Mv[..., 2]
+        VtMv[..., 1] = -rz * Mv[..., 1] + 2.0 * ry * Mv[..., 2]
+        VtMv[..., 2] = -rx * Mv[..., 0] - ry * Mv[..., 1]
+        grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
+        g_el = (2.0 * c2[..., None] * VtMv + q_v[..., None] * grad_c2) / sb2
+        return g_az + g_el, w_az * q_b + c2 * q_v / sb2
+
+    def cost_gradient_one(
+        self, r: tuple[float, float, float], rho2: float, d2: float, m: list[list[float]], channel: Channel
+    ) -> tuple[float, float, float, float]:
+        """:meth:`cost_gradient` for one drone in Python floats: (g_x, g_y, g_z, trace)."""
+        rx, ry, rz = r
+        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+        sb2 = channel.sigma_bearing_rad**2
+        # Azimuth term w b bᵀ, b = [-r_y, r_x, 0], w = 1/(σ_b² ρ⁴).
+        bx, by = -ry, rx
+        mbx, mby = m00 * bx + m01 * by, m10 * bx + m11 * by
+        q_b = bx * mbx + by * mby
+        w_az = 1.0 / (sb2 * rho2 * rho2)
+        k_az = 4.0 * w_az * q_b / rho2
+        bgx = 2.0 * w_az * mby - k_az * rx
+        bgy = -2.0 * w_az * mbx - k_az * ry
+        bgz = 0.0
+        # Elevation term c² v vᵀ/σ_b², v = [-r_x r_z, -r_y r_z, ρ²], c = 1/(d² ρ).
+        vx, vy, vz = -rx * rz, -ry * rz, rho2
+        mvx, mvy, mvz = m00 * vx + m01 * vy + m02 * vz, m10 * vx + m11 * vy + m12 * vz, m20 * vx + m21 * vy + m22 * vz
+        q_v = vx * mvx + vy * mvy + vz * mvz
+        c2 = 1.0 / (d2 * d2 * rho2)
+        bgx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
+        bgy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
+        bgz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
+        return bgx, bgy, bgz, w_az * q_b + c2 * q_v / sb2
+
+    def normalised_residuals(
+        self, za: FloatArray, ze: FloatArray, rx: FloatArray, ry: FloatArray, rz: FloatArray, rho: FloatArray, inv_sb: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """(e_φ, e_θ) = (wrap(φ̂ − φ), θ̂ − θ)/σ_b, the estimator's normalised bearing residuals
+        at r = p0 − p (m) with horizontal distance ρ (m); 1/σ_b = ``inv_sb`` (rad⁻¹)."""
+        ea = wrap_angle(za - np.arctan2(ry, rx))
+        ea *= inv_sb
+        ee = ze - np.arctan2(rz, rho)
+        ee *= inv_sb
+        return ea, ee
+
+
+#: The ranging component (κ_j).
+RANGE: RangeModel = RangeModel()
+#: The bearing component (β_j).
+BEARING: BearingModel = BearingModel()
+
+__all__ = [
+    "BEARING",
+    "BEARING_BIT",
+    "RANGE",
+    "RANGING_BIT",
+    "ROLES",
+    "ROLE_NAMES",
+    "BearingModel",
+    "RangeModel",
+    "SensingRole",
+    "role_from_flags",
+    "role_masks",
+    "sensing_role",
+    "wrap_angle",
+]
