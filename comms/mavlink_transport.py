@@ -12,6 +12,7 @@ can stall or mislead the planner, MAVLink 2 signing, and the .tlog of every fram
 from __future__ import annotations
 
 import errno
+import ipaddress
 import os
 import socket
 import struct
@@ -114,6 +115,7 @@ class MavlinkTransport:
         self.conn: Any = self._connect(source_system, source_component)
         self.mav: Any = self.conn.mav
         if isinstance(self.conn, mavutil.mavudp):
+            _bind_loopback_sender(self.conn)
             self._datagram_receiver(self.conn)
         elif isinstance(self.conn, mavutil.mavtcp):
             self._tcp_transport(self.conn)
@@ -277,3 +279,21 @@ class MavlinkTransport:
         if self._tlog is not None:
             self._tlog.close()
             self._tlog = None
+
+
+def _bind_loopback_sender(conn: Any) -> None:
+    """Bind a ``udpout`` socket to the loopback interface when its vehicle is on this machine.
+
+    An unbound UDP socket is bound to 0.0.0.0 (every interface) by its first ``sendto``, and would
+    then take datagrams from other hosts; a vehicle at 127.0.0.1 is reached from 127.0.0.1 alone
+    (docs/security.md). A socket that is already bound, or a ``udpin``
+    one, is left as it is."""
+    if conn.udp_server:
+        return
+    try:
+        host = conn.destination_addr[0]
+        if not ipaddress.ip_address(host).is_loopback or conn.port.getsockname()[1] != 0:
+            return
+        conn.port.bind(("127.0.0.1", 0))
+    except (ValueError, OSError, IndexError, TypeError):
+        return  # a host name or an address family we do not rebind: pymavlink's default stands

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from comms.mavlink_transport import MavlinkTransport, mavutil_module
 from comms.session import SessionSettings, open_session
 from missions.loader import load_mission
 from missions.schema import ZenohSpec
@@ -54,6 +56,25 @@ def test_a_default_session_holds_only_loopback_sockets() -> None:
         assert all(x.loopback for x in new), new
     finally:
         s.close()
+
+
+def test_a_planner_udpout_link_to_a_local_vehicle_is_bound_to_loopback() -> None:
+    """A ``udpout:127.0.0.1:PORT`` link (the planner's link to a vehicle on this machine) sends
+    from 127.0.0.1: an unbound socket would be bound to 0.0.0.0 by its first datagram and take
+    datagrams from any host."""
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", 0))
+    vehicle.settimeout(5.0)
+    transport = MavlinkTransport(mavutil_module(), f"udpout:127.0.0.1:{vehicle.getsockname()[1]}", 250, 191, None, time.monotonic, 1.0, None)
+    try:
+        transport.mav.heartbeat_send(6, 8, 0, 0, 0)
+        _, sender = vehicle.recvfrom(65535)
+        assert sender[0] == "127.0.0.1", sender
+        mine = [x for x in sockets_of(os.getpid()) if x.proto == "udp" and x.port == sender[1]]
+        assert mine and all(x.loopback for x in mine), mine
+    finally:
+        transport.conn.close()
+        vehicle.close()
 
 
 @pytest.mark.integration
