@@ -304,7 +304,7 @@ def run_vehicle(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration: expected a positive number of seconds, found {args.duration}")
 
-    from vehicle_sim.clock import LockstepClock, RealTimeClock, ZenohTickSource, tick_key
+    from vehicle_sim.clock import RealTimeClock, TickQueue, ZenohTickSource, tick_key
     from vehicle_sim.host import VehicleHost, build_vehicle
 
     vehicles = []
@@ -323,7 +323,7 @@ def run_vehicle(args: argparse.Namespace) -> int:
             mission_id = args.mission_id or (mission.id if mission is not None else None)
             if not mission_id:
                 raise UsageError("--lockstep needs --mission or --mission-id (the tick key is fimnav/<id>/clock/tick)")
-            clock = LockstepClock()
+            clock = TickQueue()
             listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
             try:
                 if mission is not None:
