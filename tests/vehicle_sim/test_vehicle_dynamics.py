@@ -147,7 +147,7 @@ def test_advance_off_grid_and_backwards_is_safe():
     v.advance_to(0.1)  # earlier: no-op
     assert v.t == pytest.approx(0.333)
     v.advance_to(1.0)
-    assert v.t == pytest.approx(1.0) and v._n == 50
+    assert v.t == pytest.approx(1.0) and v.physics_steps == 50
 
 
 def test_geo_frames_against_geodesic():
