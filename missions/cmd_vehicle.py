@@ -196,7 +196,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         if origin_v is not None:
             origin = Origin(*origin_v)
         elif mission is not None:
-            origin = Origin(mission.origin.lat_deg, mission.origin.lon_deg, mission.origin.alt_m)
+            origin = mission.origin.to_origin()
         else:
             origin = Origin()
         limits = VehicleLimits()

@@ -179,7 +179,7 @@ class TelemetryEncoder:
         if not self.readiness.ready:
             return self.m.MAVLink_global_position_int_message(s.time_boot_ms(), 0, 0, 0, 0, 0, 0, 0, _heading_cdeg(s.yaw_rad))
         p = self._reported_position()
-        lat, lon, alt = self.frames.world.enu_to_geodetic(float(p[0]), float(p[1]), float(p[2]))
+        lat, lon, alt = self.frames.to_geodetic(p)
         vn, ve, vd = self.frames.vel_enu_to_ned(s.pm.velocity)
         rel = float(p[2] - s.home[2])
         return self.m.MAVLink_global_position_int_message(
@@ -216,7 +216,7 @@ class TelemetryEncoder:
             fix = m.GPS_FIX_TYPE_NO_GPS if self.readiness.stage == "init" else m.GPS_FIX_TYPE_NO_FIX
             return m.MAVLink_gps_raw_int_message(t_us, fix, 0, 0, 0, 65535, 65535, 0, 65535, 0)
         p = self._reported_position()
-        lat, lon, alt = self.frames.world.enu_to_geodetic(float(p[0]), float(p[1]), float(p[2]))
+        lat, lon, alt = self.frames.to_geodetic(p)
         v = self.state.pm.velocity
         gs = math.hypot(float(v[0]), float(v[1]))
         cog = int(round(math.degrees(math.atan2(float(v[0]), float(v[1]))) % 360.0 * 100)) % 36000
@@ -239,7 +239,7 @@ class TelemetryEncoder:
     def msg_home_position(self) -> Any:
         """HOME_POSITION: geodetic and local NED."""
         home = self.state.home
-        lat, lon, alt = self.frames.world.enu_to_geodetic(*map(float, home))
+        lat, lon, alt = self.frames.to_geodetic(home)
         n, e, d = self.frames.enu_to_local_ned(home)
         return self.m.MAVLink_home_position_message(
             int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), n, e, d, [1.0, 0.0, 0.0, 0.0], 0, 0, 0
@@ -282,7 +282,7 @@ class TelemetryEncoder:
 
     def msg_gps_global_origin(self) -> Any:
         """GPS_GLOBAL_ORIGIN: the EKF origin."""
-        o = self.frames.ekf.origin
+        o = self.frames.ekf_origin
         return self.m.MAVLink_gps_global_origin_message(
             int(round(o.lat_deg * 1e7)), int(round(o.lon_deg * 1e7)), int(round(o.alt_m * 1000)), int(self.state.t_s * 1e6)
         )

@@ -381,7 +381,7 @@ class SimVehicle:
             velocity_enu_mps=vec3(s.pm.velocity),
             params=tuple((name, p.get()) for name, p in self.parameters.params.items()),
             intervals_s=tuple(self.streams.intervals.items()),
-            origin=self.frames.ekf.origin,
+            origin=self.frames.ekf_origin,
             fence_enabled=self.geofence.fence.enabled,
             stage=self.readiness.stage,
             gcs_failsafe=self.failsafes.gcs_failsafe,

@@ -174,7 +174,7 @@ def test_reposition_with_infinite_altitude_is_denied(airborne: Rig) -> None:
 def test_reposition_with_nan_altitude_keeps_the_altitude(airborne: Rig) -> None:
     """NaN altitude means "current altitude" (MAV_CMD_DO_REPOSITION): accepted, z unchanged."""
     o = airborne.v.config.origin
-    lat, lon, _ = airborne.v.frames.world.enu_to_geodetic(5.0, 5.0, 0.0)
+    lat, lon, _ = airborne.v.frames.world.topocentric_to_geodetic(5.0, 5.0, 0.0)
     result, texts = airborne.ack(R.MAV_CMD_DO_REPOSITION, -1, 0, 0, NAN, 0, 0, NAN, use_int=True,
                                  x=int(round(lat * 1e7)), y=int(round(lon * 1e7)))
     assert result == R.MAV_RESULT_ACCEPTED, (texts, o)

@@ -10,7 +10,6 @@ import pytest
 
 from vehicle_sim.clock import TickQueue, Tick, ZenohTickSource, encode_tick, parse_tick, tick_key, zenoh_config
 from vehicle_sim.config import Origin, VehicleConfig
-from vehicle_sim.geo import LocalFrame
 
 from tests.support.net import free_port
 from tests.support.wait import wait_for
@@ -27,7 +26,6 @@ def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
     rig = make_rig(cfg, lockstep=True)
     clock: TickQueue = rig.host.clock  # type: ignore[assignment]
     c = rig.client
-    frame = LocalFrame(cfg.origin)
     rng = np.random.default_rng(11)
     dt = 1.0
     clock.push(Tick(0, 0.0))
@@ -50,7 +48,6 @@ def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
     assert rig.vehicle.t == t
     # an out-of-order tick is dropped
     assert not clock.push(Tick(3, 3.0))
-    del frame
 
 
 def test_a_setpoint_sent_before_a_tick_applies_before_it(make_rig, monkeypatch):

@@ -374,7 +374,7 @@ def test_gps_global_origin(make_rig):
     assert rig.set_mode("GUIDED") == 0 and rig.arm() == 0
     c.mav.set_gps_global_origin_send(1, int(o.lat_deg * 1e7), int(o.lon_deg * 1e7), 0)
     wait_msg(c, "STATUSTEXT", lambda m: "armed" in m.text)
-    assert rig.vehicle.frames.ekf.origin.alt_m == pytest.approx(o.alt_m + 16.0)
+    assert rig.vehicle.frames.ekf_origin.alt_m == pytest.approx(o.alt_m + 16.0)
 
 
 def test_geofence_clamps_and_rejects(make_rig):
