@@ -119,6 +119,10 @@ class FlavourInfo:
         guided_needs_setpoint_stream: the guided mode (PX4 OFFBOARD) is entered and kept only
             with a setpoint stream faster than 2 Hz; losing it triggers the offboard failsafe.
             ArduPilot's GUIDED holds the last target (a velocity times out after GUID_TIMEOUT).
+        takeoff_by_setpoint: the vehicle leaves the ground on a guided position setpoint above
+            it (PX4 OFFBOARD); ArduPilot needs MAV_CMD_NAV_TAKEOFF in GUIDED first.
+        posvel_target_moves: a position+velocity setpoint is a target moving along its
+            velocity (ArduPilot GUIDED); PX4 holds the point, the velocity a feed-forward.
         ekf_status_report: the autopilot streams EKF_STATUS_REPORT (ArduPilot's EXTRA3).
         global_position_before_fix: GLOBAL_POSITION_INT is sent before the position is known
             (ArduPilot, all zeros); PX4 sends none until its EKF has a position.
@@ -143,6 +147,8 @@ class FlavourInfo:
     param_bytewise: bool
     mode_command_main_sub: bool
     guided_needs_setpoint_stream: bool
+    takeoff_by_setpoint: bool
+    posvel_target_moves: bool
     ekf_status_report: bool
     global_position_before_fix: bool
     gcs_failsafe: bool
@@ -193,6 +199,8 @@ ARDUPILOT = FlavourInfo(
     param_bytewise=False,
     mode_command_main_sub=False,
     guided_needs_setpoint_stream=False,
+    takeoff_by_setpoint=False,
+    posvel_target_moves=True,
     ekf_status_report=True,
     global_position_before_fix=True,
     gcs_failsafe=True,
@@ -217,6 +225,8 @@ PX4 = FlavourInfo(
     param_bytewise=True,
     mode_command_main_sub=True,
     guided_needs_setpoint_stream=True,
+    takeoff_by_setpoint=True,
+    posvel_target_moves=False,
     ekf_status_report=False,
     global_position_before_fix=False,
     gcs_failsafe=False,

@@ -168,7 +168,7 @@ class GuidedSetpoints:
             self.outbox.statustext(4, "Guided: vehicle not armed", key="sp_disarmed")
             return False
         if not s.flying:
-            if self.config.flavour == "px4" and pos is not None and pos[2] > self.config.ground_z_m + 0.1:
+            if self.info.takeoff_by_setpoint and pos is not None and pos[2] > self.config.ground_z_m + 0.1:
                 s.flying = True
                 s.landed_state = m.MAV_LANDED_STATE_IN_AIR
             else:
@@ -187,7 +187,7 @@ class GuidedSetpoints:
         speed = self.speed_override_mps if source == "reposition" else None
         if pos is not None and vel is not None:
             # ArduPilot's GUIDED moves a position+velocity target along its velocity; PX4 does not.
-            cmd = Command("posvel", position=pos, velocity=vel, fence=fence, moving=self.config.flavour == "ardupilot")
+            cmd = Command("posvel", position=pos, velocity=vel, fence=fence, moving=self.info.posvel_target_moves)
             kind = "posvel"
         elif pos is not None:
             cmd = Command("position", position=pos, speed_mps=speed or self.speed_override_mps, fence=fence)
