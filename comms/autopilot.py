@@ -1,6 +1,6 @@
 """Autopilot profiles: flight modes, identity and readiness flags of ArduPilot copter and PX4,
 one table per flavour used by both sides of the link (the simulated vehicle,
-:mod:`vehicle_sim.vehicle`, and the planner's MAVLink client, :mod:`comms.mavlink_client`), so
+:mod:`vehicle_sim` (its modes, readiness, commands and telemetry), and the planner's MAVLink client, :mod:`comms.mavlink_client`), so
 the two cannot disagree.
 
 A mode is identified by its HEARTBEAT ``custom_mode``: ArduPilot copter mode numbers
@@ -114,15 +114,24 @@ class FlavourInfo:
             custom_mode values used by the mode logic.
         flight_sw_version: AUTOPILOT_VERSION flight_sw_version (major.minor.patch, official).
         param_bytewise: PARAM_VALUE integer encoding (PX4 bytewise, ArduPilot C cast).
-        guided_needs_stream: the guided mode is entered only with setpoints already flowing
-            and left when they stop (PX4 OFFBOARD, COM_OF_LOSS_T); an ArduPilot GUIDED
-            position target holds without a stream.
-        takeoff_by_command: take-off is MAV_CMD_NAV_TAKEOFF in the guided mode (ArduPilot);
-            otherwise the vehicle climbs on guided-mode setpoints (PX4 OFFBOARD).
-        velocity_moves_target: a position + velocity setpoint moves its position along the
-            velocity (ArduPilot GUIDED); otherwise the position holds and the velocity is a
-            feed-forward (PX4).
-        streams_ekf_status: the autopilot streams EKF_STATUS_REPORT on request (PX4 refuses it).
+        mode_command_main_sub: MAV_CMD_DO_SET_MODE carries the mode as PX4's main mode
+            (param2) and sub mode (param3), not as the custom_mode number (ArduPilot).
+        guided_needs_setpoint_stream: the guided mode (PX4 OFFBOARD) is entered and kept only
+            with a setpoint stream faster than 2 Hz; losing it triggers the offboard failsafe.
+            ArduPilot's GUIDED holds the last target (a velocity times out after GUID_TIMEOUT).
+        takeoff_by_setpoint: the vehicle leaves the ground on a guided position setpoint above
+            it (PX4 OFFBOARD); ArduPilot needs MAV_CMD_NAV_TAKEOFF in GUIDED first.
+        posvel_target_moves: a position+velocity setpoint is a target moving along its
+            velocity (ArduPilot GUIDED); PX4 holds the point, the velocity a feed-forward.
+        ekf_status_report: the autopilot streams EKF_STATUS_REPORT (ArduPilot's EXTRA3).
+        global_position_before_fix: GLOBAL_POSITION_INT is sent before the position is known
+            (ArduPilot, all zeros); PX4 sends none until its EKF has a position.
+        gcs_failsafe: the GCS heartbeat failsafe (ArduPilot FS_GCS_ENABLE, SYSID_MYGCS).
+        aligned_texts, ready_texts: STATUSTEXTs when the EKF aligns its attitude and when it
+            has a position and origin (GPS in use).
+        not_ready_init, not_ready_aligned: the pre-arm failure while the EKF initialises and
+            after alignment (no 3D fix yet).
+        mode_not_armable: the pre-arm failure in a mode that cannot arm (``{mode}``: its name).
         link_loss_failsafe: what the autopilot's own failsafe does while the planner's link
             is lost (for the planner's log).
     """
@@ -138,10 +147,18 @@ class FlavourInfo:
     rtl_mode: int
     flight_sw_version: int
     param_bytewise: bool
-    guided_needs_stream: bool
-    takeoff_by_command: bool
-    velocity_moves_target: bool
-    streams_ekf_status: bool
+    mode_command_main_sub: bool
+    guided_needs_setpoint_stream: bool
+    takeoff_by_setpoint: bool
+    posvel_target_moves: bool
+    ekf_status_report: bool
+    global_position_before_fix: bool
+    gcs_failsafe: bool
+    aligned_texts: tuple[str, ...]
+    ready_texts: tuple[str, ...]
+    not_ready_init: str
+    not_ready_aligned: str
+    mode_not_armable: str
     link_loss_failsafe: str
 
     def mode(self, custom_mode: int) -> Mode | None:
@@ -183,10 +200,18 @@ ARDUPILOT = FlavourInfo(
     rtl_mode=6,
     flight_sw_version=_version(4, 5, 7),
     param_bytewise=False,
-    guided_needs_stream=False,
-    takeoff_by_command=True,
-    velocity_moves_target=True,
-    streams_ekf_status=True,
+    mode_command_main_sub=False,
+    guided_needs_setpoint_stream=False,
+    takeoff_by_setpoint=False,
+    posvel_target_moves=True,
+    ekf_status_report=True,
+    global_position_before_fix=True,
+    gcs_failsafe=True,
+    aligned_texts=("EKF3 IMU0 tilt alignment complete", "EKF3 IMU0 MAG0 initial yaw alignment complete"),
+    ready_texts=("EKF3 IMU0 origin set", "EKF3 IMU0 is using GPS"),
+    not_ready_init="PreArm: EKF attitude is bad",
+    not_ready_aligned="PreArm: Need 3D Fix",
+    mode_not_armable="PreArm: {mode} mode not armable",
     link_loss_failsafe="ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
     "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
 )
@@ -203,10 +228,18 @@ PX4 = FlavourInfo(
     rtl_mode=px4_custom_mode(4, 5),
     flight_sw_version=_version(1, 15, 4),
     param_bytewise=True,
-    guided_needs_stream=True,
-    takeoff_by_command=False,
-    velocity_moves_target=False,
-    streams_ekf_status=False,
+    mode_command_main_sub=True,
+    guided_needs_setpoint_stream=True,
+    takeoff_by_setpoint=True,
+    posvel_target_moves=False,
+    ekf_status_report=False,
+    global_position_before_fix=False,
+    gcs_failsafe=False,
+    aligned_texts=(),
+    ready_texts=(),
+    not_ready_init="Preflight Fail: Attitude not valid",
+    not_ready_aligned="Preflight Fail: GPS fix too low",
+    mode_not_armable="PreArm: mode {mode} not armable",
     link_loss_failsafe="PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); a data-link loss (NAV_DLL_ACT) may follow",
 )
 

@@ -204,7 +204,7 @@ def _fleet_settings(args: argparse.Namespace, mission: Any | None) -> tuple[tupl
         if origin_v is not None:
             origin = Origin(*origin_v)
         elif mission is not None:
-            origin = Origin(mission.origin.lat_deg, mission.origin.lon_deg, mission.origin.alt_m)
+            origin = mission.origin.to_origin()
         else:
             origin = Origin()
         limits = VehicleLimits()
@@ -345,12 +345,12 @@ def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: li
     Raises:
         UsageError: no mission id, or the Zenoh session cannot be opened.
     """
-    from vehicle_sim.clock import LockstepClock, ZenohTickSource, tick_key
+    from vehicle_sim.clock import TickQueue, ZenohTickSource, tick_key
 
     mission_id = args.mission_id or (mission.id if mission is not None else None)
     if not mission_id:
         raise UsageError("--lockstep needs --mission or --mission-id (the tick key is fimnav/<id>/clock/tick)")
-    clock = LockstepClock()
+    clock = TickQueue()
     listen = args.zenoh_listen or ["tcp/127.0.0.1:0"]
     on_tick = None
     try:

@@ -40,6 +40,8 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from comms.faults import FaultModel
+from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_ORIGIN_LON_DEG
+from comms.geodesy import Origin as GeodeticOrigin
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
@@ -54,11 +56,9 @@ SCHEMA_VERSION: int = 1
 #: Largest swarm the format accepts (MAVLink system ids are 1..255; 250 leaves room for GCSs).
 MAX_DRONES: int = 250
 
-#: Default origin of the mission frame: ArduPilot SITL's default home, the Canberra Model
-#: Aircraft Club field (CMAC), so simulated vehicles and a default mission agree.
-DEFAULT_ORIGIN_LAT_DEG: float = -35.363261
-DEFAULT_ORIGIN_LON_DEG: float = 149.165230
-DEFAULT_ORIGIN_ALT_M: float = 584.0
+#: Default origin of the mission frame (DEFAULT_ORIGIN_*, from comms.geodesy): ArduPilot SITL's
+#: default home, the Canberra Model Aircraft Club field (CMAC), so simulated vehicles and a
+#: default mission agree.
 
 #: The sensing role names, from the role table of :mod:`planner.sensing` (one place to add a role).
 ROLES: tuple[str, ...] = ROLE_NAMES
@@ -155,6 +155,10 @@ class Origin(_Section):
     lat_deg: Float = Field(DEFAULT_ORIGIN_LAT_DEG, ge=-90.0, le=90.0, description="Latitude (deg, WGS-84).")
     lon_deg: Float = Field(DEFAULT_ORIGIN_LON_DEG, ge=-180.0, le=180.0, description="Longitude (deg, WGS-84).")
     alt_m: Float = Field(DEFAULT_ORIGIN_ALT_M, description="Altitude of the frame origin, metres AMSL.")
+
+    def to_origin(self) -> GeodeticOrigin:
+        """The plain origin (:class:`comms.geodesy.Origin`) the frames and the vehicle use."""
+        return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
 
     @property
     def lat_rad(self) -> float:

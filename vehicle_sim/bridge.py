@@ -2,7 +2,7 @@
 
 * Ticks: the lockstep clock publishes :class:`comms.messages.Tick` (``step`` −1 during the
   pre-flight, then 0..K−1) on ``fimnav/<id>/clock/tick``. The bridge feeds them to the
-  vehicles' :class:`vehicle_sim.clock.LockstepClock` (which wants a strictly increasing tick
+  vehicles' :class:`vehicle_sim.clock.TickQueue` (which wants a strictly increasing tick
   index: the bridge numbers them itself and remembers each one's mission step).
 * Payload: after the vehicles advanced to a mission tick k, each payload measures at its
   vehicle's *true* position and the bridge publishes the record
@@ -30,8 +30,7 @@ from comms import keys
 from comms.messages import MessageError, MessageKind, Observation, Tick, decode, encode
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
-from vehicle_sim.clock import LockstepClock
-from vehicle_sim.clock import Tick as VehicleTick
+from vehicle_sim.clock import TickQueue
 
 log = logging.getLogger(__name__)
 
@@ -42,14 +41,12 @@ class ZenohBridge:
     Args:
         mission_id: the mission id. count: the mission's N (for validating senders).
         dt_s: the mission step length (s).
-        clock: the vehicles' lockstep clock to feed; None in real time (no tick subscription).
+        clock: the vehicles' tick queue to feed; None in real time (no tick subscription).
         vehicles: the hosted vehicles (``sysid`` and ``payload`` attributes).
         settings: the Zenoh session settings.
     """
 
-    def __init__(
-        self, mission_id: str, count: int, dt_s: float, clock: LockstepClock | None, vehicles: Sequence[Any], settings: SessionSettings
-    ) -> None:
+    def __init__(self, mission_id: str, count: int, dt_s: float, clock: TickQueue | None, vehicles: Sequence[Any], settings: SessionSettings) -> None:
         self.mission_id = mission_id
         self.count = count
         self.dt = dt_s
@@ -126,14 +123,14 @@ class ZenohBridge:
             raise RuntimeError("a tick arrived without a lockstep clock (real time subscribes to no tick)")
         with self._lock:
             last = clock.last
-            if last is not None and msg.time_s <= last.t_s:
+            if last is not None and msg.time_s <= last.time_s:
                 return  # a repeated tick (the clock re-sends for late joiners)
             index = self._next_index
             self._next_index += 1
             self._mission_step[index] = msg.step
-        clock.push(VehicleTick(index, msg.time_s))
+        clock.push(Tick(index, msg.time_s))
 
-    def on_tick(self, vehicle: Any, tick: VehicleTick) -> None:
+    def on_tick(self, vehicle: Any, tick: Tick) -> None:
         """Host hook after ``vehicle`` advanced to ``tick``: publish its payload measurement."""
         with self._lock:
             step = self._mission_step.get(tick.step, -1)

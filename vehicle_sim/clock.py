@@ -1,10 +1,17 @@
 """Clocks of the simulated vehicles: real time with a speed-up, or lockstep ticks.
 
 * :class:`RealTimeClock`: sim time = speed-up × wall time elapsed since start.
-* :class:`LockstepClock`: sim time advances only when a tick ``{"step": k, "t_s": t}`` arrives,
-  in process (:meth:`LockstepClock.push`) or from Zenoh (:class:`ZenohTickSource`, key
-  ``fimnav/<mission_id>/clock/tick``). The clock is thread safe and exposes a file descriptor
-  that becomes readable when a tick is queued, so a select() loop wakes up at once.
+* :class:`TickQueue`: sim time advances only when a tick arrives, in process
+  (:meth:`TickQueue.push`), from :class:`vehicle_sim.bridge.ZenohBridge` (a mission's clock,
+  :mod:`missions.clock`) or from Zenoh as JSON (:class:`ZenohTickSource`, key
+  ``fimnav/<mission_id>/clock/tick``, payload ``{"step": k, "t_s": t}``). The queue is thread
+  safe and exposes a file descriptor that becomes readable when a tick is queued, so a select()
+  loop wakes up at once.
+
+A tick is :class:`comms.messages.Tick` (``step``, ``time_s``), the type the mission clock
+publishes; only its encoding differs between the two Zenoh sources: the standalone vehicle's
+JSON (:func:`parse_tick`, :func:`encode_tick`) and the mission's binary message
+(:func:`comms.messages.decode`, with a header naming the mission).
 """
 
 from __future__ import annotations
@@ -16,8 +23,9 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
+
+from comms.messages import Tick
 
 log = logging.getLogger(__name__)
 
@@ -51,16 +59,9 @@ class RealTimeClock:
         return self.wall_start + t_s / self.speedup
 
 
-@dataclass(frozen=True)
-class Tick:
-    """One lockstep tick: the mission step index ``step`` and its sim time ``t_s`` (s)."""
-
-    step: int
-    t_s: float
-
-
 def parse_tick(payload: bytes | str) -> Tick:
-    """Decode a tick payload ``{"step": int >= 0, "t_s": finite float >= 0}`` (JSON, UTF-8).
+    """Decode a JSON tick payload ``{"step": int >= 0, "t_s": finite float >= 0}`` (UTF-8) into
+    ``Tick(step, time_s=t_s)``.
 
     Raises:
         ValueError: with a message naming what was expected and what was found.
@@ -84,13 +85,14 @@ def parse_tick(payload: bytes | str) -> Tick:
 
 def encode_tick(tick: Tick) -> bytes:
     """The JSON payload of ``tick`` (inverse of :func:`parse_tick`)."""
-    return json.dumps({"step": tick.step, "t_s": tick.t_s}).encode()
+    return json.dumps({"step": tick.step, "t_s": tick.time_s}).encode()
 
 
-class LockstepClock:
-    """Thread-safe queue of lockstep ticks; time never goes backwards.
+class TickQueue:
+    """Thread-safe queue of the lockstep ticks a vehicle host consumes; time never goes backwards.
 
-    A tick whose ``t_s`` is earlier than the last accepted one, or whose ``step`` is not
+    Not the mission's clock (:class:`missions.clock.LockstepClock` publishes the ticks): this
+    queue only receives them. A tick whose ``time_s`` is earlier than the last accepted one, or whose ``step`` is not
     larger, is dropped with a warning (a duplicate or out-of-order message).
     """
 
@@ -106,7 +108,7 @@ class LockstepClock:
     def push(self, tick: Tick) -> bool:
         """Queue ``tick``; return False (and warn) when it is out of order."""
         with self._lock:
-            if self.last is not None and (tick.step <= self.last.step or tick.t_s < self.last.t_s):
+            if self.last is not None and (tick.step <= self.last.step or tick.time_s < self.last.time_s):
                 self.dropped += 1
                 log.warning("lockstep: dropped out-of-order tick %s after %s", tick, self.last)
                 return False
@@ -167,18 +169,18 @@ def zenoh_config(listen: Sequence[str] = ("tcp/127.0.0.1:0",), connect: Sequence
 
 
 class ZenohTickSource:
-    """Feed a :class:`LockstepClock` from the Zenoh key ``fimnav/<mission_id>/clock/tick``.
+    """Feed a :class:`TickQueue` from the Zenoh key ``fimnav/<mission_id>/clock/tick``.
 
     Args:
         mission_id: the mission id of the key expression.
-        clock: the clock to feed.
+        clock: the tick queue to feed.
         listen, connect: zenoh endpoints (e.g. ``tcp/127.0.0.1:7447``).
     """
 
     def __init__(
         self,
         mission_id: str,
-        clock: LockstepClock,
+        clock: TickQueue,
         *,
         listen: Sequence[str] = ("tcp/127.0.0.1:0",),
         connect: Sequence[str] = (),

@@ -3,7 +3,8 @@
 Frames and units: positions in the mission ENU frame (metres, x east, y north, z up) about
 the mission origin; speeds in m/s, accelerations in m/s², times in seconds of *sim* time
 unless a name says ``wall``. The vehicle's MAVLink ``LOCAL_NED`` frame is the same frame
-about the same origin, with N = y, E = x, D = -z (see :mod:`vehicle_sim.geo`).
+about the same origin, with N = y, E = x, D = -z (see :mod:`vehicle_sim.frames`). The origin
+type is :class:`comms.geodesy.Origin`, imported here for the vehicle's configuration.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from typing import Literal
+
+from comms.geodesy import Origin
 
 Flavour = Literal["ardupilot", "px4"]
 Profile = Literal["ideal", "pointmass"]
@@ -28,29 +31,6 @@ def _finite(name: str, value: float) -> None:
 def _positive(name: str, value: float) -> None:
     if not (math.isfinite(value) and value > 0.0):
         raise ValueError(f"{name} must be a finite positive number, found {value!r}")
-
-
-@dataclass(frozen=True)
-class Origin:
-    """Geodetic origin of the mission ENU frame.
-
-    Attributes:
-        lat_deg, lon_deg: WGS84 latitude and longitude (degrees).
-        alt_m: altitude of the origin (m). Treated as height above the WGS84 ellipsoid
-            *and* as AMSL (no geoid model): GLOBAL_POSITION_INT.alt and relative_alt differ
-            exactly by this value.
-    """
-
-    lat_deg: float = -35.363261
-    lon_deg: float = 149.165230
-    alt_m: float = 584.0
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.lat_deg) and -90.0 < self.lat_deg < 90.0):
-            raise ValueError(f"Origin.lat_deg must be in (-90, 90) degrees, found {self.lat_deg!r}")
-        if not (math.isfinite(self.lon_deg) and -180.0 <= self.lon_deg <= 180.0):
-            raise ValueError(f"Origin.lon_deg must be in [-180, 180] degrees, found {self.lon_deg!r}")
-        _finite("Origin.alt_m", self.alt_m)
 
 
 @dataclass(frozen=True)

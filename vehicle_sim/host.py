@@ -7,7 +7,7 @@ fixed grid (:meth:`SimVehicle.advance_to` integrates every missed physics step).
 
 * Real time: at each wake-up every vehicle is advanced to the clock's sim time.
 * Lockstep: input is answered between ticks (at the current sim time); each tick advances
-  every vehicle to the tick's ``t_s`` and reports its position (GLOBAL_POSITION_INT and
+  every vehicle to the tick's ``time_s`` and reports its position (GLOBAL_POSITION_INT and
   LOCAL_POSITION_NED stamped with the tick time).
 * HEARTBEAT: 1 Hz of *wall* time in both modes (link liveness for ground stations), sent
   only by a loop that is running and only for healthy vehicles; in lockstep also with the first
@@ -23,7 +23,8 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 
-from vehicle_sim.clock import LockstepClock, RealTimeClock, Tick
+from comms.messages import Tick
+from vehicle_sim.clock import RealTimeClock, TickQueue
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.link import MavlinkLink, open_transport, read_signing_key
 from vehicle_sim.payload import Payload
@@ -66,7 +67,7 @@ class VehicleHost:
 
     Args:
         vehicles: the vehicles (distinct links).
-        clock: :class:`RealTimeClock` or :class:`LockstepClock`.
+        clock: :class:`RealTimeClock` or :class:`TickQueue`.
         wall: monotonic wall clock (s).
         on_tick: called as ``on_tick(vehicle, tick)`` after each lockstep advance (e.g. to
             take and publish the payload measurement of ``tick.step``); its exceptions are
@@ -76,7 +77,7 @@ class VehicleHost:
     def __init__(
         self,
         vehicles: Sequence[SimVehicle],
-        clock: RealTimeClock | LockstepClock,
+        clock: RealTimeClock | TickQueue,
         wall: Callable[[], float] = time.monotonic,
         on_tick: Callable[[SimVehicle, Tick], None] | None = None,
     ) -> None:
@@ -113,10 +114,10 @@ class VehicleHost:
                     v.heartbeat()
                     v.link.flush()
                 next_hb = next_hb + HEARTBEAT_PERIOD_S if now - next_hb < HEARTBEAT_PERIOD_S else now + HEARTBEAT_PERIOD_S
-            if isinstance(self.clock, LockstepClock):
+            if isinstance(self.clock, TickQueue):
                 for tick in self.clock.pop_all():
                     for v in self.vehicles:
-                        self._advance(v, tick.t_s, True)
+                        self._advance(v, tick.time_s, True)
                         if self.on_tick is not None:
                             try:
                                 self.on_tick(v, tick)
@@ -133,7 +134,7 @@ class VehicleHost:
                 next_sim = min((v.next_due_s() for v in self.vehicles), default=math.inf)
                 wake = min(self.clock.wall_at(next_sim), next_hb, now + MAX_SLEEP_S)
             fds: list[int] = [fd for v in self.vehicles for fd in v.link.filenos()]
-            if isinstance(self.clock, LockstepClock):
+            if isinstance(self.clock, TickQueue):
                 fds.append(self.clock.fileno())
             timeout = max(0.0, wake - self.wall())
             try:

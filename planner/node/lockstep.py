@@ -132,7 +132,7 @@ class LockstepDriver:
         nxt = np.asarray(step.next_position, dtype=float)
         # A target that moves along its velocity (ArduPilot GUIDED) starts here and reaches nxt
         # after dt; one that holds its point (PX4) is nxt with the velocity as a feed-forward.
-        link.send_setpoint(own_m if self.io.profile.velocity_moves_target else nxt, u / self.config.dt_s)
+        link.send_setpoint(own_m if self.io.profile.posvel_target_moves else nxt, u / self.config.dt_s)
         return True
 
     def _await_step(self, k: int) -> float:
@@ -218,7 +218,7 @@ class LockstepDriver:
         step's setpoint follows at once); a mode that needs setpoints flowing first (PX4
         OFFBOARD) gets a few hold setpoints."""
         link = self.io.require_link()
-        if self.io.profile.guided_needs_stream:
+        if self.io.profile.guided_needs_setpoint_stream:
             for _ in range(GUIDED_PRIMING_SETPOINTS):
                 link.send_setpoint(hold_m, None)
         link.set_mode(self.io.guided_mode)
@@ -243,13 +243,13 @@ class LockstepDriver:
         profile = self.io.profile
         if not link.telemetry.armed:
             position = link.telemetry.position_enu_m
-            if profile.guided_needs_stream:
+            if profile.guided_needs_setpoint_stream:
                 # PX4 accepts OFFBOARD only with a setpoint stream already running.
                 for _ in range(GUIDED_PRIMING_SETPOINTS):
                     link.send_setpoint(position, None)
             link.set_mode(self.io.guided_mode)
             link.arm()
-            if profile.takeoff_by_command:
+            if not profile.takeoff_by_setpoint:
                 climb_to = float(self.config.start_position_m[2])
                 link.takeoff(climb_to)
 
@@ -360,7 +360,7 @@ class LockstepDriver:
                 pos = link.telemetry.position_enu_m
                 if pos is not None:
                     link.send_setpoint(pos, None)
-                if profile.guided_needs_stream:
+                if profile.guided_needs_setpoint_stream:
                     link.set_mode(self.io.mode_name(profile.hold_mode))
         except LinkError as exc:
             raise NodeError(f"uav {self.uav}: end of mission ({action}) failed: {exc}") from None

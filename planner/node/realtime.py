@@ -289,7 +289,7 @@ class RealtimeDriver:
         the step's trajectory; a mode that needs setpoints flowing first (PX4 OFFBOARD) gets
         the stream before the mode change."""
         link = self.io.require_link()
-        if self.io.profile.guided_needs_stream:
+        if self.io.profile.guided_needs_setpoint_stream:
             link.set_stream(lambda _t: (hold_m, None))
             link.set_mode(self.io.guided_mode)
         else:
@@ -391,9 +391,9 @@ class RealtimeDriver:
             if pos is not None:
                 hold = pos.astype(float)
                 link.set_stream(lambda _t: (hold, None))
-            if profile.guided_needs_stream:
+            if profile.guided_needs_setpoint_stream:
                 link.set_mode(self.io.mode_name(profile.hold_mode))
-            want = self.io.mode_name(profile.hold_mode) if profile.guided_needs_stream else self.io.guided_mode
+            want = self.io.mode_name(profile.hold_mode) if profile.guided_needs_setpoint_stream else self.io.guided_mode
             self.io.wait(lambda: link.in_mode(want) and link.telemetry.armed, timeout_s, f"armed heartbeat in {want}")
         elif action == "land":
             link.set_mode(self.io.mode_name(profile.land_mode))

@@ -84,7 +84,7 @@ class RealtimePreflight:
         climb_to = self.config.takeoff_alt_m
         # Take-off done at 95 % of the climb (an autopilot's altitude settles slowly at the end).
         climb_tol = max(START_TOLERANCE_REALTIME_M, 0.05 * (climb_to - float(pos[2])))
-        if self.io.profile.takeoff_by_command:
+        if not self.io.profile.takeoff_by_setpoint:
             self._takeoff_by_command(climb_to, climb_tol)
         else:
             self._takeoff_on_setpoints(pos, climb_to, climb_tol)
@@ -99,7 +99,7 @@ class RealtimePreflight:
         pos_msg = MSG_GLOBAL_POSITION_INT if self.config.setpoint_frame == "global" else MSG_LOCAL_POSITION_NED
         rates = {pos_msg: 10.0, MSG_SYS_STATUS: 1.0, MSG_GPS_RAW_INT: 1.0, MSG_HOME_POSITION: 0.5, MSG_EXTENDED_SYS_STATE: 1.0}
         optional = [MSG_EXTENDED_SYS_STATE]
-        if self.io.profile.streams_ekf_status:
+        if self.io.profile.ekf_status_report:
             rates[MSG_EKF_STATUS_REPORT] = 1.0
             optional.append(MSG_EKF_STATUS_REPORT)
         for note in link.request_streams(rates, optional):

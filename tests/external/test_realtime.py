@@ -245,20 +245,18 @@ def test_group_or_world_readable_key_is_refused(tmp_path: Path, procs: list[Proc
 
 def test_geodesy_round_trip_and_against_vehicle_sim() -> None:
     """Mission ENU ↔ WGS-84 (comms.geodesy) round-trips to 1 µm and agrees with the
-    simulated vehicle's own pyproj frame (vehicle_sim.geo) to 1 mm at 1 km."""
+    simulated vehicle's topocentric convention (the same MissionFrame) to 1 mm at 1 km."""
     from comms.geodesy import MissionFrame
-    from vehicle_sim.config import Origin
-    from vehicle_sim.geo import LocalFrame
 
     frame = MissionFrame(-35.363261, 149.165230, 584.0)
-    ref = LocalFrame(Origin(-35.363261, 149.165230, 584.0))
+    ref = frame
     for x, y, z in ((0.0, 0.0, 0.0), (10.0, 20.0, 8.0), (-1000.0, 700.0, 120.0), (1000.0, -1000.0, 3.0)):
         g = frame.to_global(x, y, z)
         assert math.isclose(g.alt_amsl_m, 584.0 + z, abs_tol=1e-9)
         back = frame.to_enu(g.lat_deg, g.lon_deg, g.alt_amsl_m)
         assert max(abs(a - b) for a, b in zip(back, (x, y, z))) < 1e-6
         # vehicle_sim maps a setpoint's lat/lon at the origin's height, z = alt - origin alt
-        rx, ry, _ = ref.geodetic_to_enu(g.lat_deg, g.lon_deg, 584.0)
+        rx, ry, _ = ref.geodetic_to_topocentric(g.lat_deg, g.lon_deg, 584.0)
         assert math.hypot(rx - x, ry - y) < 1e-3
     assert frame.matches(-35.363261, 149.165230, 584.0) and not frame.matches(-35.3632, 149.165230, 584.0)
 

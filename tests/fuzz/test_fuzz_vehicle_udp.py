@@ -40,13 +40,13 @@ BATCH = 100  # frames between two probes (well inside the default UDP receive bu
 def snapshot(v: SimVehicle) -> tuple[Any, ...]:
     """Everything a frame could change, except the clock and the battery."""
     s = v.state()
-    cmd = v.pm.command
+    cmd = v.flight.pm.command
     as_tuple = lambda a: None if a is None else tuple(float(x) for x in a)  # noqa: E731
     return (
         s.armed, s.mode, s.mode_name, s.landed_state, s.position_enu_m, s.velocity_enu_mps, s.params,
-        s.intervals_s, s.origin, s.fence_enabled, v.flying, v.phase, v.guided_kind, v.yaw_rad,
-        v.speed_override_mps, v.fence, v.limits, cmd.kind, as_tuple(cmd.position), as_tuple(cmd.velocity),
-        v.rtl_alt_m, v.guided_timeout_s,
+        s.intervals_s, s.origin, s.fence_enabled, v.flying, v.flight.phase, v.setpoints.guided_kind, v.flight.yaw_rad,
+        v.setpoints.speed_override_mps, v.geofence.fence, v.flight.limits, cmd.kind, as_tuple(cmd.position), as_tuple(cmd.velocity),
+        v.modes.rtl_alt_m, v.setpoints.guided_timeout_s,
     )
 
 

@@ -77,9 +77,9 @@ class Rig:
         return recv_until(self.gcs, lambda m: m.get_type() == "STATUSTEXT" and pattern in m.text, timeout_s, f"STATUSTEXT {pattern!r}").text
 
     def target(self) -> tuple[Any, ...]:
-        c = self.v.pm.command
+        c = self.v.flight.pm.command
         return (c.kind, None if c.position is None else tuple(c.position), None if c.velocity is None else tuple(c.velocity),
-                self.v.mode.name, self.v.armed, self.v.speed_override_mps)
+                self.v.mode.name, self.v.armed, self.v.setpoints.speed_override_mps)
 
     def close(self) -> None:
         self.host.close()
@@ -174,11 +174,11 @@ def test_reposition_with_infinite_altitude_is_denied(airborne: Rig) -> None:
 def test_reposition_with_nan_altitude_keeps_the_altitude(airborne: Rig) -> None:
     """NaN altitude means "current altitude" (MAV_CMD_DO_REPOSITION): accepted, z unchanged."""
     o = airborne.v.config.origin
-    lat, lon, _ = airborne.v.world.enu_to_geodetic(5.0, 5.0, 0.0)
+    lat, lon, _ = airborne.v.frames.world.topocentric_to_geodetic(5.0, 5.0, 0.0)
     result, texts = airborne.ack(R.MAV_CMD_DO_REPOSITION, -1, 0, 0, NAN, 0, 0, NAN, use_int=True,
                                  x=int(round(lat * 1e7)), y=int(round(lon * 1e7)))
     assert result == R.MAV_RESULT_ACCEPTED, (texts, o)
-    target = airborne.v.pm.command.position
+    target = airborne.v.flight.pm.command.position
     assert target is not None and abs(target[2] - 10.0) < 1e-9 and abs(target[0] - 5.0) < 0.05
 
 
@@ -230,7 +230,7 @@ def test_local_setpoint_outside_the_fence_is_refused_with_statustext(airborne: R
     # the reference: a setpoint inside the fence is taken
     _setpoint_local(airborne, POS, (3.0, 4.0, -12.0), (0, 0, 0))
     recv_until(airborne.gcs, lambda m: m.get_type() == "LOCAL_POSITION_NED", 5, "telemetry")
-    np.testing.assert_allclose(airborne.v.pm.command.position, [4.0, 3.0, 12.0])
+    np.testing.assert_allclose(airborne.v.flight.pm.command.position, [4.0, 3.0, 12.0])
 
 
 @pytest.mark.parametrize("alt,lat", [(NAN, 0), (INF, 0), (10.0, 2_000_000_000)])
@@ -256,8 +256,8 @@ def test_guided_mission_item_with_non_finite_altitude_is_invalid(airborne: Rig, 
 
 @pytest.mark.parametrize("value", [NAN, INF, -INF])
 def test_param_set_non_finite_keeps_the_value(airborne: Rig, value: float) -> None:
-    old = airborne.v.params["WPNAV_SPEED"].get()
+    old = airborne.v.parameters.params["WPNAV_SPEED"].get()
     airborne.drain()
     airborne.gcs.mav.param_set_send(1, 1, b"WPNAV_SPEED", value, R.MAV_PARAM_TYPE_REAL32)
     pv = recv_until(airborne.gcs, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "WPNAV_SPEED", 5, "PARAM_VALUE")
-    assert pv.param_value == pytest.approx(old) and airborne.v.params["WPNAV_SPEED"].get() == old
+    assert pv.param_value == pytest.approx(old) and airborne.v.parameters.params["WPNAV_SPEED"].get() == old

@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from vehicle_sim.clock import LockstepClock, RealTimeClock
+from vehicle_sim.clock import TickQueue, RealTimeClock
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.host import VehicleHost, build_vehicle
 
@@ -31,7 +31,7 @@ def make_rig() -> Iterator[Callable[..., Rig]]:
         if isinstance(configs, VehicleConfig):
             configs = [configs]
         vehicles = [build_vehicle(c, f"{kind}:127.0.0.1:0") for c in configs]
-        clock = LockstepClock() if lockstep else RealTimeClock(speedup)
+        clock = TickQueue() if lockstep else RealTimeClock(speedup)
         host = VehicleHost(vehicles, clock)
         rig = Rig(host, vehicles)
         rigs.append(rig)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from vehicle_sim.config import Geofence, Origin, VehicleConfig, VehicleLimits
 from vehicle_sim.dynamics import Command, PointMass, limit_velocity, max_speed_along
-from vehicle_sim.geo import LocalFrame
+from comms.geodesy import MissionFrame
 
 from tests.vehicle_sim.memlink import decode_all, gcs_encoder, memory_vehicle
 
@@ -115,7 +115,7 @@ def test_advance_to_drains_input_then_integrates_then_reports_sim_time():
     v, mem = memory_vehicle(cfg)
     enc, sink = gcs_encoder()
     rng = np.random.default_rng(5)
-    frame = LocalFrame(cfg.origin)
+    frame = MissionFrame.of_origin(cfg.origin)
     dt = 1.0
     f32 = np.float32
     for k in range(30):
@@ -147,22 +147,22 @@ def test_advance_off_grid_and_backwards_is_safe():
     v.advance_to(0.1)  # earlier: no-op
     assert v.t == pytest.approx(0.333)
     v.advance_to(1.0)
-    assert v.t == pytest.approx(1.0) and v._n == 50
+    assert v.t == pytest.approx(1.0) and v.physics_steps == 50
 
 
 def test_geo_frames_against_geodesic():
     from pyproj import Geod
 
     o = Origin(45.0, 7.0, 250.0)
-    f = LocalFrame(o)
-    lat, lon, alt = f.enu_to_geodetic(300.0, 400.0, 0.0)
+    f = MissionFrame.of_origin(o)
+    lat, lon, alt = f.topocentric_to_geodetic(300.0, 400.0, 0.0)
     az, _, dist = Geod(ellps="WGS84").inv(o.lon_deg, o.lat_deg, lon, lat)
     # Geod works on the ellipsoid surface; the point is ~250 m above it: scale by (R + h) / R
     assert dist * (1.0 + (alt - 0.02) / 6.371e6) == pytest.approx(500.0, abs=1e-3)
     assert az == pytest.approx(math.degrees(math.atan2(300.0, 400.0)), abs=1e-4)
     # the tangent plane rises above the ellipsoid by ~ d^2 / (2 R)
     assert alt - o.alt_m == pytest.approx(500.0**2 / (2 * 6.371e6), rel=0.02)
-    np.testing.assert_allclose(f.geodetic_to_enu(lat, lon, alt), (300.0, 400.0, 0.0), atol=1e-6)
+    np.testing.assert_allclose(f.geodetic_to_topocentric(lat, lon, alt), (300.0, 400.0, 0.0), atol=1e-6)
     assert f.enu_to_ned(1.0, 2.0, 3.0) == (2.0, 1.0, -3.0)
     assert f.ned_to_enu(2.0, 1.0, -3.0) == (1.0, 2.0, 3.0)
 

@@ -82,7 +82,7 @@ def test_ardupilot_gcs_failsafe(make_rig, enable: int, mode: int | None, text: s
     if mode is None:  # disabled: silence for twice the timeout changes nothing
         attitude = wait_msg(c, "ATTITUDE")
         wait_msg(c, "ATTITUDE", lambda m: m.time_boot_ms >= attitude.time_boot_ms + 2000 * timeout_s)
-        assert not v.gcs_failsafe
+        assert not v.failsafes.gcs_failsafe
         assert wait_msg(c, "HEARTBEAT", lambda m: m.get_srcComponent() == 1).custom_mode == ARDUPILOT_GUIDED
         return
     st = wait_msg(c, "STATUSTEXT", lambda m: m.text == text, timeout=10.0)

@@ -212,7 +212,7 @@ def test_a_command_handler_that_raises_still_answers_failed(monkeypatch: pytest.
     def broken(*_a: object) -> int:
         raise ZeroDivisionError("bug")
 
-    monkeypatch.setattr(v, "_cmd_change_speed", broken)
+    monkeypatch.setitem(v.commands._handlers, m.MAV_CMD_DO_CHANGE_SPEED, broken)
     enc, sink = gcs_encoder()
     enc.command_long_send(1, 1, m.MAV_CMD_DO_CHANGE_SPEED, 0, 1, 5, 0, 0, 0, 0, 0)
     t.inject(sink.frames[0])

@@ -8,9 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from vehicle_sim.clock import LockstepClock, Tick, ZenohTickSource, encode_tick, parse_tick, tick_key, zenoh_config
+from vehicle_sim.clock import TickQueue, Tick, ZenohTickSource, encode_tick, parse_tick, tick_key, zenoh_config
 from vehicle_sim.config import Origin, VehicleConfig
-from vehicle_sim.geo import LocalFrame
 
 from tests.support.net import free_port
 from tests.support.wait import wait_for
@@ -25,9 +24,8 @@ def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
     fields aside), stamped (k+1) dt."""
     cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(5.0, 150.0, 8.0), origin=Origin(45, 7, 100))
     rig = make_rig(cfg, lockstep=True)
-    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    clock: TickQueue = rig.host.clock  # type: ignore[assignment]
     c = rig.client
-    frame = LocalFrame(cfg.origin)
     rng = np.random.default_rng(11)
     dt = 1.0
     clock.push(Tick(0, 0.0))
@@ -50,7 +48,6 @@ def test_lockstep_posvel_steps_are_exact_over_udp(make_rig):
     assert rig.vehicle.t == t
     # an out-of-order tick is dropped
     assert not clock.push(Tick(3, 3.0))
-    del frame
 
 
 def test_a_setpoint_sent_before_a_tick_applies_before_it(make_rig, monkeypatch):
@@ -64,7 +61,7 @@ def test_a_setpoint_sent_before_a_tick_applies_before_it(make_rig, monkeypatch):
 
     cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(5.0, 150.0, 8.0), origin=Origin(45, 7, 100))
     rig = make_rig(cfg, lockstep=True)
-    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    clock: TickQueue = rig.host.clock  # type: ignore[assignment]
     c = rig.client
     clock.push(Tick(0, 0.0))
     m = wait_msg(c, "LOCAL_POSITION_NED", lambda m: m.time_boot_ms == 0)
@@ -122,7 +119,7 @@ def test_zenoh_ticks_drive_the_vehicle_and_bad_ticks_are_dropped(make_rig, caplo
 
     cfg = VehicleConfig(profile="ideal", airborne=True, start_enu_m=(0.0, 0.0, 5.0))
     rig = make_rig(cfg, lockstep=True)
-    clock: LockstepClock = rig.host.clock  # type: ignore[assignment]
+    clock: TickQueue = rig.host.clock  # type: ignore[assignment]
     port = free_port()
     source = ZenohTickSource("m42", clock, listen=[f"tcp/127.0.0.1:{port}"])
     pub_session = zenoh.open(zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))

@@ -333,7 +333,7 @@ def test_params_list_read_set(make_rig):
     c.mav.param_set_send(1, 1, b"WPNAV_SPEED", 350.0, R.MAV_PARAM_TYPE_REAL32)
     pv = wait_msg(c, "PARAM_VALUE", lambda m: m.param_id == "WPNAV_SPEED")
     assert pv.param_value == pytest.approx(350.0)
-    assert rig.vehicle.limits.speed_max_h_mps == pytest.approx(3.5)
+    assert rig.vehicle.flight.limits.speed_max_h_mps == pytest.approx(3.5)
     c.mav.param_set_send(1, 1, b"GUID_TIMEOUT", -1.0, R.MAV_PARAM_TYPE_REAL32)  # invalid: unchanged value returned
     pv = wait_msg(c, "PARAM_VALUE", lambda m: m.param_id == "GUID_TIMEOUT")
     assert pv.param_value == pytest.approx(3.0)
@@ -374,7 +374,7 @@ def test_gps_global_origin(make_rig):
     assert rig.set_mode("GUIDED") == 0 and rig.arm() == 0
     c.mav.set_gps_global_origin_send(1, int(o.lat_deg * 1e7), int(o.lon_deg * 1e7), 0)
     wait_msg(c, "STATUSTEXT", lambda m: "armed" in m.text)
-    assert rig.vehicle.ekf.origin.alt_m == pytest.approx(o.alt_m + 16.0)
+    assert rig.vehicle.frames.ekf_origin.alt_m == pytest.approx(o.alt_m + 16.0)
 
 
 def test_geofence_clamps_and_rejects(make_rig):
