@@ -26,6 +26,7 @@ with respect to the position of one drone (its own, for the control law of eq. 1
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -34,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from planner.geometry import RHO_FLOOR_M
 from planner.params import Channel, Criterion
-from planner.sensing import BEARING, RANGE
+from planner.sensing import COMPONENTS, LinkGeometry, SensingComponent, component_masks, link_geometry
 
 FloatArray = NDArray[np.float64]
 
@@ -61,28 +62,11 @@ def _los_weight(los: ArrayLike) -> FloatArray:
     return np.asarray(los, dtype=float)
 
 
-def _term_vectors(r: FloatArray, los: FloatArray, channel: Channel) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Vectors and scalars of the FIM terms for relative vectors r = p0 - p_j, shape (..., 3).
-
-    Returns ``(V, rho2, d2, d, inv_s0sq, r)`` where V (..., 3, 3) stacks the rows
-    r (ranging direction times d), b = [-r_y, r_x, 0] (∇φ·ρ²) and
-    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ), and inv_s0sq = q/σ_r0,LOS² + (1 − q)/σ_r0,NLOS² for
-    the LOS weight q (1 LOS, 0 NLOS).
-    """
-    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
-    rho2 = np.maximum(rx * rx + ry * ry, RHO_FLOOR_M**2)
-    d2 = rho2 + rz * rz
-    d = np.sqrt(d2)
-    inv_s0sq = los / channel.sigma_r0_los**2 + (1.0 - los) / channel.sigma_r0_nlos**2
-    V = np.empty(r.shape[:-1] + (3, 3))
-    V[..., 0, :] = r
-    V[..., 1, 0] = -ry
-    V[..., 1, 1] = rx
-    V[..., 1, 2] = 0.0
-    V[..., 2, 0] = -rx * rz
-    V[..., 2, 1] = -ry * rz
-    V[..., 2, 2] = rho2
-    return V, rho2, d2, d, inv_s0sq, r
+def _stacked_rows(geom: LinkGeometry, components: Sequence[SensingComponent]) -> FloatArray:
+    """The rows u of every component's terms w u uᵀ, stacked in registry order, (..., k, 3):
+    for the registry, r (ranging direction times d), b = [-r_y, r_x, 0] (∇φ·ρ²) and
+    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ)."""
+    return np.concatenate([c.fim_vectors(geom) for c in components], axis=-2)
 
 
 def fisher_information(
@@ -92,6 +76,8 @@ def fisher_information(
     bearing: ArrayLike,
     los: ArrayLike,
     channel: Channel,
+    extra_masks: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> FloatArray:
     """Fisher information matrix J(p0; q) of the source position (paper eqs. 10-12).
 
@@ -105,18 +91,22 @@ def fisher_information(
             flag gives the expected FIM q J_LOS + (1 − q) J_NLOS of a link that is LOS with
             probability q (the planner's predicted own link, :func:`planner.agent.own_los_weight`).
         channel: RSS channel (γ, σ_sh/γ LOS and NLOS, σ_b).
+        extra_masks: masks (..., N) of the components in ``components`` other than range and
+            bearing, by component name (absent: no drone has it).
+        components: the measurement components (:data:`planner.sensing.COMPONENTS`).
+
+    Every component adds its rows u with weights w (w u uᵀ per drone): J = Σ w u uᵀ is one
+    product of the rows of all drones and components, stacked in registry order.
 
     Returns:
         J, shape (..., 3, 3), units 1/m².
     """
     r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
     los_w = _los_weight(los)
-    V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
-    w = np.empty(V.shape[:-1])
-    # Ranging: A_r a aᵀ = (A_r / d²) r rᵀ.
-    w[..., 0] = np.asarray(ranging, dtype=bool) * RANGE.fim_weight(d, d2, inv_s0sq, channel.gamma) / d2
-    # Bearing (LOS only): ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²).
-    w[..., 1], w[..., 2] = BEARING.fim_weights(rho2, d2, np.asarray(bearing, dtype=bool) * los_w, channel)
+    geom = link_geometry(r)
+    masks = component_masks(ranging, bearing, extra_masks, components)
+    V = _stacked_rows(geom, components)
+    w = np.concatenate([c.fim_row_weights(geom, mask, los_w, channel) for c, mask in zip(components, masks, strict=True)], axis=-1)
     Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
     return np.swapaxes(Vs, -1, -2) @ Vs
 
@@ -208,6 +198,8 @@ def cost_gradient(
     channel: Channel,
     criterion: Criterion,
     own_los_gradient: ArrayLike | None = None,
+    own_extra: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> CostGradient:
     """Cost C(q_i) of eq. 6 and its analytic gradient w.r.t. drone i's own position (eq. 14).
 
@@ -230,31 +222,43 @@ def cost_gradient(
         channel: RSS channel. criterion: ``"A"`` or ``"D"``.
         own_los_gradient: ∇_{p_i} q (..., 3), 1/m, when q depends on p_i; adds
             tr(M (J_LOS − J_NLOS)) ∇q to the gradient (J_LOS − J_NLOS: drone i's own term).
+        own_extra: drone i's masks of the other components, by name (see
+            :func:`fisher_information`). components: the measurement components.
 
+    Each component supplies its own term's gradient
+    (:meth:`planner.sensing.SensingComponent.cost_gradient_terms`), summed in registry order.
     One drone (``fim`` (3, 3), ``own_position`` (3,)) takes a scalar fast path with the same
     value, status and (to round-off) gradient; see :func:`_cost_gradient_one`.
     """
     if np.shape(own_position) == (3,) and np.shape(source) == (3,) and np.shape(fim) == (3, 3) and criterion in ("A", "D"):
-        fast = _cost_gradient_one(fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion, own_los_gradient)
+        fast = _cost_gradient_one(
+            fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion, own_los_gradient, own_extra, components
+        )
         if fast is not None:
             return fast
     inv, value, M = _criterion_derivative(fim, criterion)
     singular = inv.status == _SINGULAR
     r = np.asarray(source, dtype=float) - np.asarray(own_position, dtype=float)
     los_w = _los_weight(own_los)
-    V, rho2, d2, d, inv_s0sq, _ = _term_vectors(r, los_w, channel)
-    MV = V @ M  # rows: M r, M b, M v (M symmetric)
-    q = (V * MV).sum(-1)  # rᵀMr, bᵀMb, vᵀMv
-    Mr, Mb, Mv = MV[..., 0, :], MV[..., 1, :], MV[..., 2, :]
-    g_r = RANGE.cost_gradient(r, d, d2, q[..., 0], Mr, inv_s0sq, channel.gamma)
-    g_b, tr_b = BEARING.cost_gradient(r, rho2, d2, q[..., 1], q[..., 2], Mb, Mv, channel)
-    use_r = np.asarray(own_ranging, dtype=bool)[..., None]
-    use_b = (np.asarray(own_bearing, dtype=bool) * los_w)[..., None]
-    gradient = -(use_r * g_r + use_b * g_b)
-    if own_los_gradient is not None:
-        # tr(M (J_LOS − J_NLOS)): the ranging term's LOS/NLOS difference and the bearing terms.
-        dr = RANGE.los_trace(d, d2, q[..., 0], channel)
-        tr = use_r[..., 0] * dr + np.asarray(own_bearing, dtype=bool) * tr_b
+    geom = link_geometry(r)
+    masks = component_masks(own_ranging, own_bearing, own_extra, components)
+    V = _stacked_rows(geom, components)
+    MV = V @ M  # rows M u (M symmetric): M r, M b, M v for the registry
+    q = (V * MV).sum(-1)  # uᵀMu
+    with_trace = own_los_gradient is not None
+    total: FloatArray | None = None
+    tr: FloatArray | None = None
+    row = 0
+    for component, mask in zip(components, masks, strict=True):
+        rows = slice(row, row + component.fim_row_count)
+        row += component.fim_row_count
+        g_c, tr_c = component.cost_gradient_terms(geom, q[..., rows], MV[..., rows, :], mask, los_w, channel, with_trace)
+        total = g_c if total is None else total + g_c
+        if tr_c is not None:
+            # tr(M (J_LOS − J_NLOS)) of the own term.
+            tr = tr_c if tr is None else tr + tr_c
+    gradient = -total if total is not None else np.zeros(np.shape(r))
+    if own_los_gradient is not None and tr is not None:
         gradient = gradient + tr[..., None] * np.asarray(own_los_gradient, dtype=float)
     if singular.any():
         gradient = np.where(singular[..., None], 0.0, gradient)
@@ -284,6 +288,8 @@ def _cost_gradient_one(
     channel: Channel,
     criterion: Criterion,
     own_los_gradient: ArrayLike | None = None,
+    own_extra: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> CostGradient | None:
     """:func:`cost_gradient` for one drone and one 3x3 J, in Python floats (the planner node's
     hot path: ~3x faster than the batched code on 0-d arrays).
@@ -321,14 +327,12 @@ def _cost_gradient_one(
     los = float(np.asarray(own_los, dtype=float))
     tr = 0.0  # tr(M (J_LOS − J_NLOS)) of the own term
     gx = gy = gz = 0.0
-    if bool(own_ranging):
-        gx, gy, gz, tr_r = RANGE.cost_gradient_one(r, d, d2, m, los, channel)
-        tr += tr_r
-    if bool(own_bearing) and (los > 0.0 or own_los_gradient is not None):
-        bgx, bgy, bgz, tr_b = BEARING.cost_gradient_one(r, rho2, d2, m, channel)
-        # The bearing terms carry the LOS weight q (an NLOS bearing carries no information).
-        gx, gy, gz = gx + los * bgx, gy + los * bgy, gz + los * bgz
-        tr += tr_b
+    masks = component_masks(own_ranging, own_bearing, own_extra, components)
+    for component, mask in zip(components, masks, strict=True):
+        terms = component.cost_gradient_one_terms(r, rho2, d, d2, m, bool(np.asarray(mask)), los, channel, own_los_gradient is not None)
+        if terms is not None:
+            gx, gy, gz = gx + terms[0], gy + terms[1], gz + terms[2]
+            tr += terms[3]
     gradient = np.array([-gx, -gy, -gz])
     if own_los_gradient is not None:
         gradient = gradient + tr * np.asarray(own_los_gradient, dtype=float)

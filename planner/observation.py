@@ -17,15 +17,16 @@ bearing outlier ω_j (multipath) is drawn uniformly: azimuth on [-π, π), eleva
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planner.geometry import line_of_sight, ranges_angles
 from planner.params import Channel
-from planner.randomness import MEASUREMENT_DRAWS
-from planner.sensing import BEARING, RANGE
+from planner.sensing import COMPONENTS, RANGE, SensingComponent, component_masks, measurement_draws
 
 FloatArray = NDArray[np.float64]
 
@@ -35,16 +36,29 @@ class Observation:
     """Measurements of N drones (leading dims broadcast).
 
     Attributes:
-        range_m: estimated distance d̂ (m), shape (..., N); NaN where the drone does not range.
-        azimuth_rad: estimated azimuth φ̂ (rad), NaN where the drone has no bearing sensor.
-        elevation_rad: estimated elevation θ̂ (rad), NaN where no bearing.
+        values: every component's measured values by value name
+            (:attr:`planner.sensing.SensingComponent.value_names`), each of shape (..., N);
+            NaN where the drone does not have the component (read-only mapping).
         los: True where the link was line of sight when measured, shape (..., N).
     """
 
-    range_m: FloatArray
-    azimuth_rad: FloatArray
-    elevation_rad: FloatArray
+    values: Mapping[str, FloatArray]
     los: NDArray[np.bool_]
+
+    @property
+    def range_m(self) -> FloatArray:
+        """Estimated distance d̂ (m), (..., N); NaN where the drone does not range."""
+        return self.values["range_m"]
+
+    @property
+    def azimuth_rad(self) -> FloatArray:
+        """Estimated azimuth φ̂ (rad), (..., N); NaN where the drone has no bearing sensor."""
+        return self.values["azimuth_rad"]
+
+    @property
+    def elevation_rad(self) -> FloatArray:
+        """Estimated elevation θ̂ (rad), (..., N); NaN where no bearing."""
+        return self.values["elevation_rad"]
 
 
 def ranging_std(d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
@@ -60,6 +74,8 @@ def observe_from_uniforms(
     los: ArrayLike,
     channel: Channel,
     uniforms: ArrayLike,
+    extra_masks: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> Observation:
     """Measurements of eq. 3 from five uniform variates per drone (deterministic).
 
@@ -69,8 +85,11 @@ def observe_from_uniforms(
         ranging, bearing: sensing roles κ_j, β_j, boolean (..., N) or (N,).
         los: link state p_j, boolean (..., N).
         channel: the RSS channel.
-        uniforms: shape (..., N, 5) in [0, 1): range noise, azimuth noise, elevation noise
-            (through the normal quantile), then the outlier azimuth and elevation.
+        uniforms: shape (..., N, U) in [0, 1), U = :func:`planner.sensing.measurement_draws`
+            (5 for the registry): range noise, azimuth noise, elevation noise (through the
+            normal quantile), then the outlier azimuth and elevation.
+        extra_masks: masks (..., N) of the components other than range and bearing, by name.
+        components: the measurement components (:data:`planner.sensing.COMPONENTS`).
 
     Returns:
         The :class:`Observation`.
@@ -78,19 +97,16 @@ def observe_from_uniforms(
     u = np.asarray(uniforms, dtype=float)
     d, phi, theta = ranges_angles(source, positions)
     los_b = np.asarray(los, dtype=bool)
-    rng_mask = np.broadcast_to(np.asarray(ranging, dtype=bool), d.shape)
-    brg_mask = np.broadcast_to(np.asarray(bearing, dtype=bool), d.shape)
-    # Each component draws its variates from the uniforms it owns (planner.sensing); the
-    # normal quantiles are kept finite (Generator.random() can return exactly 0).
-    d_hat = RANGE.simulate(d, los_b, channel, u)
-    az, el = BEARING.simulate(phi, theta, los_b, channel, u)
-    nan = np.nan
-    return Observation(
-        range_m=np.where(rng_mask, d_hat, nan),
-        azimuth_rad=np.where(brg_mask, az, nan),
-        elevation_rad=np.where(brg_mask, el, nan),
-        los=np.broadcast_to(los_b, d.shape).copy(),
-    )
+    values: dict[str, FloatArray] = {}
+    for component, mask in zip(components, component_masks(ranging, bearing, extra_masks, components), strict=True):
+        # Each component draws its variates from the uniform columns it owns
+        # (planner.sensing); the normal quantiles are kept finite (Generator.random() can
+        # return exactly 0).
+        has = np.broadcast_to(np.asarray(mask, dtype=bool), d.shape)
+        drawn = component.simulate_values(d, phi, theta, los_b, channel, u)
+        for name, value in zip(component.value_names, drawn, strict=True):
+            values[name] = np.where(has, value, np.nan)
+    return Observation(values=MappingProxyType(values), los=np.broadcast_to(los_b, d.shape).copy())
 
 
 def observe(
@@ -102,11 +118,13 @@ def observe(
     boxes_max: ArrayLike,
     channel: Channel,
     rng: np.random.Generator,
+    extra_masks: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> Observation:
     """Draw the measurements of eq. 3 with LOS/NLOS from the obstacles.
 
-    Draws ``positions.shape[:-1] + (5,)`` uniforms from ``rng`` (five per drone, in drone
-    order), so one drone measured each step consumes its stream exactly as the in-process
+    Draws ``positions.shape[:-1] + (U,)`` uniforms from ``rng`` (U =
+    :func:`planner.sensing.measurement_draws`, five for the registry, per drone in drone order), so one drone measured each step consumes its stream exactly as the in-process
     simulator does (see :mod:`planner.randomness`).
 
     Args:
@@ -114,8 +132,9 @@ def observe(
         ranging, bearing: boolean (N,) or (..., N): κ_j and β_j.
         boxes_min, boxes_max: obstacles, (B, 3) m, ENU.
         channel: RSS channel. rng: the drone's measurement generator.
+        extra_masks, components: see :func:`observe_from_uniforms`.
     """
     p = np.asarray(positions, dtype=float)
     los = line_of_sight(p, source, boxes_min, boxes_max)
-    uniforms = rng.random(p.shape[:-1] + (MEASUREMENT_DRAWS,))
-    return observe_from_uniforms(source, p, ranging, bearing, los, channel, uniforms)
+    uniforms = rng.random(p.shape[:-1] + (measurement_draws(components),))
+    return observe_from_uniforms(source, p, ranging, bearing, los, channel, uniforms, extra_masks, components)

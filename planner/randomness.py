@@ -11,14 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.sensing import measurement_draws
+
 #: Purpose tags of the streams.
 MEASUREMENT_STREAM: int = 0
 CONTROL_STREAM: int = 1
 #: Receiving-side loss and delay injection (:mod:`comms.faults`): drawn by the receiver.
 FAULT_STREAM: int = 2
 
-#: Uniform variates per drone and step for the measurement noise.
-MEASUREMENT_DRAWS: int = 5
+#: Uniform variates per drone and step for the measurement noise: the columns the registered
+#: components draw from (:func:`planner.sensing.measurement_draws`; 5: range 0, bearing 1-4).
+MEASUREMENT_DRAWS: int = measurement_draws()
 #: Uniform variates per drone and step for the singular-FIM random perturbation.
 CONTROL_DRAWS: int = 2
 

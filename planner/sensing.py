@@ -28,13 +28,15 @@ See ``docs/sensing-models.md`` for adding a sensing model.
 from __future__ import annotations
 
 import difflib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner.geometry import RHO_FLOOR_M
 from planner.params import Channel
 
 FloatArray = NDArray[np.float64]
@@ -51,20 +53,33 @@ class SensingRole:
 
     Attributes:
         name: the role's name in mission files and user-facing text.
-        ranging: κ_j, the drone measures range (:data:`RANGE`).
-        bearing: β_j, the drone measures azimuth and elevation (:data:`BEARING`).
+        components: the names of the measurement components the role takes (see
+            :data:`COMPONENTS`), e.g. ``("range",)``.
         description: one line for the mission schema and the docs.
     """
 
     name: str
-    ranging: bool
-    bearing: bool
+    components: tuple[str, ...]
     description: str
 
     @property
+    def ranging(self) -> bool:
+        """κ_j: the role measures range (:data:`RANGE`)."""
+        return RANGE.name in self.components
+
+    @property
+    def bearing(self) -> bool:
+        """β_j: the role measures azimuth and elevation (:data:`BEARING`)."""
+        return BEARING.name in self.components
+
+    @property
     def wire_bits(self) -> int:
-        """The role byte of a record on the wire: :data:`RANGING_BIT` | :data:`BEARING_BIT`."""
-        return (RANGING_BIT if self.ranging else 0) | (BEARING_BIT if self.bearing else 0)
+        """The role byte of a record on the wire: the OR of its components' ``wire_bit``."""
+        bits = 0
+        for component in COMPONENTS:
+            if component.name in self.components:
+                bits |= component.wire_bit
+        return bits
 
 
 #: The role table, in the order the docs and the schema list it (read-only).
@@ -72,9 +87,9 @@ ROLES: Mapping[str, SensingRole] = MappingProxyType(
     {
         role.name: role
         for role in (
-            SensingRole("ranging", True, False, "RSS ranging d̂ (paper N_R, κ_j = 1)"),
-            SensingRole("bearing", False, True, "azimuth and elevation φ̂, θ̂ (paper N_B, β_j = 1)"),
-            SensingRole("joint", True, True, "ranging and bearing (κ_j = β_j = 1)"),
+            SensingRole("ranging", ("range",), "RSS ranging d̂ (paper N_R, κ_j = 1)"),
+            SensingRole("bearing", ("bearing",), "azimuth and elevation φ̂, θ̂ (paper N_B, β_j = 1)"),
+            SensingRole("joint", ("range", "bearing"), "ranging and bearing (κ_j = β_j = 1)"),
         )
     }
 )
@@ -121,9 +136,170 @@ def wrap_angle(angle: FloatArray) -> FloatArray:
 
 # --------------------------------------------------------------------------- components
 @dataclass(frozen=True)
-class RangeModel:
+class LinkGeometry:
+    """Geometry of drone-to-source links, shared by every component's terms.
+
+    Attributes:
+        r: p0 − p, shape (..., 3), m, ENU.
+        rho2: ρ² = r_x² + r_y², floored at ``RHO_FLOOR_M``², shape (...), m².
+        d2: d² = ρ² + r_z², m². d: d, m.
+    """
+
+    r: FloatArray
+    rho2: FloatArray
+    d2: FloatArray
+    d: FloatArray
+
+
+def link_geometry(r: FloatArray) -> LinkGeometry:
+    """:class:`LinkGeometry` of relative vectors r = p0 − p, shape (..., 3), m."""
+    rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+    rho2 = np.maximum(rx * rx + ry * ry, RHO_FLOOR_M**2)
+    d2 = rho2 + rz * rz
+    return LinkGeometry(r, rho2, d2, np.sqrt(d2))
+
+
+class SensingComponent:
+    r"""What a measurement component supplies to the math core (base class of the components).
+
+    A component measures ``len(value_names)`` scalars per drone and step and adds
+    ``fim_row_count`` rank-one terms w u uᵀ to the Fisher information J of the source position
+    (u: a row vector, (..., 3), w: its weight, both per drone). Everything that loops over
+    components (:mod:`planner.fim`, :mod:`planner.observation`, :mod:`planner.estimator`)
+    calls the methods below, in the order of :data:`COMPONENTS`.
+
+    Class attributes:
+        name: the component's name (the key of its mask, e.g. ``"range"``).
+        wire_bit: its bit in a record's role byte (``comms/messages.py``).
+        value_names: the names of its measured values, with units (e.g. ``("range_m",)``):
+            the keys of :attr:`planner.observation.Observation.values` and of
+            :attr:`planner.estimator.Measurements.values` (for components outside the
+            estimator's built-in kernel).
+        uniform_columns: the columns of a drone's uniform variates per step it draws from.
+        fim_row_count: the number of rows u it adds to J.
+    """
+
+    name: ClassVar[str] = ""
+    wire_bit: ClassVar[int] = 0
+    value_names: ClassVar[tuple[str, ...]] = ()
+    uniform_columns: ClassVar[tuple[int, ...]] = ()
+    fim_row_count: ClassVar[int] = 0
+
+    def simulate_values(
+        self, d: FloatArray, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray
+    ) -> tuple[FloatArray, ...]:
+        """The measured values (one per ``value_names``, each (..., N)) of true distances d (m),
+        azimuths φ and elevations θ (rad), (..., N), from the uniforms (..., N, U) (eq. 3)."""
+        raise NotImplementedError(f"{type(self).__name__}.simulate_values")
+
+    def fim_vectors(self, geom: LinkGeometry) -> FloatArray:
+        """The rows u of its terms w u uᵀ of J, shape (..., ``fim_row_count``, 3)."""
+        raise NotImplementedError(f"{type(self).__name__}.fim_vectors")
+
+    def fim_row_weights(self, geom: LinkGeometry, mask: ArrayLike, los_w: FloatArray, channel: Channel) -> FloatArray:
+        """The weights w of its rows, shape (..., ``fim_row_count``), zero where ``mask``
+        (bool, (..., N)) is False; ``los_w``: the link's LOS flag or weight q in [0, 1]."""
+        raise NotImplementedError(f"{type(self).__name__}.fim_row_weights")
+
+    def cost_gradient_terms(
+        self, geom: LinkGeometry, q: FloatArray, MV: FloatArray, mask: ArrayLike, los_w: FloatArray, channel: Channel, los_trace: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """∂ tr(M J_c)/∂r (..., 3) of its own term J_c of one drone's J (``mask``: the drone has
+        the component), and, if ``los_trace``, tr(M ∂J_c/∂q) (...) of the LOS weight q.
+        ``q`` (..., k) = uᵀMu and ``MV`` (..., k, 3) = M u of its rows u (M symmetric)."""
+        raise NotImplementedError(f"{type(self).__name__}.cost_gradient_terms")
+
+    def cost_gradient_one_terms(
+        self,
+        r: tuple[float, float, float],
+        rho2: float,
+        d: float,
+        d2: float,
+        m: list[list[float]],
+        mask: bool,
+        los: float,
+        channel: Channel,
+        los_trace: bool,
+    ) -> tuple[float, float, float, float] | None:
+        """:meth:`cost_gradient_terms` for one drone in Python floats (the planner node's hot
+        path): (g_x, g_y, g_z, trace), or None where the component adds nothing. The default
+        evaluates the batched method on 0-d arrays."""
+        if not bool(mask):
+            return None
+        rv = np.array(r, dtype=float)
+        geom = LinkGeometry(rv, np.array(rho2), np.array(d2), np.array(d))
+        u = self.fim_vectors(geom)
+        MV = u @ np.array(m, dtype=float)
+        g, tr = self.cost_gradient_terms(geom, (u * MV).sum(-1), MV, True, np.array(los), channel, los_trace)
+        return float(g[0]), float(g[1]), float(g[2]), 0.0 if tr is None else float(tr)
+
+    def estimator_terms(self, values: tuple[FloatArray, ...], geom: LinkGeometry, channel: Channel) -> tuple[FloatArray, FloatArray]:
+        """The estimator's normalised residuals e = (z − h(p0))/σ of the measured ``values``
+        (each (..., K)) at links ``geom`` of a source candidate p0, shape (..., K, n) with n =
+        ``len(value_names)``, and their gradients ∂e/∂p0, shape (..., K, n, 3), m⁻¹ (for σ that
+        does not depend on p0). The estimator's robust refinement sums a ρ(e) over them
+        (:mod:`planner.estimator.robust`)."""
+        raise NotImplementedError(f"{type(self).__name__}.estimator_terms")
+
+
+@dataclass(frozen=True)
+class RangeModel(SensingComponent):
     """Ranging component d̂ = d + n_r, n_r ~ N(0, σ_r0² d^γ) (eqs. 3, 5), σ_r0 = (ln10/10)(σ_sh/γ)
     of the link's LOS or NLOS ratio. It uses uniform variate 0 of a drone's five per step."""
+
+    name: ClassVar[str] = "range"
+    wire_bit: ClassVar[int] = RANGING_BIT
+    value_names: ClassVar[tuple[str, ...]] = ("range_m",)
+    uniform_columns: ClassVar[tuple[int, ...]] = (0,)
+    fim_row_count: ClassVar[int] = 1
+
+    def simulate_values(
+        self, d: FloatArray, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray
+    ) -> tuple[FloatArray, ...]:
+        """(d̂,) of :meth:`simulate`."""
+        return (self.simulate(d, los, channel, uniforms),)
+
+    def fim_vectors(self, geom: LinkGeometry) -> FloatArray:
+        """u = r (ranging direction times d)."""
+        return geom.r[..., None, :]
+
+    @staticmethod
+    def _inv_s0sq(los_w: FloatArray, channel: Channel) -> FloatArray:
+        """q/σ_r0,LOS² + (1 − q)/σ_r0,NLOS² of the LOS weight q, m⁻²."""
+        return los_w / channel.sigma_r0_los**2 + (1.0 - los_w) / channel.sigma_r0_nlos**2
+
+    def fim_row_weights(self, geom: LinkGeometry, mask: ArrayLike, los_w: FloatArray, channel: Channel) -> FloatArray:
+        """κ A_r/d² (A_r a aᵀ = (A_r/d²) r rᵀ), m⁻⁴."""
+        inv_s0sq = self._inv_s0sq(los_w, channel)
+        w = np.asarray(mask, dtype=bool) * self.fim_weight(geom.d, geom.d2, inv_s0sq, channel.gamma) / geom.d2
+        return np.broadcast_to(w, np.broadcast_shapes(np.shape(w), geom.d.shape))[..., None]
+
+    def cost_gradient_terms(
+        self, geom: LinkGeometry, q: FloatArray, MV: FloatArray, mask: ArrayLike, los_w: FloatArray, channel: Channel, los_trace: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """κ :meth:`cost_gradient` and κ :meth:`los_trace`."""
+        inv_s0sq = self._inv_s0sq(los_w, channel)
+        g_r = self.cost_gradient(geom.r, geom.d, geom.d2, q[..., 0], MV[..., 0, :], inv_s0sq, channel.gamma)
+        use_r = np.asarray(mask, dtype=bool)[..., None]
+        tr = use_r[..., 0] * self.los_trace(geom.d, geom.d2, q[..., 0], channel) if los_trace else None
+        return use_r * g_r, tr
+
+    def cost_gradient_one_terms(
+        self,
+        r: tuple[float, float, float],
+        rho2: float,
+        d: float,
+        d2: float,
+        m: list[list[float]],
+        mask: bool,
+        los: float,
+        channel: Channel,
+        los_trace: bool,
+    ) -> tuple[float, float, float, float] | None:
+        """:meth:`cost_gradient_one` where the drone ranges."""
+        if not bool(mask):
+            return None
+        return self.cost_gradient_one(r, d, d2, m, los, channel)
 
     def std_m(self, d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
         """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
@@ -180,10 +356,68 @@ class RangeModel:
 
 
 @dataclass(frozen=True)
-class BearingModel:
+class BearingModel(SensingComponent):
     """Bearing component (φ̂, θ̂) = (φ, θ) + n_b, n_b ~ N(0, σ_b,0² I₂) in LOS, the uniform
     outlier ω (azimuth on [−π, π), elevation on [−π/2, π/2]) in NLOS (eq. 3). It uses uniform
     variates 1, 2 (noise) and 3, 4 (outlier) of a drone's five per step."""
+
+    name: ClassVar[str] = "bearing"
+    wire_bit: ClassVar[int] = BEARING_BIT
+    value_names: ClassVar[tuple[str, ...]] = ("azimuth_rad", "elevation_rad")
+    uniform_columns: ClassVar[tuple[int, ...]] = (1, 2, 3, 4)
+    fim_row_count: ClassVar[int] = 2
+
+    def simulate_values(
+        self, d: FloatArray, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray
+    ) -> tuple[FloatArray, ...]:
+        """(φ̂, θ̂) of :meth:`simulate`."""
+        return self.simulate(phi, theta, los, channel, uniforms)
+
+    def fim_vectors(self, geom: LinkGeometry) -> FloatArray:
+        """u = b = (−r_y, r_x, 0) (∇φ·ρ²) and v = (−r_x r_z, −r_y r_z, ρ²) (∇θ·d²ρ)."""
+        r = geom.r
+        rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+        u = np.empty(r.shape[:-1] + (2, 3))
+        u[..., 0, 0] = -ry
+        u[..., 0, 1] = rx
+        u[..., 0, 2] = 0.0
+        u[..., 1, 0] = -rx * rz
+        u[..., 1, 1] = -ry * rz
+        u[..., 1, 2] = geom.rho2
+        return u
+
+    def fim_row_weights(self, geom: LinkGeometry, mask: ArrayLike, los_w: FloatArray, channel: Channel) -> FloatArray:
+        """:meth:`fim_weights` with ``bearing_los`` = β q."""
+        w_b, w_v = self.fim_weights(geom.rho2, geom.d2, np.asarray(mask, dtype=bool) * los_w, channel)
+        shape = np.broadcast_shapes(np.shape(w_b), np.shape(w_v), geom.d.shape)
+        return np.stack((np.broadcast_to(w_b, shape), np.broadcast_to(w_v, shape)), axis=-1)
+
+    def cost_gradient_terms(
+        self, geom: LinkGeometry, q: FloatArray, MV: FloatArray, mask: ArrayLike, los_w: FloatArray, channel: Channel, los_trace: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """β q ∂ tr(M (J_az + J_el))/∂r of :meth:`cost_gradient`, and β tr(M (J_az + J_el))."""
+        g_b, tr_b = self.cost_gradient(geom.r, geom.rho2, geom.d2, q[..., 0], q[..., 1], MV[..., 0, :], MV[..., 1, :], channel)
+        has = np.asarray(mask, dtype=bool)
+        return (has * los_w)[..., None] * g_b, has * tr_b if los_trace else None
+
+    def cost_gradient_one_terms(
+        self,
+        r: tuple[float, float, float],
+        rho2: float,
+        d: float,
+        d2: float,
+        m: list[list[float]],
+        mask: bool,
+        los: float,
+        channel: Channel,
+        los_trace: bool,
+    ) -> tuple[float, float, float, float] | None:
+        """q :meth:`cost_gradient_one` where the drone has bearings and q > 0 (or the trace is
+        wanted); an NLOS bearing carries no information."""
+        if not (bool(mask) and (los > 0.0 or los_trace)):
+            return None
+        bgx, bgy, bgz, tr_b = self.cost_gradient_one(r, rho2, d2, m, channel)
+        return los * bgx, los * bgy, los * bgz, tr_b
 
     def simulate(self, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
@@ -273,17 +507,52 @@ class BearingModel:
 RANGE: RangeModel = RangeModel()
 #: The bearing component (β_j).
 BEARING: BearingModel = BearingModel()
+#: The component registry, in the order the Fisher information stacks their rows and a record
+#: lists their values. A new component is one more entry here (and a role that takes it).
+COMPONENTS: tuple[SensingComponent, ...] = (RANGE, BEARING)
+
+
+def component_masks(
+    ranging: ArrayLike, bearing: ArrayLike, extra: Mapping[str, ArrayLike] | None = None, components: Sequence[SensingComponent] = COMPONENTS
+) -> tuple[ArrayLike, ...]:
+    """Per-drone masks of ``components``, in their order: κ for :data:`RANGE`, β for
+    :data:`BEARING`, ``extra[name]`` for any other component (False where not given).
+
+    Raises:
+        ValueError: ``extra`` names a component not in ``components``.
+    """
+    names = [c.name for c in components]
+    unknown = sorted(set(extra or {}) - set(names))
+    if unknown:
+        raise ValueError(f"component masks: expected names among {names}, found {unknown}")
+    by_name: dict[str, ArrayLike] = {RANGE.name: ranging, BEARING.name: bearing, **(extra or {})}
+    return tuple(by_name.get(name, False) for name in names)
+
+
+def measurement_draws(components: Sequence[SensingComponent] = COMPONENTS) -> int:
+    """Uniform variates per drone and step that ``components`` draw from (5 for the registry)."""
+    columns = [col for c in components for col in c.uniform_columns]
+    if len(set(columns)) != len(columns):
+        raise ValueError(f"components: expected disjoint uniform columns, found {columns}")
+    return max(columns, default=-1) + 1
+
 
 __all__ = [
     "BEARING",
     "BEARING_BIT",
+    "COMPONENTS",
     "RANGE",
     "RANGING_BIT",
     "ROLES",
     "ROLE_NAMES",
     "BearingModel",
+    "LinkGeometry",
     "RangeModel",
+    "SensingComponent",
     "SensingRole",
+    "component_masks",
+    "link_geometry",
+    "measurement_draws",
     "role_from_flags",
     "role_masks",
     "sensing_role",

@@ -4,19 +4,36 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Literal, overload
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner.estimator.linalg import _inv3_spd
 from planner.estimator.state import BoolArray, EstimatorConfig, FloatArray, Measurements
 from planner.params import Channel
-from planner.sensing import BEARING, RANGE
+from planner.sensing import BEARING, COMPONENTS, RANGE, LinkGeometry, SensingComponent
 
 #: Floors (m) keeping the model finite when a drone sits on the source or right above it.
 _RHO2_FLOOR_M2: float = 1e-12
+
+
+#: The components of the fused range/bearing kernel (``_Rows`` fields zr, za, ze; the
+#: pseudo-linear initialisation). Every other component is refined through its
+#: :meth:`planner.sensing.SensingComponent.estimator_terms` (:class:`_ExtraRows`).
+_KERNEL_COMPONENTS: frozenset[str] = frozenset((RANGE.name, BEARING.name))
+
+
+@dataclass(frozen=True)
+class _ExtraRows:
+    """The values of one component outside the fused kernel (internal): ``z`` (..., K, n), NaN
+    replaced by 0, and their weights ``a`` (..., K, n) (0 = unused), n = its value count."""
+
+    component: SensingComponent
+    z: FloatArray
+    a: FloatArray
 
 
 @dataclass(frozen=True)
@@ -25,6 +42,7 @@ class _Rows:
 
     Every array has shape (..., K): drone position (px, py, pz) in m; measured range, azimuth,
     elevation (zr, za, ze); component weights (ar, aa, ae) (0 = unused); σ_r0 of the link (m).
+    ``extra``: the rows of the components outside the fused range/bearing kernel.
     """
 
     px: FloatArray
@@ -37,20 +55,46 @@ class _Rows:
     aa: FloatArray
     ae: FloatArray
     s0: FloatArray
+    extra: tuple[_ExtraRows, ...] = ()
 
     def with_weights(self, ar: FloatArray, aa: FloatArray, ae: FloatArray) -> _Rows:
-        return _Rows(self.px, self.py, self.pz, self.zr, self.za, self.ze, ar, aa, ae, self.s0)
+        """The rows with the kernel's component weights replaced (``extra`` kept)."""
+        return replace(self, ar=ar, aa=aa, ae=ae)
+
+    def masked(self, keep: BoolArray) -> _Rows:
+        """The rows with every weight zeroed where ``keep`` (...,) is False."""
+        k = keep[..., None]
+        extra = tuple(replace(e, a=np.where(k[..., None], e.a, 0.0)) for e in self.extra)
+        return replace(self, ar=np.where(k, self.ar, 0.0), aa=np.where(k, self.aa, 0.0), ae=np.where(k, self.ae, 0.0), extra=extra)
 
     def sliced(self, sl: slice) -> _Rows:
-        return _Rows(*(getattr(self, f)[..., sl] for f in self.__dataclass_fields__))
+        """The rows ``sl`` (last axis)."""
+        extra = tuple(replace(e, z=e.z[..., sl, :], a=e.a[..., sl, :]) for e in self.extra)
+        return replace(self, extra=extra, **{f: getattr(self, f)[..., sl] for f in _KERNEL_FIELDS})
 
     def subset(self, mask: BoolArray) -> _Rows:
-        return _Rows(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
+        """The batch elements where ``mask`` (...,)."""
+        extra = tuple(replace(e, z=e.z[mask], a=e.a[mask]) for e in self.extra)
+        return replace(self, extra=extra, **{f: getattr(self, f)[mask] for f in _KERNEL_FIELDS})
+
+    def used_count(self) -> NDArray[np.int64]:
+        """The scalar values with a positive weight, per batch element (...,)."""
+        used = (self.ar > 0.0).sum(axis=-1) + (self.aa > 0.0).sum(axis=-1) + (self.ae > 0.0).sum(axis=-1)
+        for e in self.extra:
+            used = used + (e.a > 0.0).sum(axis=(-2, -1))
+        return used
 
 
-def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: EstimatorConfig) -> _Rows:
+_KERNEL_FIELDS: tuple[str, ...] = ("px", "py", "pz", "zr", "za", "ze", "ar", "aa", "ae", "s0")
+
+
+def _rows(
+    meas: Measurements, row_weight: FloatArray, channel: Channel, config: EstimatorConfig, components: Sequence[SensingComponent] = COMPONENTS
+) -> _Rows:
     """Component-major rows with weights: ranges ``row_weight``; bearings ``row_weight`` in LOS
-    and ``row_weight·nlos_bearing_weight`` when flagged NLOS; 0 where a value is absent."""
+    and ``row_weight·nlos_bearing_weight`` when flagged NLOS; 0 where a value is absent. The
+    ``components`` outside the kernel whose values ``meas.extra_values`` carries get
+    ``row_weight`` (:class:`_ExtraRows`)."""
     p = meas.positions_m
     px, py, pz = p[..., 0], p[..., 1], p[..., 2]
     row_ok = np.isfinite(px + py + pz)  # NaN/inf in any coordinate
@@ -65,7 +109,15 @@ def _rows(meas: Measurements, row_weight: FloatArray, channel: Channel, config: 
     za, aa = present(meas.azimuth_rad, wb)
     ze, ae = present(meas.elevation_rad, wb)
     s0 = channel.sigma_r0(los)
-    return _Rows(np.where(row_ok, px, 0.0), np.where(row_ok, py, 0.0), np.where(row_ok, pz, 0.0), zr, za, ze, ar, aa, ae, s0)
+    extra = []
+    for component in components:
+        if component.name in _KERNEL_COMPONENTS or not all(n in meas.extra_values for n in component.value_names):
+            continue
+        z = np.stack([np.asarray(meas.extra_values[n], dtype=float) for n in component.value_names], axis=-1)
+        ok = row_ok[..., None] & np.isfinite(z)
+        extra.append(_ExtraRows(component, np.where(ok, z, 0.0), np.where(ok, row_weight[..., None], 0.0)))
+    rows = (np.where(row_ok, px, 0.0), np.where(row_ok, py, 0.0), np.where(row_ok, pz, 0.0), zr, za, ze, ar, aa, ae, s0)
+    return _Rows(*rows, extra=tuple(extra))
 
 
 @dataclass(frozen=True)
@@ -92,10 +144,17 @@ class _Eval:
     ar: FloatArray
     aa: FloatArray
     ae: FloatArray
-    # per element and component type (range, azimuth, elevation), (..., 3): weighted count of
-    # the components used, and of those with |e| beyond ``suspect_sigma``
+    # per element and component type (range, azimuth, elevation, then every value of the
+    # components outside the kernel), (..., 3 + n_extra): weighted count of the components
+    # used, and of those with |e| beyond ``suspect_sigma``
     n_used: FloatArray
     n_big: FloatArray
+    # the components outside the kernel (None: there are none): per row, their summed
+    # gradient Σ a ψ ∂e/∂x (..., K, 3), scoring matrix Σ a w ∂e/∂x ∂e/∂xᵀ (..., K, 3, 3) (also
+    # their Fisher information) and weight Σ a (..., K)
+    extra_g: FloatArray | None = None
+    extra_h: FloatArray | None = None
+    extra_a: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -192,9 +251,48 @@ def _evaluate(
     cost = np.einsum("...k,...k->...", aa, ra_)
     cost += np.einsum("...k,...k->...", ae, re_)
     cost += cr.sum(axis=-1)
+    extra = [_extra_terms(x, rows, e, channel, k, tukey_c, redescend) for e in rows.extra]
+    for e_cost, *_ in extra:
+        cost = cost + e_cost
     if cost_only:
         return cost
-    return _factors(res, cost, (ar, aa, ae), (pr_, pa_, pe_), (wr_, wa_, we_), channel.gamma, ml, suspect_sigma)
+    ev = _factors(res, cost, (ar, aa, ae), (pr_, pa_, pe_), (wr_, wa_, we_), channel.gamma, ml, suspect_sigma)
+    return _with_extra(ev, extra, suspect_sigma) if extra else ev
+
+
+def _extra_terms(
+    x: FloatArray, rows: _Rows, extra: _ExtraRows, channel: Channel, k: float, tukey_c: float, redescend: bool | BoolArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """One component outside the kernel at source ``x`` (..., 3): its robust cost Σ a ρ(e)
+    (...,), per row its gradient Σ a ψ ∂e/∂x (..., K, 3), scoring matrix
+    Σ a w ∂e/∂x ∂e/∂xᵀ (..., K, 3, 3) and weight Σ a (..., K), and its residuals e and weights
+    a, (..., K, n) (:meth:`planner.sensing.SensingComponent.estimator_terms`)."""
+    r = np.stack((x[..., 0, None] - rows.px, x[..., 1, None] - rows.py, x[..., 2, None] - rows.pz), axis=-1)
+    rho2 = np.maximum(r[..., 0] * r[..., 0] + r[..., 1] * r[..., 1], _RHO2_FLOOR_M2)
+    d2 = rho2 + r[..., 2] * r[..., 2]
+    geom = LinkGeometry(r, rho2, d2, np.sqrt(d2))
+    n = len(extra.component.value_names)
+    e, de = extra.component.estimator_terms(tuple(extra.z[..., i] for i in range(n)), geom, channel)
+    shape = e.shape[:-2] + (e.shape[-2] * n,)
+    rho_, psi, w = (v.reshape(e.shape) for v in _loss(e.reshape(shape), k, tukey_c, redescend))
+    a = extra.a
+    cost = (a * rho_).sum(axis=(-2, -1))
+    g = np.einsum("...kn,...kni->...ki", a * psi, de)
+    h = np.einsum("...kn,...kni,...knj->...kij", a * w, de, de)
+    return cost, g, h, a.sum(axis=-1), e, a
+
+
+def _with_extra(ev: _Eval, extra: list[tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]], suspect_sigma: float) -> _Eval:
+    """``ev`` with the terms of the components outside the kernel (:func:`_extra_terms`)."""
+    c2 = suspect_sigma * suspect_sigma
+    used, big = [ev.n_used], [ev.n_big]
+    g, h, a_rows = extra[0][1], extra[0][2], extra[0][3]
+    for i, (_, g_c, h_c, a_c, e, a) in enumerate(extra):
+        used.append(a.sum(axis=-2))
+        big.append((a * (e * e > c2)).sum(axis=-2))
+        if i > 0:
+            g, h, a_rows = g + g_c, h + h_c, a_rows + a_c
+    return replace(ev, n_used=np.concatenate(used, axis=-1), n_big=np.concatenate(big, axis=-1), extra_g=g, extra_h=h, extra_a=a_rows)
 
 
 @dataclass(frozen=True)
@@ -391,6 +489,12 @@ def _accumulate(ev: _Eval, sl: slice | None = None) -> tuple[FloatArray, FloatAr
     fxx, fyy, fzz = _sum(rxx, hF), _sum(ryy, hF), _sum(rzz, hF)
     fxy, fxz, fyz = _sum(rxy, hF), _sum(rxz, hF), _sum(ryz, hF)
     F = H + np.stack((fxx, fxy, fxz, fxy, fyy, fyz, fxz, fyz, fzz), axis=-1).reshape(hxx.shape + (3, 3))
+    if ev.extra_g is not None and ev.extra_h is not None:
+        # The components outside the kernel: Fisher information = scoring matrix.
+        h_extra = ev.extra_h[..., sl, :, :].sum(axis=-3)
+        g = g + ev.extra_g[..., sl, :].sum(axis=-2)
+        H = H + h_extra
+        F = F + h_extra
     return g, H, F
 
 
@@ -447,7 +551,8 @@ def _lm_iterations(
         # linear only for steps small against the range; far from the data the robust cost
         # is nearly flat and an unbounded step could run away).
         n_w = np.maximum(ev.n_used.sum(axis=-1), 1e-300)
-        reach = 0.5 * np.einsum("...k,...k->...", ev.d, ev.ar + ev.aa + ev.ae) / n_w
+        a_rows = ev.ar + ev.aa + ev.ae if ev.extra_a is None else ev.ar + ev.aa + ev.ae + ev.extra_a
+        reach = 0.5 * np.einsum("...k,...k->...", ev.d, a_rows) / n_w
         norm = np.sqrt(np.einsum("...i,...i->...", step, step))
         shrink = np.where(norm > reach, reach / np.maximum(norm, 1e-300), 1.0)
         cand = config.clip(x + np.where((ok & active)[..., None], step * shrink[..., None], 0.0))

@@ -5,7 +5,9 @@ records."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Literal
 
 import numpy as np
@@ -29,6 +31,10 @@ class Measurements:
         elevation_rad: elevation estimates θ̂_j, shape (..., M), radians above horizontal;
             NaN where not measured.
         los: the drone's LOS classification of its link when measured, bool (..., M).
+        extra_values: the values of measurement components other than range and bearing
+            (:attr:`planner.sensing.SensingComponent.value_names`), by value name, each of
+            shape (..., M); NaN where not measured. Read by :func:`planner.estimator.update`
+            for the components it is given.
     """
 
     positions_m: FloatArray
@@ -36,6 +42,7 @@ class Measurements:
     azimuth_rad: FloatArray
     elevation_rad: FloatArray
     los: BoolArray
+    extra_values: Mapping[str, FloatArray] = field(default_factory=lambda: MappingProxyType({}))
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -319,16 +326,28 @@ def _check(measurements: Measurements, batch_shape: tuple[int, ...]) -> Measurem
     los = np.asarray(measurements.los)
     if los.dtype != np.bool_ or los.shape != rows:
         raise ValueError(f"Measurements.los: expected a bool array of shape {rows}, found {los.dtype} {los.shape}")
-    return Measurements(p, fields["range_m"], fields["azimuth_rad"], fields["elevation_rad"], los)
+    extra = {}
+    for name, value in measurements.extra_values.items():
+        arr = np.asarray(value, dtype=float)
+        if arr.shape != rows:
+            raise ValueError(f"Measurements.extra_values[{name!r}]: expected shape {rows}, found {arr.shape}")
+        extra[name] = arr
+    return Measurements(p, fields["range_m"], fields["azimuth_rad"], fields["elevation_rad"], los, MappingProxyType(extra))
 
 
 def _concat(a: Measurements, b: Measurements) -> Measurements:
+    names = list(dict.fromkeys([*a.extra_values, *b.extra_values]))
+
+    def value(m: Measurements, name: str) -> FloatArray:
+        return m.extra_values[name] if name in m.extra_values else np.full(np.shape(m.range_m), np.nan)
+
     return Measurements(
         np.concatenate((a.positions_m, b.positions_m), axis=-2),
         np.concatenate((a.range_m, b.range_m), axis=-1),
         np.concatenate((a.azimuth_rad, b.azimuth_rad), axis=-1),
         np.concatenate((a.elevation_rad, b.elevation_rad), axis=-1),
         np.concatenate((a.los, b.los), axis=-1),
+        MappingProxyType({name: np.concatenate((value(a, name), value(b, name)), axis=-1) for name in names}),
     )
 
 
@@ -339,6 +358,19 @@ def _take(m: Measurements, idx: NDArray[np.intp]) -> Measurements:
         np.take_along_axis(m.azimuth_rad, idx, axis=-1),
         np.take_along_axis(m.elevation_rad, idx, axis=-1),
         np.take_along_axis(m.los, idx, axis=-1),
+        MappingProxyType({name: np.take_along_axis(v, idx, axis=-1) for name, v in m.extra_values.items()}),
+    )
+
+
+def _rows_of(m: Measurements, sl: slice) -> Measurements:
+    """The rows ``sl`` of ``m``."""
+    return Measurements(
+        m.positions_m[..., sl, :],
+        m.range_m[..., sl],
+        m.azimuth_rad[..., sl],
+        m.elevation_rad[..., sl],
+        m.los[..., sl],
+        MappingProxyType({name: v[..., sl] for name, v in m.extra_values.items()}),
     )
 
 

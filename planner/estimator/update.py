@@ -13,7 +13,9 @@ marginalisation of the rows leaving the window (:func:`_marginalise_leaving`), t
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,10 +32,12 @@ from planner.estimator.state import (
     Measurements,
     _check,
     _concat,
+    _rows_of,
     _scatter,
     _take,
 )
 from planner.params import Channel
+from planner.sensing import COMPONENTS, SensingComponent
 
 
 @dataclass(frozen=True)
@@ -202,8 +206,7 @@ def _recheck(
     cand = x_prev.copy()
     cand[recheck] = config.clip(np.where(ok[:, None], x_pl, x_prev[recheck]))
     drop = _pl_cost(sys_A, sys_b, x_prev) - _pl_cost(sys_A, sys_b, cand)
-    init = start.initialised[..., None]
-    fresh = new_rows.with_weights(np.where(init, new_rows.ar, 0.0), np.where(init, new_rows.aa, 0.0), np.where(init, new_rows.ae, 0.0))
+    fresh = new_rows.masked(start.initialised)
     c_prev = _evaluate(x_prev, fresh, channel, config.huber_k, True, cost_only=True)
     c_cand = _evaluate(cand, fresh, channel, config.huber_k, True, cost_only=True)
     move = recheck & (drop > config.recheck_threshold) & (c_cand < c_prev)
@@ -328,7 +331,8 @@ def _refine(state: EstimatorState, start: _Start, rows: _Rows, gate: _Gate | Non
             config,
         )
         x, g, H, F, x_lin = (_scatter(a, b, sel) for a, b in ((x, xs), (g, gs), (H, Hs), (F, Fs), (x_lin, xls)))
-        ev = _Eval(**{f: _scatter(getattr(ev, f), getattr(evs, f), sel) for f in _Eval.__dataclass_fields__})
+        scattered: dict[str, Any] = {f: _scatter_optional(getattr(ev, f), getattr(evs, f), sel) for f in _Eval.__dataclass_fields__}
+        ev = dataclasses.replace(ev, **scattered)
     return _Refined(x, ev, g, H, F, x_lin, run)
 
 
@@ -417,14 +421,23 @@ def _reported(
     return x, info, observable
 
 
+def _scatter_optional(a: NDArray | None, b: NDArray | None, sel: BoolArray) -> NDArray | None:
+    """:func:`_scatter`, or None where both are None (an evaluation without extra components)."""
+    if a is None or b is None:
+        if a is not None or b is not None:
+            raise ValueError("evaluations: expected both or neither to carry extra components")
+        return None
+    return _scatter(a, b, sel)
+
+
 def _head(m: Measurements, n: int) -> Measurements:
     """The first ``n`` rows of ``m``."""
-    return Measurements(m.positions_m[..., :n, :], m.range_m[..., :n], m.azimuth_rad[..., :n], m.elevation_rad[..., :n], m.los[..., :n])
+    return _rows_of(m, slice(None, n))
 
 
 def _tail(m: Measurements, n: int) -> Measurements:
     """The rows of ``m`` from the ``n``-th on."""
-    return Measurements(m.positions_m[..., n:, :], m.range_m[..., n:], m.azimuth_rad[..., n:], m.elevation_rad[..., n:], m.los[..., n:])
+    return _rows_of(m, slice(n, None))
 
 
 def _advance_range_window(
@@ -483,6 +496,7 @@ def update(
     measurements: Measurements,
     channel: Channel,
     config: EstimatorConfig | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> EstimatorState:
     """Incorporate new records and return the new state (pure function, inputs untouched).
 
@@ -492,6 +506,9 @@ def update(
             radians, NaN for absent values, ``los`` bool ``B + (M,)``. M may be 0.
         channel: the RSS channel (γ, σ_sh/γ LOS/NLOS, σ_b), eqs. (3)-(5).
         config: estimator configuration; must be the one ``state`` was created with.
+        components: the measurement components (:data:`planner.sensing.COMPONENTS`): those
+            other than range and bearing whose values ``measurements.extra_values`` carries
+            join the robust refinement (not the pseudo-linear initialisation).
 
     Returns:
         The updated :class:`EstimatorState`; see the module docstring for the method.
@@ -508,10 +525,10 @@ def update(
     dropped = (state.pl_dropped_matrix * lam, state.pl_dropped_vector * lam)
     new_row_ok = np.isfinite(new.positions_m.sum(axis=-1))  # NaN/inf in any coordinate
     allm, weight = _merge_window(state, new, new_row_ok, config)
-    rows = _rows(allm, weight, channel, config)
+    rows = _rows(allm, weight, channel, config, components)
     K = W + M
     n_leave = K - W  # = M: the oldest M rows leave the window after this call
-    new_rows = rows.sliced(slice(K - M, K)) if W == 0 else _rows(new, np.where(new_row_ok, 1.0, 0.0), channel, config)
+    new_rows = rows.sliced(slice(K - M, K)) if W == 0 else _rows(new, np.where(new_row_ok, 1.0, 0.0), channel, config, components)
 
     start, pl_A, pl_b = _initialise(state, new_rows, prior, (state.pl_matrix * lam, state.pl_vector * lam), dropped, channel, config, M)
     pr = (state.pl_range_matrix * lam, state.pl_range_vector * lam)
@@ -519,8 +536,7 @@ def update(
     start = _recheck(state, start, new_rows, pr, range_weight, channel, config, M)
     active = start.initialised
     if not np.all(active):
-        act = active[..., None]
-        rows = rows.with_weights(np.where(act, rows.ar, 0.0), np.where(act, rows.aa, 0.0), np.where(act, rows.ae, 0.0))
+        rows = rows.masked(active)
 
     refined = _refine(state, start, rows, _innovation_gate(state, config), channel, config)
     ev = refined.ev
@@ -537,7 +553,7 @@ def update(
         state, new, new_row_ok, range_weight, pr, x, start.initialised, channel, config
     )
     window, window_weight = _advance_window(state, allm, weight, config)
-    used = (new_rows.ar > 0.0).sum(axis=-1) + (new_rows.aa > 0.0).sum(axis=-1) + (new_rows.ae > 0.0).sum(axis=-1)
+    used = new_rows.used_count()
     return EstimatorState(
         estimate_m=x,
         information=info,
