@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 Behaviour = Literal["hold", "guided", "takeoff", "land", "rtl", "mission"]
 
@@ -396,6 +396,16 @@ PX4 = FlavourInfo(
 #: (they look it up at each call). A new flavour is one more :class:`FlavourInfo` here
 #: (docs/autopilot-flavours.md).
 FLAVOURS: Mapping[str, FlavourInfo] = MappingProxyType({f.name: f for f in (ARDUPILOT, PX4)})
+if TYPE_CHECKING:
+    FlavourName = str
+    FlavourSetting = str
+else:
+    #: A flavour's name, as a type (pydantic validates it; the JSON Schema's enum): the names of
+    #: :data:`FLAVOURS` when this module is imported.
+    FlavourName = Literal[tuple(FLAVOURS)]
+    #: A flavour setting of the planner: ``"auto"`` (from HEARTBEAT.autopilot) or a flavour's name.
+    FlavourSetting = Literal[("auto",) + tuple(FLAVOURS)]
+
 #: The flavour the planner's client assumes when HEARTBEAT.autopilot names none of :data:`FLAVOURS`.
 DEFAULT_FLAVOUR = "ardupilot"
 
