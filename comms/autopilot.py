@@ -17,13 +17,21 @@ internal *behaviour*:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Literal
 
 Behaviour = Literal["hold", "guided", "takeoff", "land", "rtl", "mission"]
 
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
+
+# COMMAND_ACK results (MAV_RESULT, common.xml) the profiles name.
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_DENIED = 2
+MAV_RESULT_FAILED = 4
 
 # EKF_STATUS_REPORT.flags (ArduPilot EKF_STATUS_FLAGS).
 EKF_ATTITUDE = 1
@@ -105,10 +113,14 @@ PX4_MODES: tuple[Mode, ...] = (
 
 @dataclass(frozen=True)
 class FlavourInfo:
-    """Identity and modes of one autopilot flavour.
+    """Identity, modes and rules of one autopilot flavour: every fact in which the flavours
+    differ, read by the simulated vehicle (:mod:`vehicle_sim`) and the planner's client
+    (:mod:`comms.mavlink_client`). Values are given as (ArduPilot, PX4).
 
     Attributes:
-        autopilot: HEARTBEAT autopilot (MAV_AUTOPILOT_*).
+        name: the flavour's name in missions, configs and the CLI (``"ardupilot"``, ``"px4"``).
+        display_name: the name in messages (``"ArduPilot"``, ``"PX4"``).
+        autopilot: HEARTBEAT autopilot (MAV_AUTOPILOT_*; 3, 12).
         modes: the supported modes.
         boot_mode, air_boot_mode, hold_mode, guided_mode, takeoff_mode, land_mode, rtl_mode:
             custom_mode values used by the mode logic.
@@ -134,8 +146,69 @@ class FlavourInfo:
         mode_not_armable: the pre-arm failure in a mode that cannot arm (``{mode}``: its name).
         link_loss_failsafe: what the autopilot's own failsafe does while the planner's link
             is lost (for the planner's log).
+        arm_tries: arming attempts of the planner's client (1, 3): PX4's pre-arm result
+            flickers for a moment while its EKF settles ("Preflight Fail: vertical velocity
+            unstable"), so the client waits for a passing SYS_STATUS and tries again.
+        prearm_health_only: the pre-arm result is the SYS_STATUS PREARM_CHECK *health* bit
+            alone, never marked present (False, True: PX4); disarmed in the guided mode it
+            stays clear until a setpoint stream runs, so the client does not await it there.
+            ArduPilot marks the bit present and enabled and reports the result in health.
+        home_before_position: HOME_POSITION arrives before the EKF has a position and no
+            position message comes until it has (False, True: PX4), so the client also waits
+            for a GLOBAL_POSITION_INT / LOCAL_POSITION_NED.
+        relative_alt_as_amsl: the client sends a GLOBAL_RELATIVE_ALT_INT target as a
+            GLOBAL_INT one (home's AMSL altitude + relative altitude) (False, True): PX4
+            (v1.15 and earlier) converts a relative altitude to local z with the sign of
+            (home − EKF-origin altitude) reversed.
+        arm_command_prefix: the ``"PreArm: "`` prefix of a pre-arm failure is replaced by this
+            one in the answer to an arming command ("Arm: ": ArduPilot's AP_Arming runs the
+            same checks with that prefix; None: PX4 answers with the text unchanged).
+        takeoff_refused_result: the MAV_RESULT of a refused MAV_CMD_NAV_TAKEOFF (not armed,
+            flying, no position, wrong mode) (FAILED, TEMPORARILY_REJECTED).
+        takeoff_refused_text: that refusal carries a STATUSTEXT saying why (False: ArduPilot's
+            do_user_takeoff() fails silently; True: PX4).
+        unknown_mode_no_such_mode: a mode change (DO_SET_MODE or SET_MODE) to an unknown
+            custom mode is answered FAILED with "No such mode <n>" (True: ArduPilot's
+            notify_no_such_mode); False: DENIED with "Mode: unknown mode <n>" (PX4).
+        home_unknown_result: MAV_CMD_GET_HOME_POSITION's result while there is no home yet
+            (FAILED, DENIED).
+        unknown_interval_result: MAV_CMD_SET_MESSAGE_INTERVAL's result for a message the
+            autopilot cannot stream, e.g. EKF_STATUS_REPORT on PX4 (DENIED, FAILED).
+        unavailable_request_result: MAV_CMD_REQUEST_MESSAGE's result for a message not
+            available yet (no home, no origin) (ACCEPTED: ArduPilot's sender then sends
+            nothing; DENIED: PX4's stream cannot send).
+        reposition_changes_mode: MAV_CMD_DO_REPOSITION with MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
+            switches to the guided mode (True: ArduPilot); False: refused outside it (PX4).
+        mode_checks_disarmed: a mode's requirements (a position) are checked while disarmed
+            too (False: ArduPilot's Copter::set_mode allows any mode while disarmed; True: PX4).
+        needs_position_text: the refusal of a mode that needs a position before there is one
+            (``{mode}``: its name).
+        mode_change_text: STATUSTEXT after an accepted mode change (None: ArduPilot sends
+            none; PX4 "Mode {mode}").
+        landed_disarm_text: STATUSTEXT when the vehicle disarms on touchdown ("Disarming
+            motors", "Landed: disarmed").
+        restore_mode_after_disarm: after disarming on touchdown the vehicle returns to the
+            last armable mode chosen, e.g. OFFBOARD after AUTO.LAND (False, True: PX4's
+            UserModeIntention::onDisarm).
+        takeoff_complete_text: STATUSTEXT when a take-off reaches its height (None:
+            ArduPilot's GUIDED take-off ends silently; PX4 "Takeoff complete").
+        base_mode_manual_input: HEARTBEAT base_mode always has MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+            (True: ArduPilot's GCS_MAVLINK_Copter::base_mode; False: PX4).
+        guided_flag_modes: names of the modes whose HEARTBEAT base_mode has
+            MAV_MODE_FLAG_GUIDED_ENABLED (ArduPilot: the modes that navigate, AUTO, RTL, LOITER,
+            GUIDED, POSHOLD, BRAKE, not LAND; PX4: the autonomous ones, AUTO.* and OFFBOARD).
+        heartbeat_active_when_armed: HEARTBEAT system_status is ACTIVE while armed, else
+            STANDBY (True: PX4); False: ACTIVE while flying, STANDBY on the ground, CRITICAL
+            in the GCS failsafe (ArduPilot's vehicle_system_status). CRITICAL when unhealthy.
+        repeats_prearm_failure: while disarmed and not ready the autopilot repeats its failing
+            pre-arm check as a STATUSTEXT every 30 s (True: ArduPilot's AP_Arming::update).
+        param_table: the name of the simulated vehicle's parameter table
+            (:data:`vehicle_sim.params.PARAM_TABLES`: ``"ardupilot"`` WPNAV_*, GUID_TIMEOUT, FS_GCS_*
+            in ArduPilot's units; ``"px4"`` MPC_*, COM_OF_LOSS_T, COM_OBL_RC_ACT in SI units).
     """
 
+    name: str
+    display_name: str
     autopilot: int
     modes: tuple[Mode, ...]
     boot_mode: int
@@ -160,6 +233,29 @@ class FlavourInfo:
     not_ready_aligned: str
     mode_not_armable: str
     link_loss_failsafe: str
+    arm_tries: int
+    prearm_health_only: bool
+    home_before_position: bool
+    relative_alt_as_amsl: bool
+    arm_command_prefix: str | None
+    takeoff_refused_result: int
+    takeoff_refused_text: bool
+    unknown_mode_no_such_mode: bool
+    home_unknown_result: int
+    unknown_interval_result: int
+    unavailable_request_result: int
+    reposition_changes_mode: bool
+    mode_checks_disarmed: bool
+    needs_position_text: str
+    mode_change_text: str | None
+    landed_disarm_text: str
+    restore_mode_after_disarm: bool
+    takeoff_complete_text: str | None
+    base_mode_manual_input: bool
+    guided_flag_modes: frozenset[str]
+    heartbeat_active_when_armed: bool
+    repeats_prearm_failure: bool
+    param_table: str
 
     def mode(self, custom_mode: int) -> Mode | None:
         """The mode with this custom_mode, or None."""
@@ -189,6 +285,8 @@ def _version(major: int, minor: int, patch: int) -> int:
 
 
 ARDUPILOT = FlavourInfo(
+    name="ardupilot",
+    display_name="ArduPilot",
     autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
     modes=ARDUPILOT_MODES,
     boot_mode=0,
@@ -214,9 +312,34 @@ ARDUPILOT = FlavourInfo(
     mode_not_armable="PreArm: {mode} mode not armable",
     link_loss_failsafe="ArduPilot keeps GUIDED: the last position target holds; a velocity part stops after "
     "GUID_TIMEOUT; a GCS failsafe (FS_GCS_ENABLE) acts only if this link is the GCS (SYSID_MYGCS)",
+    arm_tries=1,
+    prearm_health_only=False,
+    home_before_position=False,
+    relative_alt_as_amsl=False,
+    arm_command_prefix="Arm: ",
+    takeoff_refused_result=MAV_RESULT_FAILED,
+    takeoff_refused_text=False,
+    unknown_mode_no_such_mode=True,
+    home_unknown_result=MAV_RESULT_FAILED,
+    unknown_interval_result=MAV_RESULT_DENIED,
+    unavailable_request_result=MAV_RESULT_ACCEPTED,
+    reposition_changes_mode=True,
+    mode_checks_disarmed=False,
+    needs_position_text="Mode change to {mode} failed: requires position",
+    mode_change_text=None,
+    landed_disarm_text="Disarming motors",
+    restore_mode_after_disarm=False,
+    takeoff_complete_text=None,
+    base_mode_manual_input=True,
+    guided_flag_modes=frozenset({"AUTO", "RTL", "LOITER", "GUIDED", "POSHOLD", "BRAKE"}),
+    heartbeat_active_when_armed=False,
+    repeats_prearm_failure=True,
+    param_table="ardupilot",
 )
 
 PX4 = FlavourInfo(
+    name="px4",
+    display_name="PX4",
     autopilot=MAV_AUTOPILOT_PX4,
     modes=PX4_MODES,
     boot_mode=px4_custom_mode(3),
@@ -241,16 +364,73 @@ PX4 = FlavourInfo(
     not_ready_aligned="Preflight Fail: GPS fix too low",
     mode_not_armable="PreArm: mode {mode} not armable",
     link_loss_failsafe="PX4 leaves OFFBOARD after COM_OF_LOSS_T and takes COM_OBL_RC_ACT (hold, land or RTL); a data-link loss (NAV_DLL_ACT) may follow",
+    arm_tries=3,
+    prearm_health_only=True,
+    home_before_position=True,
+    relative_alt_as_amsl=True,
+    arm_command_prefix=None,
+    takeoff_refused_result=MAV_RESULT_TEMPORARILY_REJECTED,
+    takeoff_refused_text=True,
+    unknown_mode_no_such_mode=False,
+    home_unknown_result=MAV_RESULT_DENIED,
+    unknown_interval_result=MAV_RESULT_FAILED,
+    unavailable_request_result=MAV_RESULT_DENIED,
+    reposition_changes_mode=False,
+    mode_checks_disarmed=True,
+    needs_position_text="Switching to {mode} is currently not possible",
+    mode_change_text="Mode {mode}",
+    landed_disarm_text="Landed: disarmed",
+    restore_mode_after_disarm=True,
+    takeoff_complete_text="Takeoff complete",
+    base_mode_manual_input=False,
+    guided_flag_modes=frozenset(m.name for m in PX4_MODES if m.behaviour in ("guided", "takeoff", "land", "rtl", "mission")),
+    heartbeat_active_when_armed=True,
+    repeats_prearm_failure=False,
+    param_table="px4",
 )
 
 
+#: The flavours, by name: the one registry from which the mission schema's allowed values, the
+#: CLI's choices, the node's and the vehicle's configs and :func:`flavour_of_autopilot` derive.
+#: Read it through :func:`flavour_info`, :func:`flavour_names` and :func:`flavour_of_autopilot`
+#: (they look it up at each call). A new flavour is one more :class:`FlavourInfo` here
+#: (docs/autopilot-flavours.md).
+FLAVOURS: Mapping[str, FlavourInfo] = MappingProxyType({f.name: f for f in (ARDUPILOT, PX4)})
+if TYPE_CHECKING:
+    FlavourName = str
+    FlavourSetting = str
+else:
+    #: A flavour's name, as a type (pydantic validates it; the JSON Schema's enum): the names of
+    #: :data:`FLAVOURS` when this module is imported.
+    FlavourName = Literal[tuple(FLAVOURS)]
+    #: A flavour setting of the planner: ``"auto"`` (from HEARTBEAT.autopilot) or a flavour's name.
+    FlavourSetting = Literal[("auto",) + tuple(FLAVOURS)]
+
+#: The flavour the planner's client assumes when HEARTBEAT.autopilot names none of :data:`FLAVOURS`.
+DEFAULT_FLAVOUR = "ardupilot"
+
+
+def flavour_names() -> tuple[str, ...]:
+    """The names of the registered flavours (:data:`FLAVOURS`), in registry order."""
+    return tuple(FLAVOURS)
+
+
 def flavour_info(flavour: str) -> FlavourInfo:
-    """The :class:`FlavourInfo` of ``"ardupilot"`` or ``"px4"``."""
-    if flavour == "ardupilot":
-        return ARDUPILOT
-    if flavour == "px4":
-        return PX4
-    raise ValueError(f"unknown flavour {flavour!r}: expected 'ardupilot' or 'px4'")
+    """The :class:`FlavourInfo` of a registered flavour (``"ardupilot"``, ``"px4"``).
+
+    Raises:
+        ValueError: not a name in :data:`FLAVOURS`.
+    """
+    info = FLAVOURS.get(flavour)
+    if info is None:
+        raise ValueError(f"unknown flavour {flavour!r}: expected one of {', '.join(repr(n) for n in FLAVOURS)}")
+    return info
+
+
+def flavour_of_autopilot(autopilot: int | None) -> str | None:
+    """The name of the flavour whose HEARTBEAT.autopilot (MAV_AUTOPILOT_*) is ``autopilot``, or
+    None if no registered flavour has it."""
+    return next((f.name for f in FLAVOURS.values() if f.autopilot == autopilot), None)
 
 
 def client_mode_table(flavour: str) -> dict[str, int]:

@@ -40,9 +40,9 @@ import math
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from comms.autopilot import EKF_CONST_POS_MODE, EKF_READY_FLAGS, MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4, client_mode_table
+from comms.autopilot import DEFAULT_FLAVOUR, EKF_CONST_POS_MODE, EKF_READY_FLAGS, FlavourInfo, client_mode_table, flavour_info, flavour_of_autopilot
 from comms.geodesy import MissionFrame
 from comms.mavlink_setpoints import (
     MASK_POSITION,
@@ -122,24 +122,17 @@ __all__ = [
 
 #: Our MAVLink identity: a companion computer of the vehicle's system.
 COMPONENT_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
-Flavour = Literal["ardupilot", "px4"]
+#: A flavour's name, one of :data:`comms.autopilot.FLAVOURS` (``"ardupilot"``, ``"px4"``).
+Flavour = str
 
-#: Arming attempts on PX4, whose pre-arm result flickers while its EKF settles.
-PX4_ARM_TRIES = 3
+#: Arming attempts on PX4, whose pre-arm result flickers while its EKF settles
+#: (:attr:`comms.autopilot.FlavourInfo.arm_tries` of PX4).
+PX4_ARM_TRIES = flavour_info("px4").arm_tries
 #: Deadline (s) for the heartbeat that confirms a mode change or arming (heartbeats are 1 Hz;
 #: a loaded machine starting dozens of processes can delay them by seconds).
 MODE_CONFIRM_TIMEOUT_S: float = 30.0
 #: No autopilot heartbeat for this long (wall s) = the link is lost (noticed within 3 s).
 LINK_LOSS_S: float = 2.0
-
-
-def flavour_of_autopilot(autopilot: int | None) -> Flavour | None:
-    """The flavour of a HEARTBEAT.autopilot value (MAV_AUTOPILOT_*), or None if unknown."""
-    if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return "ardupilot"
-    if autopilot == MAV_AUTOPILOT_PX4:
-        return "px4"
-    return None
 
 
 class VehicleLink:
@@ -156,7 +149,8 @@ class VehicleLink:
         frame: ``"local_ned"`` or ``"global"`` (see the module doc).
         mission_frame: the mission's :class:`MissionFrame` (required for ``"global"``).
         altitude_reference: ``"amsl"`` or ``"relative"`` (global frame only).
-        flavour: force ``"ardupilot"`` or ``"px4"``; None: from HEARTBEAT.autopilot.
+        flavour: force a flavour of :data:`comms.autopilot.FLAVOURS` (``"ardupilot"``,
+            ``"px4"``); None: from HEARTBEAT.autopilot.
         connect_timeout_s: how long a ``tcp:`` connection is retried while refused (s).
         source_component: our component id (default 191, onboard computer; fimnav's
             simulated payload uses another, so an autopilot tells the two links apart).
@@ -238,14 +232,15 @@ class VehicleLink:
     @property
     def flavour(self) -> Flavour:
         """The autopilot flavour: the forced one, else HEARTBEAT.autopilot (ArduPilot when the
-        heartbeat names neither)."""
+        heartbeat names no registered flavour)."""
         if self.forced_flavour is not None:
             return self.forced_flavour
-        return flavour_of_autopilot(self.telemetry.autopilot) or "ardupilot"
+        return flavour_of_autopilot(self.telemetry.autopilot) or DEFAULT_FLAVOUR
 
     @property
-    def is_px4(self) -> bool:
-        return self.flavour == "px4"
+    def profile(self) -> FlavourInfo:
+        """The autopilot profile of :attr:`flavour` (:func:`comms.autopilot.flavour_info`)."""
+        return flavour_info(self.flavour)
 
     # -- receiving --------------------------------------------------------------------------
     def pump(self, timeout_s: float = 0.0) -> int:
@@ -329,8 +324,9 @@ class VehicleLink:
     def not_ready(self, require_gps: bool = True) -> list[str]:
         """What the vehicle still lacks to fly by setpoints, in words (empty: ready):
         :func:`comms.mavlink_telemetry.missing_to_fly` of its telemetry."""
-        in_offboard = self.is_px4 and self.in_mode("OFFBOARD")
-        return missing_to_fly(self.telemetry, self.is_px4, in_offboard, self.frame, require_gps)
+        profile = self.profile
+        in_guided = profile.prearm_health_only and self.telemetry.custom_mode == profile.guided_mode
+        return missing_to_fly(self.telemetry, profile, in_guided, self.frame, require_gps)
 
     def _poll_heartbeat(self) -> None:
         """Ask for a HEARTBEAT now (MAV_CMD_REQUEST_MESSAGE, not awaited): an accepted mode change
@@ -454,11 +450,12 @@ class VehicleLink:
     def set_mode(self, name: str, timeout_s: float = MODE_CONFIRM_TIMEOUT_S) -> None:
         """Switch flight mode by name (ArduPilot copter or PX4 names) and wait to see it."""
         m = self.mavutil.mavlink
+        profile = self.profile
         table = self._modes()
         if name not in table:
-            raise LinkError(f"unknown {'PX4' if self.is_px4 else 'ArduPilot'} mode {name!r}; known: {sorted(table)}")
+            raise LinkError(f"unknown {profile.display_name} mode {name!r}; known: {sorted(table)}")
         custom = table[name]
-        if self.is_px4:
+        if profile.mode_command_main_sub:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, (custom >> 16) & 0xFF, (custom >> 24) & 0xFF]
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
@@ -481,7 +478,7 @@ class VehicleLink:
     def arm(self) -> None:
         """Arm and wait until the heartbeat says armed."""
         m = self.mavutil.mavlink
-        tries = PX4_ARM_TRIES if self.is_px4 else 1
+        tries = self.profile.arm_tries
         for attempt in range(tries):
             try:
                 self.command(m.MAV_CMD_COMPONENT_ARM_DISARM, [1], what="arm", done_already=lambda: self.telemetry.armed)
@@ -534,7 +531,7 @@ class VehicleLink:
         (:class:`comms.mavlink_setpoints.SetpointEncoder`)."""
         if position_enu_m is None and velocity_enu_mps is None:
             raise ValueError("a setpoint needs a position or a velocity")
-        self._setpoints.send(self.mav, position_enu_m, velocity_enu_mps, self.is_px4, self.telemetry.home_global)
+        self._setpoints.send(self.mav, position_enu_m, velocity_enu_mps, self.profile.relative_alt_as_amsl, self.telemetry.home_global)
 
     def close(self) -> None:
         """Stop the setpoint stream, close the connection and the .tlog."""

@@ -64,14 +64,14 @@ class SetpointEncoder:
         mav: Any,
         position_enu_m: Iterable[float] | None,
         velocity_enu_mps: Iterable[float] | None,
-        is_px4: bool,
+        relative_alt_as_amsl: bool,
         home_global: tuple[float, float, float] | None,
     ) -> None:
         """One setpoint with position and/or velocity (mission ENU, m and m/s), as
         SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED) or SET_POSITION_TARGET_GLOBAL_INT
-        (MAV_FRAME_GLOBAL_INT or MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) by the frame. ``is_px4`` and
-        ``home_global`` (lat deg, lon deg, alt m AMSL): PX4's relative altitudes are sent as
-        AMSL ones (see below)."""
+        (MAV_FRAME_GLOBAL_INT or MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) by the frame. With ``relative_alt_as_amsl``
+        (:attr:`comms.autopilot.FlavourInfo.relative_alt_as_amsl`, PX4) and ``home_global``
+        (lat deg, lon deg, alt m AMSL), relative altitudes are sent as AMSL ones (see below)."""
         m = self.mavlink
         mask = type_mask(position_enu_m is not None, velocity_enu_mps is not None)
         vn, ve, vd = enu_to_ned(velocity_enu_mps) if velocity_enu_mps is not None else (0.0, 0.0, 0.0)
@@ -92,7 +92,7 @@ class SetpointEncoder:
             lat_e7, lon_e7 = g.lat_e7, g.lon_e7
             alt = g.alt_amsl_m if self.altitude_reference == "amsl" else z
         frame = m.MAV_FRAME_GLOBAL_INT if self.altitude_reference == "amsl" else m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
-        if is_px4 and frame == m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and home_global is not None:
+        if relative_alt_as_amsl and frame == m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and home_global is not None:
             # PX4 (v1.15 and earlier) converts a GLOBAL_RELATIVE_ALT_INT altitude to local z as
             # home − alt − EKF-origin altitude, i.e. with the sign of (home − origin altitude)
             # reversed: off by twice the local z of home (1-4 m on PX4 SITL). The same target

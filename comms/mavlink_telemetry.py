@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from comms.autopilot import EKF_CONST_POS_MODE, EKF_READY_FLAGS
+from comms.autopilot import EKF_CONST_POS_MODE, EKF_READY_FLAGS, FlavourInfo
 from comms.geodesy import MissionFrame
 
 Frame = Literal["local_ned", "global"]
@@ -232,9 +232,10 @@ class TelemetryReceiver:
             tel.statustexts.append(text.rstrip("\x00"))
 
 
-def missing_to_fly(t: Telemetry, is_px4: bool, in_offboard: bool, frame: Frame, require_gps: bool = True) -> list[str]:
+def missing_to_fly(t: Telemetry, profile: FlavourInfo, in_guided: bool, frame: Frame, require_gps: bool = True) -> list[str]:
     """What the vehicle still lacks to fly by setpoints, in words (empty: ready), from its
-    telemetry ``t``; ``is_px4``: the autopilot is PX4, ``in_offboard``: in PX4's OFFBOARD mode.
+    telemetry ``t``; ``profile``: the autopilot's profile, ``in_guided``: in its guided mode
+    (PX4 OFFBOARD).
 
     GPS 3D fix (GPS_RAW_INT.fix_type ≥ 3; only with ``require_gps``: a vehicle flown in
     LOCAL_NED may navigate without GPS, e.g. on motion capture); EKF: EKF_STATUS_REPORT with
@@ -257,17 +258,18 @@ def missing_to_fly(t: Telemetry, is_px4: bool, in_offboard: bool, frame: Frame, 
     elif t.sensors_present & MAV_SYS_STATUS_AHRS and not (t.sensors_health or 0) & MAV_SYS_STATUS_AHRS:
         missing.append("EKF/AHRS healthy (SYS_STATUS)")
     # PX4 reports its pre-arm result as the PREARM_CHECK health bit alone (never present or
-    # enabled): set while the vehicle could arm in its current mode. Disarmed in OFFBOARD
-    # (PX4 returns to it after landing a flight flown in OFFBOARD) it stays clear until a
-    # setpoint stream runs, which the planner starts only once ready: not awaited there.
-    if is_px4:
-        prearm_reported = t.sensors_present is not None and not in_offboard
+    # enabled, profile.prearm_health_only): set while the vehicle could arm in its current
+    # mode. Disarmed in OFFBOARD (PX4 returns to it after landing a flight flown in OFFBOARD)
+    # it stays clear until a setpoint stream runs, which the planner starts only once ready:
+    # not awaited there.
+    if profile.prearm_health_only:
+        prearm_reported = t.sensors_present is not None and not in_guided
     else:
         prearm_reported = t.sensors_present is not None and bool(t.sensors_present & MAV_SYS_STATUS_PREARM_CHECK)
     if prearm_reported and not t.armed and not ((t.sensors_health or 0) & MAV_SYS_STATUS_PREARM_CHECK):
         reason = next((s for s in reversed(t.statustexts) if s.lower().startswith("prearm")), "")
         missing.append("pre-arm checks" + (f" ({reason})" if reason else ""))
-    if is_px4 and t.position_enu_m is None:
+    if profile.home_before_position and t.position_enu_m is None:
         # PX4 sends HOME_POSITION before its EKF has aligned, and no GLOBAL_POSITION_INT
         # (no LOCAL_POSITION_NED with a valid position) until it has.
         missing.append("position estimate (no GLOBAL_POSITION_INT yet)" if frame == "global" else "position estimate (no LOCAL_POSITION_NED yet)")

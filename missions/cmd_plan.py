@@ -10,6 +10,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from comms.autopilot import flavour_names
 from comms.errors import UsageError
 
 
@@ -52,7 +53,7 @@ def register(subparsers: Any) -> None:
         help="mission seconds per wall second: 1 for a real vehicle, the --speedup of a simulated vehicle (default 1)",
     )
     rt.add_argument(
-        "--flavour", choices=("auto", "ardupilot", "px4"), help="autopilot (default: the mission's override, else auto = from HEARTBEAT.autopilot)"
+        "--flavour", choices=("auto", *flavour_names()), help="autopilot (default: the mission's override, else auto = from HEARTBEAT.autopilot)"
     )
     rt.add_argument(
         "--setpoint-frame",

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from comms.autopilot import flavour_names
 from comms.errors import UsageError
 
 
@@ -50,7 +51,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--count", type=int, default=1, help="number of vehicles hosted by this process (default 1)")
     p.add_argument("--port-stride", type=int, default=1, help="port increment between vehicles (default 1)")
     p.add_argument("--mission", metavar="MISSION.yaml", help="take origin, start, fence, world and seed from a mission")
-    p.add_argument("--flavour", choices=("ardupilot", "px4"), help="autopilot flavour (default ardupilot)")
+    p.add_argument("--flavour", choices=flavour_names(), help="autopilot flavour (default ardupilot)")
     p.add_argument("--profile", choices=("ideal", "pointmass"), help="dynamics (default: mission's, else pointmass)")
     p.add_argument("--start", metavar="X,Y,Z", help="start position, ENU m (default 0,0,0 or the mission's)")
     p.add_argument("--spacing", type=float, default=2.0, help="east spacing of extra vehicles without a mission (m)")

@@ -39,6 +39,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from comms.autopilot import FlavourName, FlavourSetting, flavour_names
 from comms.faults import FaultModel
 from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_ORIGIN_LON_DEG
 from comms.geodesy import Origin as GeodeticOrigin
@@ -536,7 +537,7 @@ class VehicleOverride(_Section):
     """Per-drone vehicle settings; absent keys take the ``vehicles`` defaults."""
 
     connection: MavlinkConnection | None = Field(None, description="pymavlink connection string; absent: fimnav starts a simulated vehicle.")
-    flavour: Literal["auto", "ardupilot", "px4"] | None = Field(
+    flavour: FlavourSetting | None = Field(
         None,
         description="Autopilot flavour. 'ardupilot' or 'px4' forces it for the planner (and sets the "
         "simulated vehicle's); 'auto' or absent: the planner detects it from HEARTBEAT.autopilot.",
@@ -566,10 +567,10 @@ class ResolvedVehicle(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     connection: str | None
-    flavour: Literal["ardupilot", "px4"]
+    flavour: FlavourName
     profile: Literal["ideal", "pointmass"]
     signing_key_file: Path | None
-    autopilot: Literal["auto", "ardupilot", "px4"] = "auto"
+    autopilot: FlavourSetting = "auto"
     setpoint_frame: Literal["auto", "global", "local_ned"] = "auto"
     payload: Literal["simulated", "external"] = "simulated"
     payload_connection: str | None = None
@@ -578,7 +579,7 @@ class ResolvedVehicle(BaseModel):
 class Vehicles(_Section):
     """Autopilots: defaults and an optional per-drone override list (empty, or one per drone)."""
 
-    flavour: Literal["ardupilot", "px4"] = Field("ardupilot", description="Autopilot dialect.")
+    flavour: FlavourName = Field("ardupilot", description="Autopilot dialect.")
     profile: Literal["ideal", "pointmass"] = Field("ideal", description="Simulated dynamics: 'ideal' reaches each setpoint in one step (the paper).")
     overrides: tuple[VehicleOverride, ...] = Field((), description="One entry per drone, drone 1 first.")
     setpoint_frame: Literal["auto", "global", "local_ned"] = Field(
@@ -591,7 +592,7 @@ class Vehicles(_Section):
     def for_drone(self, index: int) -> ResolvedVehicle:
         """Settings of the drone at 0-based ``index`` (drone ``index + 1``)."""
         o = self.overrides[index] if self.overrides else VehicleOverride()
-        forced = o.flavour if o.flavour in ("ardupilot", "px4") else None
+        forced = o.flavour if o.flavour in flavour_names() else None
         return ResolvedVehicle(
             connection=o.connection,
             flavour=forced or self.flavour,

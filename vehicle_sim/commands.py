@@ -76,7 +76,6 @@ class CommandHandler:
         self.setpoints = setpoints
         self.encoder = encoder
         self.m = m = outbox.m
-        self.px4 = config.flavour == "px4"
         self.commands_handled = 0
         self.ignored_messages = 0
         self._handlers: dict[int, Handler] = {
@@ -144,10 +143,11 @@ class CommandHandler:
             if s.armed:
                 return self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
             reason = None if p[1] == FORCE_ARM_MAGIC else self.arming.prearm_failure()
-            if reason and not self.px4 and reason.startswith("PreArm: "):
+            prefix = self.info.arm_command_prefix
+            if reason and prefix is not None and reason.startswith("PreArm: "):
                 # ArduPilot runs the same checks on an arming command with the prefix "Arm: "
                 # (AP_Arming::check_failed while arming); "PreArm: " is its periodic report.
-                reason = "Arm: " + reason[len("PreArm: ") :]
+                reason = prefix + reason[len("PreArm: ") :]
             if reason:
                 return self.outbox.ack(msg, cmd, m.MAV_RESULT_FAILED, reason, 2)
             s.armed = True
@@ -170,13 +170,13 @@ class CommandHandler:
         m = self.m
         s = self.state
         cmd = m.MAV_CMD_NAV_TAKEOFF
-        px4 = self.px4
+        info = self.info
 
         def refuse(text: str) -> int:
             # ArduPilot: do_user_takeoff() returns false -> FAILED, no STATUSTEXT (measured on SITL 4.5.5)
-            if px4:
-                return self.outbox.ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, text)
-            return self.outbox.ack(msg, cmd, m.MAV_RESULT_FAILED)
+            if info.takeoff_refused_text:
+                return self.outbox.ack(msg, cmd, info.takeoff_refused_result, text)
+            return self.outbox.ack(msg, cmd, info.takeoff_refused_result)
 
         if not s.armed:
             return refuse("Takeoff: vehicle not armed")
@@ -187,7 +187,7 @@ class CommandHandler:
         alt = float(p[6])
         if math.isinf(alt):
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude is not finite")
-        if px4:
+        if info.takeoff_mode is not None:  # PX4: AUTO.TAKEOFF from any mode, AMSL altitude
             z = s.home[2] + self.modes.takeoff_alt_m if math.isnan(alt) else self.frames.alt_to_z(alt, frame, amsl_default=True)
         else:
             if s.mode.behaviour != "guided":
@@ -199,8 +199,8 @@ class CommandHandler:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude must be above ground")
         if self.fence.fence.enabled and z > self.fence.fence.z_max_m:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Takeoff: altitude above fence")
-        if px4 and self.info.takeoff_mode is not None:
-            s.mode = self.info.require_mode(self.info.takeoff_mode)
+        if info.takeoff_mode is not None:
+            s.mode = info.require_mode(info.takeoff_mode)
         self.modes.start_takeoff(z)
         return self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
 
@@ -227,7 +227,7 @@ class CommandHandler:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Mode: invalid base mode")
         mode = self.modes.mode_from(p[0], p[1], p[2])
         if mode is None:
-            if not self.px4 and math.isfinite(p[1]) and int(p[0]) & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            if self.info.unknown_mode_no_such_mode and math.isfinite(p[1]) and int(p[0]) & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 # Copter::set_mode -> notify_no_such_mode; _set_mode_common answers FAILED
                 return self.outbox.ack(msg, cmd, m.MAV_RESULT_FAILED, f"No such mode {int(p[1]) & 0xFF}")
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, f"Mode: unknown mode {p[1]:g}")
@@ -242,7 +242,7 @@ class CommandHandler:
         m = self.m
         mode = self.modes.mode_from(msg.base_mode, msg.custom_mode, 0)
         if mode is None:
-            if not self.px4 and msg.base_mode & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            if self.info.unknown_mode_no_such_mode and msg.base_mode & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 result = m.MAV_RESULT_FAILED
                 self.outbox.statustext(4, f"No such mode {msg.custom_mode & 0xFF}")
             else:
@@ -261,7 +261,7 @@ class CommandHandler:
         m = self.m
         cmd = m.MAV_CMD_GET_HOME_POSITION
         if not self.readiness.ready:
-            return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED if self.px4 else m.MAV_RESULT_FAILED)
+            return self.outbox.ack(msg, cmd, self.info.home_unknown_result)
         self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
         self.outbox.send(self.encoder.msg_home_position())
         self.outbox.send(self.encoder.msg_gps_global_origin())
@@ -290,7 +290,7 @@ class CommandHandler:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: invalid latitude/longitude")
         if not s.flying:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_TEMPORARILY_REJECTED, "Reposition: not flying")
-        change_mode = bool(int(flags) & m.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE) and not self.px4
+        change_mode = bool(int(flags) & m.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE) and self.info.reposition_changes_mode
         if s.mode.behaviour != "guided" and not change_mode:
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Reposition: not in guided mode")
         cur = s.position

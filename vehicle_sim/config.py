@@ -13,13 +13,14 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from comms.autopilot import FlavourName, flavour_names
 from comms.geodesy import Origin
 
-Flavour = Literal["ardupilot", "px4"]
+#: A flavour's name (:data:`comms.autopilot.FLAVOURS`).
+Flavour = FlavourName
 Profile = Literal["ideal", "pointmass"]
 FenceAction = Literal["clamp", "reject"]
 
-FLAVOURS: tuple[str, ...] = ("ardupilot", "px4")
 PROFILES: tuple[str, ...] = ("ideal", "pointmass")
 
 
@@ -141,7 +142,8 @@ class VehicleConfig:
 
     Attributes:
         sysid: MAVLink system id (1..255); the component id is always 1 (autopilot).
-        flavour: ``"ardupilot"`` (copter, default) or ``"px4"``.
+        flavour: a flavour of :data:`comms.autopilot.FLAVOURS`: ``"ardupilot"`` (copter,
+            default) or ``"px4"``.
         start_enu_m: boot position (x, y, z) in the mission ENU frame (m).
         airborne: boot armed and hovering at ``start_enu_m`` in GUIDED (ArduPilot) or
             AUTO.LOITER (PX4); otherwise boot disarmed on the ground below ``start_enu_m``.
@@ -203,8 +205,8 @@ class VehicleConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.sysid, int) and 1 <= self.sysid <= 255):
             raise ValueError(f"VehicleConfig.sysid must be an integer in 1..255, found {self.sysid!r}")
-        if self.flavour not in FLAVOURS:
-            raise ValueError(f"VehicleConfig.flavour: expected one of {FLAVOURS}, found {self.flavour!r}")
+        if self.flavour not in flavour_names():
+            raise ValueError(f"VehicleConfig.flavour: expected one of {flavour_names()}, found {self.flavour!r}")
         if self.profile not in PROFILES:
             raise ValueError(f"VehicleConfig.profile: expected one of {PROFILES}, found {self.profile!r}")
         if len(self.start_enu_m) != 3:

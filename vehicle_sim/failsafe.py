@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from comms.autopilot import MAV_AUTOPILOT_ARDUPILOTMEGA, FlavourInfo
+from comms.autopilot import FlavourInfo
 from vehicle_sim.flight_state import FlightState
 from vehicle_sim.modes import ModeMachine
 from vehicle_sim.outbox import Outbox
@@ -51,7 +51,7 @@ class Failsafes:
         self.offboard_loss_action = 0.0
         self._prearm_next_t_s = PREARM_DISPLAY_PERIOD_S
         #: Only ArduPilot's AP_Arming repeats a failing pre-arm check on its own.
-        self.reports_prearm = info.autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA
+        self.reports_prearm = info.repeats_prearm_failure
 
     def on_heartbeat(self, msg: Any) -> None:
         """ArduPilot: a heartbeat from SYSID_MYGCS keeps the GCS failsafe away (or clears it)."""

@@ -51,11 +51,6 @@ class ModeMachine:
         self.takeoff_alt_m = PX4_TAKEOFF_ALT_DEFAULT_M
         self.mode_after_disarm: Mode | None = None
 
-    @property
-    def px4(self) -> bool:
-        """The PX4 flavour."""
-        return self.config.flavour == "px4"
-
     def set_mode(self, mode: Mode) -> str | None:
         """Switch to ``mode``; return None or the reason for refusing."""
         s = self.state
@@ -63,11 +58,9 @@ class ModeMachine:
             return "Mode change failed: no mission"
         # ArduPilot copter skips its mode checks while disarmed (Copter::set_mode: "allow
         # switching to any mode if disarmed; we rely on the arming check"); PX4 does not.
-        checks = self.px4 or s.armed
+        checks = self.info.mode_checks_disarmed or s.armed
         if checks and mode.needs_position and not self.readiness.ready and mode.custom_mode != s.mode.custom_mode:
-            if self.px4:
-                return f"Switching to {mode.name} is currently not possible"
-            return f"Mode change to {mode.name} failed: requires position"
+            return self.info.needs_position_text.format(mode=mode.name)
         if mode.behaviour == "guided" and self.info.guided_needs_setpoint_stream and not self.setpoints.offboard_stream_ok():
             return "Offboard: no setpoint stream >2Hz"
         if mode.behaviour in ("land", "rtl") and not s.flying and not s.armed:
@@ -96,8 +89,8 @@ class ModeMachine:
             self.start_rtl()
         elif mode.behaviour == "takeoff":
             self.start_takeoff(max(float(s.position[2]), s.home[2] + self.takeoff_alt_m))
-        if self.px4:
-            self.outbox.statustext(6, f"Mode {mode.name}")
+        if self.info.mode_change_text is not None:
+            self.outbox.statustext(6, self.info.mode_change_text.format(mode=mode.name))
         return None
 
     def start_takeoff(self, z_target_m: float) -> None:
@@ -133,8 +126,8 @@ class ModeMachine:
         s.pm.set_command(Command("idle"), s.t_s)
         if s.armed:
             s.armed = False
-            self.outbox.statustext(6, "Landed: disarmed" if self.px4 else "Disarming motors")
-            if self.px4 and self.mode_after_disarm is not None:
+            self.outbox.statustext(6, self.info.landed_disarm_text)
+            if self.info.restore_mode_after_disarm and self.mode_after_disarm is not None:
                 # PX4 (commander's UserModeIntention::onDisarm) returns to the last armable
                 # mode chosen, e.g. OFFBOARD after AUTO.LAND.
                 s.mode = self.mode_after_disarm
@@ -157,8 +150,8 @@ class ModeMachine:
         if s.phase == "takeoff" and abs(float(p[2]) - s.takeoff_target_z_m) <= ARRIVAL_TOL_M:
             s.phase = ""
             s.landed_state = self.m.MAV_LANDED_STATE_IN_AIR
-            if self.px4:  # ArduPilot's GUIDED take-off ends silently
-                self.outbox.statustext(6, "Takeoff complete")
+            if self.info.takeoff_complete_text is not None:  # ArduPilot's GUIDED take-off ends silently
+                self.outbox.statustext(6, self.info.takeoff_complete_text)
             if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
                 s.mode = self.info.require_mode(self.info.hold_mode)
                 target = s.pm.command.position

@@ -7,7 +7,9 @@ from __future__ import annotations
 import difflib
 import math
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 from typing import Any, Literal, Protocol
 
 from comms.autopilot import FlavourInfo
@@ -253,6 +255,22 @@ ARDUPILOT_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("FENCE_RADIUS", False, FenceRadius()),
 )
 
+#: The flavours' parameter tables by name (:attr:`comms.autopilot.FlavourInfo.param_table`).
+PARAM_TABLES: Mapping[str, tuple[ParamSpec, ...]] = MappingProxyType({"ardupilot": ARDUPILOT_PARAMS, "px4": PX4_PARAMS})
+
+
+def param_table(name: str) -> tuple[ParamSpec, ...]:
+    """The parameter table ``name`` of :data:`PARAM_TABLES`.
+
+    Raises:
+        ValueError: no such table.
+    """
+    table = PARAM_TABLES.get(name)
+    if table is None:
+        raise ValueError(f"parameter table {name!r}: expected one of {', '.join(repr(n) for n in PARAM_TABLES)}")
+    return table
+
+
 #: Parameters of both flavours, after the flavour's own.
 COMMON_PARAMS: tuple[ParamSpec, ...] = (ParamSpec("FENCE_ENABLE", True, FenceEnable()),)
 #: The mission's horizontal fence box, read-only, present when the fence has one.
@@ -309,7 +327,7 @@ class ParameterTable:
         self.m = outbox.m
         self.sysid_param = float(sysid)
         targets = ParamTargets(state, fence, modes, setpoints, failsafes, self)
-        specs = (PX4_PARAMS if flavour == "px4" else ARDUPILOT_PARAMS) + COMMON_PARAMS
+        specs = param_table(info.param_table) + COMMON_PARAMS
         if fence.fence.has_box:
             specs += FENCE_BOX_PARAMS
         self.params: dict[str, Param] = {s.name: Param(s, targets) for s in specs}

@@ -122,8 +122,7 @@ class TelemetryStreams:
         name = self.stream_name(p[0])
         if name is None:
             # PX4 (1.15) answers FAILED for a message it has no stream for (EKF_STATUS_REPORT).
-            result = m.MAV_RESULT_FAILED if self.config.flavour == "px4" else m.MAV_RESULT_DENIED
-            return self.outbox.ack(msg, cmd, result, f"Interval: cannot stream msg {p[0]:g}")
+            return self.outbox.ack(msg, cmd, self.info.unknown_interval_result, f"Interval: cannot stream msg {p[0]:g}")
         us = p[1]
         if not math.isfinite(us) or (us < 0 and us != -1):
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Interval: bad interval")
@@ -169,9 +168,7 @@ class TelemetryStreams:
         if cls is not None and not self.readiness.available(cls.msgname):
             # Not available yet (no home, no origin): ArduPilot accepts the request and its
             # sender sends nothing; PX4's stream cannot send and the request is DENIED.
-            if self.config.flavour == "px4":
-                return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED)
-            return self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
+            return self.outbox.ack(msg, cmd, self.info.unavailable_request_result)
         self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
         self.outbox.send(builder())
         return int(m.MAV_RESULT_ACCEPTED)

@@ -42,8 +42,6 @@ EKF_FLAGS_READY = (
     | EKF_PRED_POS_HORIZ_REL
     | EKF_PRED_POS_HORIZ_ABS
 )
-#: ArduCopter modes whose HEARTBEAT base_mode carries MAV_MODE_FLAG_GUIDED_ENABLED.
-ARDUPILOT_GUIDED_FLAG_MODES = frozenset({"AUTO", "RTL", "LOITER", "GUIDED", "POSHOLD", "BRAKE"})
 
 
 def _i16(v: float) -> int:
@@ -109,13 +107,9 @@ class TelemetryEncoder:
         m = self.m
         s = self.state
         base = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.config.flavour == "ardupilot":
-            # GCS_MAVLINK_Copter::base_mode: manual input always; GUIDED_ENABLED in the modes
-            # that navigate (AUTO, RTL, LOITER, GUIDED, POSHOLD, BRAKE, ...), not in LAND.
+        if self.info.base_mode_manual_input:  # ArduPilot's GCS_MAVLINK_Copter::base_mode
             base |= m.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
-            if s.mode.name in ARDUPILOT_GUIDED_FLAG_MODES:
-                base |= m.MAV_MODE_FLAG_GUIDED_ENABLED
-        elif s.mode.behaviour in ("guided", "takeoff", "land", "rtl", "mission"):
+        if s.mode.name in self.info.guided_flag_modes:
             base |= m.MAV_MODE_FLAG_GUIDED_ENABLED
         if s.armed:
             base |= m.MAV_MODE_FLAG_SAFETY_ARMED
@@ -127,12 +121,12 @@ class TelemetryEncoder:
         s = self.state
         if not s.healthy:
             status = m.MAV_STATE_CRITICAL
-        elif self.config.flavour == "ardupilot":
+        elif self.info.heartbeat_active_when_armed:  # PX4
+            status = m.MAV_STATE_ACTIVE if s.armed else m.MAV_STATE_STANDBY
+        else:
             # GCS_MAVLINK_Copter::vehicle_system_status: CRITICAL in a failsafe, STANDBY while
             # landed (armed or not), ACTIVE in the air.
             status = m.MAV_STATE_CRITICAL if self.gcs_failsafe() else (m.MAV_STATE_ACTIVE if s.flying else m.MAV_STATE_STANDBY)
-        else:
-            status = m.MAV_STATE_ACTIVE if s.armed else m.MAV_STATE_STANDBY
         self.heartbeat_state = (s.mode.custom_mode, s.armed)
         return m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, self.info.autopilot, self._base_mode(), s.mode.custom_mode, status, 3)
 

@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comms.autopilot import FlavourSetting, flavour_names
 from comms.errors import FimnavError
 from comms.faults import FaultModel
 from comms.geodesy import MissionFrame
@@ -39,7 +40,8 @@ class NodeOptions:
         preflight_timeout_s: how long the take-off and the flight to the start may take.
         speedup: real time only: mission seconds per wall second (1 for a real vehicle; the
             ``--speedup`` of a simulated vehicle in tests).
-        flavour: ``"auto"`` (from HEARTBEAT.autopilot), ``"ardupilot"`` or ``"px4"``; None:
+        flavour: ``"auto"`` (from HEARTBEAT.autopilot) or a flavour of
+            :data:`comms.autopilot.FLAVOURS` (``"ardupilot"``, ``"px4"``); None:
             the mission's ``vehicles.overrides[i].flavour`` (absent: auto).
         setpoint_frame: ``"auto"``, ``"global"`` or ``"local_ned"``; None: the mission's.
         signing_key_file: MAVLink 2 signing key; None: the mission's (absent: no signing).
@@ -69,7 +71,7 @@ class NodeOptions:
     step_timeout_s: float = 30.0
     preflight_timeout_s: float = 120.0
     speedup: float = 1.0
-    flavour: Literal["auto", "ardupilot", "px4"] | None = None
+    flavour: FlavourSetting | None = None
     setpoint_frame: Literal["auto", "global", "local_ned"] | None = None
     signing_key_file: Path | None = None
     stream_hz: float = 5.0
@@ -89,8 +91,9 @@ class NodeOptions:
             raise NodeError(f"stream_hz: expected at least 4 Hz (the setpoint stream keeps the autopilot's timeouts away), found {self.stream_hz:g}")
         if not 0.0 < self.peer_wait_fraction < 1.0:
             raise NodeError(f"peer_wait_fraction: expected a fraction of the step in (0, 1), found {self.peer_wait_fraction!r}")
-        if self.flavour not in (None, "auto", "ardupilot", "px4"):
-            raise NodeError(f"flavour: expected auto, ardupilot or px4, found {self.flavour!r}")
+        names = flavour_names()
+        if self.flavour is not None and self.flavour != "auto" and self.flavour not in names:
+            raise NodeError(f"flavour: expected auto, {', '.join(names[:-1])} or {names[-1]}, found {self.flavour!r}")
         if self.setpoint_frame not in (None, "auto", "global", "local_ned"):
             raise NodeError(f"setpoint frame: expected auto, global or local_ned, found {self.setpoint_frame!r}")
 
@@ -126,7 +129,7 @@ class NodeConfig:
         start_position_m: this drone's start position (m, ENU, shape (3,)).
         planner: the mission's planning parameters (:class:`planner.config.PlannerConfig`).
         view: the delayed view's settings.
-        flavour_setting: ``"auto"``, ``"ardupilot"`` or ``"px4"``.
+        flavour_setting: ``"auto"`` or a flavour's name (``"ardupilot"``, ``"px4"``).
         setpoint_frame: ``"global"`` or ``"local_ned"`` (``auto`` resolved by the mode).
         signing_key: the MAVLink 2 signing key (read and checked), or None.
         mission_frame: the mission's ENU frame at its origin.
@@ -156,7 +159,7 @@ class NodeConfig:
     start_position_m: tuple[float, float, float]
     planner: PlannerConfig
     view: ViewSettings
-    flavour_setting: Literal["auto", "ardupilot", "px4"]
+    flavour_setting: FlavourSetting
     setpoint_frame: Frame
     signing_key: bytes | None
     mission_frame: MissionFrame
