@@ -167,6 +167,7 @@ SUMMARY = re.compile(
 )
 
 
+@pytest.mark.slow  # two launches (4 s); the results-directory rules stay in the default run (test_results_directory_rules below)
 def test_a_results_directory_holding_a_run_is_refused_or_overwritten(tmp_path: Path, launches: list[Launch]) -> None:
     """A previous run's files in ``--out`` (here: a summary and a vehicle log whose ready line
     names a port nobody listens on, which made a second launch wait 120 s for a heartbeat):
@@ -250,6 +251,7 @@ def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch],
         assert f"fimnav code from {MISSIONS_DIR}" in (out / "logs" / f"planner_{i}.log").read_text()
 
 
+@pytest.mark.slow  # a real-time launch that waits (4 s); the lockstep lifecycle tests stay in the default run
 def test_realtime_launch_says_what_its_start_delay_waits_for(tmp_path: Path) -> None:
     """``--realtime``: one line with what the start delay waits for and when step 0 is, then the
     drones ready at their starts as they report; Ctrl-C during the delay stops everything."""

@@ -26,6 +26,7 @@ pytestmark = pytest.mark.integration
 SPEEDUP = 5.0
 
 
+@pytest.mark.slow  # 8 s of real processes; the payload's measurement model is checked in tests/vehicle_sim (test_vehicle_payload.py)
 def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_path: Path, procs: list[Proc]) -> None:
     from comms import keys
     from comms.messages import decode

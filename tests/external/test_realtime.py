@@ -175,6 +175,7 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
         assert t.modes[-1] == (ARDUPILOT_GUIDED, True)
 
 
+@pytest.mark.slow  # 10 s; signing in the default run: tests/security/test_mavlink_signing.py (vehicle process), tests/vehicle_sim/test_vehicle_link_signing.py (the link's rules)
 def test_signed_link_flies_and_an_unsigned_planner_is_refused(tmp_path: Path, procs: list[Proc]) -> None:
     """A vehicle with MAVLink 2 signing on: a planner without the key stops at once with a
     message that says why; with another key it stops within seconds (every frame fails the
