@@ -75,7 +75,7 @@ class CommandHandler:
         self.modes = modes
         self.setpoints = setpoints
         self.encoder = encoder
-        self.m = m = outbox.m
+        self.mavlink = m = outbox.mavlink
         self.commands_handled = 0
         self.ignored_messages = 0
         self._handlers: dict[int, Handler] = {
@@ -107,7 +107,7 @@ class CommandHandler:
         self._dispatch(msg, msg.command, params, msg.frame)
 
     def _dispatch(self, msg: Any, command: int, p: tuple[float, ...], frame: int | None) -> None:
-        m = self.m
+        m = self.mavlink
         self.commands_handled += 1
         handler = self._handlers.get(command)
         if handler is None:
@@ -128,14 +128,14 @@ class CommandHandler:
         """Handler of a command answered by ACCEPTED followed by one message."""
 
         def handler(msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
-            self.outbox.ack(msg, command, self.m.MAV_RESULT_ACCEPTED)
+            self.outbox.ack(msg, command, self.mavlink.MAV_RESULT_ACCEPTED)
             self.outbox.send(builder())
-            return int(self.m.MAV_RESULT_ACCEPTED)
+            return int(self.mavlink.MAV_RESULT_ACCEPTED)
 
         return handler
 
     def _cmd_arm(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         s = self.state
         cmd = m.MAV_CMD_COMPONENT_ARM_DISARM
         arm = p[0]
@@ -167,7 +167,7 @@ class CommandHandler:
         return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Arm: param1 must be 0 or 1")
 
     def _cmd_takeoff(self, msg: Any, p: tuple[float, ...], frame: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         s = self.state
         cmd = m.MAV_CMD_NAV_TAKEOFF
         info = self.info
@@ -205,7 +205,7 @@ class CommandHandler:
         return self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED)
 
     def _cmd_land(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         mode = self.info.require_mode(self.info.land_mode)
         if not self.state.flying:
             return self.outbox.ack(msg, m.MAV_CMD_NAV_LAND, m.MAV_RESULT_TEMPORARILY_REJECTED, "Land: not flying")
@@ -213,7 +213,7 @@ class CommandHandler:
         return self.outbox.ack(msg, m.MAV_CMD_NAV_LAND, m.MAV_RESULT_ACCEPTED)
 
     def _cmd_rtl(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         mode = self.info.require_mode(self.info.rtl_mode)
         if not self.state.flying:
             return self.outbox.ack(msg, m.MAV_CMD_NAV_RETURN_TO_LAUNCH, m.MAV_RESULT_TEMPORARILY_REJECTED, "RTL: not flying")
@@ -221,7 +221,7 @@ class CommandHandler:
         return self.outbox.ack(msg, m.MAV_CMD_NAV_RETURN_TO_LAUNCH, m.MAV_RESULT_ACCEPTED)
 
     def _cmd_set_mode(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         cmd = m.MAV_CMD_DO_SET_MODE
         if not math.isfinite(p[0]):
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED, "Mode: invalid base mode")
@@ -239,7 +239,7 @@ class CommandHandler:
     def on_set_mode(self, msg: Any) -> None:
         """SET_MODE (the message): as DO_SET_MODE; ArduPilot acknowledges it with COMMAND_ACK
         whose command is the message id (11)."""
-        m = self.m
+        m = self.mavlink
         mode = self.modes.mode_from(msg.base_mode, msg.custom_mode, 0)
         if mode is None:
             if self.info.unknown_mode_no_such_mode and msg.base_mode & m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -258,7 +258,7 @@ class CommandHandler:
     def _cmd_get_home_position(self, msg: Any, _p: tuple[float, ...], _f: int | None) -> int:
         """MAV_CMD_GET_HOME_POSITION: HOME_POSITION and GPS_GLOBAL_ORIGIN (as ArduPilot);
         without a home yet ArduPilot answers FAILED, PX4 DENIED."""
-        m = self.m
+        m = self.mavlink
         cmd = m.MAV_CMD_GET_HOME_POSITION
         if not self.readiness.ready:
             return self.outbox.ack(msg, cmd, self.info.home_unknown_result)
@@ -273,7 +273,7 @@ class CommandHandler:
         longitude (1e-7 deg; both 0: stay over the current position), z altitude in ``frame``
         (NaN: keep the current altitude; ±inf is not an altitude). Every parameter is
         checked before anything changes (DENIED), then the state (TEMPORARILY_REJECTED)."""
-        m = self.m
+        m = self.mavlink
         s = self.state
         cmd = m.MAV_CMD_DO_REPOSITION
         if frame is None:
@@ -318,14 +318,14 @@ class CommandHandler:
         return self.outbox.ack(msg, cmd, m.MAV_RESULT_ACCEPTED if ok else m.MAV_RESULT_DENIED)
 
     def _cmd_change_speed(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         if not (math.isfinite(p[1]) and (p[1] > 0 or p[1] == -1)):
             return self.outbox.ack(msg, m.MAV_CMD_DO_CHANGE_SPEED, m.MAV_RESULT_DENIED, "Speed: invalid value")
         self.setpoints.speed_override_mps = None if p[1] == -1 else float(p[1])
         return self.outbox.ack(msg, m.MAV_CMD_DO_CHANGE_SPEED, m.MAV_RESULT_ACCEPTED)
 
     def _cmd_fence_enable(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         if p[0] not in (0.0, 1.0):
             return self.outbox.ack(msg, m.MAV_CMD_DO_FENCE_ENABLE, m.MAV_RESULT_DENIED, "Fence: param1 must be 0 or 1")
         self.fence.fence = replace(self.fence.fence, enabled=p[0] == 1.0)
@@ -333,7 +333,7 @@ class CommandHandler:
         return self.outbox.ack(msg, m.MAV_CMD_DO_FENCE_ENABLE, m.MAV_RESULT_ACCEPTED)
 
     def _cmd_set_origin(self, msg: Any, p: tuple[float, ...], frame: int | None) -> int:
-        m = self.m
+        m = self.mavlink
         cmd = MAV_CMD_DO_SET_GLOBAL_ORIGIN
         if frame is None:
             lat, lon = p[4], p[5]

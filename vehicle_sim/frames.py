@@ -26,7 +26,7 @@ class VehicleFrames:
         self.mission_origin = origin
         self.home = home
         self.ground_z_m = ground_z_m
-        self.m = mavlink
+        self.mavlink = mavlink
         self.world = MissionFrame.of_origin(origin)
         self.ekf = self.world
         self.ekf_origin = origin
@@ -66,7 +66,7 @@ class VehicleFrames:
     def alt_to_z(self, alt: float, frame: int | None, *, amsl_default: bool) -> float:
         """Altitude of a command (m) -> ENU z (m): AMSL for GLOBAL frames (and PX4 takeoff),
         above the terrain (the ground) for TERRAIN frames, above home otherwise."""
-        m = self.m
+        m = self.mavlink
         amsl = frame in (m.MAV_FRAME_GLOBAL, m.MAV_FRAME_GLOBAL_INT) if frame is not None else amsl_default
         if amsl:
             return alt - self.mission_origin.alt_m

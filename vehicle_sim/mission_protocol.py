@@ -27,10 +27,10 @@ class MissionProtocol:
         self.outbox = outbox
         self.frames = frames
         self.setpoints = setpoints
-        self.m = outbox.m
+        self.mavlink = outbox.mavlink
 
     def _mission_ack(self, msg: Any, result: int) -> None:
-        self.outbox.send(self.m.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
+        self.outbox.send(self.mavlink.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type))
 
     def on_mission_item_int(self, msg: Any) -> None:
         """MISSION_ITEM_INT (lat/lon 1e-7 deg), see :meth:`on_mission_item`."""
@@ -42,7 +42,7 @@ class MissionProtocol:
         self._mission_item(msg, msg.x, msg.y)
 
     def _mission_item(self, msg: Any, lat: float, lon: float) -> None:
-        m = self.m
+        m = self.mavlink
         result = m.MAV_MISSION_UNSUPPORTED
         if msg.current == 2 and msg.command == m.MAV_CMD_NAV_WAYPOINT:  # ArduPilot guided "fly to"
             if math.isfinite(lat) and math.isfinite(lon) and math.isfinite(msg.z) and abs(lat) < 90 and abs(lon) <= 180:
@@ -56,20 +56,20 @@ class MissionProtocol:
 
     def on_mission_request_list(self, msg: Any) -> None:
         """MISSION_REQUEST_LIST: the mission has no items."""
-        self.outbox.send(self.m.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
+        self.outbox.send(self.mavlink.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
 
     def on_mission_request(self, msg: Any) -> None:
         """MISSION_REQUEST(_INT): there is no item to send."""
-        self._mission_ack(msg, self.m.MAV_MISSION_INVALID_SEQUENCE)
+        self._mission_ack(msg, self.mavlink.MAV_MISSION_INVALID_SEQUENCE)
 
     def on_mission_count(self, msg: Any) -> None:
         """MISSION_COUNT: an empty upload is accepted, any other refused."""
-        m = self.m
+        m = self.mavlink
         self._mission_ack(msg, m.MAV_MISSION_ACCEPTED if msg.count == 0 else m.MAV_MISSION_UNSUPPORTED)
 
     def on_mission_clear_all(self, msg: Any) -> None:
         """MISSION_CLEAR_ALL: accepted (the mission is empty)."""
-        self._mission_ack(msg, self.m.MAV_MISSION_ACCEPTED)
+        self._mission_ack(msg, self.mavlink.MAV_MISSION_ACCEPTED)
 
     def on_file_transfer_protocol(self, msg: Any) -> None:
         """No file system: answer every FTP request at once so ground stations (MAVProxy's
@@ -88,4 +88,4 @@ class MissionProtocol:
         body = ((seq + 1) & 0xFFFF).to_bytes(2, "little") + bytes([session, reply_op, size, opcode, 0, 0])
         body += bytes(4) + data
         payload = list(body + bytes(251 - len(body)))
-        self.outbox.send(self.m.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload))
+        self.outbox.send(self.mavlink.MAVLink_file_transfer_protocol_message(0, msg.get_srcSystem(), msg.get_srcComponent(), payload))

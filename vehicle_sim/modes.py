@@ -46,7 +46,7 @@ class ModeMachine:
         self.state = state
         self.outbox = outbox
         self.setpoints = setpoints
-        self.m = outbox.m
+        self.mavlink = outbox.mavlink
         self.rtl_alt_m = RTL_ALT_DEFAULT_M
         self.takeoff_alt_m = PX4_TAKEOFF_ALT_DEFAULT_M
         self.mode_after_disarm: Mode | None = None
@@ -99,7 +99,7 @@ class ModeMachine:
         s.flying = True
         s.phase = "takeoff"
         s.takeoff_target_z_m = z_target_m
-        s.landed_state = self.m.MAV_LANDED_STATE_TAKEOFF
+        s.landed_state = self.mavlink.MAV_LANDED_STATE_TAKEOFF
         target = np.array([s.position[0], s.position[1], z_target_m])
         s.command(Command("position", position=target, speed_mps=s.limits.takeoff_speed_mps))
 
@@ -107,7 +107,7 @@ class ModeMachine:
         """Descend at the landing speed until touchdown."""
         s = self.state
         s.phase = "land"
-        s.landed_state = self.m.MAV_LANDED_STATE_LANDING
+        s.landed_state = self.mavlink.MAV_LANDED_STATE_LANDING
         s.command(Command("velocity", velocity=np.array([0.0, 0.0, -s.limits.land_speed_mps])))
 
     def start_rtl(self) -> None:
@@ -122,7 +122,7 @@ class ModeMachine:
         s = self.state
         s.flying = False
         s.phase = ""
-        s.landed_state = self.m.MAV_LANDED_STATE_ON_GROUND
+        s.landed_state = self.mavlink.MAV_LANDED_STATE_ON_GROUND
         s.pm.set_command(Command("idle"), s.t_s)
         if s.armed:
             s.armed = False
@@ -149,7 +149,7 @@ class ModeMachine:
         home = s.home
         if s.phase == "takeoff" and abs(float(p[2]) - s.takeoff_target_z_m) <= ARRIVAL_TOL_M:
             s.phase = ""
-            s.landed_state = self.m.MAV_LANDED_STATE_IN_AIR
+            s.landed_state = self.mavlink.MAV_LANDED_STATE_IN_AIR
             if self.info.takeoff_complete_text is not None:  # ArduPilot's GUIDED take-off ends silently
                 self.outbox.statustext(6, self.info.takeoff_complete_text)
             if beh == "takeoff":  # PX4: AUTO.TAKEOFF ends in AUTO.LOITER at the take-off point
@@ -172,7 +172,7 @@ class ModeMachine:
         None (no custom mode flag, not a number, or not a mode of the flavour)."""
         if not (math.isfinite(custom) and math.isfinite(sub)):
             return None
-        if int(base_mode) & self.m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED == 0:
+        if int(base_mode) & self.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED == 0:
             return None
         if self.info.mode_command_main_sub:
             main = int(custom)

@@ -26,7 +26,7 @@ class Outbox:
 
     def __init__(self, link: MavlinkLink, sysid: int, wall: Callable[[], float]) -> None:
         self.link = link
-        self.m = link.mavlink
+        self.mavlink = link.mavlink
         self.sysid = sysid
         self.wall = wall
         self.acks_sent = 0
@@ -44,13 +44,13 @@ class Outbox:
                 return
             self._text_last_wall_s[key] = now
         log.info("sysid %d: %s", self.sysid, text)
-        self.link.send(self.m.MAVLink_statustext_message(severity, text[:50].encode("utf-8")))
+        self.link.send(self.mavlink.MAVLink_statustext_message(severity, text[:50].encode("utf-8")))
 
     def ack(self, msg: Any, command: int, result: int, text: str | None = None, severity: int = 4) -> int:
         """COMMAND_ACK of ``command`` to the sender of ``msg``, then the STATUSTEXT reason if
         any; returns ``result``."""
         self.acks_sent += 1
-        self.link.send(self.m.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self.link.send(self.mavlink.MAVLink_command_ack_message(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
         if text:
             self.statustext(severity, text)
         return result

@@ -324,7 +324,7 @@ class ParameterTable:
         self.flavour = flavour
         self.info = info
         self.outbox = outbox
-        self.m = outbox.m
+        self.mavlink = outbox.mavlink
         self.sysid_param = float(sysid)
         targets = ParamTargets(state, fence, modes, setpoints, failsafes, self)
         specs = param_table(info.param_table) + COMMON_PARAMS
@@ -348,7 +348,7 @@ class ParameterTable:
             raise ValueError(f"parameter {name} = {value:g}: {err}")
 
     def _encode(self, p: Param) -> tuple[float, int]:
-        m = self.m
+        m = self.mavlink
         value = p.get()
         if not p.integer:
             return value, m.MAV_PARAM_TYPE_REAL32
@@ -364,7 +364,7 @@ class ParameterTable:
     def _send(self, p: Param) -> None:
         names = list(self.params)
         value, ptype = self._encode(p)
-        self.outbox.send(self.m.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name)))
+        self.outbox.send(self.mavlink.MAVLink_param_value_message(p.name.encode(), value, ptype, len(names), names.index(p.name)))
 
     @staticmethod
     def _param_id(raw: Any) -> str:

@@ -46,7 +46,7 @@ class GuidedSetpoints:
         self.outbox = outbox
         self.fence = fence
         self.frames = frames
-        self.m = outbox.m
+        self.mavlink = outbox.mavlink
         self.guided_kind = ""
         self.last_setpoint_t_s = -math.inf
         self.setpoint_times_s: list[float] = []
@@ -84,7 +84,7 @@ class GuidedSetpoints:
 
     def on_set_position_target_local_ned(self, msg: Any) -> None:
         """SET_POSITION_TARGET_LOCAL_NED in LOCAL_NED, LOCAL_OFFSET_NED or a BODY frame."""
-        m = self.m
+        m = self.mavlink
         self._note_setpoint()
         use_pos, use_vel, err = self._decode_mask(msg.type_mask)
         if err:
@@ -119,7 +119,7 @@ class GuidedSetpoints:
 
     def on_set_position_target_global_int(self, msg: Any) -> None:
         """SET_POSITION_TARGET_GLOBAL_INT in a GLOBAL (AMSL, relative or terrain) frame."""
-        m = self.m
+        m = self.mavlink
         self._note_setpoint()
         use_pos, use_vel, err = self._decode_mask(msg.type_mask)
         if err:
@@ -161,7 +161,7 @@ class GuidedSetpoints:
         ``"reposition"`` for DO_REPOSITION and guided MISSION_ITEMs (they fly at the speed
         override), ``"setpoint"`` otherwise."""
         s = self.state
-        m = self.m
+        m = self.mavlink
         if s.mode.behaviour != "guided":
             return False
         if not s.armed:

@@ -48,7 +48,7 @@ class TelemetryStreams:
         self.outbox = outbox
         self.readiness = readiness
         self.encoder = encoder
-        self.m = outbox.m
+        self.mavlink = outbox.mavlink
         self.physics_dt_s = 1.0 / config.physics_hz
         self.defaults: dict[str, float | None] = {}
         for name, hz in config.rates_hz:
@@ -108,7 +108,7 @@ class TelemetryStreams:
         """The streamed message with MAVLink id ``msg_id``, or None."""
         if not math.isfinite(msg_id):
             return None
-        cls = self.m.mavlink_map.get(int(msg_id))
+        cls = self.mavlink.mavlink_map.get(int(msg_id))
         if cls is None:
             return None
         name = cls.msgname
@@ -117,7 +117,7 @@ class TelemetryStreams:
     def cmd_set_interval(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
         """MAV_CMD_SET_MESSAGE_INTERVAL: param1 message id, param2 interval (µs; 0 default,
         -1 off), never faster than the physics rate."""
-        m = self.m
+        m = self.mavlink
         cmd = m.MAV_CMD_SET_MESSAGE_INTERVAL
         name = self.stream_name(p[0])
         if name is None:
@@ -137,7 +137,7 @@ class TelemetryStreams:
 
     def cmd_get_interval(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
         """MAV_CMD_GET_MESSAGE_INTERVAL: ACCEPTED, then MESSAGE_INTERVAL (µs, -1 off)."""
-        m = self.m
+        m = self.mavlink
         name = self.stream_name(p[0])
         if name is None:
             return self.outbox.ack(msg, m.MAV_CMD_GET_MESSAGE_INTERVAL, m.MAV_RESULT_DENIED)
@@ -148,7 +148,7 @@ class TelemetryStreams:
 
     def cmd_request_message(self, msg: Any, p: tuple[float, ...], _f: int | None) -> int:
         """MAV_CMD_REQUEST_MESSAGE: param1 message id; ACCEPTED, then the message once."""
-        m = self.m
+        m = self.mavlink
         cmd = m.MAV_CMD_REQUEST_MESSAGE
         if not math.isfinite(p[0]):
             return self.outbox.ack(msg, cmd, m.MAV_RESULT_DENIED)
@@ -190,4 +190,4 @@ class TelemetryStreams:
         """TIMESYNC request (tc1 = 0): answered with the sim time (ns)."""
         if msg.tc1 == 0:
             now_ns = int(round(self.state.t_s * 1e9))
-            self.outbox.send(self.m.MAVLink_timesync_message(now_ns, msg.ts1))
+            self.outbox.send(self.mavlink.MAVLink_timesync_message(now_ns, msg.ts1))

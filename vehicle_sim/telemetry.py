@@ -85,7 +85,7 @@ class TelemetryEncoder:
         self.frames = frames
         self.gcs_failsafe = gcs_failsafe
         self.wall = wall
-        self.m = mavlink
+        self.mavlink = mavlink
         self.noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, config.sysid, 0x5E45]))
         #: (custom mode, armed) of the last HEARTBEAT built (a lockstep tick report repeats
         #: the heartbeat when the state changed since).
@@ -104,7 +104,7 @@ class TelemetryEncoder:
         return p
 
     def _base_mode(self) -> int:
-        m = self.m
+        m = self.mavlink
         s = self.state
         base = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_STABILIZE_ENABLED
         if self.info.base_mode_manual_input:  # ArduPilot's GCS_MAVLINK_Copter::base_mode
@@ -117,7 +117,7 @@ class TelemetryEncoder:
 
     def msg_heartbeat(self) -> Any:
         """HEARTBEAT: QUADROTOR, ArduPilot or PX4, custom mode, armed flag, system status."""
-        m = self.m
+        m = self.mavlink
         s = self.state
         if not s.healthy:
             status = m.MAV_STATE_CRITICAL
@@ -132,7 +132,7 @@ class TelemetryEncoder:
 
     def msg_sys_status(self) -> Any:
         """SYS_STATUS: sensors present/enabled/healthy, battery."""
-        m = self.m
+        m = self.mavlink
         s = self.state
         sensors = (
             m.MAV_SYS_STATUS_SENSOR_3D_GYRO
@@ -171,12 +171,12 @@ class TelemetryEncoder:
         sends none): all zeros, as ArduPilot sends its never-set location."""
         s = self.state
         if not self.readiness.ready:
-            return self.m.MAVLink_global_position_int_message(s.time_boot_ms(), 0, 0, 0, 0, 0, 0, 0, _heading_cdeg(s.yaw_rad))
+            return self.mavlink.MAVLink_global_position_int_message(s.time_boot_ms(), 0, 0, 0, 0, 0, 0, 0, _heading_cdeg(s.yaw_rad))
         p = self._reported_position()
         lat, lon, alt = self.frames.to_geodetic(p)
         vn, ve, vd = self.frames.vel_enu_to_ned(s.pm.velocity)
         rel = float(p[2] - s.home[2])
-        return self.m.MAVLink_global_position_int_message(
+        return self.mavlink.MAVLink_global_position_int_message(
             s.time_boot_ms(),
             int(round(lat * 1e7)),
             int(round(lon * 1e7)),
@@ -193,18 +193,18 @@ class TelemetryEncoder:
         p = self._reported_position()
         n, e, d = self.frames.enu_to_local_ned(p)
         vn, ve, vd = self.frames.vel_enu_to_ned(self.state.pm.velocity)
-        return self.m.MAVLink_local_position_ned_message(self.state.time_boot_ms(), n, e, d, vn, ve, vd)
+        return self.mavlink.MAVLink_local_position_ned_message(self.state.time_boot_ms(), n, e, d, vn, ve, vd)
 
     def msg_attitude(self) -> Any:
         """ATTITUDE (rad) from the horizontal acceleration and the held yaw."""
         s = self.state
         roll, pitch = s.pm.attitude(s.yaw_rad)
-        return self.m.MAVLink_attitude_message(s.time_boot_ms(), roll, pitch, s.yaw_rad, 0.0, 0.0, 0.0)
+        return self.mavlink.MAVLink_attitude_message(s.time_boot_ms(), roll, pitch, s.yaw_rad, 0.0, 0.0, 0.0)
 
     def msg_gps_raw_int(self) -> Any:
         """GPS_RAW_INT: 3D fix, 16 satellites; before the vehicle is ready no fix and no
         satellites (fix_type 0 while the EKF initialises, then 1), position unknown (0)."""
-        m = self.m
+        m = self.mavlink
         t_us = int(round(self.state.t_s * 1e6))
         if not self.readiness.ready:
             fix = m.GPS_FIX_TYPE_NO_GPS if self.readiness.stage == "init" else m.GPS_FIX_TYPE_NO_FIX
@@ -228,24 +228,24 @@ class TelemetryEncoder:
             flags, var = EKF_FLAGS_ALIGNED, 0.5
         else:
             flags, var = 0, 0.0
-        return self.m.MAVLink_ekf_status_report_message(flags, var, var, var, var, 0.0)
+        return self.mavlink.MAVLink_ekf_status_report_message(flags, var, var, var, var, 0.0)
 
     def msg_home_position(self) -> Any:
         """HOME_POSITION: geodetic and local NED."""
         home = self.state.home
         lat, lon, alt = self.frames.to_geodetic(home)
         n, e, d = self.frames.enu_to_local_ned(home)
-        return self.m.MAVLink_home_position_message(
+        return self.mavlink.MAVLink_home_position_message(
             int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), n, e, d, [1.0, 0.0, 0.0, 0.0], 0, 0, 0
         )
 
     def msg_extended_sys_state(self) -> Any:
         """EXTENDED_SYS_STATE: landed state."""
-        return self.m.MAVLink_extended_sys_state_message(self.m.MAV_VTOL_STATE_UNDEFINED, self.state.landed_state)
+        return self.mavlink.MAVLink_extended_sys_state_message(self.mavlink.MAV_VTOL_STATE_UNDEFINED, self.state.landed_state)
 
     def msg_battery_status(self) -> Any:
         """BATTERY_STATUS: a 4S LiPo draining while flying."""
-        m = self.m
+        m = self.mavlink
         battery = self.state.battery
         cell_mv = int(self._voltage() * 1000 / 4)
         cells = [cell_mv] * 4 + [65535] * 6
@@ -268,22 +268,22 @@ class TelemetryEncoder:
         gs = math.hypot(float(v[0]), float(v[1]))
         alt = self.config.origin.alt_m + float(s.position[2])
         hdg = int(math.degrees(s.yaw_rad) % 360.0)
-        return self.m.MAVLink_vfr_hud_message(gs, gs, hdg, 50 if s.flying else 0, alt, float(v[2]))
+        return self.mavlink.MAVLink_vfr_hud_message(gs, gs, hdg, 50 if s.flying else 0, alt, float(v[2]))
 
     def msg_system_time(self) -> Any:
         """SYSTEM_TIME: wall UNIX time (µs) and sim time since boot (ms)."""
-        return self.m.MAVLink_system_time_message(int(self.wall() * 1e6), self.state.time_boot_ms())
+        return self.mavlink.MAVLink_system_time_message(int(self.wall() * 1e6), self.state.time_boot_ms())
 
     def msg_gps_global_origin(self) -> Any:
         """GPS_GLOBAL_ORIGIN: the EKF origin."""
         o = self.frames.ekf_origin
-        return self.m.MAVLink_gps_global_origin_message(
+        return self.mavlink.MAVLink_gps_global_origin_message(
             int(round(o.lat_deg * 1e7)), int(round(o.lon_deg * 1e7)), int(round(o.alt_m * 1000)), int(self.state.t_s * 1e6)
         )
 
     def msg_autopilot_version(self) -> Any:
         """AUTOPILOT_VERSION with the capabilities MAVSDK and QGroundControl look for."""
-        m = self.m
+        m = self.mavlink
         caps = (
             m.MAV_PROTOCOL_CAPABILITY_MAVLINK2
             | m.MAV_PROTOCOL_CAPABILITY_MISSION_INT

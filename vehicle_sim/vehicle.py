@@ -139,7 +139,7 @@ class SimVehicle:
         self.config = config
         self.payload = payload
         self.link = link
-        self.m = m = link.mavlink
+        self.mavlink = m = link.mavlink
         self.sysid = config.sysid
         self.info: FlavourInfo = flavour_info(config.flavour)
         self.physics_dt_s = 1.0 / config.physics_hz
