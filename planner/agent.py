@@ -36,7 +36,7 @@ Policies fixed here (docs/control.md):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -48,6 +48,7 @@ from planner.control import StepResult, control_step, lost_contact_planes, sourc
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
+from planner.sensing import COMPONENTS, SensingComponent
 
 FloatArray = NDArray[np.float64]
 
@@ -233,21 +234,29 @@ def _planning_cost(
     criterion: Criterion,
     boxes_min: ArrayLike,
     boxes_max: ArrayLike,
+    extra_view: Mapping[str, NDArray[np.bool_]] | None = None,
+    own_extra: Mapping[str, NDArray[np.bool_]] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> CostGradient:
     """Cost of eq. 6 and its gradient w.r.t. the drone's own position, with the own link's
     predicted line of sight q (:func:`own_los_weight`): J = J_peers + q J_L + (1 − q) J_N
     (J_L, J_N the own term in LOS and NLOS) and ∇C = q g_L + (1 − q) g_N + tr(M (J_L − J_N)) ∇q,
     M = ∂C/∂J (:func:`planner.fim.cost_gradient` with a LOS weight). The peers' terms use their
-    records' LOS flags.
+    records' LOS flags. ``extra_view`` / ``own_extra``: the masks of the components other than
+    range and bearing in the view (..., N) and of the drone itself (...), by name
+    (:func:`planner.sensing.component_masks`); ``components``: the component registry.
     """
     if np.size(boxes_min) == 0:  # no building: every link LOS, q = 1
-        J = fisher_information(p_hat, view_positions, rng_view, brg_view, np.asarray(view_los, dtype=bool) | own, channel)
-        return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, np.ones(own_ranging.shape, dtype=bool), channel, criterion)
+        J = fisher_information(p_hat, view_positions, rng_view, brg_view, np.asarray(view_los, dtype=bool) | own, channel, extra_view, components)
+        ones = np.ones(own_ranging.shape, dtype=bool)
+        return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, ones, channel, criterion, own_extra=own_extra, components=components)
     measured = (np.asarray(view_los, dtype=bool) & own).any(-1)
     q, grad_q = own_los_weight(own_position, p_hat, boxes_min, boxes_max, measured_los=measured)
     plan_los = np.where(own, q[..., None], np.asarray(view_los, dtype=float))
-    J = fisher_information(p_hat, view_positions, rng_view, brg_view, plan_los, channel)
-    return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, q, channel, criterion, own_los_gradient=grad_q)
+    J = fisher_information(p_hat, view_positions, rng_view, brg_view, plan_los, channel, extra_view, components)
+    return cost_gradient(
+        J, p_hat, own_position, own_ranging, own_bearing, q, channel, criterion, own_los_gradient=grad_q, own_extra=own_extra, components=components
+    )
 
 
 @dataclass(frozen=True)
@@ -453,6 +462,9 @@ def plan(
     valid = np.asarray(view.valid, dtype=bool)
     ranging, bearing = np.asarray(config.ranging, dtype=bool), np.asarray(config.bearing, dtype=bool)
     own_ranging, own_bearing = (ranging & own).any(-1), (bearing & own).any(-1)
+    extra = {name: np.asarray(mask, dtype=bool) for name, mask in config.extra_masks.items()}
+    extra_view = {name: mask & valid for name, mask in extra.items()}
+    own_extra = {name: (mask & own).any(-1) for name, mask in extra.items()}
     estimate_m = estimate.estimate_m
     p_hat = (
         np.asarray(estimate_m, dtype=float)
@@ -473,6 +485,9 @@ def plan(
         criterion,
         boxes_min,
         boxes_max,
+        extra_view,
+        own_extra,
+        config.sensing.components,
     )
     status, keepout = _status_and_keepout(
         cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own_distance_lower_m=own_distance_lower_m
