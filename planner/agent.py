@@ -43,6 +43,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner import estimator as est
 from planner.config import PlannerConfig
 from planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
@@ -328,6 +329,45 @@ class _Record(Protocol):
 
     @property
     def los(self) -> bool: ...
+
+
+class _MeasuredRecord(_Record, Protocol):
+    """What :func:`measurements_from_records` reads of a record: its position, LOS flag and
+    measured values (NaN: not measured)."""
+
+    @property
+    def range_m(self) -> float: ...
+
+    @property
+    def azimuth_rad(self) -> float: ...
+
+    @property
+    def elevation_rad(self) -> float: ...
+
+    @property
+    def extra_values(self) -> Mapping[str, float]: ...
+
+
+def measurements_from_records(records: Sequence[_MeasuredRecord | None], extra_value_names: Sequence[str] = ()) -> est.Measurements:
+    """The estimator's rows (:class:`planner.estimator.Measurements`, one per record, None: an
+    empty row) of records taken at ``position_m`` (m, ENU): range (m), azimuth and elevation
+    (rad), LOS flag, and the values of ``extra_value_names`` (the components beyond range and
+    bearing, :attr:`planner.sensing.SensingTable.extra_value_names`; NaN where a record has none)."""
+    rows = len(records)
+    pos = np.full((rows, 3), np.nan)
+    rng = np.full(rows, np.nan)
+    az = np.full(rows, np.nan)
+    el = np.full(rows, np.nan)
+    los = np.zeros(rows, dtype=bool)
+    extra = {name: np.full(rows, np.nan) for name in extra_value_names}
+    for row, rec in enumerate(records):
+        if rec is None:
+            continue
+        pos[row] = rec.position_m
+        rng[row], az[row], el[row], los[row] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
+        for name, values in extra.items():
+            values[row] = rec.extra_values.get(name, np.nan)
+    return est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los, extra_values=extra)
 
 
 def records_as_arrays(records: Sequence[_Record | None]) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
