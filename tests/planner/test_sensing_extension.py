@@ -291,3 +291,25 @@ def test_the_toy_records_round_trip_the_wire_into_the_estimator(toy_run: tuple[M
     np.testing.assert_array_equal(meas.extra_values["range_squared_m2"], obs.values["range_squared_m2"])
     np.testing.assert_array_equal(meas.range_m, obs.range_m)
     np.testing.assert_array_equal(meas.positions_m, positions)
+
+
+def test_the_payload_measures_the_toy_as_the_simulator_does(toy_run: tuple[Mission, SimulationResult]) -> None:
+    """A vehicle's payload with the toy component draws the simulator's record of step 0."""
+    from vehicle_sim.payload import Payload, PayloadWorld
+
+    mission, result = toy_run
+    config = mission.planner_config(sensing=TOY_SENSING)
+    source = mission.source
+    world = PayloadWorld(tuple(source.position_at(0.0)), (0.0, 0.0, 0.0), (), (), config.channel, mission.seed)
+    positions = result.positions_m[0, 0]
+    uniforms = presampled_uniforms(mission.seed, 1, 10, 1, MEASUREMENT_STREAM, TOY_SENSING.measurement_draws())[0, 0]
+    los = line_of_sight(positions, result.source_m[0], config.boxes_min_m, config.boxes_max_m)
+    obs = observe_from_uniforms(
+        result.source_m[0], positions, config.ranging, config.bearing, los, config.channel, uniforms, config.extra_masks, EXTENDED
+    )
+    for drone in (0, TOY_DRONES):
+        toy = drone < TOY_DRONES
+        payload = Payload(world, drone, ranging=not toy, bearing=False, extra_components=("range_squared",) if toy else (), sensing=TOY_SENSING)
+        m = payload.measure(positions[drone], 0, 0.0)
+        assert dict(m.extra_values) == ({"range_squared_m2": float(obs.values["range_squared_m2"][drone])} if toy else {})
+        assert (m.range_m is None) == toy
