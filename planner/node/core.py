@@ -267,7 +267,9 @@ class StepCore:
         its predecessor's step log and its peers' logs (drone index → rows) for the steps
         before ``first`` (:func:`~planner.node.steplog.replay_step_logs`). Returns the replayed
         steps per drone index."""
-        self.state, done = replay_step_logs(self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator)
+        self.state, done = replay_step_logs(
+            self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator, self.planner.sensing
+        )
         for step, pos, rng, los in done.get(self.index, []):
             self.own_ranges.append((rng, los))
             self.track(step, pos)
