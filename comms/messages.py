@@ -14,6 +14,11 @@ measurement share one body: step u32, time f64 (s), position 3×f64 (m, mission 
 (bit 0 ranging, bit 1 bearing), flags u8 (bit 0 LOS, bit 1 stale, bit 2 taken over), range f64 (m),
 azimuth f64, elevation f64 (rad); NaN stands for a quantity the role does not measure.
 
+A record of a role with components beyond range and bearing (:class:`planner.sensing.SensingTable`:
+their bits in the role byte) ends with an extension: count u8, then that many f64 values, the
+``value_names`` of those components in registry order. A record of range and bearing only has
+no extension, so its bytes do not depend on whether a table has more components.
+
 :func:`decode` checks everything a peer could get wrong or forge (length, magic, version, kind,
 mission, finite and plausible values, role bits, angle ranges) and raises :class:`MessageError`
 with the reason; receivers drop such a message with a warning and count it, never crash.
@@ -25,13 +30,13 @@ import math
 import struct
 import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from types import MappingProxyType
 
 import numpy as np
 
-from planner.sensing import ROLES, SensingRole, role_from_flags
+from planner.sensing import BEARING, RANGE, SENSING, SensingComponent, SensingTable
 
 MAGIC = b"FN"
 SCHEMA_VERSION = 1
@@ -44,6 +49,7 @@ _OBS = struct.Struct("<Id3dBBddd")
 _TICK = struct.Struct("<id")
 _DONE = struct.Struct("<i")
 _STATUS_HEAD = struct.Struct("<Id3dBBBH")
+_EXTENSION_COUNT = struct.Struct("<B")
 
 
 class MessageKind(IntEnum):
@@ -64,14 +70,15 @@ STALE_FLAG = 2
 TAKEN_OVER_FLAG = 4
 
 
-#: Wire role byte -> sensing role, from the role table of :mod:`planner.sensing` (read-only).
-_ROLE_OF_BITS: Mapping[int, SensingRole] = MappingProxyType({r.wire_bits: r for r in ROLES.values()})
-
-
-def _known_role_bits() -> str:
+def _known_role_bits(sensing: SensingTable) -> str:
     """``1 (ranging), 2 (bearing) or 3 (joint)``: the role bytes a record may carry."""
-    items = [f"{bits} ({role.name})" for bits, role in sorted(_ROLE_OF_BITS.items())]
+    items = [f"{bits} ({name})" for bits, name in sorted((sensing.wire_bits(r.components), r.name) for r in sensing.roles.values())]
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
+
+
+def _extra_components_of_bits(bits: int, sensing: SensingTable) -> tuple[SensingComponent, ...]:
+    """The components beyond range and bearing whose bit the role byte ``bits`` has."""
+    return tuple(c for c in sensing.extra_components if bits & c.wire_bit)
 
 
 def mission_tag(mission_id: str) -> int:
@@ -99,6 +106,9 @@ class Observation:
         taken_over: a pilot flies the drone (its vehicle left the planner's mode); the record
             is where it is, without a measurement.
         range_m, azimuth_rad, elevation_rad: the measurement (NaN where not measured).
+        extra_values: the values of the sender's components beyond range and bearing, by value
+            name (:attr:`planner.sensing.SensingComponent.value_names`; NaN where not measured);
+            empty for a role of range and bearing only (read-only mapping).
     """
 
     sender: int
@@ -113,6 +123,7 @@ class Observation:
     elevation_rad: float
     stale: bool = False
     taken_over: bool = False
+    extra_values: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}), hash=False)
 
 
 @dataclass(frozen=True)
@@ -155,13 +166,48 @@ def _header(kind: MessageKind, mission_id: str, sender: int, seq: int) -> bytes:
     return _HEADER.pack(MAGIC, SCHEMA_VERSION, int(kind), mission_tag(mission_id), sender, seq & 0xFFFFFFFF)
 
 
-def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = None) -> bytes:
-    """Serialise a message (``kind`` picks RECORD or MEASUREMENT for an Observation)."""
+def _extension(msg: Observation, sensing: SensingTable) -> tuple[list[str], list[float]]:
+    """The components beyond range and bearing an Observation's ``extra_values`` carry (names)
+    and their values in wire order.
+
+    Raises:
+        ValueError: a value name of no such component of ``sensing``, or a component with only
+            some of its values.
+    """
+    given = dict(msg.extra_values)
+    names: list[str] = []
+    values: list[float] = []
+    for component in sensing.extra_components:
+        present = [name in given for name in component.value_names]
+        if any(present) and not all(present):
+            raise ValueError(f"record extra_values: expected all of {list(component.value_names)} of {component.name!r}, found {sorted(given)}")
+        if all(present) and component.value_names:
+            names.append(component.name)
+            values.extend(float(given.pop(name)) for name in component.value_names)
+    if given:
+        raise ValueError(f"record extra_values: expected value names among {list(sensing.extra_value_names)}, found {sorted(given)}")
+    return names, values
+
+
+def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = None, sensing: SensingTable = SENSING) -> bytes:
+    """Serialise a message (``kind`` picks RECORD or MEASUREMENT for an Observation; ``sensing``:
+    the role table whose bits a record's role byte carries).
+
+    Raises:
+        ValueError: an Observation whose components form no role of ``sensing``, or whose
+            ``extra_values`` do not match its components.
+    """
     if isinstance(msg, Observation):
         k = kind or MessageKind.RECORD
-        role = role_from_flags(msg.ranging, msg.bearing).wire_bits if (msg.ranging or msg.bearing) else 0
+        extra_names, extra = _extension(msg, sensing)
+        taken = [name for name, has in ((RANGE.name, msg.ranging), (BEARING.name, msg.bearing)) if has] + extra_names
+        role = sensing.wire_bits(taken)
+        if taken and sensing.role_of_bits(role) is None:
+            raise ValueError(f"record: no sensing role takes the components {taken}")
         flags = (LOS_FLAG if msg.los else 0) | (STALE_FLAG if msg.stale else 0) | (TAKEN_OVER_FLAG if msg.taken_over else 0)
         body = _OBS.pack(msg.step, msg.time_s, *msg.position_m, role, flags, msg.range_m, msg.azimuth_rad, msg.elevation_rad)
+        if extra:
+            body += _EXTENSION_COUNT.pack(len(extra)) + struct.pack(f"<{len(extra)}d", *extra)
         return _header(k, mission_id, msg.sender, seq) + body
     if isinstance(msg, Tick):
         return _header(MessageKind.TICK, mission_id, 0, seq) + _TICK.pack(msg.step, msg.time_s)
@@ -175,13 +221,14 @@ def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = N
     raise TypeError(f"cannot encode {type(msg).__name__}")
 
 
-def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple[Header, Message]:
+def decode(data: bytes, mission_id: str, max_sender: int | None = None, sensing: SensingTable = SENSING) -> tuple[Header, Message]:
     """Parse and validate one message of mission ``mission_id``.
 
     Args:
         data: the payload bytes.
         mission_id: the receiver's mission; a message of another mission is refused.
         max_sender: the number of drones N (sender ids must be in 1..N), if known.
+        sensing: the role table a record's role byte and extension are read with.
 
     Raises:
         MessageError: with the reason, for anything malformed or implausible.
@@ -202,19 +249,22 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
     header = Header(kind, tag, sender, seq)
     body = memoryview(data)[_HEADER.size :]
     if kind in (MessageKind.RECORD, MessageKind.MEASUREMENT):
-        _need(body, _OBS.size, kind)
-        step, t, x, y, z, role, flags, rng, az, el = _OBS.unpack(body)
+        if len(body) < _OBS.size:
+            _need(body, _OBS.size, kind)
+        step, t, x, y, z, role, flags, rng, az, el = _OBS.unpack_from(body)
         _sender(sender, max_sender)
         _finite("time", t)
         for name, v in (("x", x), ("y", y), ("z", z)):
             _finite(f"position {name}", v)
             if abs(v) > MAX_COORD_M:
                 raise MessageError(f"position {name} = {v:g} m is outside ±{MAX_COORD_M:g} m")
-        if role not in _ROLE_OF_BITS:
-            raise MessageError(f"role bits {role:#x}: expected {_known_role_bits()}")
+        found = sensing.role_of_bits(role)
+        if found is None:
+            raise MessageError(f"role bits {role:#x}: expected {_known_role_bits(sensing)}")
         if flags & ~(LOS_FLAG | STALE_FLAG | TAKEN_OVER_FLAG):
             raise MessageError(f"unknown flag bits {flags:#x}")
-        ranging, bearing = _ROLE_OF_BITS[role].ranging, _ROLE_OF_BITS[role].bearing
+        extra_values = _decode_extension(body[_OBS.size :], _extra_components_of_bits(role, sensing), kind)
+        ranging, bearing = found.ranging, found.bearing
         # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
         # negative. Any finite value of plausible size is a measurement.
         if ranging and not (math.isnan(rng) or (math.isfinite(rng) and abs(rng) <= 2 * MAX_COORD_M)):
@@ -228,7 +278,19 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
         elif not (math.isnan(az) and math.isnan(el)):
             raise MessageError("bearing given by a drone without the bearing role")
         return header, Observation(
-            sender, step, t, (x, y, z), ranging, bearing, bool(flags & LOS_FLAG), rng, az, el, bool(flags & STALE_FLAG), bool(flags & TAKEN_OVER_FLAG)
+            sender,
+            step,
+            t,
+            (x, y, z),
+            ranging,
+            bearing,
+            bool(flags & LOS_FLAG),
+            rng,
+            az,
+            el,
+            bool(flags & STALE_FLAG),
+            bool(flags & TAKEN_OVER_FLAG),
+            extra_values,
         )
     if kind == MessageKind.TICK:
         _need(body, _TICK.size, kind)
@@ -251,6 +313,34 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None) -> tuple
         _finite("status value", v)
     saved = tuple(int(s) for s in np.frombuffer(body[_STATUS_HEAD.size :], dtype="<i4", count=n))
     return header, Status(sender, step, t, (ex, ey, ez), bool(obs), bool(sing), active, saved)
+
+
+def _decode_extension(tail: memoryview, components: tuple[SensingComponent, ...], kind: MessageKind) -> Mapping[str, float]:
+    """The values of a record's extension (``tail``: the bytes after the fixed body) for the
+    components beyond range and bearing of its role byte, by value name (read-only).
+
+    Raises:
+        MessageError: an extension where the role has no such component, a count or length
+            that does not match the role's values, or a value that is neither finite nor NaN.
+    """
+    names = [name for c in components for name in c.value_names]
+    if not names:
+        if len(tail):
+            raise MessageError(f"{kind.name.lower()} body of {_OBS.size + len(tail)} bytes, expected {_OBS.size}")
+        return MappingProxyType({})
+    if len(tail) < _EXTENSION_COUNT.size:
+        raise MessageError(f"{kind.name.lower()} extension missing: the role carries {names}")
+    (count,) = _EXTENSION_COUNT.unpack_from(tail)
+    if count != len(names):
+        raise MessageError(f"extension count {count}: expected {len(names)} values {names}")
+    size = _EXTENSION_COUNT.size + 8 * count
+    if len(tail) != size:
+        raise MessageError(f"extension of {len(tail)} bytes, expected {size} (count and the values {names})")
+    values = struct.unpack_from(f"<{count}d", tail, _EXTENSION_COUNT.size)
+    for name, v in zip(names, values, strict=True):
+        if not (math.isnan(v) or math.isfinite(v)):
+            raise MessageError(f"extension value {name} {v!r}: expected a finite number (or NaN: no measurement)")
+    return MappingProxyType(dict(zip(names, values, strict=True)))
 
 
 def _need(body: memoryview, size: int, kind: MessageKind) -> None:

@@ -46,7 +46,7 @@ from comms.geodesy import Origin as GeodeticOrigin
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
-from planner.sensing import ROLE_NAMES, role_masks
+from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only
     from vehicle_sim.config import VehicleConfig
@@ -708,16 +708,16 @@ class Mission(_Section):
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
         return EstimatorConfig(forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi)
 
-    def planner_config(self, criterion: Criterion | None = None) -> PlannerConfig:
+    def planner_config(self, criterion: Criterion | None = None, sensing: SensingTable = SENSING) -> PlannerConfig:
         """Everything a drone's planning step takes from this mission (:class:`PlannerConfig`),
-        with ``criterion`` in place of the mission's (a run's override), if given."""
+        with ``criterion`` in place of the mission's (a run's override), if given; the drones'
+        component masks come from their roles in the role table of ``sensing``."""
         bmin, bmax = self.obstacle_bounds()
         return PlannerConfig(
             channel=self.channel.to_planner(),
             limits=self.limits(),
             criterion=self.criterion if criterion is None else criterion,
-            ranging=self.drones.ranging_mask(),
-            bearing=self.drones.bearing_mask(),
+            component_masks=sensing.masks(self.drones.roles),
             boxes_min_m=bmin,
             boxes_max_m=bmax,
             d_hop_m=self.comms.d_hop_m,
@@ -725,6 +725,7 @@ class Mission(_Section):
             estimator=self.estimator_config(),
             xi=self.controller.xi,
             perturbation_rad=self.controller.random_perturbation_rad,
+            sensing=sensing,
         )
 
     def vehicle_config(self, drone: int, **overrides: Any) -> VehicleConfig:

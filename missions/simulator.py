@@ -24,7 +24,7 @@ run of trial 0 sees the same measurements as trial 0 here.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +40,8 @@ from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
 from planner.observation import observe_from_uniforms
 from planner.params import Criterion, Limits
-from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_DRAWS, MEASUREMENT_STREAM, presampled_uniforms
+from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_STREAM, presampled_uniforms
+from planner.sensing import SENSING, SensingTable
 
 FloatArray = NDArray[np.float64]
 
@@ -148,11 +149,14 @@ def _with_late_records(
     rec_az: FloatArray,
     rec_el: FloatArray,
     rec_los: NDArray[np.bool_],
+    rec_extra: Mapping[str, FloatArray],
 ) -> est.Measurements:
     """The view's new records plus the peers' records delivered late, after a newer one
     (:attr:`comms.faults.FaultBuffer.late_steps`, (W, M, N, N)): old evidence about the source
     is still evidence. They follow the view's N rows, oldest window slot first, then by sender
-    (the order of a planner node's rows); rows empty in every batch element are left out."""
+    (the order of a planner node's rows); rows empty in every batch element are left out.
+    ``rec_extra``: the records' values of the components other than range and bearing, by
+    value name, each (K, M, N)."""
     W, M, N, _ = late_steps.shape
     steps = np.moveaxis(late_steps, 0, 2).reshape(M, N, W * N)  # (m, i, slot·N + j)
     have = steps >= 0
@@ -170,6 +174,9 @@ def _with_late_records(
         azimuth_rad=np.concatenate([meas.azimuth_rad, np.where(have, rec_az[idx], nan)], axis=-1),
         elevation_rad=np.concatenate([meas.elevation_rad, np.where(have, rec_el[idx], nan)], axis=-1),
         los=np.concatenate([meas.los, have & rec_los[idx]], axis=-1),
+        extra_values={
+            name: np.concatenate([meas.extra_values[name], np.where(have, values[idx], nan)], axis=-1) for name, values in rec_extra.items()
+        },
     )
 
 
@@ -216,21 +223,25 @@ class _Simulation:
     """The state of :func:`simulate` between steps: the drones' positions, records, views,
     estimators, and the arrays of the result (see :func:`simulate` for the arguments)."""
 
-    def __init__(self, spec: RunSpec, estimator_config: est.EstimatorConfig | None, oracle_estimate: bool, float32_positions: bool) -> None:
+    def __init__(
+        self, spec: RunSpec, estimator_config: est.EstimatorConfig | None, oracle_estimate: bool, float32_positions: bool, sensing: SensingTable
+    ) -> None:
         mission = spec.mission
         M, K = spec.trials, spec.steps
         N = mission.drones.count
         self.spec = spec
-        self.config = config = mission.planner_config(spec.criterion)
+        self.config = config = mission.planner_config(spec.criterion, sensing)
         self.channel = config.channel
         self.bmin, self.bmax = config.boxes_min_m, config.boxes_max_m
         self.ranging, self.bearing = config.ranging, config.bearing
+        self.extra_masks = config.extra_masks
+        self.components = sensing.components
         self.comms = comms = mission.comms
         self.estimator_config = config.estimator if estimator_config is None else estimator_config
         self.oracle_estimate = oracle_estimate
         self.float32_positions = float32_positions
 
-        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, MEASUREMENT_DRAWS)
+        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, sensing.measurement_draws())
         self.ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
 
         # Every drone's start position (the mission's; the planning step keeps clear of a peer not
@@ -246,6 +257,8 @@ class _Simulation:
         self.rec_az = np.full((K, M, N), np.nan)
         self.rec_el = np.full((K, M, N), np.nan)
         self.rec_los = np.zeros((K, M, N), dtype=bool)
+        # The values of the components other than range and bearing, by value name.
+        self.rec_extra = {name: np.full((K, M, N), np.nan) for name in sensing.extra_value_names}
         self.saved = np.full((M, N, N), -1, dtype=np.int64)
         fault_model = comms.faults.to_model()
         # A partition: drones 1..ceil(N/2) and the rest exchange nothing while it lasts; each drone
@@ -284,8 +297,10 @@ class _Simulation:
     def _record(self, k: int, src: FloatArray) -> None:
         """1. Own record: position, LOS and measurement at step k."""
         los = line_of_sight(self.pos, src, self.bmin, self.bmax)
-        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k])
+        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
         self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
+        for name, values in self.rec_extra.items():
+            values[k] = obs.values[name]
 
     def _delayed_view(self, k: int) -> _View:
         """2. Delayed view (hop latency, memory buffer)."""
@@ -310,10 +325,12 @@ class _Simulation:
             azimuth_rad=np.where(new, _gather(self.rec_az, saved), nan),
             elevation_rad=np.where(new, _gather(self.rec_el, saved), nan),
             los=view.los & new,
+            extra_values={name: np.where(new, _gather(values, saved), nan) for name, values in self.rec_extra.items()},
         )
         if self.faults is not None:
-            meas = _with_late_records(meas, self.faults.late_steps, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los)
-        self.state = est.update(self.state, meas, self.channel, self.estimator_config)
+            late = self.faults.late_steps
+            meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
+        self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components)
         self.estimates[k] = self.state.estimate_m
         self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
         self.observable[k] = self.state.observable
@@ -345,7 +362,10 @@ class _Simulation:
 
     def _accuracy(self, k: int, src: FloatArray, view: _View, observer: Callable[[SimStep], None] | None) -> None:
         """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
-        J_true = fisher_information(src, view.positions_m, self.rng_view & view.have, self.brg_view & view.have, view.los, self.channel)
+        extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
+        J_true = fisher_information(
+            src, view.positions_m, self.rng_view & view.have, self.brg_view & view.have, view.los, self.channel, extra_view, self.components
+        )
         self.peb[k] = position_error_bound(J_true)[0]
         if observer is not None:
             observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
@@ -391,6 +411,7 @@ def simulate(
     oracle_estimate: bool = False,
     float32_positions: bool = False,
     observer: Callable[[SimStep], None] | None = None,
+    sensing: SensingTable = SENSING,
 ) -> SimulationResult:
     """Run ``spec.trials`` trials of ``spec.steps`` steps of a mission in this process.
 
@@ -407,12 +428,15 @@ def simulate(
             then computes the same numbers (docs/distributed.md).
         observer: called at every step with a :class:`SimStep` (the live view); it must not
             change the arrays.
+        sensing: the role table and component registry the mission's roles refer to
+            (:data:`planner.sensing.SENSING`; a larger table flies a component registered
+            outside it, e.g. in a test).
 
     Returns:
         The :class:`SimulationResult`.
     """
     t0 = time.perf_counter()
-    sim = _Simulation(spec, estimator_config, oracle_estimate, float32_positions)
+    sim = _Simulation(spec, estimator_config, oracle_estimate, float32_positions, sensing)
     for k in range(spec.steps):
         sim.step(k, observer)
         if progress is not None:

@@ -36,18 +36,20 @@ Policies fixed here (docs/control.md):
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner import estimator as est
 from planner.config import PlannerConfig
 from planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
 from planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from planner.geometry import link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
+from planner.sensing import COMPONENTS, SensingComponent
 
 FloatArray = NDArray[np.float64]
 
@@ -233,21 +235,29 @@ def _planning_cost(
     criterion: Criterion,
     boxes_min: ArrayLike,
     boxes_max: ArrayLike,
+    extra_view: Mapping[str, NDArray[np.bool_]] | None = None,
+    own_extra: Mapping[str, NDArray[np.bool_]] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> CostGradient:
     """Cost of eq. 6 and its gradient w.r.t. the drone's own position, with the own link's
     predicted line of sight q (:func:`own_los_weight`): J = J_peers + q J_L + (1 − q) J_N
     (J_L, J_N the own term in LOS and NLOS) and ∇C = q g_L + (1 − q) g_N + tr(M (J_L − J_N)) ∇q,
     M = ∂C/∂J (:func:`planner.fim.cost_gradient` with a LOS weight). The peers' terms use their
-    records' LOS flags.
+    records' LOS flags. ``extra_view`` / ``own_extra``: the masks of the components other than
+    range and bearing in the view (..., N) and of the drone itself (...), by name
+    (:func:`planner.sensing.component_masks`); ``components``: the component registry.
     """
     if np.size(boxes_min) == 0:  # no building: every link LOS, q = 1
-        J = fisher_information(p_hat, view_positions, rng_view, brg_view, np.asarray(view_los, dtype=bool) | own, channel)
-        return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, np.ones(own_ranging.shape, dtype=bool), channel, criterion)
+        J = fisher_information(p_hat, view_positions, rng_view, brg_view, np.asarray(view_los, dtype=bool) | own, channel, extra_view, components)
+        ones = np.ones(own_ranging.shape, dtype=bool)
+        return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, ones, channel, criterion, own_extra=own_extra, components=components)
     measured = (np.asarray(view_los, dtype=bool) & own).any(-1)
     q, grad_q = own_los_weight(own_position, p_hat, boxes_min, boxes_max, measured_los=measured)
     plan_los = np.where(own, q[..., None], np.asarray(view_los, dtype=float))
-    J = fisher_information(p_hat, view_positions, rng_view, brg_view, plan_los, channel)
-    return cost_gradient(J, p_hat, own_position, own_ranging, own_bearing, q, channel, criterion, own_los_gradient=grad_q)
+    J = fisher_information(p_hat, view_positions, rng_view, brg_view, plan_los, channel, extra_view, components)
+    return cost_gradient(
+        J, p_hat, own_position, own_ranging, own_bearing, q, channel, criterion, own_los_gradient=grad_q, own_extra=own_extra, components=components
+    )
 
 
 @dataclass(frozen=True)
@@ -319,6 +329,45 @@ class _Record(Protocol):
 
     @property
     def los(self) -> bool: ...
+
+
+class _MeasuredRecord(_Record, Protocol):
+    """What :func:`measurements_from_records` reads of a record: its position, LOS flag and
+    measured values (NaN: not measured)."""
+
+    @property
+    def range_m(self) -> float: ...
+
+    @property
+    def azimuth_rad(self) -> float: ...
+
+    @property
+    def elevation_rad(self) -> float: ...
+
+    @property
+    def extra_values(self) -> Mapping[str, float]: ...
+
+
+def measurements_from_records(records: Sequence[_MeasuredRecord | None], extra_value_names: Sequence[str] = ()) -> est.Measurements:
+    """The estimator's rows (:class:`planner.estimator.Measurements`, one per record, None: an
+    empty row) of records taken at ``position_m`` (m, ENU): range (m), azimuth and elevation
+    (rad), LOS flag, and the values of ``extra_value_names`` (the components beyond range and
+    bearing, :attr:`planner.sensing.SensingTable.extra_value_names`; NaN where a record has none)."""
+    rows = len(records)
+    pos = np.full((rows, 3), np.nan)
+    rng = np.full(rows, np.nan)
+    az = np.full(rows, np.nan)
+    el = np.full(rows, np.nan)
+    los = np.zeros(rows, dtype=bool)
+    extra = {name: np.full(rows, np.nan) for name in extra_value_names}
+    for row, rec in enumerate(records):
+        if rec is None:
+            continue
+        pos[row] = rec.position_m
+        rng[row], az[row], el[row], los[row] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
+        for name, values in extra.items():
+            values[row] = rec.extra_values.get(name, np.nan)
+    return est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los, extra_values=extra)
 
 
 def records_as_arrays(records: Sequence[_Record | None]) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
@@ -453,6 +502,9 @@ def plan(
     valid = np.asarray(view.valid, dtype=bool)
     ranging, bearing = np.asarray(config.ranging, dtype=bool), np.asarray(config.bearing, dtype=bool)
     own_ranging, own_bearing = (ranging & own).any(-1), (bearing & own).any(-1)
+    extra = {name: np.asarray(mask, dtype=bool) for name, mask in config.extra_masks.items()}
+    extra_view = {name: mask & valid for name, mask in extra.items()}
+    own_extra = {name: (mask & own).any(-1) for name, mask in extra.items()}
     estimate_m = estimate.estimate_m
     p_hat = (
         np.asarray(estimate_m, dtype=float)
@@ -473,6 +525,9 @@ def plan(
         criterion,
         boxes_min,
         boxes_max,
+        extra_view,
+        own_extra,
+        config.sensing.components,
     )
     status, keepout = _status_and_keepout(
         cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own_distance_lower_m=own_distance_lower_m

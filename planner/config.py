@@ -5,6 +5,7 @@ one source for each fact."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,6 +13,7 @@ from numpy.typing import NDArray
 
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+from planner.sensing import BEARING, RANGE, SENSING, SensingTable, extra_masks
 
 
 @dataclass(frozen=True, eq=False)
@@ -23,7 +25,9 @@ class PlannerConfig:
         limits: the kinematic limits and safety distances (v_max Δt, turn rates, d_U*, d_S*,
             d_O*, the altitude box) of problem 7, per step of ``limits.dt_s``.
         criterion: ``"A"`` or ``"D"``, the design criterion of eq. 6.
-        ranging, bearing: (N,) bool, the roles κ_j, β_j of every drone.
+        component_masks: component name -> (N,) bool, which drones take each measurement
+            component of ``sensing`` (from the drones' roles, :meth:`SensingTable.masks`);
+            :attr:`ranging` (κ_j) and :attr:`bearing` (β_j) are views of it.
         boxes_min_m, boxes_max_m: (B, 3), the buildings' corners, m, ENU (B may be 0).
         d_hop_m: the radio range d_hop of the multi-hop network, m.
         start_positions_m: (N, 3), every drone's position at step 0, m, ENU (known to all); None:
@@ -31,13 +35,16 @@ class PlannerConfig:
         estimator: the source estimator's settings.
         xi: the projected-gradient step ξ of eq. 10; None: the controller's default.
         perturbation_rad: the random perturbation of the singular-FIM fallback, rad.
+        sensing: the role table and component registry the masks refer to.
+
+    Raises:
+        ValueError: ``component_masks`` does not name exactly the components of ``sensing``.
     """
 
     channel: Channel
     limits: Limits
     criterion: Criterion
-    ranging: NDArray[np.bool_]
-    bearing: NDArray[np.bool_]
+    component_masks: Mapping[str, NDArray[np.bool_]]
     boxes_min_m: NDArray[np.float64]
     boxes_max_m: NDArray[np.float64]
     d_hop_m: float
@@ -45,3 +52,25 @@ class PlannerConfig:
     estimator: EstimatorConfig
     xi: float | None = None
     perturbation_rad: float = math.radians(20.0)
+    sensing: SensingTable = SENSING
+
+    def __post_init__(self) -> None:
+        expected = [c.name for c in self.sensing.components]
+        if sorted(self.component_masks) != sorted(expected):
+            raise ValueError(f"PlannerConfig.component_masks: expected masks of {expected}, found {list(self.component_masks)}")
+
+    @property
+    def ranging(self) -> NDArray[np.bool_]:
+        """κ_j: (N,) bool, the drones that measure range."""
+        return self.component_masks[RANGE.name]
+
+    @property
+    def bearing(self) -> NDArray[np.bool_]:
+        """β_j: (N,) bool, the drones that measure azimuth and elevation."""
+        return self.component_masks[BEARING.name]
+
+    @property
+    def extra_masks(self) -> Mapping[str, NDArray[np.bool_]]:
+        """The masks of the components other than range and bearing, by name (empty for
+        fimnav's own table)."""
+        return extra_masks(self.component_masks)

@@ -31,7 +31,7 @@ import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,6 +41,7 @@ from planner.params import Channel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+MaskT = TypeVar("MaskT")
 
 #: Role bits of the wire format (``comms/messages.py``): one bit per measurement component.
 RANGING_BIT: int = 1
@@ -103,12 +104,7 @@ def sensing_role(name: str) -> SensingRole:
     Raises:
         ValueError: an unknown name; the message lists the roles and suggests the nearest.
     """
-    role = ROLES.get(name)
-    if role is None:
-        near = difflib.get_close_matches(str(name), ROLE_NAMES, n=1)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
-        raise ValueError(f"role: expected one of {sorted(ROLE_NAMES)}, found {name!r}{hint}")
-    return role
+    return SENSING.role(name)
 
 
 def role_from_flags(ranging: bool, bearing: bool) -> SensingRole:
@@ -529,12 +525,101 @@ def component_masks(
     return tuple(by_name.get(name, False) for name in names)
 
 
+@dataclass(frozen=True, eq=False)
+class SensingTable:
+    """A role table with its component registry: what a mission's roles mean for the planner,
+    the simulator and the wire format. :data:`SENSING` is fimnav's (:data:`ROLES`,
+    :data:`COMPONENTS`); a test may build a larger one (a toy component and a role taking it)
+    and pass it where ``sensing=`` is accepted.
+
+    Attributes:
+        roles: role name -> :class:`SensingRole` (read-only mapping).
+        components: the measurement components, in registry order; range and bearing first.
+
+    Raises:
+        ValueError: two components share a name or a wire bit, a wire bit is not a single bit
+            of the role byte, or a role names a component not in ``components``.
+    """
+
+    roles: Mapping[str, SensingRole]
+    components: tuple[SensingComponent, ...]
+
+    def __post_init__(self) -> None:
+        names = [c.name for c in self.components]
+        bits = [c.wire_bit for c in self.components]
+        if names[:2] != [RANGE.name, BEARING.name] or len(set(names)) != len(names):
+            raise ValueError(f"sensing table: expected distinct component names starting with range, bearing; found {names}")
+        if len(set(bits)) != len(bits) or any(b <= 0 or b > 0x80 or b & (b - 1) for b in bits):
+            raise ValueError(f"sensing table: expected distinct single-bit wire bits of a byte, found {bits}")
+        for role in self.roles.values():
+            unknown = sorted(set(role.components) - set(names))
+            if unknown:
+                raise ValueError(f"sensing table: role {role.name!r} names components {unknown}, expected among {names}")
+
+    @property
+    def extra_components(self) -> tuple[SensingComponent, ...]:
+        """The components other than range and bearing, in registry order."""
+        return self.components[2:]
+
+    @property
+    def extra_value_names(self) -> tuple[str, ...]:
+        """The value names of :attr:`extra_components`, in registry order."""
+        return tuple(name for c in self.extra_components for name in c.value_names)
+
+    def role(self, name: str) -> SensingRole:
+        """The role called ``name``.
+
+        Raises:
+            ValueError: an unknown name; the message lists the roles and suggests the nearest.
+        """
+        role = self.roles.get(name)
+        if role is None:
+            names = tuple(self.roles)
+            near = difflib.get_close_matches(str(name), names, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            raise ValueError(f"role: expected one of {sorted(names)}, found {name!r}{hint}")
+        return role
+
+    def masks(self, role_names: Iterable[str]) -> Mapping[str, BoolArray]:
+        """Per-drone masks of every component, by component name, each (N,) bool, of N drones'
+        role names (read-only mapping, registry order)."""
+        roles = [self.role(n) for n in role_names]
+        return MappingProxyType({c.name: np.array([c.name in r.components for r in roles], dtype=bool) for c in self.components})
+
+    def wire_bits(self, components: Iterable[str]) -> int:
+        """The role byte of a record whose sender takes ``components`` (names): the OR of their
+        ``wire_bit``."""
+        taken = set(components)
+        return sum(c.wire_bit for c in self.components if c.name in taken)
+
+    def role_of_bits(self, bits: int) -> SensingRole | None:
+        """The role whose role byte is ``bits``; None if no role has it."""
+        for role in self.roles.values():
+            if self.wire_bits(role.components) == bits:
+                return role
+        return None
+
+    def measurement_draws(self) -> int:
+        """Uniform variates per drone and step its components draw from (:func:`measurement_draws`)."""
+        return measurement_draws(self.components)
+
+
+def extra_masks(masks: Mapping[str, MaskT]) -> Mapping[str, MaskT]:
+    """The masks of ``masks`` other than range's and bearing's (the ``extra_masks`` /
+    ``own_extra`` arguments of :mod:`planner.fim` and :mod:`planner.observation`)."""
+    return MappingProxyType({name: m for name, m in masks.items() if name not in (RANGE.name, BEARING.name)})
+
+
 def measurement_draws(components: Sequence[SensingComponent] = COMPONENTS) -> int:
     """Uniform variates per drone and step that ``components`` draw from (5 for the registry)."""
     columns = [col for c in components for col in c.uniform_columns]
     if len(set(columns)) != len(columns):
         raise ValueError(f"components: expected disjoint uniform columns, found {columns}")
     return max(columns, default=-1) + 1
+
+
+#: fimnav's sensing table: :data:`ROLES` with :data:`COMPONENTS`.
+SENSING: SensingTable = SensingTable(ROLES, COMPONENTS)
 
 
 __all__ = [
@@ -545,12 +630,15 @@ __all__ = [
     "RANGING_BIT",
     "ROLES",
     "ROLE_NAMES",
+    "SENSING",
     "BearingModel",
     "LinkGeometry",
     "RangeModel",
     "SensingComponent",
     "SensingRole",
+    "SensingTable",
     "component_masks",
+    "extra_masks",
     "link_geometry",
     "measurement_draws",
     "role_from_flags",

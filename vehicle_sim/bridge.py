@@ -103,6 +103,7 @@ class ZenohBridge:
             range_m=nan if m.range_m is None else m.range_m,
             azimuth_rad=nan if m.azimuth_rad is None else m.azimuth_rad,
             elevation_rad=nan if m.elevation_rad is None else m.elevation_rad,
+            extra_values=m.extra_values,
         )
         self.seq += 1
         self._pubs[vehicle.sysid].put(encode(obs, self.mission_id, self.seq, MessageKind.MEASUREMENT))

@@ -21,14 +21,18 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planner.params import Channel
+
+if TYPE_CHECKING:
+    from planner.sensing import SensingTable
 
 FloatArray = NDArray[np.float64]
 
@@ -82,6 +86,9 @@ class Measurement:
             ENU: azimuth from east towards north, elevation above the horizontal) or None
             (no bearing sensor).
         los: whether the link was line of sight.
+        extra_values: the values of the drone's components beyond range and bearing, by value
+            name (:data:`planner.sensing.SENSING`; NaN: not measured); empty for a drone of
+            range and bearing only, whose JSON then has no ``extra_values`` key.
     """
 
     drone: int
@@ -93,10 +100,11 @@ class Measurement:
     azimuth_rad: float | None
     elevation_rad: float | None
     los: bool
+    extra_values: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (``schema`` = :data:`MEASUREMENT_SCHEMA`)."""
-        return {
+        """JSON-ready dict (``schema`` = :data:`MEASUREMENT_SCHEMA`; NaN values as None)."""
+        out: dict[str, Any] = {
             "schema": MEASUREMENT_SCHEMA,
             "drone": self.drone,
             "sysid": self.sysid,
@@ -108,6 +116,9 @@ class Measurement:
             "elevation_rad": self.elevation_rad,
             "los": self.los,
         }
+        if self.extra_values:
+            out["extra_values"] = {name: _nan_to_none(v) for name, v in self.extra_values.items()}
+        return out
 
     def to_json(self) -> bytes:
         """UTF-8 JSON of :meth:`to_dict`."""
@@ -133,6 +144,10 @@ class Measurement:
                 v = d[key]
                 return None if v is None else float(v)
 
+            extra = d.get("extra_values", {})
+            if not isinstance(extra, dict):
+                raise ValueError(f"extra_values: expected an object of value name -> number or null, found {extra!r}")
+
             return Measurement(
                 drone=int(d["drone"]),
                 sysid=int(d["sysid"]),
@@ -143,6 +158,7 @@ class Measurement:
                 azimuth_rad=opt("azimuth_rad"),
                 elevation_rad=opt("elevation_rad"),
                 los=bool(d["los"]),
+                extra_values=MappingProxyType({str(k): math.nan if v is None else float(v) for k, v in extra.items()}),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"measurement: bad or missing field ({exc})") from None
@@ -159,6 +175,9 @@ class Payload:
         world: the mission world.
         drone: 0-based drone index (selects the noise stream). sysid: MAVLink system id.
         ranging, bearing: the drone's sensing roles (κ_j, β_j).
+        extra_components: the names of the drone's components beyond range and bearing
+            (:data:`planner.sensing.SENSING`, e.g. from :func:`role_extra_components`).
+        sensing: the sensing table those names refer to (default :data:`planner.sensing.SENSING`).
         observe: the observation model (default :func:`planner.observation.observe`;
             injectable for tests).
     """
@@ -171,13 +190,27 @@ class Payload:
         sysid: int | None = None,
         ranging: bool = True,
         bearing: bool = False,
+        extra_components: Collection[str] = (),
         observe: Callable[..., Any] | None = None,
+        sensing: SensingTable | None = None,
     ) -> None:
         if drone < 0:
             raise ValueError(f"Payload.drone must be >= 0, found {drone}")
-        if not (ranging or bearing):
+        if not (ranging or bearing or extra_components):
             raise ValueError("Payload: a drone needs ranging, bearing or both")
         from planner.randomness import measurement_rng
+        from planner.sensing import SENSING
+
+        sensing = SENSING if sensing is None else sensing
+        known = [c.name for c in sensing.extra_components]
+        unknown = sorted(set(extra_components) - set(known))
+        if unknown:
+            raise ValueError(f"Payload.extra_components: expected names among {known}, found {unknown}")
+        #: Masks of the components beyond range and bearing, (1,) bool each (empty: none).
+        self.extra_masks = {name: np.array([name in extra_components]) for name in known if name in extra_components}
+        self._extra_value_names = tuple(n for c in sensing.extra_components if c.name in extra_components for n in c.value_names)
+        self._components = sensing.components
+        self._draws = sensing.measurement_draws()
 
         if observe is None:
             from planner.observation import observe as observe_fn
@@ -207,10 +240,11 @@ class Payload:
         if step < self._next_step:
             raise ValueError(f"Payload.measure: step {step} already measured (next is {self._next_step})")
         if step > self._next_step:
-            from planner.randomness import MEASUREMENT_DRAWS
-
-            self._rng.random((step - self._next_step, MEASUREMENT_DRAWS))  # keep the stream aligned
+            self._rng.random((step - self._next_step, self._draws))  # keep the stream aligned
         self._next_step = step + 1
+        # The extra masks only for a drone that has such components (an injected observe
+        # may take the eight arguments of range and bearing only).
+        extra: tuple[Any, ...] = (self.extra_masks, self._components) if self.extra_masks else ()
         obs = self._observe(
             self.world.source_at(time_s),
             p[None, :],
@@ -220,6 +254,7 @@ class Payload:
             self._boxes[1],
             self.world.channel,
             self._rng,
+            *extra,
         )
         return Measurement(
             drone=self.drone,
@@ -231,6 +266,7 @@ class Payload:
             azimuth_rad=_nan_to_none(float(np.asarray(obs.azimuth_rad).reshape(-1)[0])),
             elevation_rad=_nan_to_none(float(np.asarray(obs.elevation_rad).reshape(-1)[0])),
             los=bool(np.asarray(obs.los).reshape(-1)[0]),
+            extra_values=MappingProxyType({name: float(np.asarray(obs.values[name]).reshape(-1)[0]) for name in self._extra_value_names}),
         )
 
 
@@ -244,3 +280,15 @@ def roles_to_flags(role: str) -> tuple[bool, bool]:
 
     found = sensing_role(role)
     return found.ranging, found.bearing
+
+
+def role_extra_components(role: str) -> tuple[str, ...]:
+    """The components beyond range and bearing of a mission role (:data:`planner.sensing.ROLES`),
+    the ``extra_components`` of :class:`Payload`.
+
+    Raises:
+        ValueError: an unknown role (the message lists the known ones).
+    """
+    from planner.sensing import BEARING, RANGE, sensing_role  # imported here: see Payload.__init__
+
+    return tuple(c for c in sensing_role(role).components if c not in (RANGE.name, BEARING.name))

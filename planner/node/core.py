@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 from comms.latency import DelayedView
 from comms.messages import Observation, Status
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PlanView, own_range_lower_bound_m, plan
+from planner.agent import OWN_RANGE_WINDOW, PlanView, measurements_from_records, own_range_lower_bound_m, plan
 from planner.geometry import vec3
 from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
@@ -42,12 +43,15 @@ class OwnMeasurement:
     Attributes:
         los: line of sight. range_m: range (m; NaN: none). azimuth_rad, elevation_rad:
             bearing (rad, ENU; NaN: none).
+        extra_values: the values of the components beyond range and bearing, by value name
+            (NaN or absent: none; only the drone's own components' are recorded).
     """
 
     los: bool
     range_m: float
     azimuth_rad: float
     elevation_rad: float
+    extra_values: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,11 @@ class StepCore:
         self.own_track: dict[int, np.ndarray] = {}
         #: This drone's last own record.
         self.last_record: Observation | None = None
+        #: The value names of this drone's components beyond range and bearing (its record's
+        #: extension, comms.messages).
+        self.own_extra_value_names = tuple(
+            name for c in self.planner.sensing.extra_components if self.planner.component_masks[c.name][self.index] for name in c.value_names
+        )
 
     def step(
         self,
@@ -163,6 +172,7 @@ class StepCore:
             measurement.range_m,
             measurement.azimuth_rad,
             measurement.elevation_rad,
+            extra_values=self._own_extra(measurement.extra_values),
         )
         self.last_record = record
         self.view.add(record)
@@ -187,7 +197,14 @@ class StepCore:
             nan,
             nan,
             taken_over=True,
+            extra_values=self._own_extra({}),
         )
+
+    def _own_extra(self, values: Mapping[str, float]) -> Mapping[str, float]:
+        """This drone's values of its components beyond range and bearing from ``values`` (NaN
+        where absent), read-only; empty for a drone of range and bearing only."""
+        nan = float("nan")
+        return MappingProxyType({name: float(values.get(name, nan)) for name in self.own_extra_value_names})
 
     def track(self, k: int, own_m: np.ndarray) -> None:
         """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""
@@ -212,21 +229,12 @@ class StepCore:
         drone, in drone order) and then the peers' records that arrived late, after a newer one
         (``view.late_records``: old evidence about the source is still evidence), in the
         order of the in-process simulator. Returns the state and the number of rows fed."""
-        n = self.count
         new = view.saved_steps > self.used_steps
         late = view.late_records
-        rows = n + len(late)
-        pos = np.full((rows, 3), np.nan)
-        rng = np.full(rows, np.nan)
-        az = np.full(rows, np.nan)
-        el = np.full(rows, np.nan)
-        los = np.zeros(rows, dtype=bool)
-        fed = [(j, rec) for j, rec in enumerate(view.records) if rec is not None and new[j]] + [(n + r, rec) for r, rec in enumerate(late)]
-        for row, rec in fed:
-            pos[row] = rec.position_m
-            rng[row], az[row], el[row], los[row] = rec.range_m, rec.azimuth_rad, rec.elevation_rad, rec.los
-        meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los)
-        return est.update(self.state, meas, self.planner.channel, self.planner.estimator), int(new.sum()) + len(late)
+        fed = [rec if rec is not None and new[j] else None for j, rec in enumerate(view.records)] + list(late)
+        sensing = self.planner.sensing
+        meas = measurements_from_records(fed, sensing.extra_value_names)
+        return est.update(self.state, meas, self.planner.channel, self.planner.estimator, sensing.components), int(new.sum()) + len(late)
 
     def _plan(self, k: int, own_m: np.ndarray, view: Any) -> Any:
         plan_view = PlanView.from_records(self.index, view.records, view.saved_steps, k, view.hops)
@@ -259,7 +267,9 @@ class StepCore:
         its predecessor's step log and its peers' logs (drone index → rows) for the steps
         before ``first`` (:func:`~planner.node.steplog.replay_step_logs`). Returns the replayed
         steps per drone index."""
-        self.state, done = replay_step_logs(self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator)
+        self.state, done = replay_step_logs(
+            self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator, self.planner.sensing
+        )
         for step, pos, rng, los in done.get(self.index, []):
             self.own_ranges.append((rng, los))
             self.track(step, pos)

@@ -101,7 +101,7 @@ class LockstepDriver:
             return 0
         meas = self._measurement(k)
         w_meas = wall()
-        measurement = OwnMeasurement(meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad)
+        measurement = OwnMeasurement(meas.los, meas.range_m, meas.azimuth_rad, meas.elevation_rad, meas.extra_values)
         outcome = self.core.step(
             k, t_k, own, measurement, wall, self._wait_for_peer_records, lambda own_m, result: self._send_setpoint(k, own_m, result)
         )

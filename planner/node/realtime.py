@@ -239,6 +239,7 @@ class RealtimeDriver:
             meas.range_m if fresh and meas and planner.ranging[i] else nan,
             meas.azimuth_rad if fresh and meas and planner.bearing[i] else nan,
             meas.elevation_rad if fresh and meas and planner.bearing[i] else nan,
+            meas.extra_values if fresh and meas else {},
         )
 
     def _collect_peers(self, k: int, deadline_unix: float) -> None:

@@ -14,6 +14,7 @@ import numpy as np
 from comms.messages import Observation
 from planner import estimator as est
 from planner.params import Channel
+from planner.sensing import SENSING, SensingTable
 
 
 def replay_step_logs(
@@ -23,6 +24,7 @@ def replay_step_logs(
     first: int,
     channel: Channel,
     config: est.EstimatorConfig,
+    sensing: SensingTable = SENSING,
 ) -> tuple[est.EstimatorState, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
     """Feed the records of the steps before ``first`` found in step logs to the estimator, step
     by step in order (eqs. 3-5 measurements at the logged positions, m, ENU): a rejoining
@@ -33,6 +35,8 @@ def replay_step_logs(
     Args:
         rows_by_drone: drone index (0-based) → that drone's logged rows.
         n: drones in the mission. first: the first step not to replay.
+        sensing: the table of the values beyond range and bearing a row's measurement may
+            carry (``extra_values``) and of the components the estimator takes them for.
 
     Returns:
         The updated state and, per drone index, its replayed steps as (step, position m,
@@ -49,6 +53,7 @@ def replay_step_logs(
         pos = np.full((n, 3), nan)
         rng, az, el = np.full(n, nan), np.full(n, nan), np.full(n, nan)
         los = np.zeros(n, dtype=bool)
+        extra = {name: np.full(n, nan) for name in sensing.extra_value_names}
         for j, r in table[step].items():
             m = r["measurement"]
             pos[j] = r["position_m"]
@@ -56,8 +61,12 @@ def replay_step_logs(
             az[j] = nan if m.get("azimuth_rad") is None else m["azimuth_rad"]
             el[j] = nan if m.get("elevation_rad") is None else m["elevation_rad"]
             los[j] = bool(m.get("los"))
+            for name, value in (m.get("extra_values") or {}).items():
+                if name in extra:
+                    extra[name][j] = nan if value is None else value
             done[j].append((step, pos[j].copy(), float(rng[j]), bool(los[j])))
-        state = est.update(state, est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los), channel, config)
+        meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los, extra_values=extra)
+        state = est.update(state, meas, channel, config, sensing.components)
     return state, done
 
 
@@ -106,7 +115,7 @@ class StepLog:
         if self._file is None:
             return
         step = result.step
-        entry = {
+        entry: dict[str, Any] = {
             "step": k,
             "t_s": t_s,
             "position_m": [float(v) for v in own_m],
@@ -128,6 +137,8 @@ class StepLog:
             "filtered": bool(step.filtered),
             "timing": {name: round(v, 6) for name, v in timing.items()},
         }
+        if record.extra_values:  # the values of components beyond range and bearing, if any
+            entry["measurement"]["extra_values"] = {name: _num(v) for name, v in record.extra_values.items()}
         self._file.write(json.dumps(entry) + "\n")
         self._file.flush()  # the step log is the record of what was flown: it must survive a kill
 

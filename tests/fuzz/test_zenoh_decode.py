@@ -11,8 +11,11 @@ spoofed senders (sender ≠ key expression) and kinds on the wrong key.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
+from types import MappingProxyType
+from typing import ClassVar
 
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
@@ -32,6 +35,7 @@ from comms.messages import (
     mission_tag,
 )
 from planner.node import Inbox
+from planner.sensing import COMPONENTS, ROLES, SensingComponent, SensingRole, SensingTable
 
 MISSION = "alpha"
 N = 5
@@ -231,3 +235,138 @@ def test_done_message_is_valid_reference() -> None:
         assert inbox.decode(keys.tick(MISSION), encode(Tick(4, 0.4), MISSION, 1)) == Tick(4, 0.4)
     finally:
         inbox.close()
+
+
+# ----------------------------------------------------------------- the record's extension
+def test_range_and_bearing_records_keep_their_bytes() -> None:
+    """A record of range and bearing only has no extension: its bytes are pinned."""
+    assert valid_record().hex() == (
+        "464e01016a39e0d002000700000003000000000000000000f83f000000000000f03f00000000000000400000000000000840"
+        "030100000000000024409a9999999999b93f9a9999999999c93f"
+    )
+    # ... and do not depend on a table having more components.
+    assert encode(Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7, sensing=TOY_TABLE) == valid_record()
+
+
+class _Squared(SensingComponent):
+    """Wire-only toy component (one value)."""
+
+    name: ClassVar[str] = "range_squared"
+    wire_bit: ClassVar[int] = 4
+    value_names: ClassVar[tuple[str, ...]] = ("range_squared_m2",)
+
+
+class _Pair(SensingComponent):
+    """Wire-only toy component (two values)."""
+
+    name: ClassVar[str] = "pair"
+    wire_bit: ClassVar[int] = 8
+    value_names: ClassVar[tuple[str, ...]] = ("first_m", "second_m")
+
+
+TOY_TABLE = SensingTable(
+    MappingProxyType(
+        {
+            **ROLES,
+            "squared": SensingRole("squared", ("range_squared",), "toy"),
+            "joint_squared": SensingRole("joint_squared", ("range", "bearing", "range_squared"), "toy"),
+            "pair_squared": SensingRole("pair_squared", ("bearing", "range_squared", "pair"), "toy"),
+        }
+    ),
+    COMPONENTS + (_Squared(), _Pair()),
+)
+TOY_ROLES = {"squared": (False, False, ("range_squared_m2",)), "joint_squared": (True, True, ("range_squared_m2",)),
+             "pair_squared": (False, True, ("range_squared_m2", "first_m", "second_m"))}
+
+
+@st.composite
+def toy_observations(draw: st.DrawFn) -> Observation:
+    ranging, bearing, names = TOY_ROLES[draw(st.sampled_from(sorted(TOY_ROLES)))]
+    value = st.one_of(finite, st.just(math.nan))
+    return Observation(
+        sender=draw(st.integers(1, N)), step=draw(st.integers(0, 10_000)), time_s=draw(finite),
+        position_m=(draw(finite), draw(finite), draw(finite)), ranging=ranging, bearing=bearing, los=draw(st.booleans()),
+        range_m=draw(finite) if ranging else math.nan,
+        azimuth_rad=draw(angle) if bearing else math.nan,
+        elevation_rad=draw(st.floats(min_value=-1.5, max_value=1.5)) if bearing else math.nan,
+        stale=draw(st.booleans()), taken_over=draw(st.booleans()),
+        extra_values={name: draw(value) for name in names},
+    )
+
+
+#: End of a record's fixed body (header 14 + body 62 bytes): an extension starts here.
+BODY_END = 76
+
+
+def toy_record() -> bytes:
+    obs = Observation(2, 3, 1.5, (1.0, 2.0, 3.0), False, True, True, math.nan, 0.1, 0.2, extra_values={"range_squared_m2": 100.0, "first_m": 1.0, "second_m": 2.0})
+    return encode(obs, MISSION, 7, sensing=TOY_TABLE)
+
+
+@settings(max_examples=500, deadline=None)
+@given(toy_observations())
+def test_extended_records_round_trip(obs: Observation) -> None:
+    raw = encode(obs, MISSION, 9, sensing=TOY_TABLE)
+    header, msg = decode(raw, MISSION, N, sensing=TOY_TABLE)
+    assert isinstance(msg, Observation)
+    assert list(msg.extra_values) == [n for n in TOY_TABLE.extra_value_names if n in obs.extra_values]
+    assert all(v == obs.extra_values[k] or (math.isnan(v) and math.isnan(obs.extra_values[k])) for k, v in msg.extra_values.items())
+    assert encode(msg, MISSION, header.seq, kind=header.kind, sensing=TOY_TABLE) == raw
+    # A receiver whose table lacks the components refuses the record (its role bits).
+    with pytest.raises(MessageError, match="role bits"):
+        decode(raw, MISSION, N)
+
+
+@settings(max_examples=1500, deadline=None)
+@given(toy_observations(), st.data())
+def test_any_corruption_of_an_extended_record_is_refused_or_reencodes_identically(obs: Observation, data: st.DataObject) -> None:
+    raw = bytearray(encode(obs, MISSION, 1, sensing=TOY_TABLE))
+    i = data.draw(st.integers(0, len(raw) - 1))
+    raw[i] ^= data.draw(st.integers(1, 255))
+    try:
+        header, msg = decode(bytes(raw), MISSION, N, sensing=TOY_TABLE)
+    except MessageError:
+        return
+    assert encode(msg, MISSION, header.seq, kind=header.kind, sensing=TOY_TABLE) == bytes(raw)
+    assert _finite_values(msg)
+
+
+@settings(max_examples=1000, deadline=None)
+@given(st.binary(max_size=30))
+def test_random_tails_of_an_extended_record_are_refused_or_reencode_identically(tail: bytes) -> None:
+    raw = toy_record()[:BODY_END] + tail  # the fixed body ends at byte 76
+    try:
+        header, msg = decode(raw, MISSION, N, sensing=TOY_TABLE)
+    except MessageError:
+        return
+    assert encode(msg, MISSION, header.seq, kind=header.kind, sensing=TOY_TABLE) == raw
+
+
+@pytest.mark.parametrize(
+    ("tail", "match"),
+    [
+        (b"", "extension missing"),
+        (bytes([2]) + struct.pack("<2d", 1.0, 2.0), "extension count 2: expected 3 values"),
+        (bytes([3]) + struct.pack("<2d", 1.0, 2.0), "extension of 17 bytes, expected 25"),
+        (bytes([3]) + struct.pack("<3d", 1.0, 2.0, 3.0) + b"\0", "extension of 26 bytes, expected 25"),
+        (bytes([3]) + struct.pack("<3d", 1.0, math.inf, 3.0), "extension value first_m inf"),
+        (bytes([3]) + struct.pack("<3d", -math.inf, 2.0, 3.0), "extension value range_squared_m2 -inf"),
+    ],
+)
+def test_malformed_extensions_are_refused_naming_the_field(tail: bytes, match: str) -> None:
+    with pytest.raises(MessageError, match=match):
+        decode(toy_record()[:BODY_END] + tail, MISSION, N, sensing=TOY_TABLE)
+
+
+def test_an_extension_on_a_range_and_bearing_record_is_refused() -> None:
+    raw = valid_record() + bytes([1]) + struct.pack("<d", 1.0)
+    for table in (None, TOY_TABLE):
+        with pytest.raises(MessageError, match="record body of 71 bytes, expected 62"):
+            decode(raw, MISSION, N) if table is None else decode(raw, MISSION, N, sensing=table)
+
+
+def test_encode_refuses_extra_values_that_do_not_match_a_role() -> None:
+    base = Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2)
+    for extra, match in (({"nope": 1.0}, "value names among"), ({"first_m": 1.0}, "all of"), ({"range_squared_m2": 1.0, "first_m": 1.0, "second_m": 2.0}, "no sensing role")):
+        with pytest.raises(ValueError, match=match):
+            encode(dataclasses.replace(base, extra_values=extra), MISSION, 1, sensing=TOY_TABLE)

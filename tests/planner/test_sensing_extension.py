@@ -4,25 +4,45 @@ The toy component below is defined and registered in this test only: a distance-
 measurement s = d² + n, n ~ N(0, σ_s²) with a constant σ_s (m²), drawn from a sixth uniform
 column. It is handed to the math core as ``components=COMPONENTS + (TOY,)`` with its masks in
 ``extra_masks``, and the Fisher information, the cost gradient, the observation and the
-estimator's refinement pick it up; the registry's own results stay bit-identical.
+estimator's refinement pick it up; the registry's own results stay bit-identical. With a toy
+role in a toy sensing table (``TOY_SENSING``, passed as ``sensing=``) it flies a mission in the
+in-process simulator, and its records round-trip through the wire format.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
 from typing import ClassVar
 
 import numpy as np
 import pytest
 from numpy.typing import ArrayLike
 
+from comms.messages import Observation, decode, encode
+from missions.loader import load_mission
+from missions.schema import Mission
+from missions.simulator import RunSpec, SimulationResult, simulate
 from planner import Channel, cost, cost_gradient, fisher_information
+from planner.agent import measurements_from_records
 from planner.estimator import EstimatorConfig, EstimatorState, Measurements, initial_state, update
+from planner.geometry import line_of_sight
 from planner.observation import observe, observe_from_uniforms
 from planner.params import Criterion
-from planner.randomness import MEASUREMENT_DRAWS
-from planner.sensing import COMPONENTS, BoolArray, FloatArray, LinkGeometry, SensingComponent, measurement_draws
+from planner.randomness import MEASUREMENT_DRAWS, MEASUREMENT_STREAM, presampled_uniforms
+from planner.sensing import (
+    COMPONENTS,
+    ROLES,
+    BoolArray,
+    FloatArray,
+    LinkGeometry,
+    SensingComponent,
+    SensingRole,
+    SensingTable,
+    measurement_draws,
+)
 
 CHANNEL = Channel()
 SIGMA_S_M2 = 40.0
@@ -194,3 +214,102 @@ def test_estimator_refinement_uses_the_toy_values(rng: np.random.Generator) -> N
     err_toy = float(np.linalg.norm(with_toy.estimate_m - source))
     assert err_toy < err_plain
     assert err_toy < 3.0 * math.sqrt(float(np.trace(np.linalg.inv(with_toy.information))))
+
+
+# ------------------------------------------------------------------ a mission with the toy
+#: The toy's role, and the sensing table that registers it (in this test only).
+SQUARED = SensingRole("squared", ("range_squared",), "toy: distance squared s (constant σ_s)")
+TOY_SENSING = SensingTable(MappingProxyType({**ROLES, SQUARED.name: SQUARED}), EXTENDED)
+PAPER_RANGING = Path(__file__).resolve().parents[2] / "missions" / "paper" / "ranging_los.yaml"
+TOY_DRONES = 5
+STEPS = 25
+
+
+def _mission(roles: tuple[str, ...]) -> Mission:
+    """The paper's LOS ranging mission (10 drones) with these roles. The mission schema accepts
+    the role names of fimnav's table; the toy role is set on the loaded mission."""
+    mission = load_mission(PAPER_RANGING)
+    return mission.model_copy(update={"drones": mission.drones.model_copy(update={"roles": roles})})
+
+
+@pytest.fixture(scope="module")
+def toy_run() -> tuple[Mission, SimulationResult]:
+    mission = _mission(("squared",) * TOY_DRONES + ("ranging",) * (10 - TOY_DRONES))
+    return mission, simulate(RunSpec(mission, "A", 1, STEPS), sensing=TOY_SENSING)
+
+
+def test_the_toy_flies_a_mission(toy_run: tuple[Mission, SimulationResult]) -> None:
+    mission, result = toy_run
+    config = mission.planner_config(sensing=TOY_SENSING)
+    np.testing.assert_array_equal(config.extra_masks["range_squared"], np.arange(10) < TOY_DRONES)
+    np.testing.assert_array_equal(config.ranging, np.arange(10) >= TOY_DRONES)
+    assert np.isfinite(result.positions_m).all()
+    assert np.linalg.norm(result.positions_m[-1] - result.positions_m[0], axis=-1).min() > 1.0
+    # The same drones all ranging, with the same draws (the toy table's six per step):
+    plain = simulate(RunSpec(_mission(("ranging",) * 10), "A", 1, STEPS), sensing=TOY_SENSING)
+    # At step 0 (same positions, every record local) the toy's information (4 r rᵀ/σ_s²) dominates the PEB ...
+    assert result.peb_m[0, 0, 0] < 0.2 * plain.peb_m[0, 0, 0]
+    # ... the drones fly differently and estimate the source better.
+    assert not np.array_equal(result.positions_m[1:], plain.positions_m[1:])
+    assert result.estimate_error_m[-1].mean() < plain.estimate_error_m[-1].mean()
+    assert result.estimate_error_m[-1].max() < 1.0
+
+
+def test_the_toy_records_round_trip_the_wire_into_the_estimator(toy_run: tuple[Mission, SimulationResult]) -> None:
+    """The records of step k, as the simulator draws them, encoded and decoded with the toy
+    table, become the estimator's rows with the toy's values (bit for bit)."""
+    mission, result = toy_run
+    config = mission.planner_config(sensing=TOY_SENSING)
+    k = 7
+    positions, source = result.positions_m[k, 0], result.source_m[k]
+    uniforms = presampled_uniforms(mission.seed, 1, 10, STEPS, MEASUREMENT_STREAM, TOY_SENSING.measurement_draws())[k, 0]
+    los = line_of_sight(positions, source, config.boxes_min_m, config.boxes_max_m)
+    obs = observe_from_uniforms(source, positions, config.ranging, config.bearing, los, config.channel, uniforms, config.extra_masks, EXTENDED)
+    records = [
+        Observation(
+            j + 1,
+            k,
+            k * mission.dt_s,
+            (float(positions[j, 0]), float(positions[j, 1]), float(positions[j, 2])),
+            bool(config.ranging[j]),
+            bool(config.bearing[j]),
+            bool(obs.los[j]),
+            float(obs.range_m[j]),
+            float(obs.azimuth_rad[j]),
+            float(obs.elevation_rad[j]),
+            extra_values={"range_squared_m2": float(obs.values["range_squared_m2"][j])} if config.extra_masks["range_squared"][j] else {},
+        )
+        for j in range(10)
+    ]
+    wire = [encode(rec, mission.id, k, sensing=TOY_SENSING) for rec in records]
+    # Range-only records have no extension (their bytes are today's); the toy's have one value.
+    assert [len(b) for b in wire] == [76 + 9] * TOY_DRONES + [76] * (10 - TOY_DRONES)
+    decoded = [decode(b, mission.id, 10, sensing=TOY_SENSING)[1] for b in wire]
+    assert [encode(rec, mission.id, k, sensing=TOY_SENSING) for rec in decoded] == wire
+    assert [dict(rec.extra_values) for rec in decoded] == [dict(rec.extra_values) for rec in records]
+    meas = measurements_from_records([rec for rec in decoded if isinstance(rec, Observation)], TOY_SENSING.extra_value_names)
+    np.testing.assert_array_equal(meas.extra_values["range_squared_m2"], obs.values["range_squared_m2"])
+    np.testing.assert_array_equal(meas.range_m, obs.range_m)
+    np.testing.assert_array_equal(meas.positions_m, positions)
+
+
+def test_the_payload_measures_the_toy_as_the_simulator_does(toy_run: tuple[Mission, SimulationResult]) -> None:
+    """A vehicle's payload with the toy component draws the simulator's record of step 0."""
+    from vehicle_sim.payload import Payload, PayloadWorld
+
+    mission, result = toy_run
+    config = mission.planner_config(sensing=TOY_SENSING)
+    source = mission.source
+    world = PayloadWorld(tuple(source.position_at(0.0)), (0.0, 0.0, 0.0), (), (), config.channel, mission.seed)
+    positions = result.positions_m[0, 0]
+    uniforms = presampled_uniforms(mission.seed, 1, 10, 1, MEASUREMENT_STREAM, TOY_SENSING.measurement_draws())[0, 0]
+    los = line_of_sight(positions, result.source_m[0], config.boxes_min_m, config.boxes_max_m)
+    obs = observe_from_uniforms(
+        result.source_m[0], positions, config.ranging, config.bearing, los, config.channel, uniforms, config.extra_masks, EXTENDED
+    )
+    for drone in (0, TOY_DRONES):
+        toy = drone < TOY_DRONES
+        payload = Payload(world, drone, ranging=not toy, bearing=False, extra_components=("range_squared",) if toy else (), sensing=TOY_SENSING)
+        m = payload.measure(positions[drone], 0, 0.0)
+        assert dict(m.extra_values) == ({"range_squared_m2": float(obs.values["range_squared_m2"][drone])} if toy else {})
+        assert (m.range_m is None) == toy
