@@ -92,15 +92,24 @@ class FollowedDrone:
         return (float(p[0]), float(p[1]), float(p[2]))
 
 
-def build_payload(mission: Any, uav: int) -> Any:
-    """The simulated payload of drone ``uav`` (1-based) of ``mission``: its world, role and
-    noise stream, as ``fimnav vehicle --mission`` builds it."""
+def build_payload(mission: Any, uav: int, world: Any = None) -> Any:
+    """The simulated payload of drone ``uav`` (1-based) of ``mission``: its world (built from the
+    mission unless given), its role's components (range, bearing and any other registered in
+    :data:`planner.sensing.SENSING`) and its noise stream; ``fimnav vehicle --mission`` and
+    ``fimnav payload`` build it here."""
     from missions.process_args import payload_world
-    from vehicle_sim.payload import Payload, roles_to_flags
+    from vehicle_sim.payload import Payload, role_extra_components, roles_to_flags
 
-    world = payload_world(mission)
-    ranging, bearing = roles_to_flags(mission.drones.roles[uav - 1])
-    return Payload(world, uav - 1, sysid=uav, ranging=ranging, bearing=bearing)
+    role = mission.drones.roles[uav - 1]
+    ranging, bearing = roles_to_flags(role)
+    return Payload(
+        payload_world(mission) if world is None else world,
+        uav - 1,
+        sysid=uav,
+        ranging=ranging,
+        bearing=bearing,
+        extra_components=role_extra_components(role),
+    )
 
 
 def _check_options(args: argparse.Namespace, mission: Any) -> None:

@@ -270,9 +270,9 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     (:meth:`missions.schema.Mission.vehicle_config`) with the options' settings, its payload
     the mission's simulated payload.
     """
+    from missions.cmd_payload import build_payload
     from missions.process_args import payload_world
     from vehicle_sim.config import VehicleConfig
-    from vehicle_sim.payload import Payload, roles_to_flags
 
     _check_options(args)
     start, shared = _fleet_settings(args, mission)
@@ -289,8 +289,7 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
         drone = sysid - 1
         payload = None
         if mission is not None and world is not None:
-            ranging, bearing = roles_to_flags(mission.drones.roles[drone])
-            payload = Payload(world, drone, sysid=sysid, ranging=ranging, bearing=bearing)
+            payload = build_payload(mission, sysid, world)
         tlog = _tlog_of(args, sysid)
         try:
             if mission is not None:
