@@ -382,16 +382,18 @@ def swarm_frame(
     (eqs. 10-12); the PEB is eq. 18 at the true source, averaged over the drones."""
     from planner.fim import fisher_information, position_error_bound
 
-    channel = mission.channel.to_planner()
-    rng = mission.drones.ranging_mask()[None, :] & view_valid
-    brg = mission.drones.bearing_mask()[None, :] & view_valid
+    config = mission.planner_config(mission.criterion)
+    channel = config.channel
+    rng = config.ranging[None, :] & view_valid
+    brg = config.bearing[None, :] & view_valid
+    extra = {name: mask[None, :] & view_valid for name, mask in config.extra_masks.items()}
     vp = np.where(view_valid[..., None], view_positions_m, 0.0)
     est = np.where(np.isfinite(estimates_m), estimates_m, 0.0)
-    cov = covariances(fisher_information(est, vp, rng, brg, view_los, channel))
+    cov = covariances(fisher_information(est, vp, rng, brg, view_los, channel, extra))
     cov[~np.isfinite(estimates_m).all(axis=1)] = np.nan
     t = step * mission.dt_s
     src = np.asarray(mission.source.position_at(t), dtype=float)
-    peb = position_error_bound(fisher_information(src, vp, rng, brg, view_los, channel))[0]
+    peb = position_error_bound(fisher_information(src, vp, rng, brg, view_los, channel, extra))[0]
     finite = peb[np.isfinite(peb) & view_valid.any(axis=1)]
     return SwarmFrame(
         step,

@@ -23,5 +23,6 @@ def peb_of_view(config: PlannerConfig, saved: Sequence[int], recs: dict[tuple[in
         src: the source position, shape (3,), m ENU.
     """
     pos, valid, los = records_as_arrays([recs.get((s, j + 1)) if s >= 0 else None for j, s in enumerate(saved)])
-    J = fisher_information(src, pos, config.ranging & valid, config.bearing & valid, los, config.channel)
+    extra = {name: mask & valid for name, mask in config.extra_masks.items()}
+    J = fisher_information(src, pos, config.ranging & valid, config.bearing & valid, los, config.channel, extra)
     return float(position_error_bound(J)[0])
