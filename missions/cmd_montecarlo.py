@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     from missions.loader import load_mission, parse_overrides
     from missions.results import write_results
-    from missions.simulator import RunSpec
+    from missions.simulator import RunSpec, fault_penalty, without_faults
 
     _positive("trials", args.trials)
     _positive("steps", args.steps)
@@ -93,9 +93,14 @@ def run(args: argparse.Namespace) -> int:
                 m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
                 specs.append(RunSpec(m, crit, args.trials or m.trials, args.steps or m.steps))
     out = args.out or Path("results") / time.strftime("montecarlo-%Y%m%d-%H%M%S")
-    total = sum(s.steps for s in specs)
+    # A run with injected faults is summarised with its PEB penalty against the same run without
+    # them: those baselines run here, with the runs (in the pool when --jobs > 1), not one after
+    # another while the summaries are written.
+    baselines = [RunSpec(without_faults(s.mission), s.criterion, s.trials, s.steps) for s in specs if s.mission.comms.faults.enabled]
+    jobs = [(s, False) for s in specs] + [(b, True) for b in baselines]
+    total = sum(s.steps for s, _ in jobs)
     t0 = time.perf_counter()
-    results = []
+    outcomes = []
     with contextlib.ExitStack() as stack, tqdm(total=total, unit="step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
         view = None
         if args.view:
@@ -105,29 +110,34 @@ def run(args: argparse.Namespace) -> int:
             server = stack.enter_context(ViewServer(web_port=args.view_port))
             view = (str(server.grpc_url), str(out / "view"))
             bar.write(f"live view: {server.browser_url}", file=sys.stderr)
-        if args.jobs == 1 or len(specs) == 1:
-            for spec in specs:
-                bar.set_postfix_str(spec.label)
-                results.append(_simulate(spec, args.oracle_estimate, bar.update, view))
+        if args.jobs == 1 or len(jobs) == 1:
+            for spec, baseline in jobs:
+                bar.set_postfix_str(spec.label + (" without faults" if baseline else ""))
+                outcomes.append(_simulate(spec, args.oracle_estimate, bar.update, None if baseline else view))
         else:
             # A Pool, not a ProcessPoolExecutor: leaving the block on an error, a signal or
             # Ctrl-C terminates the workers instead of waiting for the queued runs. After the
             # last result the workers are told to finish and joined (close, join): terminating
             # them then could find one blocked on the task queue's lock, which the terminating
             # pool holds, and wait for it forever.
-            with multiprocessing.Pool(min(args.jobs, len(specs)), initializer=_worker_signals) as pool:
-                sim = functools.partial(_simulate, oracle=args.oracle_estimate, progress=None, view=view)
-                for spec, result in zip(specs, pool.imap(sim, specs)):
-                    results.append(result)
+            with multiprocessing.Pool(min(args.jobs, len(jobs)), initializer=_worker_signals) as pool:
+                sim = functools.partial(_simulate_job, oracle=args.oracle_estimate, view=view)
+                for (spec, _), result in zip(jobs, pool.imap(sim, jobs)):
+                    outcomes.append(result)
                     bar.update(spec.steps)
                 pool.close()
                 pool.join()
+    results = outcomes[: len(specs)]
+    clean = iter(outcomes[len(specs) :])
+    penalties = [fault_penalty(r.spec.mission, r, next(clean)) if r.spec.mission.comms.faults.enabled else None for r in results]
     extras = None
     if args.optimum:
         from missions.cmd_optimum import run_optimum_summary
 
         extras = [run_optimum_summary(r) for r in results]
-    summaries = write_results(results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures, extras=extras)
+    summaries = write_results(
+        results, out, command=["fimnav", "montecarlo", *sys.argv[2:]], figures=not args.no_figures, penalties=penalties, extras=extras
+    )
     wall = time.perf_counter() - t0
     opt_head = f" {'PEB* [m]':>9} {'PEB_K/PEB*':>10}" if args.optimum else ""
     print(f"{'run':<34} {'PEB0 [m]':>9} {'PEB_K [m]':>10} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}{opt_head}")
@@ -153,6 +163,13 @@ def _worker_signals() -> None:
 
 def _f(x: float | None) -> str:
     return "singular" if x is None else f"{x:.3g}"
+
+
+def _simulate_job(job: tuple[Any, bool], oracle: bool, view: tuple[str, str] | None) -> Any:
+    """One pool job: a run (logged live to ``view`` if given) or, ``job[1]``, the fault-free
+    baseline of a run with faults (never logged)."""
+    spec, baseline = job
+    return _simulate(spec, oracle, None, None if baseline else view)
 
 
 def _simulate(spec: Any, oracle: bool, progress: Any, view: tuple[str, str] | None = None) -> Any:
