@@ -91,6 +91,7 @@ def mission_optimum(
         criterion or mission.criterion,
         starts=starts,
         seed=seed,
+        extra_masks=mission.planner_config(criterion or mission.criterion).extra_masks,
     )
 
 

@@ -45,6 +45,7 @@ Frame and units: mission ENU, metres; angles in radians. Cost: m² (A) or dimens
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -59,6 +60,7 @@ from planner.fim import cost as fim_cost
 from planner.fim import cost_gradient, fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, distance_to_boxes_with_gradient, line_of_sight, link_clearance_with_gradient
 from planner.params import Channel, Criterion, Limits
+from planner.sensing import COMPONENTS, SensingComponent
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -303,8 +305,11 @@ class _Problem:
         bounds: PlacementBounds,
         bmin: FloatArray,
         bmax: FloatArray,
+        extra_masks: Mapping[str, BoolArray] | None = None,
+        components: Sequence[SensingComponent] = COMPONENTS,
     ) -> None:
         self.source, self.ranging, self.bearing = source, ranging, bearing
+        self.extra_masks, self.components = extra_masks, components
         self.channel, self.criterion, self.bounds = channel, criterion, bounds
         self.bmin, self.bmax = bmin, bmax
         self.n = ranging.shape[0]
@@ -321,9 +326,19 @@ class _Problem:
             q, gq = _soft_los(p, src, self.bmin, self.bmax, self.softness_m)
         else:
             q, gq = np.ones(self.n), None
-        J = fisher_information(self.source, p, self.ranging, self.bearing, q, self.channel)
+        J = fisher_information(self.source, p, self.ranging, self.bearing, q, self.channel, self.extra_masks, self.components)
         cg = cost_gradient(
-            np.broadcast_to(J, (self.n, 3, 3)), src, p, self.ranging, self.bearing, q, self.channel, self.criterion, own_los_gradient=gq
+            np.broadcast_to(J, (self.n, 3, 3)),
+            src,
+            p,
+            self.ranging,
+            self.bearing,
+            q,
+            self.channel,
+            self.criterion,
+            own_los_gradient=gq,
+            own_extra=self.extra_masks,
+            components=self.components,
         )
         value = float(cg.value[0])
         if not math.isfinite(value) or (self.criterion == "A" and value <= 0.0):
@@ -354,7 +369,7 @@ class _Problem:
     def exact(self, p: FloatArray) -> tuple[float, float, BoolArray]:
         """(cost of eq. 6, PEB, LOS flags) of a placement with the exact LOS flags."""
         los = line_of_sight(p, self.source, self.bmin, self.bmax)
-        J = fisher_information(self.source, p, self.ranging, self.bearing, los, self.channel)
+        J = fisher_information(self.source, p, self.ranging, self.bearing, los, self.channel, self.extra_masks, self.components)
         peb, _ = position_error_bound(J)
         value, _ = fim_cost(J, self.criterion)
         return float(value), float(peb), los
@@ -380,12 +395,17 @@ def _random_start(gen: np.random.Generator, source: FloatArray, n: int, bounds: 
     return out
 
 
-def _check_placement_arguments(rng_m: BoolArray, brg_m: BoolArray, criterion: Criterion, starts: int) -> None:
-    """Raise ValueError for masks of different shapes or no drone, a drone without a role, an
-    unknown criterion or no start (:func:`optimal_placement`)."""
+def _check_placement_arguments(
+    rng_m: BoolArray, brg_m: BoolArray, criterion: Criterion, starts: int, extra: Mapping[str, BoolArray] | None = None
+) -> None:
+    """Raise ValueError for masks of different shapes or no drone, a drone without a role (no
+    component at all), an unknown criterion or no start (:func:`optimal_placement`)."""
     if rng_m.shape != brg_m.shape or rng_m.size == 0:
         raise ValueError(f"ranging and bearing: expected two (N,) masks with N >= 1, found {rng_m.shape} and {brg_m.shape}")
-    if not (rng_m | brg_m).all():
+    sensing = rng_m | brg_m
+    for mask in (extra or {}).values():
+        sensing = sensing | mask
+    if not sensing.all():
         raise ValueError("every drone must range, sense bearings, or both")
     if criterion not in ("A", "D"):
         raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
@@ -421,6 +441,8 @@ def optimal_placement(
     starts: int = 8,
     seed: int = 0,
     initial_positions: ArrayLike | None = None,
+    extra_masks: Mapping[str, ArrayLike] | None = None,
+    components: Sequence[SensingComponent] = COMPONENTS,
 ) -> Placement:
     """The placement of N drones with the smallest cost of eq. 6 under ``bounds`` (problem 7).
 
@@ -436,6 +458,10 @@ def optimal_placement(
         starts: random starts (≥ 1), drawn from ``numpy.random.default_rng(seed)``.
         seed: seed of the starts.
         initial_positions: (N, 3) an extra first start (e.g. a run's final placement), m, ENU.
+        extra_masks: (N,) bool per measurement component beyond range and bearing
+            (:data:`planner.sensing.COMPONENTS`), by name: the drones that have it
+            (:attr:`planner.config.PlannerConfig.extra_masks`); absent: none.
+        components: the measurement components (:data:`planner.sensing.COMPONENTS`).
 
     Returns:
         The :class:`Placement` of the best start that keeps every distance.
@@ -447,11 +473,12 @@ def optimal_placement(
     src = np.asarray(source, dtype=float).reshape(3)
     rng_m = np.asarray(ranging, dtype=bool).reshape(-1)
     brg_m = np.asarray(bearing, dtype=bool).reshape(-1)
-    _check_placement_arguments(rng_m, brg_m, criterion, starts)
+    n = rng_m.size
+    extra = None if not extra_masks else {name: np.asarray(mask, dtype=bool).reshape(n) for name, mask in extra_masks.items()}
+    _check_placement_arguments(rng_m, brg_m, criterion, starts, extra)
     bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
     bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
-    n = rng_m.size
-    prob = _Problem(src, rng_m, brg_m, channel, criterion, bounds, bmin, bmax)
+    prob = _Problem(src, rng_m, brg_m, channel, criterion, bounds, bmin, bmax, extra, components)
     gen = np.random.default_rng(seed)
     x0s = [_random_start(gen, src, n, bounds, bmin, bmax) for _ in range(starts)]
     if initial_positions is not None:

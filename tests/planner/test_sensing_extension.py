@@ -313,3 +313,28 @@ def test_the_payload_measures_the_toy_as_the_simulator_does(toy_run: tuple[Missi
         m = payload.measure(positions[drone], 0, 0.0)
         assert dict(m.extra_values) == ({"range_squared_m2": float(obs.values["range_squared_m2"][drone])} if toy else {})
         assert (m.range_m is None) == toy
+
+
+def test_the_optimal_placement_counts_the_toy() -> None:
+    """``optimal_placement`` with the toy's masks: the PEB it reports is the PEB of J with the
+    toy at the placement it returns (recomputed here), and it beats the optimum of the same
+    drones all ranging: at 50 m a toy value (4 d²/σ_s² ≈ 6 m⁻²) outweighs a range
+    (1/σ_r² ≈ 0.003 m⁻²)."""
+    from planner.fim import position_error_bound
+    from planner.placement import PlacementBounds, optimal_placement
+
+    source = np.array([0.0, 0.0, 2.0])
+    n = 6
+    ranging = np.array([True, True, True, False, False, False])
+    bearing = np.zeros(n, dtype=bool)
+    toy = ~ranging  # three drones measure only the toy: a role of the new component alone
+    bounds = PlacementBounds(50.0, 1.0, 5.0, 2.0, 25.0)
+    with_toy = optimal_placement(source, ranging, bearing, CHANNEL, bounds, starts=3, extra_masks={"range_squared": toy}, components=EXTENDED)
+    los = np.ones(n, dtype=bool)
+    J = fisher_information(source, with_toy.positions_m, ranging, bearing, los, CHANNEL, {"range_squared": toy}, EXTENDED)
+    assert with_toy.peb_m == pytest.approx(float(position_error_bound(J)[0]), rel=1e-12)
+    # The same six drones all ranging instead:
+    plain = optimal_placement(source, ranging | toy, bearing, CHANNEL, bounds, starts=3)
+    assert with_toy.peb_m < plain.peb_m
+    with pytest.raises(ValueError, match="every drone must"):
+        optimal_placement(source, ranging, bearing, CHANNEL, bounds, starts=1)
