@@ -26,7 +26,7 @@ from planner.config import PlannerConfig
 #: Step logs by (step, drone id): each a planner's JSON step log entry.
 StepLogs = dict[tuple[int, int], dict[str, Any]]
 #: A planner's step by (step, drone id): (estimate m ENU, observable, singular, filtered,
-#: saved steps of its view, active constraints [uav, source, obstacle, altitude]).
+#: saved steps of its view, active constraints [uav, source, obstacle, altitude], loiter).
 PlannerSteps = dict[tuple[int, int], tuple[Any, ...]]
 
 #: The active-constraint names of a step log, in the order of SimulationResult.active.
@@ -112,7 +112,7 @@ def _planner_steps(status: dict[tuple[int, int], Status], logs: StepLogs) -> Pla
     """Each planner's steps from the statuses heard, replaced by its step log's entries."""
     steps: PlannerSteps = {}
     for (k, j), st in status.items():
-        steps[(k, j)] = (st.estimate_m, st.observable, st.singular, False, st.saved_steps, [bool((st.active_mask >> b) & 1) for b in range(4)])
+        steps[(k, j)] = (st.estimate_m, st.observable, st.singular, False, st.saved_steps, [bool((st.active_mask >> b) & 1) for b in range(4)], False)
     for (k, j), e in logs.items():
         act = e.get("active", {})
         steps[(k, j)] = (
@@ -122,6 +122,7 @@ def _planner_steps(status: dict[tuple[int, int], Status], logs: StepLogs) -> Pla
             e.get("filtered", False),
             e["saved_steps"],
             [bool(act.get(name, False)) for name in ACTIVE_NAMES],
+            e.get("loiter", False),
         )
     return steps
 
@@ -136,6 +137,7 @@ class _StepArrays:
         self.observable = np.zeros((K, 1, n), dtype=bool)
         self.singular = np.zeros((K, 1, n), dtype=bool)
         self.filtered = np.zeros((K, 1, n), dtype=bool)
+        self.loiter = np.zeros((K, 1, n), dtype=bool)
         self.ages = np.full((K, 1, n, n), -1, dtype=np.int16)
         self.peb = np.full((K, 1, n), np.inf)
         self.active = np.zeros((K, 4), dtype=np.int64)
@@ -143,13 +145,14 @@ class _StepArrays:
     def fill(self, steps: PlannerSteps, recs: dict[tuple[int, int], Observation], sources: np.ndarray, config: PlannerConfig) -> None:
         """Enter every planner step within 0..K−1 (its view's PEB at that step's source)."""
         K = self.peb.shape[0]
-        for (k, j), (est_m, obs, sing, filt, saved, act) in steps.items():
+        for (k, j), (est_m, obs, sing, filt, saved, act, loiter) in steps.items():
             if not 0 <= k < K:
                 continue
             self.estimates[k, 0, j - 1] = est_m
             self.observable[k, 0, j - 1] = obs
             self.singular[k, 0, j - 1] = sing
             self.filtered[k, 0, j - 1] = filt
+            self.loiter[k, 0, j - 1] = loiter
             self.ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in saved]
             self.peb[k, 0, j - 1] = peb_of_view(config, saved, recs, sources[k])
             self.active[k] += np.asarray(act, dtype=np.int64)
@@ -251,6 +254,7 @@ def launch_result(
         active=arrays.active,
         singular_fallback=arrays.singular,
         filtered=arrays.filtered,
+        loiter=arrays.loiter,
         record_ages=arrays.ages,
         runtime_s=runtime_s,
         extra={"distributed": 1.0, "dropped_messages": float(collected.dropped), "missing_drone_steps": float(missing[:K].sum())},

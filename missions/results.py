@@ -77,6 +77,7 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
         "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
         "singular_fallback_steps": int(result.singular_fallback.sum()),
         "safety_filter_steps": int(result.filtered.sum()),
+        "loiter_steps": int(result.loiter.sum()),
         "runtime_s": round(result.runtime_s, 3),
         "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
     } | _faults(result, penalty)

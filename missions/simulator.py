@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PlanView, own_range_lower_bound_m, plan
+from planner.agent import OWN_RANGE_WINDOW, PlanView, own_ranges, plan
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
@@ -89,6 +89,8 @@ class SimulationResult:
             obstacle, altitude), summed over drones and trials, (K, 4).
         singular_fallback: (K, M, N) bool, the drone used the singular-FIM fallback.
         filtered: (K, M, N) bool, the safety filter replaced the step.
+        loiter: (K, M, N) bool, the drone loitered: its own ranges put the source within reach
+            and its estimate gave no direction to trust (:func:`planner.agent.must_loiter`).
         record_ages: age k − ℓ of every record drone i held of peer j, (K, M, N, N); −1 if none.
         runtime_s: wall time of the run (s).
     """
@@ -104,6 +106,7 @@ class SimulationResult:
     active: NDArray[np.int64]
     singular_fallback: NDArray[np.bool_]
     filtered: NDArray[np.bool_]
+    loiter: NDArray[np.bool_]
     record_ages: NDArray[np.int16]
     runtime_s: float
     extra: dict[str, float] = field(default_factory=dict)
@@ -282,6 +285,7 @@ class _Simulation:
         self.active_counts = np.zeros((K, 4), dtype=np.int64)
         self.fallback = np.empty((K, M, N), dtype=bool)
         self.filtered = np.empty((K, M, N), dtype=bool)
+        self.loiter = np.empty((K, M, N), dtype=bool)
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
 
     def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
@@ -339,7 +343,7 @@ class _Simulation:
         """4. Planning step from the view (shared with the planner node); returns the step."""
         # Each drone's own last ranges bound its distance to the source (second keep-out).
         lo = max(0, k - OWN_RANGE_WINDOW + 1)
-        own_lb = own_range_lower_bound_m(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
+        own = own_ranges(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
         plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops)
         planned = plan(
             self.config,
@@ -350,13 +354,14 @@ class _Simulation:
             self.ctrl_u[k],
             step_index=k,
             oracle_source=src if self.oracle_estimate else None,
-            own_distance_lower_m=own_lb,
+            own_ranges=own,
             lost_contact=view.cut,
             own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
         )
         step = planned.step
         self.fallback[k] = step.singular
         self.filtered[k] = step.filtered
+        self.loiter[k] = planned.loiter
         self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
         return step
 
@@ -398,6 +403,7 @@ class _Simulation:
             active=self.active_counts,
             singular_fallback=self.fallback,
             filtered=self.filtered,
+            loiter=self.loiter,
             record_ages=self.ages,
             runtime_s=time.perf_counter() - t0,
             extra=_extra(self.oracle_estimate, self.float32_positions, self.faults),

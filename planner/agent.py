@@ -19,13 +19,12 @@ Policies fixed here (docs/control.md):
   own link taken as LOS, as fimnav did before, drones settled in shadows: 25 % of the
   heterogeneous swarm's final links). Far from every building q = 1 and nothing changes.
 * Source keep-out: d_S* + min(max(3σ, 1.5 m), d_S*) around the estimate, σ the estimate's largest standard
-  deviation; no source constraint while the source is not observable. Optional second
-  evidence: when the cap binds (3σ ≥ d_S*) and a lower bound on the drone's own distance to
-  the source (from its own last ranges, :func:`own_range_lower_bound_m`) is below d_S* + the
-  activation margin, the keep-out is raised to just inside the drone's distance to the
-  estimate: it stops approaching (:func:`source_keepout_with_own_range_m`). The simulator
-  and the planner node pass the bound; without it (None) the keep-out follows the estimate
-  alone.
+  deviation; no source constraint while the source is not observable. Second evidence, a
+  ranging drone's own last ranges (:func:`own_ranges`): where their lower bound on its
+  distance to the source is below d_S* + the activation margin and the estimate gives no
+  direction to trust (not observable, 3σ ≥ d_S*, or contradicted by those ranges), the drone
+  loiters in place (:func:`must_loiter`, :func:`loiter_gradient`). The simulator and the
+  planner node pass the ranges; without them (None) the keep-out follows the estimate alone.
 * Not observable yet: treated like a singular FIM (keep moving along the last direction with a
   random perturbation, the paper's fallback).
 * Anti-collision against the peers heard directly (h_ij = 1) only: a peer not heard directly is
@@ -62,8 +61,9 @@ SOURCE_INFLATION_MIN_M: float = 1.5
 OWN_RANGE_WINDOW: int = 10
 #: Standard deviations of that lower bound.
 OWN_RANGE_SIGMA_FACTOR: float = 2.0
-#: How far (m) inside the activation margin a held keep-out sits: active, negligible push.
-HOLD_EPS_M: float = 1e-6
+#: Standard deviations by which a drone's own ranges must put the source nearer than its
+#: estimate for the estimate to count as contradicted (:meth:`OwnRanges.contradicts`).
+OWN_RANGE_CONTRADICTION_SIGMAS: float = 3.0
 #: Softness s (m) of the predicted line of sight Φ(c/s) of a drone's own link past one
 #: building (c its clearance from it, Φ the standard normal CDF): 0.5 on a shadow's edge, 0.977
 #: at 2 s outside, 0.023 at 2 s inside, 1 − 3·10⁻⁵ at 4 s. Read as the probability that the
@@ -149,55 +149,92 @@ def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
     return limits.d_source_m + np.minimum(inflation, limits.d_source_m)
 
 
-def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel, sigma_factor: float = OWN_RANGE_SIGMA_FACTOR) -> FloatArray:
-    """Lower confidence bound (m) on a drone's distance to the source from its own last ranges.
+@dataclass(frozen=True, eq=False)
+class OwnRanges:
+    """A drone's own last ranges (eq. 3), combined: the evidence of its distance to the source
+    that does not depend on the source estimate (:func:`own_ranges`).
+
+    Model: the distance d is taken as constant over the window (the drone moves at most
+    v_max Δt per step) and d̂_w = d (1 + s_w n_w), n_w ~ N(0, 1), with the relative standard
+    deviation s_w = σ_r0,w d^(γ/2 − 1) of eq. 5. The weighted mean d̄ = Σ w d̂ / Σ w,
+    w = 1/σ_r0,w², has relative standard deviation r(d) = 1/√(Σw d^(2 − γ)) about d (exact for
+    γ = 2). One NLOS range at d_S* has σ_r = 37 m; ten NLOS ranges give r = 0.23.
+
+    Attributes:
+        mean_m: d̄ (...), m; NaN where the window holds no range.
+        weight: Σ_w 1/σ_r0,w² (...); 0 where no range.
+        gamma: the path-loss exponent γ of eq. 5.
+    """
+
+    mean_m: FloatArray
+    weight: FloatArray
+    gamma: float
+
+    def relative_sd(self, distance_m: ArrayLike) -> FloatArray:
+        """r(d), the relative standard deviation of d̄ about a distance d (m); +inf without ranges."""
+        d = np.maximum(np.asarray(distance_m, dtype=float), 1e-9)
+        info = self.weight * d ** (2.0 - self.gamma)
+        return np.where(self.weight > 0.0, 1.0 / np.sqrt(np.where(info > 0.0, info, 1.0)), np.inf)
+
+    def lower_bound_m(self, sigma_factor: float = OWN_RANGE_SIGMA_FACTOR) -> FloatArray:
+        """Lower confidence bound (m) on the distance: d̄ / (1 + k r(d̄)), which exceeds d with
+        probability Φ(−k) (2.3 % at k = 2); +inf without ranges. Ten NLOS ranges give a bound
+        32 % below their mean (twenty: 25 %)."""
+        have = self.weight > 0.0
+        dbar = np.where(have, self.mean_m, 1.0)
+        return np.where(have, dbar / (1.0 + sigma_factor * self.relative_sd(dbar)), np.inf)
+
+    def contradicts(self, distance_m: ArrayLike, sigma_factor: float = OWN_RANGE_CONTRADICTION_SIGMAS) -> NDArray[np.bool_]:
+        """True where the ranges say the source is nearer than ``distance_m`` (the distance to
+        the estimate, m): z = (d̄/d − 1)/r(d) < −k, the one-sided test of d̄ against a
+        source at that distance (false alarm Φ(−k), 0.13 % at k = 3). False without ranges."""
+        d = np.maximum(np.asarray(distance_m, dtype=float), 1e-9)
+        have = self.weight > 0.0
+        z = (np.where(have, self.mean_m, 0.0) / d - 1.0) / self.relative_sd(d)
+        return have & (z < -sigma_factor)
+
+
+def own_ranges(range_m: ArrayLike, los: ArrayLike, channel: Channel) -> OwnRanges:
+    """Combine a drone's own last ranges into :class:`OwnRanges`.
 
     Args:
         range_m: (..., W) the drone's own measured ranges d̂ (eq. 3), m; NaN = no range.
         los: (..., W) bool, the LOS flag of each.
         channel: σ_r0 (LOS/NLOS) and γ of eq. 5.
-        sigma_factor: k, standard deviations of the bound.
-
-    Model: the distance d is taken as constant over the window (the drone moves at most
-    v_max Δt per step) and d̂_w = d (1 + s_w n_w), n_w ~ N(0, 1), with the relative standard
-    deviation s_w = σ_r0,w d^(γ/2 − 1) of eq. 5 (exact for γ = 2; for another γ evaluated at
-    the mean). The weighted mean d̄ = Σ w d̂ / Σ w, w = 1/s², has relative standard deviation
-    1/√Σw, so the bound d̄ / (1 + k/√Σw) exceeds d with probability Φ(−k) (2.3 % at k = 2).
-    +inf where no range is given. One NLOS range at d_S* has σ_r = 37 m; ten NLOS ranges give
-    a bound 32 % below their mean (twenty: 25 %).
     """
     r = np.asarray(range_m, dtype=float)
     have = np.isfinite(r)
     s0 = channel.sigma_r0(los)
     w0 = np.where(have, 1.0 / s0**2, 0.0)
     sw0 = w0.sum(-1)
-    dbar = (w0 * np.where(have, r, 0.0)).sum(-1) / np.where(sw0 > 0.0, sw0, 1.0)
-    scale = np.maximum(dbar, 1e-9) ** (2.0 - channel.gamma)  # 1 / d^(γ − 2)
-    rel = 1.0 / np.sqrt(np.where(sw0 > 0.0, sw0 * scale, 1.0))
-    return np.where(sw0 > 0.0, dbar / (1.0 + sigma_factor * rel), np.inf)
+    dbar = np.where(sw0 > 0.0, (w0 * np.where(have, r, 0.0)).sum(-1) / np.where(sw0 > 0.0, sw0, 1.0), np.nan)
+    return OwnRanges(mean_m=np.asarray(dbar, dtype=float), weight=np.asarray(sw0, dtype=float), gamma=float(channel.gamma))
 
 
-def source_keepout_with_own_range_m(limits: Limits, sigma_m: ArrayLike, distance_m: ArrayLike, own_lower_m: ArrayLike) -> FloatArray:
-    """Source keep-out radius (m) with the drone's own range evidence.
+def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel, sigma_factor: float = OWN_RANGE_SIGMA_FACTOR) -> FloatArray:
+    """Lower confidence bound (m) on a drone's distance to the source from its own last ranges
+    (``range_m`` (..., W), m, NaN = none; ``los`` (..., W)): :meth:`OwnRanges.lower_bound_m`
+    of :func:`own_ranges`, +inf where no range is given."""
+    return own_ranges(range_m, los, channel).lower_bound_m(sigma_factor)
 
-    The keep-out about the estimate, :func:`source_keepout_m`, covers an error of 3σ until its
-    cap binds (3σ ≥ d_S*). Where it binds and the lower bound ``own_lower_m`` on the drone's
-    distance to the source (:func:`own_range_lower_bound_m`) is below d_S* + a
-    (a = :func:`planner.control.source_activation_margin_m`), the radius becomes
-    max(keep-out, d − a + ε), d = ``distance_m`` to the estimate: the constraint is just active,
-    with no outward push, so the projection of eq. 14 removes the approaching component of the
-    step (the drone may circle the estimate; at worst it creeps in at v_min while turning away).
-    Elsewhere the keep-out is :func:`source_keepout_m`. Aimed at an uncertain estimate that is
-    wrong along the drone's own line of sight (farther than the source, with a small σ in that
-    direction: how a keep-out about the estimate misses the source); an accurate estimate (3σ < d_S*) is not
-    second-guessed by ranges with 39-74 % relative noise. Shapes broadcast.
+
+def must_loiter(limits: Limits, sigma_m: ArrayLike, observable: ArrayLike, distance_m: ArrayLike, own: OwnRanges) -> NDArray[np.bool_]:
+    """Where a drone loiters (:func:`loiter_gradient`) instead of descending its cost (...).
+
+    It does where its own ranges (``own``) put the source possibly within d_S* + a of it, their
+    lower bound (:meth:`OwnRanges.lower_bound_m`) below it (a =
+    :func:`planner.control.source_activation_margin_m`), and the estimate gives no direction
+    to trust: not ``observable``, uncertain beyond the keep-out's cap (3σ ≥ d_S*, ``sigma_m``
+    its largest standard deviation, m), or contradicted by those ranges, the source nearer than
+    the estimate's ``distance_m`` (:meth:`OwnRanges.contradicts`). The keep-out about such an
+    estimate does not cover the source (a confident estimate 80-140 m off after a partition, an
+    uncertain one wrong along the drone's own line of sight), and no direction away from it is
+    known to lead away from the source: the drone stays where it is until the estimate is
+    trusted again or its ranges say it is clear. Shapes broadcast; False without ranges.
     """
     sigma = np.asarray(sigma_m, dtype=float)
-    keepout = source_keepout_m(limits, sigma)
-    a = source_activation_margin_m(limits)
-    hold = np.asarray(distance_m, dtype=float) - a + HOLD_EPS_M
-    close = (np.asarray(own_lower_m, dtype=float) < limits.d_source_m + a) & (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m)
-    return np.where(close, np.maximum(keepout, hold), keepout)
+    untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | own.contradicts(distance_m)
+    return np.asarray((own.lower_bound_m() < limits.d_source_m + source_activation_margin_m(limits)) & untrusted)
 
 
 def collision_relevant(hops: ArrayLike, d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
@@ -267,6 +304,9 @@ class PlanResult:
     step: StepResult
     cost: CostGradient
     keepout_m: FloatArray
+    #: (...) bool, the drone loitered: its own ranges put the source within reach of d_S*
+    #: and its estimate gave no direction to trust (:func:`loiter_gradient`).
+    loiter: NDArray[np.bool_]
 
 
 @dataclass(frozen=True, eq=False)
@@ -391,25 +431,43 @@ def _status_and_keepout(
     limits: Limits,
     *,
     oracle: bool,
-    own_distance_lower_m: ArrayLike | None,
-) -> tuple[NDArray[np.int8], FloatArray]:
-    """The FIM status the control step sees and the source keep-out radius (...), m.
+    own: OwnRanges | None,
+) -> tuple[NDArray[np.int8], FloatArray, NDArray[np.bool_]]:
+    """The FIM status the control step sees, the source keep-out radius (...), m, and where the
+    drone loiters (...) instead of descending its cost.
 
-    With an oracle source: the cost's status and the plain d_S*. Otherwise an estimate that is
-    not observable counts as a singular FIM (the paper's fallback) and has no keep-out (−inf);
-    an observable one has :func:`source_keepout_m` of its largest σ, or with the drone's own
-    range bound (``own_distance_lower_m``, m) :func:`source_keepout_with_own_range_m`.
+    With an oracle source: the cost's status, the plain d_S* and no loiter. Otherwise an
+    estimate that is not observable counts as a singular FIM (the paper's fallback) and has no
+    keep-out (−inf); an observable one has :func:`source_keepout_m` of its largest σ. With the
+    drone's own ranges (``own``) it loiters where :func:`must_loiter` says so (its status then
+    OK: the loiter is not the singular fallback's wander).
     """
     obs = np.asarray(estimate.observable, dtype=bool)
     batch = np.shape(own_position)[:-1]
     if oracle:
-        return cg.status, np.full(batch, limits.d_source_m)
+        return cg.status, np.full(batch, limits.d_source_m), np.zeros(batch, dtype=bool)
     status = np.where(obs, cg.status, np.int8(FimStatus.SINGULAR))
     sigma = estimate_sigma_m(estimate.information)
-    if own_distance_lower_m is None:
-        return status, np.where(obs, source_keepout_m(limits, sigma), -np.inf)
+    keepout = np.where(obs, source_keepout_m(limits, sigma), -np.inf)
+    if own is None:
+        return status, keepout, np.zeros(batch, dtype=bool)
     d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
-    return status, np.where(obs, source_keepout_with_own_range_m(limits, sigma, d_est, own_distance_lower_m), -np.inf)
+    loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own), batch)
+    return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
+
+
+def loiter_gradient(previous_step: ArrayLike) -> FloatArray:
+    """The gradient (..., 3) a loitering drone descends: minus the horizontal unit vector 90°
+    to the left of its last step (east where it has none). The step of eq. 14 asks a quarter
+    turn; the heading limit φ_max of eq. 2 grants φ_max a step, so the drone flies a level circle
+    of circumference v_max Δt · 360°/φ_max (7.2 m at 1 m/step and 50°) about where it started
+    loitering, under the same constraints and safety filter as any step: it makes no net
+    progress in any direction, toward a source whose direction it does not know."""
+    u = np.asarray(previous_step, dtype=float)
+    left = np.stack((-u[..., 1], u[..., 0], np.zeros(u.shape[:-1])), axis=-1)
+    n = np.linalg.norm(left, axis=-1, keepdims=True)
+    east = np.broadcast_to(np.array([1.0, 0.0, 0.0]), left.shape)
+    return -np.where(n > 1e-12, left / np.where(n > 1e-12, n, 1.0), east)
 
 
 def _peer_constraints(
@@ -459,7 +517,7 @@ def plan(
     *,
     step_index: int = 0,
     oracle_source: ArrayLike | None = None,
-    own_distance_lower_m: ArrayLike | None = None,
+    own_ranges: OwnRanges | None = None,
     lost_contact: ArrayLike | None = None,
     own_then_m: ArrayLike | None = None,
 ) -> PlanResult:
@@ -475,11 +533,11 @@ def plan(
         step_index: k, the current step (≥ 0), the age of a start position.
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
-        own_distance_lower_m: (...), m, a lower bound on drone i's distance to the source from
-            its own measurements (:func:`own_range_lower_bound_m` of its last
-            :data:`OWN_RANGE_WINDOW` ranges; +inf for a drone that does not range), used by
-            :func:`source_keepout_with_own_range_m`. None: the keep-out follows the estimate
-            alone.
+        own_ranges: drone i's own last :data:`OWN_RANGE_WINDOW` ranges (:func:`own_ranges`;
+            none for a drone that does not range): the evidence of its distance to the source
+            that does not depend on the estimate: where they put the source within reach and
+            the estimate gives no direction to trust, the drone loiters (:func:`must_loiter`,
+            :func:`loiter_gradient`). None: the keep-out about the estimate alone.
         lost_contact: (..., N) bool, peers this drone has lost contact with by a network fault
             (a partition, their planner gone from the liveliness view), not by distance: the
             hop argument of :func:`collision_relevant` ("not a neighbour, so farther than
@@ -529,14 +587,13 @@ def plan(
         own_extra,
         config.sensing.components,
     )
-    status, keepout = _status_and_keepout(
-        cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own_distance_lower_m=own_distance_lower_m
-    )
+    status, keepout, loiter = _status_and_keepout(cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own=own_ranges)
+    gradient = np.where(loiter[..., None], loiter_gradient(previous_step), cg.gradient) if loiter.any() else cg.gradient
     peer_rows, peers, ages, planes = _peer_constraints(config, view, step_index, lost_contact, own_then_m)
     step = control_step(
         own_position,
         previous_step,
-        cg.gradient,
+        gradient,
         status,
         peer_rows,
         peers,
@@ -551,4 +608,4 @@ def plan(
         perturbation_rad=config.perturbation_rad,
         peer_planes=planes,
     )
-    return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout))
+    return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), loiter=loiter)

@@ -18,7 +18,7 @@ import numpy as np
 from comms.latency import DelayedView
 from comms.messages import Observation, Status
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PlanView, measurements_from_records, own_range_lower_bound_m, plan
+from planner.agent import OWN_RANGE_WINDOW, PlanView, measurements_from_records, own_ranges, plan
 from planner.geometry import vec3
 from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
@@ -246,7 +246,7 @@ class StepCore:
         if lost.any():
             own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own_m) for j in range(self.count)], dtype=float)
         uniforms = self.ctrl_rng.random(CONTROL_DRAWS)
-        own_lower = own_range_lower_bound_m(
+        own = own_ranges(
             np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.planner.channel
         )
         return plan(
@@ -257,7 +257,7 @@ class StepCore:
             self.state,
             uniforms,
             step_index=k,
-            own_distance_lower_m=own_lower,
+            own_ranges=own,
             lost_contact=lost if own_then is not None else None,
             own_then_m=own_then,
         )

@@ -135,6 +135,7 @@ class StepLog:
             "active": {name: bool(a) for name, a in zip(("uav", "source", "obstacle", "altitude"), np.asarray(step.active))},
             "singular": bool(step.singular),
             "filtered": bool(step.filtered),
+            "loiter": bool(np.asarray(result.loiter)),
             "timing": {name: round(v, 6) for name, v in timing.items()},
         }
         if record.extra_values:  # the values of components beyond range and bearing, if any

@@ -19,7 +19,7 @@ from comms.latency import DelayedView
 from comms.messages import Done, Message, MessageKind, Observation, Status, Tick
 from missions.loader import load_mission
 from planner import estimator as est
-from planner.agent import PlanView, own_range_lower_bound_m, plan
+from planner.agent import PlanView, own_ranges, plan
 from planner.node import NodeError, NodeOptions, PlannerNode
 from planner.randomness import CONTROL_DRAWS, control_rng
 from tests.external.helpers import write_mission
@@ -105,10 +105,10 @@ def reference_plan_step0(mission: Any, own_record: Observation, peer_record: Obs
     )
     state = est.update(est.initial_state((), config.estimator), meas, config.channel, config.estimator)
     uniforms = control_rng(mission.seed, 0, 0).random(CONTROL_DRAWS)
-    own_lower = own_range_lower_bound_m(np.array([own_record.range_m]), np.array([own_record.los]), config.channel)
+    own_evidence = own_ranges(np.array([own_record.range_m]), np.array([own_record.los]), config.channel)
     own = np.array(own_record.position_m)
     view0 = PlanView.from_records(0, v.records, v.saved_steps, 0, v.hops)
-    return plan(config, own, np.zeros(3), view0, state, uniforms, step_index=0, own_distance_lower_m=own_lower), state
+    return plan(config, own, np.zeros(3), view0, state, uniforms, step_index=0, own_ranges=own_evidence), state
 
 
 @pytest.mark.parametrize("flavour", ["ardupilot", "px4"])

@@ -1,4 +1,4 @@
-"""A ranging drone's own ranges as a second source keep-out (issue 7, what the estimate misses).
+"""A ranging drone's own ranges as second evidence of its distance to the source.
 
 The keep-out about the estimate, d_S* + min(3σ, d_S*) (planner.agent.source_keepout_m), misses
 the true d_S* sphere when the estimate is wrong along the drone's own line of sight by more than
@@ -9,10 +9,10 @@ global re-check moves its estimate from 29 m to 60 m off; from then to step 340 
 almost all along the line from the drone (the source 50-58 m nearer the drone than the
 estimate), with a largest σ of 29-40 m (so the keep-out is capped at 2 d_S* = 100 m) and a σ of
 only 6-11 m along that line. Its own ranges, however, measure its distance to the source
-directly: planner.agent.own_range_lower_bound_m combines the last ones into a lower bound, and
-planner.agent.source_keepout_with_own_range_m then raises the keep-out (where its cap binds) to
-just inside the drone's distance to the estimate, so that it stops approaching. The simulator
-and the planner node do not pass that bound to plan() yet (docs/control.md).
+directly: planner.agent.own_ranges combines the last ones (a lower bound on the distance, and a
+test of the estimate's distance against them), and planner.agent.must_loiter makes the drone
+loiter in place (planner.agent.loiter_gradient) where they put the source within reach and the
+estimate gives no direction to trust (docs/control.md).
 
 References are independent of the implementation: the normal law (scipy) for the bound's
 coverage, measured distances for "does not approach", the true source for safety.
@@ -28,7 +28,15 @@ import pytest
 from scipy import stats
 
 from planner import FimStatus, Limits, control_step
-from planner.agent import OWN_RANGE_WINDOW, estimate_sigma_m, own_range_lower_bound_m, source_keepout_m, source_keepout_with_own_range_m
+from planner.agent import (
+    OWN_RANGE_WINDOW,
+    estimate_sigma_m,
+    loiter_gradient,
+    must_loiter,
+    own_range_lower_bound_m,
+    own_ranges,
+    source_keepout_m,
+)
 from planner.control import source_activation_margin_m
 from planner.params import Channel
 
@@ -68,51 +76,75 @@ def test_lower_bound_missing_ranges() -> None:
     assert own_range_lower_bound_m(np.zeros((4, 0)), np.zeros((4, 0), bool), CHANNEL).shape == (4,)
 
 
-def _held_step(p: np.ndarray, src: np.ndarray, grad: np.ndarray, lower: np.ndarray | float, rng: np.random.Generator) -> np.ndarray:
-    """Distance to the estimate after one step from rest; σ = 20 m (keep-out capped at 100 m)."""
-    n = p.shape[0]
-    d = np.linalg.norm(p - src, axis=-1)
-    keepout = source_keepout_with_own_range_m(LIM, np.full(n, 20.0), d, lower)
-    r = control_step(p, np.zeros((n, 3)), grad, np.zeros(n, np.int8), np.zeros((n, 0, 3)), np.zeros((n, 0), bool),
-                     np.zeros((n, 0)), src, keepout, NO_BOX, NO_BOX, LIM, rng.random((n, 2)))
-    return np.linalg.norm(r.next_position - src, axis=-1)
+def test_contradiction_test_false_alarm_and_power(rng: np.random.Generator) -> None:
+    """Ranges of eq. 3-5 (γ = 2) at a known distance d: an estimate at d is called contradicted
+    with probability Φ(−3) (the one-sided normal tail, scipy); one at 2 d almost always (the
+    power of the test for ten LOS ranges, closed form: with d̄ = d (1 + r n), z = (d̄/2d − 1)/r =
+    n/2 − 1/(2r), so P(z < −3) = Φ(1/r − 6), r the relative standard deviation of d̄)."""
+    n, w = 200_000, OWN_RANGE_WINDOW
+    d = rng.uniform(20.0, 200.0, n)
+    los = np.ones((n, w), dtype=bool)
+    r = d[:, None] + _relative_sigma(los) * d[:, None] * rng.standard_normal((n, w))
+    own = own_ranges(r, los, CHANNEL)
+    p = stats.norm.sf(3.0)
+    frac = float(np.mean(own.contradicts(d)))
+    assert abs(frac - p) < 5.0 * math.sqrt(p * (1.0 - p) / n), (frac, p)
+    rel = float(_relative_sigma(np.array(True))) / math.sqrt(w)  # about d; the same about 2 d (γ = 2)
+    power = stats.norm.cdf(1.0 / rel - 6.0)
+    frac2 = float(np.mean(own.contradicts(2.0 * d)))
+    assert abs(frac2 - power) < 5.0 * math.sqrt(power * (1.0 - power) / n) + 1e-3, (frac2, power)
+    none = own_ranges(np.full((3, w), np.nan), np.ones((3, w), bool), CHANNEL)
+    assert not none.contradicts(np.full(3, 10.0)).any() and np.all(np.isinf(none.lower_bound_m()))
 
 
-def test_own_range_keepout_stops_the_approach_without_pushing(rng: np.random.Generator) -> None:
-    """Drones 110-150 m from the estimate, outside its 100 m keep-out, whose own ranges put the
-    source within d_S*: a cost that descends straight at the estimate moves them in by at most
-    v_min (the minimum speed they must fly), a tangential one does not push them out. With a
-    far bound the keep-out is unchanged and the same step approaches at v_max (so the test can
-    fail). Reference: measured distances."""
-    n = 200
-    src = np.zeros((n, 3)) + np.array([0.0, 0.0, 2.0])
-    az = rng.uniform(-np.pi, np.pi, n)
-    dist = rng.uniform(110.0, 150.0, n)
-    p = src + np.stack((dist * np.cos(az), dist * np.sin(az), rng.uniform(8.0, 18.0, n)), axis=-1)
-    d0 = np.linalg.norm(p - src, axis=-1)
-    toward = (p - src) / d0[:, None]  # ∇C along the outward normal: descent goes straight in
-    tangent = np.stack((-np.sin(az), np.cos(az), np.zeros(n)), axis=-1)
-    near, far = np.full(n, 40.0), np.full(n, 60.0)
-    assert np.all(_held_step(p, src, toward, near, rng) >= d0 - LIM.step_min_m - 1e-9)
-    assert np.all(_held_step(p, src, toward, far, rng) < d0 - 0.99 * LIM.step_max_m)
-    # A 1 m tangential step at >= 110 m moves out by < 5 mm: no restoring push.
-    assert np.all(_held_step(p, src, tangent, near, rng) - d0 < 0.01)
-
-
-def test_own_range_keepout_values() -> None:
-    """Closed form: raised to d − a + ε only where the own bound is below d_S* + a and the cap
-    binds (3σ ≥ d_S*); never lowered; otherwise d_S* + min(3σ, d_S*); a = 2 v_max Δt + b."""
+def test_must_loiter_values() -> None:
+    """Closed form: loiter where the own bound is below d_S* + a (a = 2 v_max Δt + b) and the
+    estimate is not observable, or 3σ ≥ d_S*, or contradicted by the ranges; never otherwise."""
     a = 2.0 * LIM.step_max_m + LIM.turn_buffer_m
     assert source_activation_margin_m(LIM) == pytest.approx(a)
-    near, far = LIM.d_source_m + a - 0.01, LIM.d_source_m + a + 0.01
-    sigma = np.array([20.0, 20.0, 20.0, 20.0, 10.0, 16.0])
-    dist = np.array([120.0, 120.0, 70.0, 120.0, 120.0, 120.0])
-    lower = np.array([near, far, 10.0, np.inf, near, near])
-    out = source_keepout_with_own_range_m(LIM, sigma, dist, lower)
-    np.testing.assert_allclose(out, [120.0 - a, 100.0, 100.0, 100.0, 80.0, 98.0], atol=1e-5)
+    w = OWN_RANGE_WINDOW
+    # Ten LOS ranges all at 40 m (bound < d_S* + a) or all at 90 m (bound > d_S* + a).
+    near, far = np.full(w, 40.0), np.full(w, 90.0)
+    los = np.ones(w, bool)
+    cases = [  # (ranges, σ, observable, distance to the estimate, loiter?)
+        (near, 20.0, True, 42.0, True),  # uncertain (3σ = 60 ≥ 50)
+        (near, 10.0, True, 42.0, False),  # certain, consistent with the ranges
+        (near, 10.0, True, 140.0, True),  # certain, but the ranges put the source nearer
+        (near, 10.0, False, 42.0, True),  # not observable
+        (far, 20.0, True, 140.0, False),  # the ranges say clear
+        (far, 10.0, False, 200.0, False),
+    ]
+    for ranges, sigma, obs, dist, expected in cases:
+        own = own_ranges(ranges, los, CHANNEL)
+        assert bool(must_loiter(LIM, sigma, obs, dist, own)) is expected, (ranges[0], sigma, obs, dist)
+    assert own_ranges(near, los, CHANNEL).lower_bound_m() < LIM.d_source_m + a < own_ranges(far, los, CHANNEL).lower_bound_m()
 
 
-def _replay(hold_on: bool, seed: int, start_step: int = 325) -> float:
+def test_a_loitering_drone_stays_in_place(rng: np.random.Generator) -> None:
+    """From any heading and tilt, thirty steps of eq. 14 down the loiter gradient under eq. 2's
+    limits: the drone turns at φ_max and stays within the circle of one step's chord, of radius
+    v_max Δt / (2 sin(φ_max/2)) (closed form), plus the steps its tilt takes to level."""
+    n = 300
+    p = np.stack((rng.uniform(-50, 50, n), rng.uniform(-50, 50, n), np.full(n, 12.0)), axis=-1)
+    prev = rng.standard_normal((n, 3))
+    prev[:, 2] *= 0.2
+    prev *= (LIM.step_max_m / np.linalg.norm(prev, axis=-1))[:, None]
+    start = p.copy()
+    reach = np.zeros(n)
+    for _ in range(30):
+        r = control_step(p, prev, loiter_gradient(prev), np.zeros(n, np.int8), np.zeros((n, 0, 3)), np.zeros((n, 0), bool),
+                         np.zeros((n, 0)), np.full((n, 3), 1e4), np.full(n, 50.0), NO_BOX, NO_BOX, LIM, rng.random((n, 2)))
+        prev, p = r.displacement, r.next_position
+        reach = np.maximum(reach, np.linalg.norm(p - start, axis=-1))
+    radius = LIM.step_max_m / (2.0 * math.sin(LIM.heading_change_max_rad / 2.0))
+    assert np.all(reach <= 2.0 * radius + 2.0 * LIM.step_max_m), reach.max()
+    # Level after the first steps: no climb or descent while loitering.
+    assert np.all(np.abs(prev[:, 2]) < 1e-9)
+    # Without the loiter the same cost-free drones would fly away: a straight gradient goes 30 m.
+    assert reach.max() < 0.2 * 30.0 * LIM.step_max_m
+
+
+def _replay(rule_on: bool, seed: int, start_step: int = 325) -> float:
     """The recorded drone alone from ``start_step`` on: its recorded estimates and σ, a cost that
     pulls it straight at the estimate (the worst case), its own ranges drawn (NLOS, eq. 3-5) at
     the recorded positions before ``start_step`` and at the positions it flies to from then on.
@@ -132,10 +164,9 @@ def _replay(hold_on: bool, seed: int, start_step: int = 325) -> float:
         ranges.append(d + float(_relative_sigma(np.array(False))) * d * gen.standard_normal())
         window = np.array(ranges[-OWN_RANGE_WINDOW:])
         keepout = source_keepout_m(LIM, sigma[k])
-        if hold_on:
-            lower = own_range_lower_bound_m(window, np.zeros(window.shape, bool), CHANNEL)
-            keepout = source_keepout_with_own_range_m(LIM, sigma[k], np.linalg.norm(p - est[k]), lower)
         grad = (p - est[k]) / np.linalg.norm(p - est[k])
+        if rule_on and must_loiter(LIM, sigma[k], True, np.linalg.norm(p - est[k]), own_ranges(window, np.zeros(window.shape, bool), CHANNEL)):
+            grad = loiter_gradient(prev)
         r = control_step(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est[k],
                          keepout, NO_BOX, NO_BOX, LIM, np.array([0.5, 0.5]))
         prev = r.displacement
@@ -161,7 +192,7 @@ def test_recorded_case_estimate_misses_what_the_own_ranges_see() -> None:
 
 
 def test_recorded_case_own_ranges_keep_the_drone_out() -> None:
-    """Replayed in closed loop: without the hold the drone enters the true d_S* sphere; with it,
+    """Replayed in closed loop: without the loiter the drone enters the true d_S* sphere; with it,
     for every noise draw, it stops outside."""
     assert _replay(False, 0) < LIM.d_source_m
     closest = [_replay(True, seed) for seed in range(12)]

@@ -49,3 +49,19 @@ def test_launch_refuses_a_partition_setting(tmp_path: Path) -> None:
     assert r.returncode == 2, r.stderr
     assert "partition is simulated by fimnav montecarlo" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_drones_whose_own_ranges_contradict_their_estimates_loiter_clear_of_the_source() -> None:
+    """The fault grid's partition case, reduced: paper/ranging_nlos, D, the swarm cut in two from
+    step 100 to 149, 60 trials. With the keep-out about the estimate alone (and the former rule,
+    which only stopped a drone approaching an uncertain estimate) drone 10 of trial 59, holding
+    an estimate 80-95 m off with a largest σ of 27-30 m, flew toward the true source past the
+    estimate's side and crossed d_S* by up to 3.6 m at steps 134-148. Now a drone whose own last
+    ten ranges put the source within d_S* + a while its estimate is uncertain or contradicted
+    by them loiters in place: no drone crosses d_S* (true positions), and the rule did act.
+    Seeded, about 3 s."""
+    m = paper_mission("ranging_nlos", **{"comms.faults.partition_start_step": 100, "comms.faults.partition_steps": 50})
+    res = simulate(RunSpec(m, "D", 60, 150))
+    assert res.violations()["source"] == 0, float(res.margins_m["source"].min())
+    assert float(res.margins_m["source"].min()) > 0.0
+    assert res.loiter[100:150].sum() > 0
