@@ -64,6 +64,9 @@ OWN_RANGE_SIGMA_FACTOR: float = 2.0
 #: Standard deviations by which a drone's own ranges must put the source nearer than its
 #: estimate for the estimate to count as contradicted (:meth:`OwnRanges.contradicts`).
 OWN_RANGE_CONTRADICTION_SIGMAS: float = 3.0
+#: A loitering drone whose estimate is still not to be trusted resumes its cost only once its
+#: own ranges' lower bound reaches this many times d_S* + a (:func:`must_loiter`).
+OWN_RANGE_CLEAR_FACTOR: float = 1.5
 #: Softness s (m) of the predicted line of sight Φ(c/s) of a drone's own link past one
 #: building (c its clearance from it, Φ the standard normal CDF): 0.5 on a shadow's edge, 0.977
 #: at 2 s outside, 0.023 at 2 s inside, 1 − 3·10⁻⁵ at 4 s. Read as the probability that the
@@ -218,23 +221,38 @@ def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel
     return own_ranges(range_m, los, channel).lower_bound_m(sigma_factor)
 
 
-def must_loiter(limits: Limits, sigma_m: ArrayLike, observable: ArrayLike, distance_m: ArrayLike, own: OwnRanges) -> NDArray[np.bool_]:
+def must_loiter(
+    limits: Limits,
+    sigma_m: ArrayLike,
+    observable: ArrayLike,
+    distance_m: ArrayLike,
+    own: OwnRanges,
+    loitering: ArrayLike | None = None,
+) -> NDArray[np.bool_]:
     """Where a drone loiters (:func:`loiter_gradient`) instead of descending its cost (...).
 
-    It does where its own ranges (``own``) put the source possibly within d_S* + a of it, their
-    lower bound (:meth:`OwnRanges.lower_bound_m`) below it (a =
-    :func:`planner.control.source_activation_margin_m`), and the estimate gives no direction
-    to trust: not ``observable``, uncertain beyond the keep-out's cap (3σ ≥ d_S*, ``sigma_m``
-    its largest standard deviation, m), or contradicted by those ranges, the source nearer than
-    the estimate's ``distance_m`` (:meth:`OwnRanges.contradicts`). The keep-out about such an
-    estimate does not cover the source (a confident estimate 80-140 m off after a partition, an
-    uncertain one wrong along the drone's own line of sight), and no direction away from it is
-    known to lead away from the source: the drone stays where it is until the estimate is
-    trusted again or its ranges say it is clear. Shapes broadcast; False without ranges.
+    The estimate gives no direction to trust where it is not ``observable``, uncertain beyond
+    the keep-out's cap (3σ ≥ d_S*, ``sigma_m`` its largest standard deviation, m), or
+    contradicted by the drone's own ranges ``own``, the source nearer than the estimate's
+    ``distance_m`` (:meth:`OwnRanges.contradicts`). The keep-out about such an estimate does not
+    cover the source (a confident estimate 80-140 m off after a partition, an uncertain one
+    wrong along the drone's own line of sight), and no direction away from it is known to lead
+    away from the source. With such an estimate a drone starts loitering where its ranges'
+    lower bound (:meth:`OwnRanges.lower_bound_m`) is below d_S* + a (a =
+    :func:`planner.control.source_activation_margin_m`), and a drone ``loitering`` at the last
+    step goes on until the estimate is trusted again or the bound reaches
+    :data:`OWN_RANGE_CLEAR_FACTOR` (d_S* + a). The hysteresis matters: resuming as soon as a
+    noisy bound rose above d_S* + a, a drone crept in a step at a time and crossed d_S* by
+    2.9 m (paper/ranging_nlos, A, 20 % loss and 3 steps of delay). Shapes broadcast; False
+    without ranges.
     """
     sigma = np.asarray(sigma_m, dtype=float)
     untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | own.contradicts(distance_m)
-    return np.asarray((own.lower_bound_m() < limits.d_source_m + source_activation_margin_m(limits)) & untrusted)
+    near = limits.d_source_m + source_activation_margin_m(limits)
+    lower = own.lower_bound_m()
+    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
+    stay = was & (lower < OWN_RANGE_CLEAR_FACTOR * near)
+    return np.asarray(untrusted & ((lower < near) | stay))
 
 
 def collision_relevant(hops: ArrayLike, d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
@@ -432,6 +450,7 @@ def _status_and_keepout(
     *,
     oracle: bool,
     own: OwnRanges | None,
+    loitering: ArrayLike | None,
 ) -> tuple[NDArray[np.int8], FloatArray, NDArray[np.bool_]]:
     """The FIM status the control step sees, the source keep-out radius (...), m, and where the
     drone loiters (...) instead of descending its cost.
@@ -452,7 +471,7 @@ def _status_and_keepout(
     if own is None:
         return status, keepout, np.zeros(batch, dtype=bool)
     d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
-    loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own), batch)
+    loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own, loitering), batch)
     return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
 
 
@@ -518,6 +537,7 @@ def plan(
     step_index: int = 0,
     oracle_source: ArrayLike | None = None,
     own_ranges: OwnRanges | None = None,
+    loitering: ArrayLike | None = None,
     lost_contact: ArrayLike | None = None,
     own_then_m: ArrayLike | None = None,
 ) -> PlanResult:
@@ -538,6 +558,8 @@ def plan(
             that does not depend on the estimate: where they put the source within reach and
             the estimate gives no direction to trust, the drone loiters (:func:`must_loiter`,
             :func:`loiter_gradient`). None: the keep-out about the estimate alone.
+        loitering: (...) bool, drone i loitered at its last step (:attr:`PlanResult.loiter`;
+            the hysteresis of :func:`must_loiter`). None: it did not.
         lost_contact: (..., N) bool, peers this drone has lost contact with by a network fault
             (a partition, their planner gone from the liveliness view), not by distance: the
             hop argument of :func:`collision_relevant` ("not a neighbour, so farther than
@@ -587,7 +609,9 @@ def plan(
         own_extra,
         config.sensing.components,
     )
-    status, keepout, loiter = _status_and_keepout(cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own=own_ranges)
+    status, keepout, loiter = _status_and_keepout(
+        cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own=own_ranges, loitering=loitering
+    )
     gradient = np.where(loiter[..., None], loiter_gradient(previous_step), cg.gradient) if loiter.any() else cg.gradient
     peer_rows, peers, ages, planes = _peer_constraints(config, view, step_index, lost_contact, own_then_m)
     step = control_step(

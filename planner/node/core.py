@@ -101,6 +101,8 @@ class StepCore:
         self.prev_step_m = np.zeros(3)
         #: This drone's own last ranges and LOS flags (the second source keep-out, planner.agent).
         self.own_ranges: deque[tuple[float, bool]] = deque(maxlen=OWN_RANGE_WINDOW)
+        #: This drone loitered at its last planned step (planner.agent.must_loiter).
+        self.loitering = False
         #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
         #: when each peer's last record was taken (the partition planes, planner.agent.plan).
         self.own_track: dict[int, np.ndarray] = {}
@@ -222,7 +224,9 @@ class StepCore:
         view = self.view.advance(k)
         self.state, rows = self._estimate(view)
         self.used_steps = np.maximum(self.used_steps, view.saved_steps)
-        return view, rows, self._plan(k, own_m, view)
+        result = self._plan(k, own_m, view)
+        self.loitering = bool(np.asarray(result.loiter))
+        return view, rows, result
 
     def _estimate(self, view: Any) -> tuple[est.EstimatorState, int]:
         """Feed the estimator the view's records new since :attr:`used_steps` (one row per
@@ -258,6 +262,7 @@ class StepCore:
             uniforms,
             step_index=k,
             own_ranges=own,
+            loitering=self.loitering,
             lost_contact=lost if own_then is not None else None,
             own_then_m=own_then,
         )

@@ -197,3 +197,62 @@ def test_recorded_case_own_ranges_keep_the_drone_out() -> None:
     assert _replay(False, 0) < LIM.d_source_m
     closest = [_replay(True, seed) for seed in range(12)]
     assert min(closest) >= LIM.d_source_m, closest
+
+
+def _creep(hysteresis: bool, seed: int, steps: int = 400) -> float:
+    """A drone pulled straight at the true source (the worst cost) from 70 m, its estimate 100 m
+    off on the far side with σ = 45 m (never trusted: 3σ ≥ d_S*), its own ranges NLOS (eq. 3-5,
+    drawn at its true distance). Returns its smallest distance to the source (m)."""
+    gen = np.random.default_rng(seed)
+    src = np.array([0.0, 0.0, 2.0])
+    est = np.array([-100.0, 0.0, 2.0])
+    p = np.array([70.0, 0.0, 12.0])
+    prev = np.array([-LIM.step_max_m, 0.0, 0.0])
+    ranges: list[float] = []
+    loitering = False
+    closest = np.inf
+    for _ in range(steps):
+        d = float(np.linalg.norm(p - src))
+        ranges.append(d + float(_relative_sigma(np.array(False))) * d * gen.standard_normal())
+        window = np.array(ranges[-OWN_RANGE_WINDOW:])
+        own = own_ranges(window, np.zeros(window.shape, bool), CHANNEL)
+        loiter = bool(must_loiter(LIM, 45.0, True, np.linalg.norm(p - est), own, loitering if hysteresis else None))
+        grad = loiter_gradient(prev) if loiter else (p - src) / d
+        r = control_step(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est,
+                         source_keepout_m(LIM, 45.0), NO_BOX, NO_BOX, LIM, np.array([0.5, 0.5]))
+        prev, p, loitering = r.displacement, r.next_position, loiter
+        closest = min(closest, float(np.linalg.norm(p - src)))
+    return closest
+
+
+def test_a_loitering_drone_does_not_creep_in_on_noisy_ranges() -> None:
+    """Synthetic truth, closed loop: resuming the cost as soon as the noisy bound rises above
+    d_S* + a, the drone creeps in a step at a time and crosses d_S* for some noise draws; with
+    the hysteresis (resume only at 1.5 (d_S* + a) or a trusted estimate) it stays outside for
+    every draw."""
+    without = [_creep(False, seed) for seed in range(8)]
+    assert min(without) < LIM.d_source_m, without
+    held = [_creep(True, seed) for seed in range(8)]
+    assert min(held) > LIM.d_source_m, held
+
+
+def test_must_loiter_hysteresis_values() -> None:
+    """Closed form of the hysteresis: a drone loitering at the last step goes on while the
+    estimate is untrusted and the bound is below 1.5 (d_S* + a); it stops at a trusted estimate
+    or beyond that bound; a drone not loitering starts only below d_S* + a."""
+    a = source_activation_margin_m(LIM)
+    near = LIM.d_source_m + a
+    los = np.ones(OWN_RANGE_WINDOW, bool)
+
+    def bound_of(mean: float) -> tuple[object, float]:
+        own = own_ranges(np.full(OWN_RANGE_WINDOW, mean), los, CHANNEL)
+        return own, float(own.lower_bound_m())
+
+    mid, mid_lb = bound_of(85.0)  # bound between d_S* + a and 1.5 (d_S* + a)
+    clear, clear_lb = bound_of(160.0)
+    assert near < mid_lb < 1.5 * near < clear_lb
+    assert bool(must_loiter(LIM, 20.0, True, 100.0, mid, True))  # untrusted, still within 1.5×: stays
+    assert not bool(must_loiter(LIM, 20.0, True, 100.0, mid, False))  # not loitering: does not start
+    assert not bool(must_loiter(LIM, 20.0, True, 100.0, mid, None))
+    assert not bool(must_loiter(LIM, 10.0, True, 100.0, mid, True))  # trusted again: resumes
+    assert not bool(must_loiter(LIM, 20.0, True, 160.0, clear, True))  # clear by its own ranges
