@@ -286,7 +286,6 @@ class _Simulation:
         self.fallback = np.empty((K, M, N), dtype=bool)
         self.filtered = np.empty((K, M, N), dtype=bool)
         self.loiter = np.empty((K, M, N), dtype=bool)
-        self.loitering = np.zeros((M, N), dtype=bool)
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
 
     def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
@@ -356,7 +355,7 @@ class _Simulation:
             step_index=k,
             oracle_source=src if self.oracle_estimate else None,
             own_ranges=own,
-            loitering=self.loitering,
+            loitering=self.loiter[k - 1] if k > 0 else None,
             lost_contact=view.cut,
             own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
         )
@@ -364,7 +363,6 @@ class _Simulation:
         self.fallback[k] = step.singular
         self.filtered[k] = step.filtered
         self.loiter[k] = planned.loiter
-        self.loitering = np.asarray(planned.loiter, dtype=bool)
         self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
         return step
 

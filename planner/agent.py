@@ -57,7 +57,7 @@ SOURCE_SIGMA_FACTOR: float = 3.0
 #: Smallest inflation (m) of d_S* about the estimate, however small its σ.
 SOURCE_INFLATION_MIN_M: float = 1.5
 #: Own ranges (the last ones, the current step's included) a ranging drone combines into a
-#: lower bound on its distance to the source (:func:`own_range_lower_bound_m`).
+#: lower bound on its distance to the source (:meth:`OwnRanges.lower_bound_m`).
 OWN_RANGE_WINDOW: int = 10
 #: Standard deviations of that lower bound.
 OWN_RANGE_SIGMA_FACTOR: float = 2.0
@@ -212,13 +212,6 @@ def own_ranges(range_m: ArrayLike, los: ArrayLike, channel: Channel) -> OwnRange
     sw0 = w0.sum(-1)
     dbar = np.where(sw0 > 0.0, (w0 * np.where(have, r, 0.0)).sum(-1) / np.where(sw0 > 0.0, sw0, 1.0), np.nan)
     return OwnRanges(mean_m=np.asarray(dbar, dtype=float), weight=np.asarray(sw0, dtype=float), gamma=float(channel.gamma))
-
-
-def own_range_lower_bound_m(range_m: ArrayLike, los: ArrayLike, channel: Channel, sigma_factor: float = OWN_RANGE_SIGMA_FACTOR) -> FloatArray:
-    """Lower confidence bound (m) on a drone's distance to the source from its own last ranges
-    (``range_m`` (..., W), m, NaN = none; ``los`` (..., W)): :meth:`OwnRanges.lower_bound_m`
-    of :func:`own_ranges`, +inf where no range is given."""
-    return own_ranges(range_m, los, channel).lower_bound_m(sigma_factor)
 
 
 def must_loiter(

@@ -82,14 +82,23 @@ class GuidedSetpoints:
             return False, False, "Setpoint: nothing to do"
         return use_pos, use_vel, None
 
-    def on_set_position_target_local_ned(self, msg: Any) -> None:
-        """SET_POSITION_TARGET_LOCAL_NED in LOCAL_NED, LOCAL_OFFSET_NED or a BODY frame."""
-        m = self.mavlink
+    def _begin_setpoint(self, msg: Any) -> tuple[bool, bool] | None:
+        """Note a setpoint's arrival and decode its type mask: (use position, use velocity), or
+        None after a STATUSTEXT naming a mask it cannot fly."""
         self._note_setpoint()
         use_pos, use_vel, err = self._decode_mask(msg.type_mask)
         if err:
             self.outbox.statustext(4, err, key="sp_mask")
+            return None
+        return use_pos, use_vel
+
+    def on_set_position_target_local_ned(self, msg: Any) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED in LOCAL_NED, LOCAL_OFFSET_NED or a BODY frame."""
+        m = self.mavlink
+        masks = self._begin_setpoint(msg)
+        if masks is None:
             return
+        use_pos, use_vel = masks
         vals = [msg.x, msg.y, msg.z] if use_pos else []
         vals += [msg.vx, msg.vy, msg.vz] if use_vel else []
         if not all(math.isfinite(v) for v in vals):
@@ -120,11 +129,10 @@ class GuidedSetpoints:
     def on_set_position_target_global_int(self, msg: Any) -> None:
         """SET_POSITION_TARGET_GLOBAL_INT in a GLOBAL (AMSL, relative or terrain) frame."""
         m = self.mavlink
-        self._note_setpoint()
-        use_pos, use_vel, err = self._decode_mask(msg.type_mask)
-        if err:
-            self.outbox.statustext(4, err, key="sp_mask")
+        masks = self._begin_setpoint(msg)
+        if masks is None:
             return
+        use_pos, use_vel = masks
         frame = msg.coordinate_frame
         allowed = (
             m.MAV_FRAME_GLOBAL_INT,

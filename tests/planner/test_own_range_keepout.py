@@ -33,7 +33,6 @@ from planner.agent import (
     estimate_sigma_m,
     loiter_gradient,
     must_loiter,
-    own_range_lower_bound_m,
     own_ranges,
     source_keepout_m,
 )
@@ -59,7 +58,7 @@ def test_lower_bound_coverage_is_the_normal_tail(rng: np.random.Generator, k: fl
     d = rng.uniform(20.0, 200.0, (n, 1))
     los = rng.random((n, w)) < 0.5
     r = d + _relative_sigma(los) * d * rng.standard_normal((n, w))
-    lb = own_range_lower_bound_m(r, los, CHANNEL, sigma_factor=k)
+    lb = own_ranges(r, los, CHANNEL).lower_bound_m(k)
     p = stats.norm.sf(k)
     frac = np.mean(lb > d[:, 0])
     assert abs(frac - p) < 4.0 * math.sqrt(p * (1.0 - p) / n), (frac, p)
@@ -71,9 +70,9 @@ def test_lower_bound_missing_ranges() -> None:
     r = np.array([100.0, np.nan, 100.0])
     s = math.log(10.0) / 10.0 * 1.7
     expected = 100.0 / (1.0 + 2.0 * s / math.sqrt(2.0))
-    assert own_range_lower_bound_m(r, los, CHANNEL) == pytest.approx(expected, rel=1e-12)
-    assert own_range_lower_bound_m(np.full((2, 3), np.nan), np.ones((2, 3), bool), CHANNEL).tolist() == [np.inf, np.inf]
-    assert own_range_lower_bound_m(np.zeros((4, 0)), np.zeros((4, 0), bool), CHANNEL).shape == (4,)
+    assert own_ranges(r, los, CHANNEL).lower_bound_m() == pytest.approx(expected, rel=1e-12)
+    assert own_ranges(np.full((2, 3), np.nan), np.ones((2, 3), bool), CHANNEL).lower_bound_m().tolist() == [np.inf, np.inf]
+    assert own_ranges(np.zeros((4, 0)), np.zeros((4, 0), bool), CHANNEL).lower_bound_m().shape == (4,)
 
 
 def test_contradiction_test_false_alarm_and_power(rng: np.random.Generator) -> None:
