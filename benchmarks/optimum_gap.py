@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         mission = load_mission(resolve_mission(f"paper/{name}"))
         limits = mission.limits()
         p_filter = optimum_peb_m(mission, placement_bounds(limits, "filter", oracle_estimate=True), args.starts)
-        hold = placement_bounds(limits, "hold", oracle_estimate=True)
+        hold = placement_bounds(limits, "hold", oracle_estimate=True, source_static=mission.source.is_static)
         p_hold = optimum_peb_m(mission, hold, args.starts)
         for criterion in args.criterion:
             spec = RunSpec(mission, criterion, args.trials, mission.steps)

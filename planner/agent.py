@@ -529,6 +529,7 @@ def plan(
     *,
     step_index: int = 0,
     oracle_source: ArrayLike | None = None,
+    oracle_static: bool = True,
     own_ranges: OwnRanges | None = None,
     loitering: ArrayLike | None = None,
     lost_contact: ArrayLike | None = None,
@@ -546,6 +547,10 @@ def plan(
         step_index: k, the current step (≥ 0), the age of a start position.
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
+        oracle_static: the oracle source does not move: its constraint then acts within
+            v_max Δt + b, one step of the drone's own motion
+            (:func:`planner.control.source_activation_margin_m` with ``exact``); a moving one
+            keeps the estimate's 2 v_max Δt + b.
         own_ranges: drone i's own last :data:`OWN_RANGE_WINDOW` ranges (:func:`own_ranges`;
             none for a drone that does not range): the evidence of its distance to the source
             that does not depend on the estimate: where they put the source within reach and
@@ -624,5 +629,6 @@ def plan(
         xi=config.xi,
         perturbation_rad=config.perturbation_rad,
         peer_planes=planes,
+        source_exact=oracle_source is not None and oracle_static,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), loiter=loiter)

@@ -6,7 +6,8 @@ One drone's step, batched over leading dimensions (trials, drones):
    source (d_S*, inflated by the estimate's uncertainty by the caller), to the nearest
    obstacle (d_O*). With ``activation="paper"`` a constraint is active only once violated
    (g < 0), as printed; with ``"safe"`` (default) it is active within a margin that covers one
-   step of motion of both parties (g < a) and is then held at that margin.
+   step of motion of both parties (g < a; planning with a source known exactly and static, of
+   the drone alone for the source and the altitude box) and is then held at that margin.
 2. The step of eq. 14: u = −ξ P ∇C − N (NᵀN)⁻¹ g̃, with P = I − N (NᵀN)⁻¹ Nᵀ over the (at most
    three most violated) active constraints. ξ is either given (m per unit gradient) or, by
    default, chosen so that ‖ξ P∇C‖ = v_max Δt (normalised steepest descent at top speed).
@@ -71,10 +72,36 @@ class StepResult:
     infeasible: BoolArray
 
 
-def source_activation_margin_m(limits: Limits) -> float:
-    """Clearance (m) beyond the source keep-out within which its constraint acts: 2 v_max Δt + b
-    with the safe rule (docs/control.md), 0 with the paper's rule (active once violated)."""
-    return 2.0 * limits.step_max_m + limits.turn_buffer_m if limits.activation == "safe" else 0.0
+def source_activation_margin_m(limits: Limits, exact: bool = False) -> float:
+    """Clearance (m) beyond the source keep-out within which its constraint acts, with the safe
+    rule (docs/control.md, "Constraint activation"): 2 v_max Δt + b about an estimate, which
+    may move by up to a step's length between two steps as well as the drone; v_max Δt + b
+    about a source known exactly (``exact``: planning with the true source), which only the
+    drone's own step approaches (a source moving by less than b per step stays covered by the
+    turn buffer b). 0 with the paper's rule (active once violated)."""
+    if limits.activation != "safe":
+        return 0.0
+    return (1.0 if exact else 2.0) * limits.step_max_m + limits.turn_buffer_m
+
+
+def altitude_activation_margin_m(limits: Limits, exact_source: bool = False) -> float:
+    """Height (m) inside each face of the altitude box within which that face's constraint acts,
+    with the safe rule (docs/control.md, "Constraint activation").
+
+    The box itself is exact and static: one step of the drone's own climb, v_max Δt
+    sin(min(θ_max, 90°)) (θ_max the tilt change per step of eq. 2), would keep it inside (a drone
+    entering the band tilted is caught by the safety filter's tilt allowance,
+    :func:`_tilt_buffer`). That is the margin with a source known exactly and static
+    (``exact_source``). About an estimate it is 2 v_max Δt + b, as for the source: the band is
+    the room a drone held at a face has to climb or sink away from an estimate that jumps
+    towards it or a peer whose record is late (with the one-step band, the fault grid of
+    docs/reliability.md crossed d_S* and d_U* several times more often). 0 with the paper's
+    rule (it clamps z)."""
+    if limits.activation != "safe":
+        return 0.0
+    if exact_source:
+        return limits.step_max_m * math.sin(min(limits.tilt_change_max_rad, 0.5 * math.pi))
+    return 2.0 * limits.step_max_m + limits.turn_buffer_m
 
 
 def _tilt_buffer(tilt: FloatArray, limits: Limits) -> FloatArray:
@@ -210,6 +237,7 @@ def control_step(
     xi: float | None = None,
     perturbation_rad: float = math.radians(20.0),
     peer_planes: ArrayLike | None = None,
+    source_exact: bool = False,
 ) -> StepResult:
     """One drone's control step: eq. 14 under constraints (15-17) and the limits of eq. 2/7.
 
@@ -234,6 +262,10 @@ def control_step(
         peer_planes: (..., N, 3) unit normals for the peers drone i has lost contact with
             (zeros elsewhere): their row of ``peers`` is then a point of the plane drone i keeps
             to its side of, with its age 0 (:func:`lost_contact_planes`); None: none.
+        source_exact: ``source_estimate`` is the true source (planning with it, a research
+            mode) and static: its constraint acts within v_max Δt + b instead of
+            2 v_max Δt + b, the altitude box's within one level step's climb
+            (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`).
 
     Returns:
         The :class:`StepResult`.
@@ -242,10 +274,10 @@ def control_step(
     if p.ndim == 1:
         # One drone: run the batched code on a batch of one and unwrap.
         one = (previous_step, gradient, status, peers, peer_mask, peer_age_steps, source_estimate, source_keepout_m)
-        return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes)
+        return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes, source_exact)
     prev = np.asarray(previous_step, dtype=float)
     grad = np.asarray(gradient, dtype=float)
-    scene = _scene(p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max)
+    scene = _scene(p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max, source_exact)
     batch = p.shape[:-1]
 
     # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
@@ -294,6 +326,7 @@ def _one_drone(
     xi: float | None,
     perturbation_rad: float,
     peer_planes: ArrayLike | None,
+    source_exact: bool = False,
 ) -> StepResult:
     """:func:`control_step` of one drone (``p`` (3,)): the batched code on a batch of one,
     unwrapped. ``per_drone``: previous step, gradient, status, peers, peer mask, peer ages,
@@ -316,6 +349,7 @@ def _one_drone(
         xi,
         perturbation_rad,
         None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
+        source_exact,
     )
     return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
 
@@ -336,6 +370,7 @@ class _Scene:
     keepout: FloatArray
     bmin: FloatArray
     bmax: FloatArray
+    source_exact: bool = False
 
 
 def _scene(
@@ -348,6 +383,7 @@ def _scene(
     source_keepout_m: ArrayLike,
     boxes_min: ArrayLike,
     boxes_max: ArrayLike,
+    source_exact: bool = False,
 ) -> _Scene:
     """:func:`control_step`'s inputs as a :class:`_Scene` of arrays (same units and shapes)."""
     # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
@@ -362,6 +398,7 @@ def _scene(
         np.broadcast_to(np.asarray(source_keepout_m, dtype=float), p.shape[:-1]),
         np.asarray(boxes_min, dtype=float).reshape(-1, 3),
         np.asarray(boxes_max, dtype=float).reshape(-1, 3),
+        source_exact,
     )
 
 
@@ -389,7 +426,10 @@ def _constraints(scene: _Scene, limits: Limits) -> _Constraints:
     """Constraint values g = d − d* of eqs. 15-17 and their unit normals w.r.t. p_i: every
     peer (d_U*), the source (its keep-out), the nearest obstacle (d_O*), and with the safe rule
     the altitude box. With the safe rule a constraint is active within a margin of one step of
-    motion of both parties, v_max Δt (2 + age) + 2b (b the turn-away buffer); with the paper's
+    motion of both parties, v_max Δt (2 + age) + 2b (b the turn-away buffer), 2 v_max Δt + b
+    for the source estimate, the obstacle and the altitude box, of the drone's own motion for
+    an exactly known static source and then the altitude box
+    (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`); with the paper's
     rule once violated."""
     p, q, planes = scene.p, scene.peers, scene.planes
     safe = limits.activation == "safe"
@@ -421,7 +461,9 @@ def _constraints(scene: _Scene, limits: Limits) -> _Constraints:
     if safe:
         gt = G.copy()
         gt[..., : -2 - n_alt] -= smax * (2.0 + scene.age) + 2.0 * tb
-        gt[..., -2 - n_alt :] -= 2.0 * smax + tb  # = source_activation_margin_m for the source
+        gt[..., -2 - n_alt] -= source_activation_margin_m(limits, scene.source_exact)
+        gt[..., -1 - n_alt] -= 2.0 * smax + tb  # the obstacle
+        gt[..., -n_alt:] -= altitude_activation_margin_m(limits, scene.source_exact)
     else:
         gt = G
     return _Constraints(G, normals, gt, gt < 0.0, dist, g_s, g_o, n_alt)

@@ -55,7 +55,7 @@ from scipy.optimize import minimize
 from scipy.special import ndtr
 
 from planner.agent import SOURCE_INFLATION_MIN_M
-from planner.control import source_activation_margin_m
+from planner.control import altitude_activation_margin_m, source_activation_margin_m
 from planner.fim import cost as fim_cost
 from planner.fim import cost_gradient, fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, distance_to_boxes_with_gradient, line_of_sight, link_clearance_with_gradient
@@ -123,7 +123,7 @@ class PlacementBounds:
             raise ValueError(f"PlacementBounds: expected z_min_m <= z_max_m, found {self.z_min_m} and {self.z_max_m}")
 
 
-def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimate: bool = False) -> PlacementBounds:
+def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimate: bool = False, source_static: bool = True) -> PlacementBounds:
     """The distances a placement keeps, from a mission's limits (docs/control.md, "Constraint
     activation"; b = :attr:`Limits.turn_buffer_m`, a = 2 v_max Δt + b the activation margin,
     :func:`planner.control.source_activation_margin_m`).
@@ -166,7 +166,10 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
         src, uav, obs, alt = b, smax + 2.0 * b, 0.5 * smax + b, 0.0
     else:
         a = source_activation_margin_m(limits)
-        src, uav, obs, alt = a, 2.0 * smax + 2.0 * b, a, min(a, 0.5 * (limits.z_max_m - limits.z_min_m))
+        exact = oracle_estimate and source_static
+        a_src = source_activation_margin_m(limits, exact=exact)
+        a_alt = altitude_activation_margin_m(limits, exact_source=exact)
+        src, uav, obs, alt = a_src, 2.0 * smax + 2.0 * b, a, min(a_alt, 0.5 * (limits.z_max_m - limits.z_min_m))
     return PlacementBounds(
         source_m=limits.d_source_m + inflation + src,
         uav_m=limits.d_uav_m + uav,

@@ -123,6 +123,13 @@ def test_placement_bounds_follow_the_rule() -> None:
     assert placement_bounds(lim, oracle_estimate=True).source_m == pytest.approx(50.0 + b)
     h = placement_bounds(lim, "hold")
     assert (h.source_m, h.z_min_m, h.z_max_m) == pytest.approx((53.5 + b, 4.0 + b, 23.0 - b))
+    # The true source, static: one step of the drone's own motion, and one level step's climb
+    # at the tilt change limit inside each face; moving: the estimate's margins.
+    climb = math.sin(math.radians(50.0))
+    ho = placement_bounds(lim, "hold", oracle_estimate=True)
+    assert (ho.source_m, ho.z_min_m, ho.z_max_m) == pytest.approx((51.0 + b, 2.0 + climb, 25.0 - climb))
+    hm = placement_bounds(lim, "hold", oracle_estimate=True, source_static=False)
+    assert (hm.source_m, hm.z_min_m, hm.z_max_m) == pytest.approx((52.0 + b, 4.0 + b, 23.0 - b))
     n = placement_bounds(lim, "none")
     assert (n.source_m, n.uav_m, n.obstacle_m, n.z_min_m, n.z_max_m) == (50.0, 1.0, 5.0, 2.0, 25.0)
     paper = Limits(activation="paper")
