@@ -126,7 +126,8 @@ class PlacementBounds:
 def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimate: bool = False, source_static: bool = True) -> PlacementBounds:
     """The distances a placement keeps, from a mission's limits (docs/control.md, "Constraint
     activation"; b = :attr:`Limits.turn_buffer_m`, a = 2 v_max Δt + b the activation margin,
-    :func:`planner.control.source_activation_margin_m`).
+    :func:`planner.control.source_activation_margin_m`). ``source_static``: the source does not
+    move (with ``oracle_estimate``, the hold margins are then the drone's own step).
 
     The source keep-out of the default rule is held about the estimate: d_S* + max(3σ, 1.5 m),
     which for a converged estimate (3σ below it) is d_S* + 1.5 m, the inflation floor
@@ -143,9 +144,13 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
     ``rule="hold"``: where the projection of eq. 14 holds a drone the gradient presses against a
     constraint: each constraint acts within a of its clearance and the correction pushes the
     drone back to it: source K + a, peers d_U* + 2 v_max Δt + 2b, buildings d_O* + a, a inside
-    each face of the altitude box. Paper values: R_S = 54.14 m (oracle 52.64 m), z in
-    [4.64, 22.36] m. A 2-trial run of paper/joint ends with a median distance of 53.96 m (52.39 m
-    oracle) and a median altitude of 22.36 m: the drones circle between K + b and K + a.
+    each face of the altitude box. Paper values: R_S = 54.14 m, z in [4.64, 22.36] m. A 2-trial
+    run of paper/joint ends with a median distance of 53.96 m and a median altitude of 22.36 m:
+    the drones circle between K + b and K + a. With ``oracle_estimate`` and ``source_static``
+    (the true source, not moving) the source and the altitude faces act within one step of the
+    drone's own motion (:func:`planner.control.source_activation_margin_m`,
+    :func:`planner.control.altitude_activation_margin_m`): R_S = d_S* + v_max Δt + b = 51.64 m,
+    z in [2.77, 24.23] m; a moving true source keeps the estimate's margins.
 
     ``rule="none"``: problem (7) as printed: d_S*, d_U*, d_O*, [z_min, z_max].
 
