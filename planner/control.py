@@ -94,14 +94,14 @@ def altitude_activation_margin_m(limits: Limits, exact_source: bool = False) -> 
     :func:`_tilt_buffer`). That is the margin with a source known exactly and static
     (``exact_source``). About an estimate it is 2 v_max Δt + b, as for the source: the band is
     the room a drone held at a face has to climb or sink away from an estimate that jumps
-    towards it or a peer whose record is late (with the one-step band, the fault grid of
-    docs/reliability.md crossed d_S* and d_U* several times more often). 0 with the paper's
-    rule (it clamps z)."""
+    towards it or a peer whose record is late (measured with the one-step band in
+    docs/control.md, "How far from the optimum, and why"). 0 with the paper's rule (it clamps
+    z)."""
     if limits.activation != "safe":
         return 0.0
     if exact_source:
         return limits.step_max_m * math.sin(min(limits.tilt_change_max_rad, 0.5 * math.pi))
-    return 2.0 * limits.step_max_m + limits.turn_buffer_m
+    return source_activation_margin_m(limits)
 
 
 def _tilt_buffer(tilt: FloatArray, limits: Limits) -> FloatArray:
@@ -426,11 +426,11 @@ def _constraints(scene: _Scene, limits: Limits) -> _Constraints:
     """Constraint values g = d − d* of eqs. 15-17 and their unit normals w.r.t. p_i: every
     peer (d_U*), the source (its keep-out), the nearest obstacle (d_O*), and with the safe rule
     the altitude box. With the safe rule a constraint is active within a margin of one step of
-    motion of both parties, v_max Δt (2 + age) + 2b (b the turn-away buffer), 2 v_max Δt + b
-    for the source estimate, the obstacle and the altitude box, of the drone's own motion for
-    an exactly known static source and then the altitude box
-    (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`); with the paper's
-    rule once violated."""
+    motion of both parties: v_max Δt (2 + age) + 2b for a peer (b the turn-away buffer),
+    2 v_max Δt + b for the source estimate, the obstacle and the altitude box; planning with an
+    exactly known static source, one step of the drone's own motion for the source and the
+    altitude box (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`).
+    With the paper's rule once violated."""
     p, q, planes = scene.p, scene.peers, scene.planes
     safe = limits.activation == "safe"
     smax, tb = limits.step_max_m, limits.turn_buffer_m
@@ -462,7 +462,7 @@ def _constraints(scene: _Scene, limits: Limits) -> _Constraints:
         gt = G.copy()
         gt[..., : -2 - n_alt] -= smax * (2.0 + scene.age) + 2.0 * tb
         gt[..., -2 - n_alt] -= source_activation_margin_m(limits, scene.source_exact)
-        gt[..., -1 - n_alt] -= 2.0 * smax + tb  # the obstacle
+        gt[..., -1 - n_alt] -= source_activation_margin_m(limits)  # the obstacle: 2 v_max Δt + b
         gt[..., -n_alt:] -= altitude_activation_margin_m(limits, scene.source_exact)
     else:
         gt = G

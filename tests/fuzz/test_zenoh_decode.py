@@ -45,9 +45,8 @@ finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e5, max_va
 angle = st.floats(min_value=-3.14, max_value=3.14)
 
 
-@st.composite
-def observations(draw: st.DrawFn) -> Observation:
-    ranging, bearing = draw(st.sampled_from([(True, False), (False, True), (True, True)]))
+def _draw_observation(draw: st.DrawFn, ranging: bool, bearing: bool, extra_values: dict[str, float] | None = None) -> Observation:
+    """A record of the given roles with drawn sender, step, time, position and measurements."""
     return Observation(
         sender=draw(st.integers(1, N)), step=draw(st.integers(0, 10_000)), time_s=draw(finite),
         position_m=(draw(finite), draw(finite), draw(finite)), ranging=ranging, bearing=bearing, los=draw(st.booleans()),
@@ -56,7 +55,14 @@ def observations(draw: st.DrawFn) -> Observation:
         elevation_rad=draw(st.floats(min_value=-1.5, max_value=1.5)) if bearing else math.nan,
         stale=draw(st.booleans()),
         taken_over=draw(st.booleans()),
+        **({} if extra_values is None else {"extra_values": extra_values}),
     )
+
+
+@st.composite
+def observations(draw: st.DrawFn) -> Observation:
+    ranging, bearing = draw(st.sampled_from([(True, False), (False, True), (True, True)]))
+    return _draw_observation(draw, ranging, bearing)
 
 
 def valid_record(sender: int = 2) -> bytes:
@@ -283,15 +289,7 @@ TOY_ROLES = {"squared": (False, False, ("range_squared_m2",)), "joint_squared": 
 def toy_observations(draw: st.DrawFn) -> Observation:
     ranging, bearing, names = TOY_ROLES[draw(st.sampled_from(sorted(TOY_ROLES)))]
     value = st.one_of(finite, st.just(math.nan))
-    return Observation(
-        sender=draw(st.integers(1, N)), step=draw(st.integers(0, 10_000)), time_s=draw(finite),
-        position_m=(draw(finite), draw(finite), draw(finite)), ranging=ranging, bearing=bearing, los=draw(st.booleans()),
-        range_m=draw(finite) if ranging else math.nan,
-        azimuth_rad=draw(angle) if bearing else math.nan,
-        elevation_rad=draw(st.floats(min_value=-1.5, max_value=1.5)) if bearing else math.nan,
-        stale=draw(st.booleans()), taken_over=draw(st.booleans()),
-        extra_values={name: draw(value) for name in names},
-    )
+    return _draw_observation(draw, ranging, bearing, {name: draw(value) for name in names})
 
 
 #: End of a record's fixed body (header 14 + body 62 bytes): an extension starts here.
