@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planner.estimator import memory as rmem
 from planner.estimator.initialisation import _distance_scale, _pl_cost, _pl_range_rows, _pl_rows, _pl_solve, _range_scale, _schur_prior
 from planner.estimator.linalg import _det3, _normalised_det
 from planner.estimator.robust import _accumulate, _Eval, _evaluate, _Gate, _lm_iterations, _Rows, _rows
@@ -84,6 +85,10 @@ def _check_windows(state: EstimatorState, config: EstimatorConfig) -> None:
     W = config.window_rows
     if state.window.count != W:
         raise ValueError(f"EstimatorState: window has {state.window.count} rows, config.window_rows is {W}")
+    if state.range_memory.cells != config.range_memory_cells:
+        raise ValueError(
+            f"EstimatorState: range memory has {state.range_memory.cells} cells, config.range_memory_cells is {config.range_memory_cells}"
+        )
     if state.range_window.count != config.recheck_window_rows:
         raise ValueError(
             f"EstimatorState: range window has {state.range_window.count} rows, config.recheck_window_rows is {config.recheck_window_rows}"
@@ -180,15 +185,26 @@ def _recheck(
     new_rows: _Rows,
     pr: tuple[FloatArray, FloatArray],
     range_weight: FloatArray,
+    memory: rmem.RangeMemory,
     channel: Channel,
     config: EstimatorConfig,
     M: int,
 ) -> _Start:
-    """Global re-check (package doc, step 3): the squared-range PL solution of all past ranges
-    (the summary ``pr`` = (A, b) plus the ranges still in the range window, weighted at the
-    previous estimate) replaces the estimate when the PL cost drops by more than
-    ``recheck_threshold`` AND the new records prefer it (full likelihood, ½ ln σ_r² included:
-    comparing distant candidates with σ_r evaluated at each would favour the farther one)."""
+    """Global re-check (package doc, step 3). The candidate is the squared-range PL solution of
+    all past ranges (the summary ``pr`` = (A, b) plus the ranges still in the range window,
+    weighted at the previous estimate).
+
+    With the range ``memory`` (``range_memory_cells`` > 0), the previous estimate and the
+    candidate are each polished to the optimum of their basin on the exact likelihood of every
+    range so far and this call's (:func:`planner.estimator.memory.polish`); the estimate moves
+    to the candidate's optimum when its negative log-likelihood is lower by more than
+    ``recheck_likelihood_drop`` and the new records prefer it. The prior, linearised in the
+    other basin, becomes the memory's cost re-linearised there (the past bearings' information
+    is dropped). Without the memory, the estimate moves to the candidate when the PL cost drops
+    by more than ``recheck_threshold`` and the new records prefer it, and the prior becomes the
+    PL summary. The new records' preference is their full likelihood, ½ ln σ_r² included
+    (comparing distant candidates with σ_r evaluated at each would favour the farther one);
+    either way only ``recheck_trust`` of the new prior's information is claimed."""
     x_prev = state.estimate_m
     pr_A, pr_b = pr
     if _recheck_due(state, config, M) and np.any(state.initialised):
@@ -205,11 +221,14 @@ def _recheck(
     x_pl, ok = _pl_solve(sys_A[recheck], sys_b[recheck], config)
     cand = x_prev.copy()
     cand[recheck] = config.clip(np.where(ok[:, None], x_pl, x_prev[recheck]))
-    drop = _pl_cost(sys_A, sys_b, x_prev) - _pl_cost(sys_A, sys_b, cand)
     fresh = new_rows.masked(start.initialised)
     c_prev = _evaluate(x_prev, fresh, channel, config.huber_k, True, cost_only=True)
+    by_memory = recheck & ~state.angles_used if config.range_memory_cells > 0 else np.zeros_like(recheck)
+    if np.any(by_memory):
+        start = _recheck_memory(start, x_prev, cand, by_memory, fresh, memory, channel, config)
+    drop = _pl_cost(sys_A, sys_b, x_prev) - _pl_cost(sys_A, sys_b, cand)
     c_cand = _evaluate(cand, fresh, channel, config.huber_k, True, cost_only=True)
-    move = recheck & (drop > config.recheck_threshold) & (c_cand < c_prev)
+    move = recheck & ~by_memory & (drop > config.recheck_threshold) & (c_cand < c_prev)
     if not np.any(move):
         return start
     # The prior linearised in the other basin is replaced by the PL summary of the ranges
@@ -218,18 +237,58 @@ def _recheck(
     # be biased, e.g. by NLOS ranges; the records that follow rebuild the information at the
     # new estimate).
     lam_r, eta_r = _schur_prior(sys_A, sys_b)
-    prior = _Prior(
-        np.where(move[..., None, None], lam_r, start.prior.information),
-        np.where(move[..., None, None], lam_r * config.recheck_trust, start.prior.fisher),
-        np.where(move[..., None], eta_r, start.prior.vector),
-    )
+    return _moved(start, move, cand, _Prior(lam_r, lam_r * config.recheck_trust, eta_r))
+
+
+def _moved(start: _Start, move: BoolArray, x: FloatArray, prior: _Prior) -> _Start:
+    """The start with the elements ``move`` at ``x`` (..., 3), m, with ``prior`` in place of
+    theirs, afresh (Huber iterations, ``init_iterations``)."""
     return dataclasses.replace(
         start,
-        x=np.where(move[..., None], cand, start.x),
-        prior=prior,
+        x=np.where(move[..., None], x, start.x),
+        prior=_Prior(
+            np.where(move[..., None, None], prior.information, start.prior.information),
+            np.where(move[..., None, None], prior.fisher, start.prior.fisher),
+            np.where(move[..., None], prior.vector, start.prior.vector),
+        ),
         fresh_start=start.fresh_start | move,
         long_run=start.long_run | move,
     )
+
+
+def _recheck_memory(
+    start: _Start,
+    x_prev: FloatArray,
+    cand: FloatArray,
+    use: BoolArray,
+    fresh: _Rows,
+    memory: rmem.RangeMemory,
+    channel: Channel,
+    config: EstimatorConfig,
+) -> _Start:
+    """The re-check on the exact likelihood of the range memory (:func:`_recheck`) of the
+    elements ``use`` (initialised, range records only so far): the previous estimate moves to
+    the best of its own basin's optimum and the other basin's when that is more likely than it
+    by more than ``recheck_likelihood_drop``."""
+    gamma = channel.gamma
+    fr = fresh.subset(use)
+    mem = rmem.RangeMemory(*(getattr(memory, f)[use] for f in rmem.RangeMemory.__dataclass_fields__))
+    total = rmem.insert(mem, np.stack((fr.px, fr.py, fr.pz), axis=-1), fr.zr, fr.ar, fr.s0, config.range_memory_radius)
+    xp = x_prev[use]
+    both, nll_both = rmem.polish(total, np.stack((xp, rmem.best_start(total, xp, cand[use], gamma, config.clip))), gamma, config.clip)
+    (x_here, x_there), (nll_here, nll_there) = both, nll_both
+    x_best = np.where((nll_there < nll_here)[:, None], x_there, x_here)
+    gain = rmem.nll(total, xp, gamma) - np.minimum(nll_here, nll_there)
+    moved = rmem.has_ranges(total) & (gain > config.recheck_likelihood_drop)
+    if not np.any(moved):
+        return start
+    move = _scatter(np.zeros_like(use), moved, use)
+    x_new = _scatter(start.x, x_best, use)
+    # The prior: the memory's cost (every past range) re-linearised at the new estimate.
+    g, F = rmem.gradient_fisher(mem, x_best, gamma, config.range_cost == "ml")
+    eta = _scatter(start.prior.vector, np.einsum("...ij,...j->...i", F, x_best) - g, use)
+    F = _scatter(start.prior.information, F, use)
+    return _moved(start, move, x_new, _Prior(F, F, eta))
 
 
 def _innovation_gate(state: EstimatorState, config: EstimatorConfig) -> _Gate | None:
@@ -481,6 +540,19 @@ def _advance_range_window(
     return range_window, range_weight, pr_A, pr_b
 
 
+def _advance_memory(memory: rmem.RangeMemory, new_rows: _Rows, keep: BoolArray, config: EstimatorConfig) -> rmem.RangeMemory:
+    """The range memory with this call's ranges, for the elements ``keep`` (range records only
+    so far: the others never use it)."""
+    take = keep & np.any(new_rows.ar > 0.0, axis=-1)
+    if config.range_memory_cells == 0 or not np.any(take):
+        return memory
+    fields = rmem.RangeMemory.__dataclass_fields__
+    sub = rmem.RangeMemory(*(getattr(memory, f)[take] for f in fields))
+    r = new_rows.subset(take)
+    sub = rmem.insert(sub, np.stack((r.px, r.py, r.pz), axis=-1), r.zr, r.ar, r.s0, config.range_memory_radius)
+    return rmem.RangeMemory(*(_scatter(getattr(memory, f), getattr(sub, f), take) for f in fields))
+
+
 def _advance_window(state: EstimatorState, allm: Measurements, weight: FloatArray, config: EstimatorConfig) -> tuple[Measurements, FloatArray]:
     """The raw window after this call: the newest ``window_rows`` rows of ``allm`` and their
     weights (the state's window, unchanged, without one)."""
@@ -533,7 +605,8 @@ def update(
     start, pl_A, pl_b = _initialise(state, new_rows, prior, (state.pl_matrix * lam, state.pl_vector * lam), dropped, channel, config, M)
     pr = (state.pl_range_matrix * lam, state.pl_range_vector * lam)
     range_weight = state.range_window_weight * lam
-    start = _recheck(state, start, new_rows, pr, range_weight, channel, config, M)
+    memory = state.range_memory.forgotten(lam)
+    start = _recheck(state, start, new_rows, pr, range_weight, memory, channel, config, M)
     active = start.initialised
     if not np.all(active):
         rows = rows.masked(active)
@@ -554,6 +627,10 @@ def update(
     )
     window, window_weight = _advance_window(state, allm, weight, config)
     used = new_rows.used_count()
+    angles_used = state.angles_used | np.any((new_rows.aa > 0.0) | (new_rows.ae > 0.0), axis=-1)
+    for extra in new_rows.extra:
+        angles_used = angles_used | np.any(extra.a > 0.0, axis=(-2, -1))
+    memory = _advance_memory(memory, new_rows, ~angles_used, config)
     return EstimatorState(
         estimate_m=x,
         information=info,
@@ -570,6 +647,8 @@ def update(
         pl_range_vector=pr_b,
         range_window=range_window,
         range_window_weight=range_window_weight,
+        range_memory=memory,
+        angles_used=angles_used,
         window=window,
         window_weight=window_weight,
         measurement_count=state.measurement_count + used,

@@ -1,0 +1,320 @@
+r"""The range memory (internal): every range so far, compressed by where it was taken, for the
+exact-likelihood global re-check (:func:`planner.estimator.update._recheck`).
+
+A linearised summary (Λ, η) cannot tell two distant basins apart: each record was linearised
+where the estimate was when it arrived, so a summary built in a wrong basin holds the estimate
+there. The squared-range PL summary can (it is exact in θ = (p0, ‖p0‖²)), but its cost is not
+the likelihood: squaring ranges of 40 % relative noise puts its minimiser further off than the
+exact ML in the paper's final ranging geometry (``docs/estimator.md``). The memory keeps what
+the exact likelihood needs.
+
+Under the model d̂ ~ N(d, σ_r0² d^γ) (eq. 5), the ranges d̂_k taken from one position p with one
+σ_r0 enter the negative log-likelihood only through n = Σ w_k, S1 = Σ w_k d̂_k and
+S2 = Σ w_k d̂_k² (w_k the record's forgetting weight):
+
+.. math::
+    f(p_0) = \frac{S_2 - 2 d S_1 + n d^2}{2\sigma_{r0}^2 d^\gamma} + \frac{n\gamma}{2}\ln d,
+    \qquad d = \lVert p_0 - p\rVert.
+
+A cell holds n, S1, S2, Σ w p, T = Σ w d̂ p and Q = Σ w ‖p‖² of the ranges taken within
+``range_memory_radius`` (a fraction of the cell's mean range) of its mean position p̄, with the
+same σ_r0 (LOS or NLOS). With them the residual sum Σ w (d̂ − ‖p0 − p‖)² is kept to first
+order in the offsets δ = p − p̄ (u the unit vector from p̄ to p0, d = ‖p0 − p̄‖):
+
+.. math::
+    S_2 - 2\,(d S_1 - u^T (T - S_1 \bar p)) + n d^2 + (Q - n \lVert\bar p\rVert^2),
+
+exact for ranges taken at one position; the variance is taken at the centre (a relative error
+of order γ δ/d). When every cell is taken, a range joins the nearest cell of its σ_r0 (or the
+nearest cell) whatever the distance: the memory degrades gracefully and never grows.
+
+The memory is off by default (``range_memory_cells`` = 0); ``docs/estimator.md`` gives what it
+changes and why it is not yet the default.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Weight below which a cell counts as empty (a cell forgotten at λ = 0.97 for 450 calls).
+_EMPTY = 1e-6
+
+
+@dataclass(frozen=True)
+class RangeMemory:
+    """Cells of compressed ranges, batch shape ``...``, ``C`` cells (internal).
+
+    Attributes:
+        position_sum: Σ w p, (..., C, 3), m·(weight), ENU.
+        weight: n = Σ w, (..., C); a cell with n < 1e-6 is empty.
+        range_sum: S1 = Σ w d̂, (..., C), m.
+        square_sum: S2 = Σ w d̂², (..., C), m².
+        sigma_r0: σ_r0 of the cell's ranges (LOS or NLOS, eq. 5), (..., C), m.
+        cross_sum: T = Σ w d̂ p, (..., C, 3), m².
+        position_square_sum: Q = Σ w ‖p‖², (..., C), m².
+    """
+
+    position_sum: FloatArray
+    weight: FloatArray
+    range_sum: FloatArray
+    square_sum: FloatArray
+    sigma_r0: FloatArray
+    cross_sum: FloatArray
+    position_square_sum: FloatArray
+
+    @property
+    def cells(self) -> int:
+        """Capacity C."""
+        return int(self.weight.shape[-1])
+
+    def forgotten(self, lam: float) -> RangeMemory:
+        """Every cell's statistics times the forgetting factor λ (the cells stay where they are)."""
+        if lam == 1.0:
+            return self
+        return RangeMemory(
+            self.position_sum * lam,
+            self.weight * lam,
+            self.range_sum * lam,
+            self.square_sum * lam,
+            self.sigma_r0,
+            self.cross_sum * lam,
+            self.position_square_sum * lam,
+        )
+
+
+@dataclass(frozen=True)
+class Cells:
+    """The occupied cells of a memory, ready to evaluate (internal): mean positions ``centre``
+    (..., C', 3), m, ENU; n, S1, S2 (0 where empty) and σ_r0² (..., C'); the first moment of
+    the ranges about the centre ``lever`` = T − S1 p̄ (..., C', 3), m², and the spread
+    Σ w ‖p − p̄‖² (..., C'), m²; C' the last occupied cell of any batch element, plus one."""
+
+    centre: FloatArray
+    n: FloatArray
+    s1: FloatArray
+    s2: FloatArray
+    s0sq: FloatArray
+    lever: FloatArray
+    spread: FloatArray
+
+    @staticmethod
+    def of(memory: RangeMemory) -> Cells:
+        """The occupied cells of ``memory``."""
+        full = memory.weight >= _EMPTY
+        occupied = np.nonzero(np.any(full, axis=tuple(range(full.ndim - 1))))[0]
+        c = int(occupied[-1]) + 1 if occupied.size else 0
+        full = full[..., :c]
+        safe_n = np.where(full, memory.weight[..., :c], 1.0)
+        n = np.where(full, memory.weight[..., :c], 0.0)
+        s1 = np.where(full, memory.range_sum[..., :c], 0.0)
+        centre = memory.position_sum[..., :c, :] / safe_n[..., None]
+        lever = np.where(full[..., None], memory.cross_sum[..., :c, :] - s1[..., None] * centre, 0.0)
+        spread = np.where(full, np.maximum(memory.position_square_sum[..., :c] - n * (centre * centre).sum(axis=-1), 0.0), 0.0)
+        return Cells(centre, n, s1, np.where(full, memory.square_sum[..., :c], 0.0), memory.sigma_r0[..., :c] ** 2, lever, spread)
+
+    def broadcast(self, shape: tuple[int, ...]) -> Cells:
+        """The cells with a leading batch shape ``shape`` added (to evaluate several points)."""
+        return Cells(*(np.broadcast_to(getattr(self, f), shape + getattr(self, f).shape) for f in Cells.__dataclass_fields__))
+
+
+def empty_memory(batch_shape: tuple[int, ...], cells: int) -> RangeMemory:
+    """A memory of ``cells`` empty cells per batch element."""
+    z = np.zeros(batch_shape + (cells,))
+    return RangeMemory(
+        np.zeros(batch_shape + (cells, 3)), z, z.copy(), z.copy(), np.ones(batch_shape + (cells,)), np.zeros(batch_shape + (cells, 3)), z.copy()
+    )
+
+
+def insert(
+    memory: RangeMemory, positions: FloatArray, ranges: FloatArray, weights: FloatArray, sigma_r0: FloatArray, radius_fraction: float
+) -> RangeMemory:
+    """The memory with the ranges ``ranges`` (..., M), m, taken at ``positions`` (..., M, 3), m,
+    ENU, with weights ``weights`` (..., M) (0: absent) and σ_r0 ``sigma_r0`` (..., M), m, added
+    each batch element independently (a batch element holds what the same rows give with batch
+    shape ()).
+
+    The rows within reach of a cell of their σ_r0 (as the cells were before the call) join the
+    nearest such cell together; each other row in turn joins the nearest cell of its σ_r0 whose mean position is within ``radius_fraction``
+    × max(mean range, 1 m) of it; else the first empty cell; else the nearest cell of its σ_r0;
+    else the nearest cell.
+    """
+    if memory.cells == 0 or ranges.shape[-1] == 0:
+        return memory
+    ps, n, s1, s2, s0, tt, qq = (np.array(getattr(memory, f), copy=True) for f in RangeMemory.__dataclass_fields__)
+    pp = (positions * positions).sum(axis=-1)  # (..., M)
+    C = memory.cells
+    cell_ids = np.arange(C)
+    # First, at once: the rows within reach of a cell of their σ_r0 (the cells as they were
+    # before this call) join the nearest such cell.
+    cells = Cells.of(memory)
+    c = cells.n.shape[-1]  # the occupied prefix
+    dist = np.sqrt(((cells.centre[..., None, :, :] - positions[..., :, None, :]) ** 2).sum(axis=-1))  # (..., M, c)
+    radius = radius_fraction * np.maximum(np.abs(cells.s1) / np.where(cells.n > 0.0, cells.n, 1.0), 1.0)
+    same = (cells.n > 0.0)[..., None, :] & (s0[..., None, :c] == sigma_r0[..., :, None])
+    near = np.where(same & (dist <= radius[..., None, :]), dist, np.inf)
+    merged = np.zeros(weights.shape, dtype=bool)
+    if c > 0:
+        best = np.argmin(near, axis=-1)  # (..., M)
+        merged = (weights > 0.0) & np.isfinite(np.take_along_axis(near, best[..., None], axis=-1)[..., 0])
+    if np.any(merged):
+        hit = np.where((cell_ids[:c] == best[..., None]) & merged[..., None], weights[..., None], 0.0)  # (..., M, c)
+        ps[..., :c, :] += np.einsum("...mc,...mi->...ci", hit, positions)
+        n[..., :c] += hit.sum(axis=-2)
+        s1[..., :c] += np.einsum("...mc,...m->...c", hit, ranges)
+        s2[..., :c] += np.einsum("...mc,...m->...c", hit, ranges * ranges)
+        tt[..., :c, :] += np.einsum("...mc,...mi->...ci", hit, ranges[..., None] * positions)
+        qq[..., :c] += np.einsum("...mc,...m->...c", hit, pp)
+    rest = np.nonzero(np.any((weights > 0.0) & ~merged, axis=tuple(range(weights.ndim - 1))))[0]
+    # Then the others, one at a time.
+    for k in rest:
+        w = np.where(merged[..., k], 0.0, weights[..., k])
+        use = w > 0.0
+        if not np.any(use):
+            continue
+        p, d, s = positions[..., k, :], ranges[..., k], sigma_r0[..., k]
+        full = n >= _EMPTY
+        safe_n = np.where(full, n, 1.0)
+        centre = ps / safe_n[..., None]
+        dist = np.sqrt(((centre - p[..., None, :]) ** 2).sum(axis=-1))
+        radius = radius_fraction * np.maximum(np.abs(s1) / safe_n, 1.0)
+        same = full & (s0 == s[..., None])
+        near = np.where(same, dist, np.inf)
+        best_same = np.argmin(near, axis=-1)
+        d_best = np.take_along_axis(near, best_same[..., None], axis=-1)[..., 0]
+        r_best = np.take_along_axis(radius, best_same[..., None], axis=-1)[..., 0]
+        empty = ~full
+        first_empty = np.argmax(empty, axis=-1)
+        has_empty = np.any(empty, axis=-1)
+        has_same = np.isfinite(d_best)
+        nearest_any = np.argmin(np.where(full, dist, np.inf), axis=-1)
+        cell = np.where(
+            has_same & (d_best <= r_best),
+            best_same,
+            np.where(has_empty, first_empty, np.where(has_same, best_same, nearest_any)),
+        )
+        hit = (cell_ids == cell[..., None]) & use[..., None]  # (..., C) one-hot
+        fresh = hit & empty
+        wh = np.where(hit, w[..., None], 0.0)
+        ps = ps + wh[..., None] * p[..., None, :]
+        n = n + wh
+        s1 = s1 + wh * d[..., None]
+        s2 = s2 + wh * (d * d)[..., None]
+        tt = tt + wh[..., None] * (d[..., None] * p)[..., None, :]
+        qq = qq + wh * pp[..., k, None]
+        s0 = np.where(fresh, s[..., None], s0)
+    return RangeMemory(ps, n, s1, s2, s0, tt, qq)
+
+
+def _terms(cells: Cells, x: FloatArray, gamma: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per cell at x (..., 3): distance d = ‖x − p̄‖ (..., C), unit vector u (..., C, 3),
+    variance σ_r0² d^γ and the residual sum Σ w (d̂ − ‖x − p‖)² (..., C), to first order in the
+    records' offsets p − p̄ from the centre: S2 − 2(S1 d − u·lever) + nd² + spread."""
+    r = x[..., None, :] - cells.centre
+    d = np.maximum(np.sqrt((r * r).sum(axis=-1)), 1e-3)
+    u = r / d[..., None]
+    var = cells.s0sq * (d * d if gamma == 2.0 else d**gamma)
+    resid2 = cells.s2 - 2.0 * (d * cells.s1 - (u * cells.lever).sum(axis=-1)) + cells.n * d * d + cells.spread
+    return d, u, var, resid2
+
+
+def _nll(cells: Cells, x: FloatArray, gamma: float) -> FloatArray:
+    d, _, var, resid2 = _terms(cells, x, gamma)
+    return (0.5 * resid2 / var + 0.5 * gamma * cells.n * np.log(d)).sum(axis=-1)
+
+
+def nll(memory: RangeMemory, x: FloatArray, gamma: float) -> FloatArray:
+    """Negative log-likelihood of every range in the memory at source positions x (..., 3), m,
+    ENU, up to a constant (eq. 5): Σ_cells Σ w (d̂ − ‖x − p‖)²/(2σ_r0² d^γ) + (nγ/2) ln d, d the
+    distance to the cell's centre, the residuals to first order in the offsets from it
+    (exact for ranges taken at one position), (...,)."""
+    return _nll(Cells.of(memory), x, gamma)
+
+
+def _gradient_fisher(cells: Cells, x: FloatArray, gamma: float, full_likelihood: bool) -> tuple[FloatArray, FloatArray]:
+    d, u, var, resid2 = _terms(cells, x, gamma)
+    dfd = (cells.n * d - cells.s1) / var
+    info = cells.n / var
+    if full_likelihood:
+        dfd = dfd - 0.5 * gamma * resid2 / (var * d) + 0.5 * gamma * cells.n / d
+        info = info + 0.5 * cells.n * (gamma / d) ** 2
+    # The lever term u·lever turns with u: ∂u/∂x = (I − uuᵀ)/d.
+    lev = cells.lever / (var * d)[..., None]
+    tangential = lev - (u * lev).sum(axis=-1, keepdims=True) * u
+    g = np.einsum("...c,...ci->...i", dfd, u) + tangential.sum(axis=-2)
+    F = np.einsum("...c,...ci,...cj->...ij", info, u, u)
+    return g, F
+
+
+def gradient_fisher(memory: RangeMemory, x: FloatArray, gamma: float, full_likelihood: bool) -> tuple[FloatArray, FloatArray]:
+    """Gradient (..., 3), m⁻¹, and Fisher information (..., 3, 3), m⁻², of the memory's cost at
+    x (..., 3), m, ENU. ``full_likelihood``: of :func:`nll` (with ½ ln σ_r², Fisher
+    n(1/σ_r² + γ²/(2d²)) uuᵀ); else of the generalised LS cost Σ w (d̂ − ‖x − p‖)²/(2σ_r²) with
+    σ_r² held at x (Fisher n/σ_r² uuᵀ), the form of the refinement's prior in GLS mode."""
+    return _gradient_fisher(Cells.of(memory), x, gamma, full_likelihood)
+
+
+def polish(
+    memory: RangeMemory, x: FloatArray, gamma: float, clip: Callable[[FloatArray], FloatArray], iterations: int = 15, tolerance_m: float = 1e-3
+) -> tuple[FloatArray, FloatArray]:
+    """Fisher-scoring (Levenberg-Marquardt) minimisation of :func:`nll` from x (..., 3), m,
+    ENU, projected by ``clip`` (into the search box), each step kept only if the cost does not
+    increase; at most ``iterations``, fewer once every step is shorter than ``tolerance_m``.
+    ``memory`` may have fewer batch axes than x (its cells broadcast over the leading ones).
+    Returns the point and its cost (...,)."""
+    cells = Cells.of(memory)
+    extra = x.shape[: x.ndim - 1 - memory.weight.ndim + 1]
+    if extra:
+        cells = cells.broadcast(extra)
+    cost = _nll(cells, x, gamma)
+    mu = np.full(cost.shape, 1e-3)
+    eye = np.eye(3)
+    for _ in range(iterations):
+        g, F = _gradient_fisher(cells, x, gamma, True)
+        diag = np.einsum("...ii->...i", F)
+        H = F + (mu[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye
+        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        cand = clip(x + step)
+        c_new = _nll(cells, cand, gamma)
+        ok = np.isfinite(c_new) & (c_new <= cost)
+        x = np.where(ok[..., None], cand, x)
+        cost = np.where(ok, c_new, cost)
+        mu = np.where(ok, mu / 3.0, mu * 4.0)
+        if not np.any(ok & (np.abs(step).max(axis=-1) > tolerance_m)):
+            break
+    return x, cost
+
+
+def best_start(
+    memory: RangeMemory, x: FloatArray, cand: FloatArray, gamma: float, clip: Callable[[FloatArray], FloatArray], points: int = 16
+) -> FloatArray:
+    """Where to look for another basin (..., 3), m, ENU: of the candidate ``cand`` and of
+    ``points`` points on the line through x along the memory's least-informed direction (within
+    ± the mean distance from x to the cells, projected by ``clip``), the one of lowest
+    :func:`nll`. Ranges pin the distances, not the direction of least information (e.g. the
+    height of a source below a swarm), so the other basin lies along it."""
+    cells = Cells.of(memory)
+    _, F = _gradient_fisher(cells, x, gamma, False)
+    _, vecs = np.linalg.eigh(F)
+    v = vecs[..., :, 0]  # (..., 3) smallest eigenvalue
+    occupied = cells.n > 0.0
+    dist = np.sqrt(((x[..., None, :] - cells.centre) ** 2).sum(axis=-1))
+    reach = np.where(occupied, dist, 0.0).sum(axis=-1) / np.maximum(occupied.sum(axis=-1), 1)
+    t = np.linspace(-1.0, 1.0, points)
+    pts = clip(x[..., None, :] + (t[:, None] * reach[..., None, None]) * v[..., None, :])  # (..., P, 3)
+    pts = np.concatenate((pts, cand[..., None, :]), axis=-2)
+    costs = _nll(cells.broadcast((pts.shape[-2],)), np.moveaxis(pts, -2, 0), gamma)  # (P, ...)
+    costs = np.where(np.isfinite(costs), costs, np.inf)
+    best = np.argmin(costs, axis=0)
+    return np.take_along_axis(pts, best[..., None, None], axis=-2)[..., 0, :]
+
+
+def has_ranges(memory: RangeMemory) -> BoolArray:
+    """Where the memory holds any range, (...,)."""
+    return np.any(memory.weight >= _EMPTY, axis=-1)
