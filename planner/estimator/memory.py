@@ -74,6 +74,19 @@ class RangeMemory:
         """Capacity C."""
         return int(self.weight.shape[-1])
 
+    def subset(self, mask: BoolArray) -> RangeMemory:
+        """The batch elements where ``mask`` (...,)."""
+        return RangeMemory(*(getattr(self, f)[mask] for f in RangeMemory.__dataclass_fields__))
+
+    def scattered(self, part: RangeMemory, mask: BoolArray) -> RangeMemory:
+        """A copy with the elements ``mask`` (...,) replaced by ``part`` (their :meth:`subset`)."""
+        out = []
+        for f in RangeMemory.__dataclass_fields__:
+            a = np.array(getattr(self, f), copy=True)
+            a[mask] = getattr(part, f)
+            out.append(a)
+        return RangeMemory(*out)
+
     def forgotten(self, lam: float) -> RangeMemory:
         """Every cell's statistics times the forgetting factor λ (the cells stay where they are)."""
         if lam == 1.0:

@@ -194,17 +194,12 @@ def _recheck(
     all past ranges (the summary ``pr`` = (A, b) plus the ranges still in the range window,
     weighted at the previous estimate).
 
-    With the range ``memory`` (``range_memory_cells`` > 0), the previous estimate and the
-    candidate are each polished to the optimum of their basin on the exact likelihood of every
-    range so far and this call's (:func:`planner.estimator.memory.polish`); the estimate moves
-    to the candidate's optimum when its negative log-likelihood is lower by more than
-    ``recheck_likelihood_drop`` and the new records prefer it. The prior, linearised in the
-    other basin, becomes the memory's cost re-linearised there (the past bearings' information
-    is dropped). Without the memory, the estimate moves to the candidate when the PL cost drops
-    by more than ``recheck_threshold`` and the new records prefer it, and the prior becomes the
-    PL summary. The new records' preference is their full likelihood, ½ ln σ_r² included
-    (comparing distant candidates with σ_r evaluated at each would favour the farther one);
-    either way only ``recheck_trust`` of the new prior's information is claimed."""
+    With the range ``memory`` (``range_memory_cells`` > 0), an element that has used only
+    ranges is re-checked by :func:`_recheck_memory` instead, on the exact likelihood of every
+    range so far. The others move to the candidate when the PL cost drops by more than
+    ``recheck_threshold`` and the new records prefer it (their full likelihood, ½ ln σ_r²
+    included: comparing distant candidates with σ_r evaluated at each would favour the farther
+    one); their prior becomes the PL summary, of which only ``recheck_trust`` is claimed."""
     x_prev = state.estimate_m
     pr_A, pr_b = pr
     if _recheck_due(state, config, M) and np.any(state.initialised):
@@ -266,13 +261,17 @@ def _recheck_memory(
     channel: Channel,
     config: EstimatorConfig,
 ) -> _Start:
-    """The re-check on the exact likelihood of the range memory (:func:`_recheck`) of the
-    elements ``use`` (initialised, range records only so far): the previous estimate moves to
-    the best of its own basin's optimum and the other basin's when that is more likely than it
-    by more than ``recheck_likelihood_drop``."""
+    """The re-check on the exact likelihood of the range memory and this call's ranges, for the
+    elements ``use`` (initialised, range records only so far). The previous estimate and the
+    best start of another basin (:func:`planner.estimator.memory.best_start`, from the PL
+    candidate ``cand``) are each polished to their basin's optimum
+    (:func:`planner.estimator.memory.polish`); when the previous estimate is less likely than
+    the better optimum by more than ``recheck_likelihood_drop``, it moves there, and its prior,
+    linearised where the estimate was, becomes the memory's cost (every past range)
+    re-linearised at the new point and claimed in full (it is the likelihood, not the PL cost)."""
     gamma = channel.gamma
     fr = fresh.subset(use)
-    mem = rmem.RangeMemory(*(getattr(memory, f)[use] for f in rmem.RangeMemory.__dataclass_fields__))
+    mem = memory.subset(use)
     total = rmem.insert(mem, np.stack((fr.px, fr.py, fr.pz), axis=-1), fr.zr, fr.ar, fr.s0, config.range_memory_radius)
     xp = x_prev[use]
     both, nll_both = rmem.polish(total, np.stack((xp, rmem.best_start(total, xp, cand[use], gamma, config.clip))), gamma, config.clip)
@@ -546,11 +545,9 @@ def _advance_memory(memory: rmem.RangeMemory, new_rows: _Rows, keep: BoolArray, 
     take = keep & np.any(new_rows.ar > 0.0, axis=-1)
     if config.range_memory_cells == 0 or not np.any(take):
         return memory
-    fields = rmem.RangeMemory.__dataclass_fields__
-    sub = rmem.RangeMemory(*(getattr(memory, f)[take] for f in fields))
     r = new_rows.subset(take)
-    sub = rmem.insert(sub, np.stack((r.px, r.py, r.pz), axis=-1), r.zr, r.ar, r.s0, config.range_memory_radius)
-    return rmem.RangeMemory(*(_scatter(getattr(memory, f), getattr(sub, f), take) for f in fields))
+    sub = rmem.insert(memory.subset(take), np.stack((r.px, r.py, r.pz), axis=-1), r.zr, r.ar, r.s0, config.range_memory_radius)
+    return memory.scattered(sub, take)
 
 
 def _advance_window(state: EstimatorState, allm: Measurements, weight: FloatArray, config: EstimatorConfig) -> tuple[Measurements, FloatArray]:
