@@ -752,6 +752,7 @@ def _relaxation_tiers(
     tb = limits.turn_buffer_m
     uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
     src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
+    uav_sides = _sides_kept(p, cand, hard) if hard is not None else uav_hard
     # Physical margins of the exactly known clearances: without the recursive-feasibility
     # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
@@ -767,15 +768,32 @@ def _relaxation_tiers(
         ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
         # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
         ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
-        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 4. source keep-out relaxed, the peers' balls kept
-        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 5. peers relaxed too
-        # 6. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
+        # 4. the d_U*/2 in front of a lost peer's plane given up (up to the plane itself), the
+        #    source keep-out and the heard peers' balls kept: squeezed between a plane, the
+        #    keep-out and the altitude floor, a partitioned drone went 0.91 m inside d_S*.
+        ((exact >= 0.0) & src_hard & uav_sides, slack[..., UAV]),
+        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 5. source keep-out relaxed, the peers' balls kept
+        (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 6. peers relaxed too
+        # 7. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
         #    allowances leave real room); the altitude keeps its tilt buffer, which is the
         #    climb that cannot be avoided next step.
         ((phys_obstacle >= 0.0) & (slack[..., ALTITUDE] >= 0.0), slack[..., OBSTACLE]),
-        (exact_phys >= 0.0, exact),  # 7. every buffer relaxed
+        (exact_phys >= 0.0, exact),  # 8. every buffer relaxed
     ]
     return tiers, exact_phys
+
+
+def _sides_kept(p: FloatArray, cand: FloatArray, hard: _Clearances) -> BoolArray:
+    """(n, C) the candidates that keep every point peer's ``hard`` clearance and stay on the
+    drone's own side of every lost peer's plane (up to the plane itself, not d_U*/2 short of
+    it; a drone already past it may not go further)."""
+    if hard.planes is None:
+        return _peer_margin(p[:, None, :] + cand, hard) >= 0.0
+    is_plane = (hard.planes != 0.0).any(-1)
+    now = peer_distance(p, hard.peers, hard.planes, hard.d_uav_m)
+    half = 0.5 * hard.d_uav_m
+    required = np.where(is_plane, np.minimum(half, now), hard.peer_required)
+    return _peer_margin(p[:, None, :] + cand, dataclasses.replace(hard, peer_required=required)) >= 0.0
 
 
 def _envelope_search(
@@ -803,9 +821,11 @@ def _envelope_search(
        comes closest to the strict ones of ``clear``;
     2. the turn-away buffers of the peers (to ``hard``: the reachable balls themselves) and of
        the source keep-out (b), their safety distances kept;
-    3. the source keep-out (it follows the estimate), the peers kept as in 1;
-    4. the peers' clearance (their data age);
-    5. only then the recursive-feasibility buffers of the exactly known obstacles and
+    3. in a partition, the d_U*/2 in front of a lost peer's plane (:func:`_sides_kept`), the
+       source keep-out and every heard peer's reachable ball kept;
+    4. the source keep-out (it follows the estimate), the peers kept as in 1;
+    5. the peers' clearance (their data age);
+    6. only then the recursive-feasibility buffers of the exactly known obstacles and
        altitude box.
 
     ``loose`` and ``hard`` default to ``clear`` and to ``clear`` without 2b. Returns the step
@@ -820,7 +840,7 @@ def _envelope_search(
         margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
     tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
-    pick = exact_phys.argmax(-1)  # 8. least bad for obstacles and altitude
+    pick = exact_phys.argmax(-1)  # 9. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
     infeasible = np.asarray(~tiers[1][0].any(-1))

@@ -58,9 +58,22 @@ def fly(seed: int, planes_rule: bool) -> float:
             age = np.where(cross, 0.0, age)
         elif cut:
             mask = mask & ~cross  # the hop rule: peers not heard are taken to be out of range
-        r = control_step(p, prev, grad, np.full(n, int(FimStatus.OK), np.int8), view, mask, age, src,
-                         np.full(n, LIM.d_source_m), np.zeros((0, 3)), np.zeros((0, 3)), LIM, rng.random((n, 2)),
-                         peer_planes=planes)
+        r = control_step(
+            p,
+            prev,
+            grad,
+            np.full(n, int(FimStatus.OK), np.int8),
+            view,
+            mask,
+            age,
+            src,
+            np.full(n, LIM.d_source_m),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            LIM,
+            rng.random((n, 2)),
+            peer_planes=planes,
+        )
         nxt = np.asarray(r.next_position)
         for i in range(n):
             for j in range(n):
@@ -79,3 +92,50 @@ def test_halves_heading_at_each_other_never_come_within_d_uav(seed: int) -> None
 
 def test_ignoring_unheard_peers_lets_the_halves_collide() -> None:
     assert min(fly(seed, planes_rule=False) for seed in range(3)) < LIM.d_uav_m
+
+
+def squeeze(plane: bool) -> tuple[float, float, float]:
+    """One drone at (0, 0, 10) flying +x (it cannot stop or turn back in one step), its source
+    keep-out just behind it on −y (source (0, −50, 10)) and a peer's row just ahead on +y that
+    requires a step toward −y of about 5 cm: no step keeps both. Returns the chosen step's
+    source distance, its signed distance past the peer's plane (y − y_plane, ≤ 0 on the drone's
+    side) and its distance to the peer's point (m)."""
+    from planner.control import SOURCE, _Clearances, _envelope_search
+
+    p = np.array([[0.0, 0.0, 10.0]])
+    prev = np.array([[LIM.step_max_m, 0.0, 0.0]])
+    tb = LIM.turn_buffer_m
+    source = np.array([[0.0, -50.0, 10.0]])
+    y_peer = 5.0
+    now = y_peer + (0.5 * LIM.d_uav_m if plane else 0.0)  # the row's distance now
+    clear = _Clearances(
+        peers=np.array([[[0.0, y_peer, 10.0]]]),
+        # A step must come about 5 cm nearer −y (a point row gains dx²/(2·5 m) ≤ 10 cm sideways).
+        peer_required=np.array([[now + (0.05 if plane else 0.15)]]),
+        source=source,
+        source_required=np.array([50.0 + tb - 0.02]),  # hard keep-out: come no nearer than 2 cm
+        obstacle_required=LIM.d_obstacle_m,
+        planes=np.array([[[0.0, -1.0, 0.0]]]) if plane else None,
+        d_uav_m=LIM.d_uav_m,
+    )
+    need = np.zeros((1, 4))
+    need[0, SOURCE] = -tb + 0.02
+    step, _, _ = _envelope_search(p, prev, prev, np.array([True]), need, clear, np.zeros((0, 3)), np.zeros((0, 3)), LIM, clear, clear)
+    end = p[0] + step[0]
+    return float(np.linalg.norm(end - source[0])), float(end[1] - y_peer), float(np.linalg.norm(end - clear.peers[0, 0]))
+
+
+def test_a_squeezed_drone_keeps_the_source_keep_out_and_gives_up_only_the_plane_buffer() -> None:
+    """Between the source keep-out and a lost peer's plane, the safety filter keeps the source
+    keep-out and the plane itself (the d_U*/2 in front of it is what it gives up)."""
+    d_source, past_plane, _ = squeeze(plane=True)
+    assert d_source >= 50.0 - 0.02 - 1e-9
+    assert past_plane <= 0.0
+
+
+def test_a_squeezed_drone_keeps_a_heard_peers_reachable_ball_before_the_source() -> None:
+    """Against a heard peer's reachable ball (a point row) the order is the other way: the ball
+    is kept and the source keep-out gives way, as little as it can."""
+    d_source, _, d_peer = squeeze(plane=False)
+    assert d_peer >= 5.15 - 1e-9
+    assert 50.0 - 0.2 < d_source < 50.0 - 0.02
