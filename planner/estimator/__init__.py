@@ -65,7 +65,7 @@ Method, per call of :func:`update` and per batch element (vectorised over both):
    memory (``range_memory_cells``, :mod:`planner.estimator.memory`), an element that has used
    only ranges is re-checked on the exact likelihood of every range so far instead, and its
    prior re-linearised at the likelier optimum. Optional innovation gate;
-   optional score test of the recent records against the estimate (``consistency_threshold``).
+   a score test of the recent records against the estimate (``consistency_threshold``).
 4. Forgetting λ ∈ (0, 1]: every stored contribution (Λ, η, PL equations, window weights)
    is multiplied by λ per call, for a moving source.
 5. Observability: initialised and det J/(tr J/3)³ ≥ ``min_rcond`` (J the information).

@@ -125,7 +125,7 @@ class EstimatorConfig:
             log-likelihood ratio; 1: the estimate is off its own likelihood's optimum by more
             than a linearised prior should allow).
         consistency_threshold: χ² threshold (3 degrees of freedom) of the score test of the
-            recent records against the estimate (None, the default, disables it; e.g. 25 ≈
+            recent records against the estimate (None disables it; the default 25 is about
             the 1.5·10⁻⁵ upper quantile of χ²₃); a failed test marks the element suspect and
             deflates its reported information by ``suspect_deflation`` (see
             :func:`_score_test`).
@@ -165,7 +165,7 @@ class EstimatorConfig:
     range_memory_cells: int = 0
     range_memory_radius: float = 0.2
     recheck_likelihood_drop: float = 1.0
-    consistency_threshold: float | None = None
+    consistency_threshold: float | None = 25.0
     consistency_forgetting: float = 0.9
     lm_damping: float = 1e-3
     nlos_bearing_weight: float = 0.0
