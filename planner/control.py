@@ -752,7 +752,7 @@ def _relaxation_tiers(
     tb = limits.turn_buffer_m
     uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
     src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
-    uav_sides = _sides_kept(p, cand, hard) if hard is not None else uav_hard
+    uav_sides = _sides_kept(p, cand, hard, limits.step_max_m) if hard is not None else uav_hard
     # Physical margins of the exactly known clearances: without the recursive-feasibility
     # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
@@ -768,9 +768,9 @@ def _relaxation_tiers(
         ((slack >= 0.0).all(-1), strict_uav),  # 2. the peers' requirements loose, the strict ones approached
         # 3. the peers' and the source's turn-away buffers relaxed, their safety distances kept
         ((exact >= 0.0) & uav_hard & src_hard, np.minimum(slack[..., UAV], slack[..., SOURCE])),
-        # 4. the d_U*/2 in front of a lost peer's plane given up (up to the plane itself), the
-        #    source keep-out and the heard peers' balls kept: squeezed between a plane, the
-        #    keep-out and the altitude floor, a partitioned drone went 0.91 m inside d_S*.
+        # 4. the peers' balls beyond d_U* + v_max Δt of their records and the d_U*/2 in front
+        #    of a lost peer's plane given up, the source keep-out kept: squeezed between stale
+        #    peers' balls (or a plane) and the keep-out, drones went up to 0.91 m inside d_S*.
         ((exact >= 0.0) & src_hard & uav_sides, slack[..., UAV]),
         ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 5. source keep-out relaxed, the peers' balls kept
         (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 6. peers relaxed too
@@ -783,16 +783,17 @@ def _relaxation_tiers(
     return tiers, exact_phys
 
 
-def _sides_kept(p: FloatArray, cand: FloatArray, hard: _Clearances) -> BoolArray:
-    """(n, C) the candidates that keep every point peer's ``hard`` clearance and stay on the
-    drone's own side of every lost peer's plane (up to the plane itself, not d_U*/2 short of
-    it; a drone already past it may not go further)."""
-    if hard.planes is None:
-        return _peer_margin(p[:, None, :] + cand, hard) >= 0.0
-    is_plane = (hard.planes != 0.0).any(-1)
+def _sides_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, step_max_m: float) -> BoolArray:
+    """(n, C) the candidates that keep every peer's clearance as if its record were of now:
+    d_U* + v_max Δt from a heard peer's record (not its whole reachable ball: the peer's own
+    filter keeps this drone's ball, which alone keeps the pair d_U* apart) and the drone's own
+    side of every lost peer's plane (up to the plane itself, not d_U*/2 short of it). A drone
+    already nearer than that may not come nearer."""
     now = peer_distance(p, hard.peers, hard.planes, hard.d_uav_m)
-    half = 0.5 * hard.d_uav_m
-    required = np.where(is_plane, np.minimum(half, now), hard.peer_required)
+    required = np.full(now.shape, hard.d_uav_m + step_max_m)
+    if hard.planes is not None:
+        required = np.where((hard.planes != 0.0).any(-1), 0.5 * hard.d_uav_m, required)
+    required = np.where(np.isfinite(hard.peer_required), np.minimum(required, now), -np.inf)
     return _peer_margin(p[:, None, :] + cand, dataclasses.replace(hard, peer_required=required)) >= 0.0
 
 
@@ -821,8 +822,9 @@ def _envelope_search(
        comes closest to the strict ones of ``clear``;
     2. the turn-away buffers of the peers (to ``hard``: the reachable balls themselves) and of
        the source keep-out (b), their safety distances kept;
-    3. in a partition, the d_U*/2 in front of a lost peer's plane (:func:`_sides_kept`), the
-       source keep-out and every heard peer's reachable ball kept;
+    3. the peers' reachable balls beyond d_U* + v_max Δt of their records and, in a
+       partition, the d_U*/2 in front of a lost peer's plane (:func:`_sides_kept`), the source
+       keep-out kept;
     4. the source keep-out (it follows the estimate), the peers kept as in 1;
     5. the peers' clearance (their data age);
     6. only then the recursive-feasibility buffers of the exactly known obstacles and
