@@ -138,6 +138,10 @@ class EstimatorConfig:
         pl_rcond: rank threshold of the (Jacobi-scaled) pseudo-linear normal equations.
         init_distance_m: distance used to weight a bearing's PL equations when no range is
             known for it and the element has no estimate yet (m).
+        init_max_relative_sigma: an element whose records all carry a bearing initialises once its PL
+            system's weakest direction has a standard deviation at most this fraction of
+            ``init_distance_m`` (0.5; None: as soon as the system solves). Two nearly parallel
+            bearings solve but fix the point along their lines to tens of metres.
         range_cost: ``"gls"`` (default): ranges weighted by 1/σ_r²(d) evaluated at the current
             iterate (iteratively re-weighted generalised LS; consistent, exact on noise-free data);
             ``"ml"``: the full likelihood with ½ ln σ_r²(d), efficient but biased towards short
@@ -172,6 +176,7 @@ class EstimatorConfig:
     min_rcond: float = 1e-9
     pl_rcond: float = 1e-10
     init_distance_m: float = 100.0
+    init_max_relative_sigma: float | None = 0.5
     mirror: Literal["below", "above"] = "below"
     range_cost: Literal["gls", "ml"] = "gls"
     #: Search region of the source (m, ENU): every estimate is projected into this box
@@ -215,6 +220,8 @@ class EstimatorConfig:
                 raise ValueError(f"EstimatorConfig.{name}: expected a finite positive number, found {value!r}")
         if self.consistency_threshold is not None and not (math.isfinite(self.consistency_threshold) and self.consistency_threshold > 0.0):
             raise ValueError(f"EstimatorConfig.consistency_threshold: expected None or a positive number, found {self.consistency_threshold!r}")
+        if self.init_max_relative_sigma is not None and not (math.isfinite(self.init_max_relative_sigma) and self.init_max_relative_sigma > 0.0):
+            raise ValueError(f"EstimatorConfig.init_max_relative_sigma: expected None or a positive number, found {self.init_max_relative_sigma!r}")
         if not 0.0 < self.consistency_forgetting < 1.0:
             raise ValueError(f"EstimatorConfig.consistency_forgetting: expected a value in (0, 1), found {self.consistency_forgetting!r}")
         if self.gate_sigma is not None and not (math.isfinite(self.gate_sigma) and self.gate_sigma > 0.0):

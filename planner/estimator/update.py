@@ -157,6 +157,7 @@ def _initialise(
         pl_A[todo] += A_new
         pl_b[todo] += b_new
         x_init, ok = _pl_solve(pl_A[todo], pl_b[todo], config)
+        ok &= _determined(pl_A[todo], config)
         just = np.zeros(bshape, dtype=bool)
         just[todo] = ok
         x = x.copy()
@@ -172,6 +173,22 @@ def _initialise(
         fresh_start = fresh_start | just
         long_run = long_run | just
     return _Start(x, prior, initialised, fresh_start, long_run), pl_A, pl_b
+
+
+def _determined(A: FloatArray, config: EstimatorConfig) -> BoolArray:
+    """(n,) the PL systems A (n, 4, 4) that determine the source well enough to initialise
+    from: with squared-range equations (a range without a bearing), any solvable one; else
+    (every record with a bearing), one whose weakest direction has a PL standard deviation at most ``init_max_relative_sigma`` × the weights'
+    distance ``init_distance_m`` (a bearing's weight is 1/(σ_b² D²) at that D, so the ratio is
+    the relative uncertainty whatever the true distance). Two nearly parallel bearings solve
+    but fix the point along their lines only to tens of metres; an estimate initialised there
+    and the prior linearised at it stay biased for hundreds of steps."""
+    has_r = A[:, 3, 3] > 1e-300
+    if config.init_max_relative_sigma is None or np.all(has_r):
+        return np.ones(A.shape[0], dtype=bool)
+    lam_min = np.linalg.eigvalsh(A[:, :3, :3])[:, 0]
+    limit = config.init_max_relative_sigma * config.init_distance_m
+    return has_r | (lam_min * limit * limit >= 1.0)
 
 
 def _recheck_due(state: EstimatorState, config: EstimatorConfig, M: int) -> bool:

@@ -363,8 +363,14 @@ def test_bearings_become_observable_with_a_second_direction() -> None:
     same = records(source, np.array([[190.0, 0.0, 38.0]]), *roles("bearing", 1), np.ones(1, bool))
     state = update(state, same, CHANNEL)
     assert not state.observable
+    # A second direction determines the point: the estimate starts there; its information is
+    # that of the records from then on (the records before only place the start: their PL
+    # weights assume init_distance_m), so it is observable once the first direction comes again.
     other = records(source, np.array([[10.0, 90.0, 20.0]]), *roles("bearing", 1), np.ones(1, bool))
     state = update(state, other, CHANNEL)
+    assert state.initialised
+    np.testing.assert_allclose(state.estimate_m, source, atol=1e-6)
+    state = update(state, one, CHANNEL)
     assert state.observable
     assert np.linalg.norm(state.estimate_m - source) < 0.01
 

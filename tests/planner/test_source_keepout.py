@@ -188,7 +188,7 @@ def test_score_test_off_keeps_the_wrong_prior(rng: np.random.Generator) -> None:
     assert np.linalg.norm(state.estimate_m - source) > 30.0
 
 
-@pytest.mark.parametrize("field,value", [("consistency_threshold", 0.0), ("consistency_forgetting", 1.0), ("recheck_trust", 0.0)])
+@pytest.mark.parametrize("field,value", [("consistency_threshold", 0.0), ("consistency_forgetting", 1.0), ("recheck_trust", 0.0), ("init_max_relative_sigma", 0.0)])
 def test_new_config_fields_are_validated(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
         EstimatorConfig(**{field: value})
