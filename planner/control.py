@@ -752,7 +752,7 @@ def _relaxation_tiers(
     tb = limits.turn_buffer_m
     uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
     src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
-    uav_sides = _sides_kept(p, cand, hard, limits.step_max_m) if hard is not None else uav_hard
+    uav_record = _record_clearance_kept(p, cand, hard, limits.step_max_m) if hard is not None else uav_hard
     # Physical margins of the exactly known clearances: without the recursive-feasibility
     # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
@@ -771,7 +771,7 @@ def _relaxation_tiers(
         # 4. the peers' balls beyond d_U* + v_max Δt of their records and the d_U*/2 in front
         #    of a lost peer's plane given up, the source keep-out kept: squeezed between stale
         #    peers' balls (or a plane) and the keep-out, drones went up to 0.91 m inside d_S*.
-        ((exact >= 0.0) & src_hard & uav_sides, slack[..., UAV]),
+        ((exact >= 0.0) & src_hard & uav_record, slack[..., UAV]),
         ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 5. source keep-out relaxed, the peers' balls kept
         (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 6. peers relaxed too
         # 7. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
@@ -783,7 +783,7 @@ def _relaxation_tiers(
     return tiers, exact_phys
 
 
-def _sides_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, step_max_m: float) -> BoolArray:
+def _record_clearance_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, step_max_m: float) -> BoolArray:
     """(n, C) the candidates that keep every peer's clearance as if its record were of now:
     d_U* + v_max Δt from a heard peer's record (not its whole reachable ball: the peer's own
     filter keeps this drone's ball, which alone keeps the pair d_U* apart) and the drone's own
@@ -823,7 +823,7 @@ def _envelope_search(
     2. the turn-away buffers of the peers (to ``hard``: the reachable balls themselves) and of
        the source keep-out (b), their safety distances kept;
     3. the peers' reachable balls beyond d_U* + v_max Δt of their records and, in a
-       partition, the d_U*/2 in front of a lost peer's plane (:func:`_sides_kept`), the source
+       partition, the d_U*/2 in front of a lost peer's plane (:func:`_record_clearance_kept`), the source
        keep-out kept;
     4. the source keep-out (it follows the estimate), the peers kept as in 1;
     5. the peers' clearance (their data age);
