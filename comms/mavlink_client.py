@@ -252,8 +252,11 @@ class VehicleLink:
         deadline = self.wall() + timeout_s
         while True:
             remaining = deadline - self.wall()
+            blocking = remaining > 0 and n == 0
             try:
-                msg = self.conn.recv_match(blocking=remaining > 0 and n == 0, timeout=max(remaining, 0.0))
+                # Not blocking: no timeout, or pymavlink may return before reading (it gives up
+                # once its clock moved past start + timeout, which for 0 a slow computer always does).
+                msg = self.conn.recv_match(blocking=blocking, timeout=remaining if blocking else None)
             except (OSError, ValueError):
                 return n  # a transport error is a silent link: the heartbeat timeout reports it
             if msg is None:
