@@ -27,7 +27,6 @@ import dataclasses
 import math
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
@@ -38,6 +37,7 @@ if str(REPO) not in sys.path[:1]:
 
 from missions.cmd_optimum import mission_optimum  # noqa: E402
 from missions.loader import load_mission  # noqa: E402
+from missions.schema import Mission  # noqa: E402
 from missions.simulator import RunSpec, simulate  # noqa: E402
 from planner import estimator as est  # noqa: E402
 from planner.fim import fisher_information, position_error_bound  # noqa: E402
@@ -49,7 +49,7 @@ OPTIMUM_STARTS: int = 8
 OPTIMUM_SEED: int = 0
 
 
-def drone_positions(mission: Any, geometry: str) -> tuple[np.ndarray, str]:
+def drone_positions(mission: Mission, geometry: str) -> tuple[np.ndarray, str]:
     """The drones' fixed positions (N, 3), m, ENU, for ``geometry`` (``"final"``: where the
     mission's seeded trial 0 ends; ``"optimum"``: its optimal placement, criterion A, about the
     true source) and a few words naming them."""
