@@ -13,6 +13,16 @@ from tests.support.proc import Proc
 from tests.support.wait import wait_for
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """``-n auto`` (pyproject.toml's addopts): one worker per core (pytest-xdist's count),
+    but none with ``-s`` (a worker's output would not be shown) or when the run selects the
+    ``sitl`` marker (real autopilots run one at a time, as their figures were measured).
+    ``-n 0`` turns the workers off for any run."""
+    if config.getoption("capture") == "no" or "sitl" in (config.getoption("markexpr") or ""):
+        return 0
+    return None
+
+
 @pytest.fixture
 def procs() -> Iterator[list[Proc]]:
     """Every process a test starts; each process group is stopped at the end."""

@@ -128,9 +128,19 @@ def run_link_fuzz(n_frames: int, seed: int) -> dict[str, float]:
         fuzz.close()
 
 
+def test_planner_link_survives_20k_invalid_frames() -> None:
+    """The default run's size: 200 batches, every probe read exactly (checked in the run)."""
+    figures = run_link_fuzz(20_000, seed=97)
+    print(figures)
+    assert figures["probes"] == 200, figures
+
+
+@pytest.mark.slow
 def test_planner_link_survives_100k_invalid_frames() -> None:
+    """The soak: 1000 batches."""
     figures = run_link_fuzz(100_000, seed=99)
     print(figures)
+    assert figures["probes"] == 1000, figures
 
 
 def test_third_party_byte_does_not_eat_vehicle_frames() -> None:

@@ -115,7 +115,7 @@ def run_fuzz(n_frames: int, seed: int, flavour: str = "ardupilot") -> dict[str, 
         probe.close()
 
 
-@pytest.mark.slow  # 100k frames over UDP (5 s); the planner link's 100k fuzz stays in the default run
+@pytest.mark.slow  # 100k frames over UDP (5-14 s); the default run has the 20k planner-link fuzz
 def test_vehicle_survives_100k_invalid_frames_over_udp() -> None:
     """100,000 invalid frames at send speed (measured ~2-5 s on the shared 2-core machine)."""
     figures = run_fuzz(100_000, seed=2026)
