@@ -21,6 +21,7 @@ import yaml
 
 from tests.external.helpers import SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
 from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -134,17 +135,13 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
         planner = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{relay.port}"))
         procs.append(planner)
         planner.expect(r"ready at the start position", 60.0, "err")
-        deadline = time.monotonic() + 20.0
-        while len(peer.snapshot()) < 5:
-            assert time.monotonic() < deadline, planner.tail()
-            time.sleep(0.02)
+        wait_for(lambda: len(peer.snapshot()) >= 5, 20.0, "5 records of the planner", procs=[planner], interval_s=0.02)
         relay.cut.set()
         t_cut = time.monotonic()
         planner.expect(r"vehicle link lost", 10.0, "err")
         noticed_s = time.monotonic() - t_cut
-        while not any(r.stale for r in peer.snapshot()):
-            assert time.monotonic() < t_cut + 10.0, planner.tail()
-            time.sleep(0.02)
+        wait_for(lambda: any(r.stale for r in peer.snapshot()), 10.0, "a record marked stale", procs=[planner],
+                 interval_s=0.02)
         relay.cut.clear()
         planner.expect(r"resumed in (OFFBOARD|GUIDED)", 30.0, "err")
         assert planner.wait(60.0) == 0, planner.tail()

@@ -8,10 +8,10 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from tests.support.wait import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -47,21 +47,21 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
     try:
-        deadline = time.monotonic() + 60.0
         workers: set[int] = set()
-        while len(workers) < 2:
+
+        def started() -> bool:
+            nonlocal workers
             assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the two workers did not start within 60 s"
             workers = _children(proc.pid)
-            time.sleep(0.05)  # polling /proc, with the deadline above
+            return len(workers) >= 2
+
+        wait_for(started, 60.0, "the two workers to start", interval_s=0.05)
         proc.send_signal(sig)  # to the command alone, not its group
         _, err = proc.communicate(timeout=15)
         assert proc.returncode == status, err
         assert "Traceback" not in err
-        deadline = time.monotonic() + 5.0
-        while any(_alive(w) for w in workers):
-            assert time.monotonic() < deadline, f"workers left behind: {[w for w in workers if _alive(w)]}"
-            time.sleep(0.05)  # polling /proc, with the deadline above
+        wait_for(lambda: not any(_alive(w) for w in workers), 5.0, "the workers to exit",
+                 detail=lambda: f"workers left behind: {[w for w in workers if _alive(w)]}", interval_s=0.05)
     finally:
         # the whole session, even when the command itself has exited (its workers may not have)
         with contextlib.suppress(ProcessLookupError):

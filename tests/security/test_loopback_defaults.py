@@ -22,6 +22,7 @@ from missions.schema import ZenohSpec
 
 from tests.security.sockets import sockets_of
 from tests.support.proc import Proc, fimnav
+from tests.support.wait import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = sorted((ROOT / "missions" / "paper").glob("*.yaml"))
@@ -99,11 +100,11 @@ def test_every_process_of_a_launch_listens_on_loopback_only(tmp_path: Path) -> N
                            start_new_session=True, cwd=ROOT)
     try:
         log = out / "logs" / "planner_1.jsonl"
-        deadline = time.monotonic() + 180
-        while not (log.exists() and log.read_text().count("\n") >= 2):
+        def flying() -> bool:
             assert run.poll() is None, run.stderr.read().decode(errors="replace")[-2000:] if run.stderr else ""
-            assert time.monotonic() < deadline, "the mission did not start flying"
-            time.sleep(0.1)  # polling interval of a deadline wait
+            return log.exists() and log.read_text().count("\n") >= 2
+
+        wait_for(flying, 180.0, "the mission to start flying")
         pids = [run.pid] + [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit() and _mentions(p, str(out))]
         socks = {pid: [x for x in sockets_of(pid) if x.listening] for pid in pids}
         assert len([p for p in pids if socks[p]]) >= 11, socks  # launcher + vehicles + planners
