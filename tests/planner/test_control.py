@@ -413,3 +413,37 @@ def test_safe_rule_soak(scenario):
     for d_hop in (None, 3.0, 8.0):
         worst = simulate(scenario, "safe", seeds=200, steps=150, d_hop_m=d_hop)
         assert min(worst.values()) >= -1e-9, (d_hop, worst)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "known gap (docs/reliability.md, 'A squeeze the filter's one-step look cannot avoid'): two drones meeting "
+        "head-on where the source keep-out meets the ceiling have no step that keeps every distance"
+    ),
+)
+def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_every_distance():
+    """Two drones 8 m apart at 24 m, 1 m outside d_S* of a source known exactly (2 m up), first
+    flying apart, then both drawn to one point of the keep-out circle under the 25 m ceiling
+    (a constant unit gradient, mirror images of each other), each with the other's position of
+    now. They meet head-on: outward is the only way out, up to 180° from the heading, and the
+    filter's one-step look finds no step that keeps both the peer and the keep-out. With
+    fimnav's filter both end 0.19 m inside d_S* at step 9, and 0.06 m from d_U* at step 10."""
+    src = np.array([0.0, 0.0, 2.0])
+    r0 = math.sqrt((LIM.d_source_m + 1.0) ** 2 - (24.0 - src[2]) ** 2)
+    a = np.radians([85.0, 95.0])
+    p = np.stack([r0 * np.cos(a), r0 * np.sin(a), np.full(2, 24.0)], -1)
+    prev = np.stack([np.sin(a), -np.cos(a), np.zeros(2)], -1) * [[1.0], [-1.0]]  # along the circle, away from each other
+    target = np.array([0.0, 44.0, 25.0])  # the point both are drawn to: inside the keep-out, at the ceiling
+    worst_source, worst_uav = np.inf, np.inf
+    for _ in range(40):
+        to_target = target - p
+        grad = -to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
+        r = control_step(p, prev, grad, np.full(2, int(FimStatus.OK)), p[::-1, None, :], np.ones((2, 1), bool), np.zeros((2, 1)),
+                         np.broadcast_to(src, (2, 3)), np.full(2, LIM.d_source_m), NO_BOX, NO_BOX, LIM, np.full((2, 2), 0.5),
+                         source_exact=True)
+        prev, p = r.displacement, r.next_position
+        worst_source = min(worst_source, float(np.linalg.norm(p - src, axis=-1).min() - LIM.d_source_m))
+        worst_uav = min(worst_uav, float(np.linalg.norm(p[0] - p[1]) - LIM.d_uav_m))
+        assert (p[:, 2] <= LIM.z_max_m + 1e-9).all()
+    assert worst_source >= 0.0 and worst_uav >= 0.0, (worst_source, worst_uav)
