@@ -38,6 +38,7 @@ started with it too (``multiprocessing`` passes it the launcher's ``sys.path`` b
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import multiprocessing
@@ -243,7 +244,9 @@ class ForkServer:
     """Starts ``python -m missions ARGS`` children from a pre-imported fork server.
 
     :meth:`warm_up` starts the server (it imports :data:`PRELOAD` while the caller does other
-    work); :meth:`spawn` forks one child. The server ends with the process that created it.
+    work); :meth:`spawn` forks one child. :meth:`close` ends the server and waits for it
+    (the launcher does, once its children are stopped); otherwise it ends with the process that
+    created it.
     """
 
     def __init__(self, python: str = sys.executable) -> None:
@@ -277,6 +280,16 @@ class ForkServer:
                     os.environ.pop(name, None)
                 else:
                     os.environ[name] = value
+
+    def close(self) -> None:
+        """End the fork server and wait for it to exit (after the children are stopped).
+        Without this it ends on its own once this process has exited, a fraction of a second
+        later, so a launch that had returned still left it running for that moment."""
+        server = getattr(multiprocessing.forkserver, "_forkserver", None)
+        stop = getattr(server, "_stop", None)
+        if callable(stop) and getattr(server, "_forkserver_pid", None) is not None:
+            with contextlib.suppress(OSError):  # already gone: nothing to wait for
+                stop()
 
     def spawn(
         self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False, cwd: Path | None = None

@@ -202,7 +202,8 @@ class ChildSupervisor:
         return child
 
     def stop_children(self) -> None:
-        """SIGTERM every child's process group, then SIGKILL what is left after the grace."""
+        """SIGTERM every child's process group, then SIGKILL what is left after the grace;
+        then end the fork server, if any, and wait for it."""
         for c in self.children:
             if c.proc.poll() is None:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
@@ -220,6 +221,8 @@ class ChildSupervisor:
         for c in self.children:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(c.proc.pid, signal.SIGKILL)
+        if self.forks is not None:
+            self.forks.close()
 
     def check_children(self) -> None:
         """Deal with children that ended: before the mission or with ``abort``, any failure

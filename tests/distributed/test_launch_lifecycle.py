@@ -139,6 +139,23 @@ def test_a_signal_stops_every_process_with_status_128_plus_signal(tmp_path: Path
     assert f"fimnav code from {MISSIONS_DIR}" in (out / "logs" / "planner_1.log").read_text()
 
 
+def test_a_finished_launch_has_stopped_its_fork_server_when_it_returns(tmp_path: Path, launches: list[Launch]) -> None:
+    """A launch that ends normally has ended every process it started by the time it exits,
+    its planners' fork server included (it used to end on its own a moment after the
+    launcher, reading the end of file of its pipe); multiprocessing's resource tracker, which
+    ends the same way, within GONE_WITHIN_S."""
+    out = tmp_path / "run"
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "12", "--set", "drones.count=4")
+    launches.append(run)
+    tree = swarm_of(run, 4)
+    run.proc.wait(60.0)  # the launcher's exit (its output is read by threads meanwhile)
+    left = still_alive(tree)
+    code, _, stderr = run.wait(60.0)
+    assert code == 0, stderr[-2000:]
+    assert not [c for c in left.values() if "resource_tracker" not in c], left
+    wait_for(lambda: not still_alive(tree), GONE_WITHIN_S, f"every process to end: {still_alive(tree)}")
+
+
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
 def test_a_killed_launcher_leaves_no_process(tmp_path: Path, launches: list[Launch], fork_server: bool) -> None:
     """SIGKILL to the launcher: nothing stops the children for it; each notices by itself
