@@ -43,6 +43,7 @@ import ctypes
 import logging
 import multiprocessing
 import multiprocessing.forkserver
+import multiprocessing.resource_tracker
 import os
 import signal
 import stat
@@ -282,14 +283,18 @@ class ForkServer:
                     os.environ[name] = value
 
     def close(self) -> None:
-        """End the fork server and wait for it to exit (after the children are stopped).
+        """End the fork server and multiprocessing's resource tracker (started with it) and wait
+        for them to exit (after the children are stopped).
         Without this it ends on its own once this process has exited, a fraction of a second
         later, so a launch that had returned still left it running for that moment."""
         server = getattr(multiprocessing.forkserver, "_forkserver", None)
-        stop = getattr(server, "_stop", None)
-        if callable(stop) and getattr(server, "_forkserver_pid", None) is not None:
-            with contextlib.suppress(OSError):  # already gone: nothing to wait for
-                stop()
+        tracker = getattr(multiprocessing.resource_tracker, "_resource_tracker", None)
+        # The server first: its children hold the resource tracker too.
+        for owner, pid_attr in ((server, "_forkserver_pid"), (tracker, "_pid")):
+            stop = getattr(owner, "_stop", None)
+            if callable(stop) and getattr(owner, pid_attr, None) is not None:
+                with contextlib.suppress(OSError):  # already gone: nothing to wait for
+                    stop()
 
     def spawn(
         self, args: Sequence[str], log_path: Path, launcher_fd: int | None = None, truncate: bool = False, cwd: Path | None = None
