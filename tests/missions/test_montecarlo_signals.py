@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from tests.support.wait import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
