@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from types import FrameType
 from typing import TYPE_CHECKING, Any
 
 from comms.errors import UsageError
@@ -120,13 +123,18 @@ def run(args: argparse.Namespace) -> int:
             # last result the workers are told to finish and joined (close, join): terminating
             # them then could find one blocked on the task queue's lock, which the terminating
             # pool holds, and wait for it forever.
-            with multiprocessing.Pool(min(args.jobs, len(jobs)), initializer=_worker_signals) as pool:
-                sim = functools.partial(_simulate_job, oracle=args.oracle_estimate, view=view)
-                for (spec, _), result in zip(jobs, pool.imap(sim, jobs)):
-                    outcomes.append(result)
-                    bar.update(spec.steps)
-                pool.close()
-                pool.join()
+            # The pool starts with Ctrl-C, SIGTERM and SIGHUP held back (_signals_deferred), and
+            # is entered in the exit stack before they are let through: interrupted while
+            # multiprocessing forked its workers, the command lost the signal (raised in a fork
+            # hook, where Python ignores it) or left a worker it had not yet recorded running.
+            with _signals_deferred():
+                pool = stack.enter_context(multiprocessing.Pool(min(args.jobs, len(jobs)), initializer=_worker_signals))
+            sim = functools.partial(_simulate_job, oracle=args.oracle_estimate, view=view)
+            for (spec, _), result in zip(jobs, pool.imap(sim, jobs)):
+                outcomes.append(result)
+                bar.update(spec.steps)
+            pool.close()
+            pool.join()
     results = outcomes[: len(specs)]
     clean = iter(outcomes[len(specs) :])
     penalties = [fault_penalty(r.spec.mission, r, next(clean)) if r.spec.mission.comms.faults.enabled else None for r in results]
@@ -152,13 +160,53 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Signals held back while the worker pool starts (:func:`_signals_deferred`).
+DEFERRED_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Inside: :data:`DEFERRED_SIGNALS` are recorded, not handled; on leaving, the previous
+    handlers are back and each recorded signal is raised again. In a process forked inside
+    (a pool worker before its initializer) such a signal has its default effect at once:
+    KeyboardInterrupt for SIGINT, the end of the process for SIGTERM and SIGHUP. A signal
+    ignored (or handled outside Python) is left as it is."""
+    owner = os.getpid()
+    got: list[int] = []
+
+    def record(signum: int, frame: FrameType | None) -> None:
+        if os.getpid() == owner:
+            got.append(signum)
+        elif signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        else:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+
+    previous = {}
+    for signum in DEFERRED_SIGNALS:
+        handler = signal.getsignal(signum)
+        if handler is not None and handler != signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, record)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for held in dict.fromkeys(got):
+            signal.raise_signal(held)
+
+
 def _worker_signals() -> None:
     """In a pool worker: SIGTERM and SIGHUP end the process at once (the default action), so
     the pool's ``terminate`` ends it wherever it waits; the command's own handlers belong to
-    the parent."""
+    the parent. Ctrl-C raises KeyboardInterrupt, as in any Python process (the worker was
+    forked while the parent held it back, :func:`_signals_deferred`)."""
     for signum in (signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(signum) != signal.SIG_IGN:
             signal.signal(signum, signal.SIG_DFL)
+    if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _f(x: float | None) -> str:
