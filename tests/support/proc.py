@@ -48,6 +48,19 @@ def stop_group(p: subprocess.Popen[bytes], sig: int = signal.SIGTERM, grace_s: f
     return p.poll()
 
 
+#: Runs its arguments with SIGHUP at its default action (see :func:`with_default_hangup`).
+_HANGUP_DEFAULT = "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); os.execvp(sys.argv[1], sys.argv[1:])"
+
+
+def with_default_hangup(argv: Sequence[str]) -> list[str]:
+    """``argv`` as started from a terminal: with SIGHUP at its default action even when the suite
+    itself runs with it ignored (``nohup pytest``, which every child would inherit, and which
+    fimnav honours on purpose: ``nohup fimnav launch`` outlives its terminal)."""
+    if signal.getsignal(signal.SIGHUP) != signal.SIG_IGN:
+        return list(argv)
+    return [sys.executable, "-c", _HANGUP_DEFAULT, *argv]
+
+
 class Proc:
     """``argv`` in its own session, its output gathered in memory by two reader threads.
 
@@ -59,7 +72,7 @@ class Proc:
                  env: Mapping[str, str] | None = ENV) -> None:
         self.argv = list(argv)
         self.p = subprocess.Popen(
-            self.argv, stdin=subprocess.PIPE if stdin else subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            with_default_hangup(self.argv), stdin=subprocess.PIPE if stdin else subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             start_new_session=True, env=env, cwd=cwd,
         )
         self._lock = threading.Lock()
