@@ -6,6 +6,8 @@ children run the launcher's own code; a real-time launch says what its start del
   launcher), SIGHUP (the terminal closed: to the process group) and SIGKILL (to the launcher):
   every descendant of the launcher, recorded from /proc while the mission flies, is gone within
   a few seconds; exit 130, 143, 129 (128 + signal) and a line naming the partial logs.
+- Started with SIGHUP ignored (``nohup fimnav launch``), a SIGHUP to the group changes nothing:
+  the mission ends normally.
 - A second launch into the same ``--out`` is refused at once (exit 2) and ``--overwrite``
   replaces the previous run, whose stale vehicle log no longer misleads the launcher.
 - Started from a directory holding another ``missions`` package, the children import the
@@ -152,6 +154,26 @@ def test_a_finished_launch_has_stopped_its_fork_server_when_it_returns(tmp_path:
     code, _, stderr = run.wait(60.0)
     assert code == 0, stderr[-2000:]
     assert not left, left
+
+
+def test_a_launch_started_with_hangups_ignored_flies_on_through_a_hangup(tmp_path: Path, launches: list[Launch]) -> None:
+    """``nohup fimnav launch``: a SIGHUP inherited ignored stays ignored (missions.launch_signals),
+    so the run outlives its terminal. SIGHUP to the launcher's group (the terminal closing) while
+    the mission flies: the launch ends the mission normally (exit 0, its results line, a summary)
+    and leaves no process behind."""
+    out = tmp_path / "run"
+    ignore = "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_IGN); os.execvp(sys.argv[1], sys.argv[1:])"
+    argv = [sys.executable, "-c", ignore, *fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--steps", "60", "--set", "drones.count=4")]
+    run = Launch.command(argv, out, ROOT)
+    launches.append(run)
+    tree = swarm_of(run, 4)
+    os.killpg(run.proc.pid, signal.SIGHUP)
+    code, stdout, stderr = run.wait(120.0)
+    assert code == 0, stderr[-2000:]
+    assert "interrupted" not in stderr and "results:" in stdout, (stdout[-1000:], stderr[-1000:])
+    assert steps_logged(out) == 60
+    assert (out / "summary.json").exists()
+    wait_for(lambda: not still_alive(tree), GONE_WITHIN_S, f"every process of the swarm to end: {still_alive(tree)}")
 
 
 @pytest.mark.parametrize("fork_server", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["forked-planners", "fresh-interpreters"])
