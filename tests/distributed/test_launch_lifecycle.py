@@ -36,7 +36,7 @@ from missions.rundir import claim_results_dir, previous_run, unique_results_dir
 from missions.supervisor import ready_line
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
-from tests.support.proc import Proc, fimnav
+from tests.support.proc import Proc, fimnav, with_hangup
 from tests.support.wait import wait_for
 
 pytestmark = pytest.mark.integration
@@ -162,8 +162,7 @@ def test_a_launch_started_with_hangups_ignored_flies_on_through_a_hangup(tmp_pat
     the mission flies: the launch ends the mission normally (exit 0, its results line, a summary)
     and leaves no process behind."""
     out = tmp_path / "run"
-    ignore = "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_IGN); os.execvp(sys.argv[1], sys.argv[1:])"
-    argv = [sys.executable, "-c", ignore, *fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--steps", "60", "--set", "drones.count=4")]
+    argv = with_hangup(fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--steps", "60", "--set", "drones.count=4"), "SIG_IGN")
     run = Launch.command(argv, out, ROOT)
     launches.append(run)
     tree = swarm_of(run, 4)

@@ -48,8 +48,10 @@ def stop_group(p: subprocess.Popen[bytes], sig: int = signal.SIGTERM, grace_s: f
     return p.poll()
 
 
-#: Runs its arguments with SIGHUP at its default action (see :func:`with_default_hangup`).
-_HANGUP_DEFAULT = "import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); os.execvp(sys.argv[1], sys.argv[1:])"
+def with_hangup(argv: Sequence[str], disposition: str) -> list[str]:
+    """``argv`` run with SIGHUP set to ``disposition`` ("SIG_DFL" or "SIG_IGN"), which exec keeps."""
+    code = f"import os, signal, sys; signal.signal(signal.SIGHUP, signal.{disposition}); os.execvp(sys.argv[1], sys.argv[1:])"
+    return [sys.executable, "-c", code, *argv]
 
 
 def with_default_hangup(argv: Sequence[str]) -> list[str]:
@@ -58,7 +60,7 @@ def with_default_hangup(argv: Sequence[str]) -> list[str]:
     fimnav honours on purpose: ``nohup fimnav launch`` outlives its terminal)."""
     if signal.getsignal(signal.SIGHUP) != signal.SIG_IGN:
         return list(argv)
-    return [sys.executable, "-c", _HANGUP_DEFAULT, *argv]
+    return with_hangup(argv, "SIG_DFL")
 
 
 class Proc:
