@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     # A run with injected faults is summarised with its PEB penalty against the same run without
     # them: those baselines run here, with the runs (in the pool when --jobs > 1), not one after
     # another while the summaries are written.
-    baselines = [RunSpec(without_faults(s.mission), s.criterion, s.trials, s.steps) for s in specs if s.mission.comms.faults.enabled]
+    baselines = [dataclasses.replace(s, mission=without_faults(s.mission)) for s in specs if s.mission.comms.faults.enabled]
     jobs = [(s, False) for s in specs] + [(b, True) for b in baselines]
     total = sum(s.steps for s, _ in jobs)
     t0 = time.perf_counter()

@@ -103,7 +103,7 @@ def violating_drones(result: SimulationResult) -> dict[str, list[dict[str, Any]]
         for t, i in sorted({(int(t), int(i)) for _, t, i in np.argwhere(bad)}):
             steps = np.flatnonzero(bad[:, t, i])
             entry: dict[str, Any] = {
-                "trial": t,
+                "trial": t + result.spec.first_trial,
                 "drone": i + 1,
                 "first_step": int(steps[0]),
                 "last_step": int(steps[-1]),

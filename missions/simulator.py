@@ -23,6 +23,7 @@ run of trial 0 sees the same measurements as trial 0 here.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -63,6 +64,13 @@ class RunSpec:
     criterion: Criterion
     trials: int
     steps: int
+    #: Index of the first trial: the run is trials ``first_trial`` … ``first_trial + trials − 1``
+    #: of the mission's seed. Trial m's noise, faults and perturbations depend on (seed, m,
+    #: drone) only, so one trial of a larger run replays alone (``first_trial=99, trials=1``):
+    #: bit-identical without injected faults. With them the faults drawn are the same, but some
+    #: batched sums then run over arrays of another shape: the positions agree to rounding at
+    #: first, and the chaotic runs can part after tens of steps.
+    first_trial: int = 0
 
     @property
     def label(self) -> str:
@@ -244,8 +252,9 @@ class _Simulation:
         self.oracle_estimate = oracle_estimate
         self.float32_positions = float32_positions
 
-        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, sensing.measurement_draws())
-        self.ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS)
+        first = spec.first_trial
+        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, sensing.measurement_draws(), first)
+        self.ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS, first)
 
         # Every drone's start position (the mission's; the planning step keeps clear of a peer not
         # heard of yet there, planner.agent.plan).
@@ -270,7 +279,7 @@ class _Simulation:
         half = np.arange(N) < (N + 1) // 2
         self.partition_links = half[:, None] != half[None, :]
         # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
-        self.faults = FaultBuffer(fault_model, mission.seed, range(M), range(N), N, comms.h_max) if fault_model is not None else None
+        self.faults = FaultBuffer(fault_model, mission.seed, range(first, first + M), range(N), N, comms.h_max) if fault_model is not None else None
         self.used = np.full((M, N, N), -1, dtype=np.int64)
         self.state = est.initial_state((M, N), self.estimator_config)
         self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
@@ -501,7 +510,7 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
         spec = result.spec
         flags = result.extra
         baseline = simulate(
-            RunSpec(without_faults(mission), spec.criterion, spec.trials, spec.steps),
+            dataclasses.replace(spec, mission=without_faults(mission)),
             oracle_estimate=bool(flags.get("oracle_estimate", 0.0)),
             float32_positions=bool(flags.get("float32_positions", 0.0) or flags.get("distributed", 0.0)),
         )

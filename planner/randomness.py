@@ -41,14 +41,15 @@ def control_rng(seed: int, trial: int, drone: int) -> np.random.Generator:
     return stream(seed, trial, drone, CONTROL_STREAM)
 
 
-def presampled_uniforms(seed: int, trials: int, drones: int, steps: int, purpose: int, draws: int) -> np.ndarray:
-    """Uniform variates of shape (steps, trials, drones, draws) from the per-drone streams.
+def presampled_uniforms(seed: int, trials: int, drones: int, steps: int, purpose: int, draws: int, first_trial: int = 0) -> np.ndarray:
+    """Uniform variates of shape (steps, trials, drones, draws) from the per-drone streams of
+    trials ``first_trial`` … ``first_trial + trials − 1``.
 
-    Equal, element by element, to calling ``stream(seed, m, i, purpose).random(draws)`` once per
-    step, in step order.
+    Equal, element by element, to calling ``stream(seed, first_trial + m, i, purpose).random(draws)``
+    once per step, in step order.
     """
     out = np.empty((steps, trials, drones, draws))
     for m in range(trials):
         for i in range(drones):
-            out[:, m, i, :] = stream(seed, m, i, purpose).random((steps, draws))
+            out[:, m, i, :] = stream(seed, first_trial + m, i, purpose).random((steps, draws))
     return out
