@@ -110,6 +110,54 @@ def _tilt_buffer(tilt: FloatArray, limits: Limits) -> FloatArray:
     return limits.step_max_m * np.maximum(0.0, np.sin(np.asarray(tilt)[..., None] - k)).sum(-1)
 
 
+def loiter_path(end: FloatArray, psi: FloatArray, theta: FloatArray, limits: Limits) -> FloatArray:
+    """The two loiter paths a drone can always fly from an end position: vertices (..., 2, K, 3), m,
+    ENU, of K steps of v_min Δt turning at the full rate φ_max to the left (index 0) and to the
+    right (1) from heading ``psi`` (rad, from east), the tilt ``theta`` (rad) returning to level
+    at θ_max per step (eq. 2's limits).
+
+    Once level, the vertices lie on a circle of radius R = v_min Δt / (2 sin(φ_max/2)) (0.59 m
+    with the case study's limits), which the drone can fly for ever; K covers the tilt's return
+    and one full turn. A drone whose loiter path keeps every safety distance after its step can
+    keep them all at every later step by flying it (docs/control.md, "Loiter certificate"). With
+    v_min = 0 the path is the end position itself (a drone that can hover).
+    """
+    K = loiter_steps(limits)
+    j = np.arange(1.0, K + 1.0)
+    turn = np.array([1.0, -1.0])[:, None] * j * limits.heading_change_max_rad  # (2, K)
+    psi_j = np.asarray(psi)[..., None, None] + turn
+    tmax = limits.tilt_change_max_rad
+    th = np.asarray(theta)[..., None, None]
+    th_j = np.sign(th) * np.maximum(np.abs(th) - j * tmax, 0.0) if tmax > 0.0 else np.broadcast_to(th, th.shape[:-1] + (K,))
+    steps = _cartesian(np.full(np.broadcast_shapes(psi_j.shape, th_j.shape), limits.step_min_m), psi_j, np.broadcast_to(th_j, psi_j.shape))
+    return np.asarray(end)[..., None, None, :] + np.cumsum(steps, axis=-2)
+
+
+def loiter_steps(limits: Limits) -> int:
+    """K of :func:`loiter_path`: the steps the tilt takes to come back to level from ±90° at
+    θ_max per step, plus one full turn at φ_max per step (0 when the drone cannot turn)."""
+    if limits.heading_change_max_rad <= 0.0:
+        return 0
+    level = math.ceil(0.5 * math.pi / limits.tilt_change_max_rad - 1e-9) if limits.tilt_change_max_rad > 0.0 else 0
+    return level + math.ceil(2.0 * math.pi / min(limits.heading_change_max_rad, 2.0 * math.pi) - 1e-9)
+
+
+def _loiter_reach_m(limits: Limits) -> float:
+    """How far (m) a loiter path (:func:`loiter_path`) can take a drone from its start: the
+    tilt's return to level, then the circle's diameter."""
+    if loiter_steps(limits) == 0:
+        return 0.0
+    level = loiter_steps(limits) - math.ceil(2.0 * math.pi / min(limits.heading_change_max_rad, 2.0 * math.pi) - 1e-9)
+    return level * limits.step_min_m + 2.0 * loiter_radius_m(limits)
+
+
+def loiter_radius_m(limits: Limits) -> float:
+    """R = v_min Δt / (2 sin(φ_max/2)), m: the radius of the level loiter circle of
+    :func:`loiter_path` (the vertices of the polygon flown at v_min turning at φ_max)."""
+    half = 0.5 * min(limits.heading_change_max_rad, math.pi)
+    return limits.step_min_m / (2.0 * math.sin(half)) if half > 0.0 else math.inf
+
+
 def _spherical(u: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     s = np.sqrt((u * u).sum(-1))
     return s, np.arctan2(u[..., 1], u[..., 0]), np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
@@ -611,20 +659,21 @@ def _filter_requirements(scene: _Scene, cons: _Constraints, limits: Limits) -> _
     )
 
 
-def _near_peers_only(req: _Requirements, scene: _Scene, dist: FloatArray, limits: Limits) -> _Requirements:
+def _near_peers_only(req: _Requirements, scene: _Scene, dist: FloatArray, limits: Limits, reach_m: float = 0.0) -> _Requirements:
     """The requirements against the peers that can be nearest after one step only.
 
     Peers whose clearance now exceeds the smallest by more than 2 s_max can never be the
     nearest for a position reachable in one step (clearances are 1-Lipschitz, |u| <= s_max):
     candidates are scored against the others only. Exact (same minimum), and O(C k) instead of
     O(C N) for C candidates: at N = 1000 the filtered step went from ~5 ms to ~0.6 ms. (Per
-    peer requirement variant, strict, loose and hard: the union of their columns.)
+    peer requirement variant, strict, loose and hard: the union of their columns.) ``reach_m``:
+    how much further than the end of the step a scored position can be (a loiter path's reach).
     """
     q, planes, smax = scene.peers, scene.planes, limits.step_max_m
     cols = np.zeros(q.shape[-2], dtype=bool)
     for c in (req.strict, req.loose, req.hard):
         m_now = dist - c.peer_required
-        cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * smax + 1e-6).reshape(-1, q.shape[-2]).any(0)
+        cols |= (m_now <= m_now.min(-1, keepdims=True) + 2.0 * (smax + reach_m) + 1e-6).reshape(-1, q.shape[-2]).any(0)
     strict, loose, hard = (
         _Clearances(
             q[..., cols, :],
@@ -638,6 +687,57 @@ def _near_peers_only(req: _Requirements, scene: _Scene, dist: FloatArray, limits
         for c in (req.strict, req.loose, req.hard)
     )
     return _Requirements(req.now, req.need, strict, loose, hard)
+
+
+@dataclass(frozen=True)
+class _Certificate:
+    """What a loiter path (:func:`loiter_path`) after a step must keep (internal): the peers'
+    reachable balls of ``clear`` (as in the filter's ``hard`` variant: d_U* + (a_j + 1) v_max Δt
+    from the record, or a lost peer's plane), the source keep-out and d_O* + v_min Δt / 2 (the
+    chords' interior) from the obstacles, without the turn-away buffers (the loiter is the
+    turn away), the altitude box itself; a family already in deficit at p only may not get
+    worse (``need`` (..., 4), m). ``now`` (..., 4): the margins at p."""
+
+    clear: _Clearances
+    need: FloatArray
+    now: FloatArray
+
+
+def _certificate(scene: _Scene, cons: _Constraints, hard: _Clearances, limits: Limits) -> _Certificate:
+    """The loiter certificate's clearances for the drones of ``scene`` (:class:`_Certificate`)."""
+    p = scene.p
+    clear = dataclasses.replace(
+        hard,
+        source_required=np.broadcast_to(scene.keepout, p.shape[:-1]),
+        obstacle_required=limits.d_obstacle_m + 0.5 * limits.step_min_m,
+    )
+    now = np.empty(p.shape[:-1] + (4,))
+    now[..., UAV] = (cons.dist - clear.peer_required).min(-1, initial=np.inf)
+    now[..., SOURCE] = cons.g_s
+    now[..., OBSTACLE] = cons.g_o - 0.5 * limits.step_min_m
+    now[..., ALTITUDE] = np.minimum(limits.z_max_m - p[..., 2], p[..., 2] - limits.z_min_m)
+    return _Certificate(clear, np.minimum(now, 0.0), now)
+
+
+def _certified(end: FloatArray, step: FloatArray, cert: _Certificate, bmin: FloatArray, bmax: FloatArray, limits: Limits) -> BoolArray:
+    """(n, C) whether a loiter path from each end position (n, C, 3) after ``step`` (n, C, 3)
+    keeps every clearance of ``cert`` (flat batch n): to the left or to the right."""
+    if loiter_steps(limits) == 0:
+        return np.ones(end.shape[:-1], dtype=bool)
+    _, psi, theta = _spherical(step)
+    path = loiter_path(end, psi, theta, limits)  # (n, C, 2, K, 3)
+    path = np.concatenate((np.broadcast_to(end[..., None, None, :], path.shape[:-2] + (1, 3)), path), -2)  # and the end itself
+    n, C, _, K, _ = path.shape
+    flat = path.reshape(n, C * 2 * K, 3)
+    c = cert.clear
+    m = np.empty(flat.shape[:-1] + (4,))
+    m[..., UAV] = _peer_margin(flat, c)
+    ds = flat - c.source[..., None, :]
+    m[..., SOURCE] = np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None]
+    m[..., OBSTACLE] = distance_to_boxes(flat, bmin, bmax) - c.obstacle_required
+    m[..., ALTITUDE] = np.minimum(limits.z_max_m - flat[..., 2], flat[..., 2] - limits.z_min_m)
+    ok = (m >= cert.need[:, None, :]).all(-1).reshape(n, C, 2, K).all(-1)
+    return np.asarray(ok.any(-1))
 
 
 def _safety_filter(
@@ -657,6 +757,8 @@ def _safety_filter(
     p, bmin, bmax, smax = scene.p, scene.bmin, scene.bmax, limits.step_max_m
     req = _filter_requirements(scene, cons, limits)
     need = req.need
+    cert = _certificate(scene, cons, req.hard, limits)
+    reach = smax + _loiter_reach_m(limits)
     active = active.copy()
     filtered = np.zeros(p.shape[:-1], dtype=bool)
     infeasible = np.zeros(p.shape[:-1], dtype=bool)
@@ -666,12 +768,19 @@ def _safety_filter(
     alt = np.minimum(limits.z_max_m - z_next - _tilt_buffer(theta, limits), z_next - limits.z_min_m - _tilt_buffer(-theta, limits))
     bad = alt < need[..., ALTITUDE]
     near = (req.now[..., :ALTITUDE] - smax < need[..., :ALTITUDE]).any(-1)
-    if scene.peers.shape[-2] > 32 and (near.any() or bad.any()):
-        req = _near_peers_only(req, scene, cons.dist, limits)
+    # Drones whose loiter path after the step could reach a clearance: the step must leave one
+    # that keeps them all (the loiter certificate).
+    near_c = (cert.now - reach < cert.need).any(-1)
+    if scene.peers.shape[-2] > 32 and (near.any() or bad.any() or near_c.any()):
+        req = _near_peers_only(req, scene, cons.dist, limits, _loiter_reach_m(limits))
+        cert = dataclasses.replace(cert, clear=dataclasses.replace(req.hard, source_required=cert.clear.source_required, obstacle_required=cert.clear.obstacle_required))
     if near.any():
         idx = np.nonzero(near)
         score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(req.strict, idx), bmin, bmax, limits)
         bad[idx] |= (score[..., 0, :] < need[idx]).any(-1)
+    if near_c.any():
+        idx = np.nonzero(near_c & ~bad)
+        bad[idx] |= ~_certified((p + u)[idx][:, None, :], u[idx][:, None, :], _cert_subset(cert, idx), bmin, bmax, limits)[:, 0]
     active[..., ALTITUDE] |= alt < 0.0
     if bad.any():
         idx = np.nonzero(bad)
@@ -687,6 +796,7 @@ def _safety_filter(
             limits,
             _subset(req.loose, idx),
             _subset(req.hard, idx),
+            _cert_subset(cert, idx),
         )
         u = u.copy()
         u[idx] = u_b
@@ -694,6 +804,10 @@ def _safety_filter(
         infeasible[idx] = inf_b
         active[idx] |= margins_b < 0.0
     return u, active, filtered, infeasible
+
+
+def _cert_subset(cert: _Certificate, idx: tuple[NDArray[np.intp], ...]) -> _Certificate:
+    return _Certificate(_subset(cert.clear, idx), cert.need[idx], cert.now[idx])
 
 
 def _active_families(active_all: BoolArray, safe: bool) -> BoolArray:
@@ -726,7 +840,14 @@ def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) 
         np.clip(prev_theta[:, None] + T * limits.tilt_change_max_rad, -0.5 * np.pi, 0.5 * np.pi),
         T * limits.tilt_change_max_rad,
     )
-    return _cartesian(np.broadcast_to(S, psi.shape), psi, th), th
+    # The loiter path's first step to either side (:func:`loiter_path`): a drone that keeps a
+    # loiter certificate can always take it.
+    turn = np.array([1.0, -1.0]) * limits.heading_change_max_rad
+    level = np.sign(prev_theta) * np.maximum(np.abs(prev_theta) - limits.tilt_change_max_rad, 0.0)
+    psi = np.concatenate((psi, prev_psi[:, None] + turn), -1)
+    th = np.concatenate((th, np.repeat(level[:, None], 2, -1)), -1)
+    S = np.concatenate((np.broadcast_to(S, prev_psi.shape + S.shape), np.full(prev_psi.shape + (2,), limits.step_min_m)), -1)
+    return _cartesian(S, psi, th), th
 
 
 def _relaxation_tiers(
@@ -809,6 +930,7 @@ def _envelope_search(
     limits: Limits,
     loose: _Clearances | None = None,
     hard: _Clearances | None = None,
+    cert: _Certificate | None = None,
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """Best step of the kinematic envelope for the flat batch ``p`` (n, 3).
 
@@ -842,9 +964,14 @@ def _envelope_search(
         margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
     tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
+    infeasible = np.asarray(~tiers[1][0].any(-1))
+    if cert is not None:
+        certified = _certified(p[:, None, :] + cand, cand, cert, bmin, bmax, limits)
+        # 0. every clearance with its buffers and a loiter certificate after the step; 0'. a
+        # loiter certificate, the buffers given up (the step that comes closest to them).
+        tiers[0:0] = [(strict & certified, tiers[0][1]), (certified, np.minimum(slack[..., UAV], slack[..., SOURCE]))]
     pick = exact_phys.argmax(-1)  # 9. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
-    infeasible = np.asarray(~tiers[1][0].any(-1))
     rows = np.arange(p.shape[0])
     return cand[rows, pick], margins[rows, pick], infeasible

@@ -415,20 +415,14 @@ def test_safe_rule_soak(scenario):
         assert min(worst.values()) >= -1e-9, (d_hop, worst)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "known gap (docs/reliability.md, 'A squeeze the filter's one-step look cannot avoid'): two drones meeting "
-        "head-on where the source keep-out meets the ceiling have no step that keeps every distance"
-    ),
-)
 def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_every_distance():
     """Two drones 8 m apart at 24 m, 1 m outside d_S* of a source known exactly (2 m up), first
     flying apart, then both drawn to one point of the keep-out circle under the 25 m ceiling
     (a constant unit gradient, mirror images of each other), each with the other's position of
-    now. They meet head-on: outward is the only way out, up to 180° from the heading, and the
-    filter's one-step look finds no step that keeps both the peer and the keep-out. With
-    fimnav's filter both end 0.19 m inside d_S* at step 9, and 0.06 m from d_U* at step 10."""
+    now. They meet head-on: outward is the only way out, up to 180° from the heading. A filter
+    that looks one step ahead only (each clearance with its own turn-away buffer) took a step
+    after which no step kept both the peer and the keep-out: both ended 0.19 m inside d_S* at
+    step 9, and 0.06 m from d_U* at step 10. The loiter certificate rejects that step."""
     src = np.array([0.0, 0.0, 2.0])
     r0 = math.sqrt((LIM.d_source_m + 1.0) ** 2 - (24.0 - src[2]) ** 2)
     a = np.radians([85.0, 95.0])
