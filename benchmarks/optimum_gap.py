@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         # motion from the source and the altitude faces) and about an estimate (2 v_max dt + b),
         # both without the estimate's inflation, which the distance factor measures.
         holds = {
-            oracle: placement_bounds(limits, "hold", oracle_estimate=True, source_static=oracle and mission.source.is_static)
+            oracle: placement_bounds(limits, "hold", oracle_estimate=True, source_slow=oracle and mission.source_is_slow())
             for oracle in (True, False)
         }
         p_holds = {oracle: optimum_peb_m(mission, hold, args.starts) for oracle, hold in holds.items()}

@@ -85,7 +85,7 @@ def mission_optimum(
         mission.drones.ranging_mask(),
         mission.drones.bearing_mask(),
         mission.channel.to_planner(),
-        placement_bounds(mission.limits(), margins, oracle_estimate, mission.source.is_static),
+        placement_bounds(mission.limits(), margins, oracle_estimate, mission.source_is_slow()),
         bmin,
         bmax,
         criterion or mission.criterion,

@@ -697,6 +697,14 @@ class Mission(_Section):
         """``constraints.to_planner(dt_s)``."""
         return self.constraints.to_planner(self.dt_s)
 
+    def source_is_slow(self) -> bool:
+        """The source moves less than the turn buffer b (:attr:`planner.params.Limits.turn_buffer_m`)
+        per step: static, or slow enough that b covers its motion between two steps. Planning
+        with the true source (``--oracle-estimate``), its constraint then acts within one step
+        of the drone's own motion (:func:`planner.control.source_activation_margin_m`)."""
+        step_m = float(np.linalg.norm(np.asarray(self.source.velocity_mps, dtype=float))) * self.dt_s
+        return step_m < self.limits().turn_buffer_m
+
     def estimator_config(self) -> EstimatorConfig:
         """The source estimator's settings for this mission: the search box (or the fence and
         any height) as bounds; a forgetting factor of 0.97 per step for a moving source."""

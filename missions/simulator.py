@@ -363,7 +363,7 @@ class _Simulation:
             self.ctrl_u[k],
             step_index=k,
             oracle_source=src if self.oracle_estimate else None,
-            oracle_static=self.spec.mission.source.is_static,
+            oracle_slow=self.spec.mission.source_is_slow(),
             own_ranges=own,
             loitering=self.loiter[k - 1] if k > 0 else None,
             lost_contact=view.cut,

@@ -73,6 +73,9 @@ OWN_RANGE_CLEAR_FACTOR: float = 1.5
 #: link is LOS when the shadow's edge is known to s metres (the estimate's error, a few metres
 #: at most once the swarm has converged).
 LOS_SOFTNESS_M: float = 2.0
+#: Depth (in softnesses) into a shadow below which the slope of the predicted line of sight is
+#: held at its value there (:func:`own_los_weight`): the way out of a deep shadow.
+LOS_SLOPE_FLOOR_SOFTNESSES: float = 1.0
 #: Links farther than this many softnesses from a building count as clear of it.
 LOS_CUTOFF_SOFTNESSES: float = 5.0
 #: Bounds the drone's own measured LOS flag puts on q: at least Φ(1) in a measured LOS, at most
@@ -104,7 +107,12 @@ def own_los_weight(
     q = Π_b Φ(c_b/s), the probability that no building blocks the link when each one's shadow
     edge is uncertain by s: c_b the link's clearance from building b
     (:func:`planner.geometry.link_clearance_with_gradient`; > 0 passing it, < 0 crossing it), Φ
-    the standard normal CDF; ∇_p q = q Σ_b (φ(c_b/s)/Φ(c_b/s)) ∇_p c_b / s. A smooth stand-in
+    the standard normal CDF; ∇_p q = q̄ Σ_b (φ(v_b)/Φ(v_b)) ∇_p c_b / s with v_b = max(c_b/s, −1)
+    (:data:`LOS_SLOPE_FLOOR_SOFTNESSES`) and q̄ = Π_b Φ(v_b): the derivative of q down to one
+    softness inside a shadow, and that slope held deeper in, so that a drone deep in a shadow
+    still has the way out (the derivative fades as φ(c/s): a drone that started behind two
+    buildings of paper/dynamic_source never left their shadows and ended 244 m from the source;
+    :func:`planner.geometry.link_clearance_with_gradient` gives the side to leave by). A smooth stand-in
     for the LOS indicator p_i of eq. 3 at a candidate position: the planning FIM weights the
     drone's own LOS and NLOS terms by q and 1 − q. The product (rather than the nearest
     building alone) keeps ∇q continuous where two shadows meet: with the nearest building only,
@@ -130,10 +138,12 @@ def own_los_weight(
     # Links more than 5 s from a building have Φ(c/s) > 1 − 3·10⁻⁷ for it: not sampled (1, ∇ 0).
     c, gc = link_clearance_with_gradient(position, source, boxes_min, boxes_max, cutoff_m=LOS_CUTOFF_SOFTNESSES * softness_m)
     u = np.maximum(c / softness_m, -30.0)  # Φ(−30) > 0: no underflow
-    phi_b = _normal_cdf(u)
-    q = phi_b.prod(-1)
-    mills = np.exp(-0.5 * u * u) / (math.sqrt(2.0 * math.pi) * phi_b)  # φ/Φ per box
-    grad_q = q[..., None] * (mills[..., None] * gc).sum(-2) / softness_m
+    q = _normal_cdf(u).prod(-1)
+    # The slope is taken with every clearance floored at −LOS_SLOPE_FLOOR_SOFTNESSES s.
+    v = np.maximum(u, -LOS_SLOPE_FLOOR_SOFTNESSES)
+    phi_v = _normal_cdf(v)
+    mills = np.exp(-0.5 * v * v) / (math.sqrt(2.0 * math.pi) * phi_v)  # φ/Φ per box
+    grad_q = phi_v.prod(-1)[..., None] * (mills[..., None] * gc).sum(-2) / softness_m
     if measured_los is not None:
         m = np.asarray(measured_los, dtype=bool)
         q = np.where(m, np.maximum(q, MEASURED_LOS_MIN), np.minimum(q, 1.0 - MEASURED_LOS_MIN))
@@ -529,7 +539,7 @@ def plan(
     *,
     step_index: int = 0,
     oracle_source: ArrayLike | None = None,
-    oracle_static: bool = True,
+    oracle_slow: bool = True,
     own_ranges: OwnRanges | None = None,
     loitering: ArrayLike | None = None,
     lost_contact: ArrayLike | None = None,
@@ -547,9 +557,10 @@ def plan(
         step_index: k, the current step (≥ 0), the age of a start position.
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
-        oracle_static: the oracle source does not move: its constraint then acts within
+        oracle_slow: the oracle source moves less than b per step
+            (:meth:`missions.schema.Mission.source_is_slow`): its constraint then acts within
             v_max Δt + b, one step of the drone's own motion
-            (:func:`planner.control.source_activation_margin_m` with ``exact``); a moving one
+            (:func:`planner.control.source_activation_margin_m` with ``exact``); a faster one
             keeps the estimate's 2 v_max Δt + b.
         own_ranges: drone i's own last :data:`OWN_RANGE_WINDOW` ranges (:func:`own_ranges`;
             none for a drone that does not range): the evidence of its distance to the source
@@ -629,6 +640,6 @@ def plan(
         xi=config.xi,
         perturbation_rad=config.perturbation_rad,
         peer_planes=planes,
-        source_exact=oracle_source is not None and oracle_static,
+        source_exact=oracle_source is not None and oracle_slow,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), loiter=loiter)

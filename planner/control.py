@@ -311,7 +311,7 @@ def control_step(
             (zeros elsewhere): their row of ``peers`` is then a point of the plane drone i keeps
             to its side of, with its age 0 (:func:`lost_contact_planes`); None: none.
         source_exact: ``source_estimate`` is the true source (planning with it, a research
-            mode) and static: its constraint acts within v_max Δt + b instead of
+            mode) and moves less than b per step: its constraint acts within v_max Δt + b instead of
             2 v_max Δt + b, the altitude box's within one level step's climb
             (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`).
 
@@ -773,7 +773,9 @@ def _safety_filter(
     near_c = (cert.now - reach < cert.need).any(-1)
     if scene.peers.shape[-2] > 32 and (near.any() or bad.any() or near_c.any()):
         req = _near_peers_only(req, scene, cons.dist, limits, _loiter_reach_m(limits))
-        cert = dataclasses.replace(cert, clear=dataclasses.replace(req.hard, source_required=cert.clear.source_required, obstacle_required=cert.clear.obstacle_required))
+        cert = dataclasses.replace(
+            cert, clear=dataclasses.replace(req.hard, source_required=cert.clear.source_required, obstacle_required=cert.clear.obstacle_required)
+        )
     if near.any():
         idx = np.nonzero(near)
         score = _score((p + u)[idx][..., None, :], theta[idx][..., None], _subset(req.strict, idx), bmin, bmax, limits)

@@ -179,6 +179,10 @@ def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: Arra
 LINK_SAMPLES: int = 16
 
 
+#: How far (m) a box is extended past a face a link cannot pass (:func:`link_clearance_with_gradient`).
+_NO_EXIT_M: float = 1.0e4
+
+
 def link_clearance_with_gradient(
     positions: ArrayLike,
     source: ArrayLike,
@@ -196,7 +200,12 @@ def link_clearance_with_gradient(
     box is convex, so along the segment it has one minimum; it is located on ``samples`` points
     t_m = (m + 1)/samples (resolution |p − s|/samples). The gradient is ∇_p c = t* ∇d(x(t*)),
     t* the sampled minimiser (∂x/∂p = t I): the direction in which the drone moves its link
-    away from the box (out of its shadow).
+    away from the box (out of its shadow). A face the link cannot pass is no way out: a box whose
+    bottom is at or below both ends of the link (a building standing on the ground) is taken
+    to extend downwards without end for it, one whose top is at or above both ends upwards. This
+    leaves the clearance of a link that passes the box unchanged (the segment's heights lie
+    between its ends) and turns the gradient of one that crosses it to the nearest side face:
+    otherwise a link low across a building was sent to the ground, under it.
 
     Args:
         positions: drone positions p, shape (..., 3), m, ENU.
@@ -235,7 +244,13 @@ def link_clearance_with_gradient(
     g = np.zeros(c.shape + (3,))
     r, b = np.nonzero(near)
     if r.size:
-        c[r, b], g[r, b] = _link_sdf_pairs(p[r], s[r], bmin[b], bmax[b], samples)
+        # A box's bottom at or below both ends of the link (a building on the ground), or its top
+        # at or above both, is no way out for this link: the box is extended past it.
+        lo_b, hi_b = bmin[b], bmax[b]
+        z_lo, z_hi = np.minimum(p[r, 2], s[r, 2]), np.maximum(p[r, 2], s[r, 2])
+        lo_b = np.concatenate((lo_b[:, :2], np.where(lo_b[:, 2] <= z_lo, z_lo - _NO_EXIT_M, lo_b[:, 2])[:, None]), axis=1)
+        hi_b = np.concatenate((hi_b[:, :2], np.where(hi_b[:, 2] >= z_hi, z_hi + _NO_EXIT_M, hi_b[:, 2])[:, None]), axis=1)
+        c[r, b], g[r, b] = _link_sdf_pairs(p[r], s[r], lo_b, hi_b, samples)
     return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))
 
 
@@ -266,6 +281,35 @@ def _link_sdf_pairs(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatA
     out_sel = out[rows, k]
     inside = out_sel <= 0.0
     unit_out = np.maximum(e_sel, 0.0) / np.where(inside, 1.0, out_sel)[:, None]
-    unit_in = (np.arange(3) == e_sel.argmax(-1)[:, None]).astype(float)
-    grad = sign * np.where(inside[:, None], unit_in, unit_out) * t[k][:, None]
-    return clearance, grad
+    grad = sign * unit_out
+    if inside.any():
+        grad[inside] = _crossing_exit(p[inside], s[inside], bmin[inside], bmax[inside])
+    return clearance, grad * t[k][:, None]
+
+
+def _crossing_exit(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray) -> FloatArray:
+    """Unit direction (K, 3) in which drones p move links s → p that cross one box each out of it.
+
+    For each face, the drone's displacement along the face's normal that takes the part of the
+    segment inside the box, x(t) = s + t (p − s) for t in [t_in, t_out] (slab test), past that
+    face: max over t of (face − x(t))/t, found at t_in or t_out as it is monotone in t. The face
+    with the smallest displacement is the way out. (The deepest point's nearest face, the
+    sdf's gradient, can be a face the link runs through, the building's back, which no lateral
+    move clears.)"""
+    d = p - s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (bmin - s) / d, (bmax - s) / d
+    inside_slab = (s >= bmin) & (s <= bmax)
+    t_lo = np.where(d == 0.0, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
+    t_hi = np.where(d == 0.0, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
+    t_in = np.clip(t_lo.max(-1), 1e-6, 1.0)
+    t_out = np.clip(t_hi.min(-1), t_in, 1.0)
+    ends = np.stack((t_in, t_out), -1)[:, None, :]  # (K, 1, 2)
+    x = s[:, :, None] + ends * d[:, :, None]  # (K, 3, 2)
+    up = ((bmax[:, :, None] - x) / ends).max(-1)  # (K, 3): displacement past the upper face
+    down = ((x - bmin[:, :, None]) / ends).max(-1)  # past the lower face
+    move = np.concatenate((up, down), -1)  # (K, 6)
+    best = move.argmin(-1)
+    out = np.zeros(p.shape)
+    out[np.arange(p.shape[0]), best % 3] = np.where(best < 3, 1.0, -1.0)
+    return out

@@ -123,11 +123,12 @@ class PlacementBounds:
             raise ValueError(f"PlacementBounds: expected z_min_m <= z_max_m, found {self.z_min_m} and {self.z_max_m}")
 
 
-def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimate: bool = False, source_static: bool = True) -> PlacementBounds:
+def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimate: bool = False, source_slow: bool = True) -> PlacementBounds:
     """The distances a placement keeps, from a mission's limits (docs/control.md, "Constraint
     activation"; b = :attr:`Limits.turn_buffer_m`, a = 2 v_max Δt + b the activation margin,
-    :func:`planner.control.source_activation_margin_m`). ``source_static``: the source does not
-    move (with ``oracle_estimate``, the hold margins are then the drone's own step).
+    :func:`planner.control.source_activation_margin_m`). ``source_slow``: the source moves less than
+    b per step (:meth:`missions.schema.Mission.source_is_slow`; with ``oracle_estimate``, the hold
+    margins are then the drone's own step).
 
     The source keep-out of the default rule is held about the estimate: d_S* + max(3σ, 1.5 m),
     which for a converged estimate (3σ below it) is d_S* + 1.5 m, the inflation floor
@@ -146,11 +147,11 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
     drone back to it: source K + a, peers d_U* + 2 v_max Δt + 2b, buildings d_O* + a, a inside
     each face of the altitude box. Paper values: R_S = 54.14 m, z in [4.64, 22.36] m. A 2-trial
     run of paper/joint ends with a median distance of 53.96 m and a median altitude of 22.36 m:
-    the drones circle between K + b and K + a. With ``oracle_estimate`` and ``source_static``
-    (the true source, not moving) the source and the altitude faces act within one step of the
+    the drones circle between K + b and K + a. With ``oracle_estimate`` and ``source_slow``
+    (the true source, moving less than b per step) the source and the altitude faces act within one step of the
     drone's own motion (:func:`planner.control.source_activation_margin_m`,
     :func:`planner.control.altitude_activation_margin_m`): R_S = d_S* + v_max Δt + b = 51.64 m,
-    z in [2.77, 24.23] m; a moving true source keeps the estimate's margins.
+    z in [2.77, 24.23] m; a faster true source keeps the estimate's margins.
 
     ``rule="none"``: problem (7) as printed: d_S*, d_U*, d_O*, [z_min, z_max].
 
@@ -171,7 +172,7 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
         src, uav, obs, alt = b, smax + 2.0 * b, 0.5 * smax + b, 0.0
     else:
         a = source_activation_margin_m(limits)
-        exact = oracle_estimate and source_static
+        exact = oracle_estimate and source_slow
         a_src = source_activation_margin_m(limits, exact=exact)
         a_alt = altitude_activation_margin_m(limits, exact_source=exact)
         src, uav, obs, alt = a_src, 2.0 * smax + 2.0 * b, a, min(a_alt, 0.5 * (limits.z_max_m - limits.z_min_m))

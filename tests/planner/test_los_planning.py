@@ -22,9 +22,18 @@ BMAX = np.array([[-10.0, 115.0, 30.0], [35.0, 90.0, 30.0], [-8.0, 24.0, 30.0]])
 
 
 def _dense_clearance(p: np.ndarray, s: np.ndarray, n: int = 4001) -> np.ndarray:
+    """Per link, the least signed distance of 4000 points of it from the buildings, each
+    building extended past a face the link cannot pass (its bottom at or below both ends, its top
+    at or above both)."""
     t = np.linspace(0.0, 1.0, n)[1:]
-    x = s[..., None, :] + t[:, None] * (p - s)[..., None, :]
-    return distance_to_boxes(x, BMIN, BMAX).min(-1)
+    out = np.empty(p.shape[0])
+    for i in range(p.shape[0]):
+        x = s[i] + t[:, None] * (p[i] - s[i])
+        lo, hi = BMIN.copy(), BMAX.copy()
+        lo[lo[:, 2] <= min(p[i, 2], s[i, 2]), 2] = -1e6
+        hi[hi[:, 2] >= max(p[i, 2], s[i, 2]), 2] = 1e6
+        out[i] = distance_to_boxes(x, lo, hi).min()
+    return out
 
 
 def test_clearance_matches_dense_sampling_and_sign_is_line_of_sight() -> None:
@@ -60,7 +69,8 @@ def test_cutoff_keeps_near_links_exact() -> None:
 @pytest.mark.parametrize("own_role", [(True, False), (False, True), (True, True)])
 def test_planning_gradient_matches_finite_differences(criterion: str, own_role: tuple[bool, bool]) -> None:
     """Near B3's shadow edge (0 < q < 1) the gradient of the planning cost, with its ∇q term,
-    is the derivative of C(J(p))."""
+    is the derivative of C(J(p)) (on the LOS side: deeper than one softness into a shadow the
+    slope is held, :func:`test_deep_shadow_points_to_the_nearer_side`)."""
     p_hat = np.array([0.5, -0.3, 2.2])
     peers = np.array([[40.0, -30.0, 10.0], [-45.0, -20.0, 20.0], [5.0, -55.0, 6.0], [50.0, 20.0, 15.0]])
     peer_rng = np.array([True, False, True, True])
@@ -76,18 +86,18 @@ def test_planning_gradient_matches_finite_differences(criterion: str, own_role: 
         return float(cost(J_peers + q * J_L + (1.0 - q) * J_N, criterion)[0])
 
     checked = 0
-    for p in ([-26.0, 44.0, 12.0], [-31.0, 40.0, 8.0], [-12.0, 49.0, 20.0]):
+    for p in ([-12.0, 49.0, 20.0], [-10.0, 49.0, 20.0], [-9.0, 48.0, 12.0]):
         p = np.array(p)
         q, _ = own_los_weight(p, p_hat, BMIN, BMAX)
         assert 0.001 < q < 0.999, q  # on the shadow's soft edge: the ∇q term matters
         view = np.vstack([p, peers])
         own = np.array([True, False, False, False, False])
         cg = _planning_cost(
-            p_hat, p, own, view, np.r_[own_rng, peer_rng], np.r_[own_brg, peer_brg], np.r_[False, np.ones(4, dtype=bool)],
+            p_hat, p, own, view, np.r_[own_rng, peer_rng], np.r_[own_brg, peer_brg], np.r_[True, np.ones(4, dtype=bool)],
             np.asarray(own_rng), np.asarray(own_brg), CHANNEL, criterion, BMIN, BMAX,
         )
-        # cg was computed with the measured flag (NLOS here) bounding q; compare without it.
-        qm, _ = own_los_weight(p, p_hat, BMIN, BMAX, measured_los=False)
+        # cg was computed with the measured flag (LOS here) bounding q; compare without it.
+        qm, _ = own_los_weight(p, p_hat, BMIN, BMAX, measured_los=True)
         if qm != q:
             continue
         h = 1e-4
@@ -96,6 +106,30 @@ def test_planning_gradient_matches_finite_differences(criterion: str, own_role: 
         assert cg.value == pytest.approx(full_cost(p), rel=1e-12)
         checked += 1
     assert checked >= 2
+
+
+def test_deep_shadow_points_to_the_nearer_side() -> None:
+    """Deep in B1's shadow (B1 alone; buildings stand on the ground and rise above the drones), ∇q is level
+    and points to the side of B1 the drone clears with the shorter move along x, in closed form
+    for a link from the source at the origin: east of B1 (x = −10 m) at both of its y faces,
+    x ≥ −10 y/115 m; west (x = −40 m), x ≤ −40 y/95 m. Its size does not fade with depth: it is
+    at least the slope one softness inside the shadow, φ(1)/s, times t* ≥ 95/y."""
+    src = np.array([0.0, 0.0, 2.0])
+    checked = 0
+    for y in (130.0, 150.0, 180.0):
+        for x in np.linspace(-0.33 * y, -10.0 * y / 115.0, 9)[1:-1]:
+            for z in (3.0, 12.0, 24.0):
+                p = np.array([x, y, z])
+                c, _ = link_clearance_with_gradient(p, src, BMIN, BMAX)
+                if not c[0] < -4.0:  # deep behind B1
+                    continue
+                q, gq = own_los_weight(p, src, BMIN[:1], BMAX[:1])
+                east, west = -10.0 * y / 115.0 - x, x + 40.0 * y / 95.0
+                assert gq[2] == 0.0 and gq[1] == 0.0
+                assert np.sign(gq[0]) == (1.0 if east < west else -1.0), (p, east, west, gq)
+                assert abs(gq[0]) >= 0.2419707 / 2.0 * 95.0 / y * 0.999, (p, gq)
+                checked += 1
+    assert checked >= 20
 
 
 def test_measured_flag_bounds_q() -> None:

@@ -128,7 +128,7 @@ def test_placement_bounds_follow_the_rule() -> None:
     climb = math.sin(math.radians(50.0))
     ho = placement_bounds(lim, "hold", oracle_estimate=True)
     assert (ho.source_m, ho.z_min_m, ho.z_max_m) == pytest.approx((51.0 + b, 2.0 + climb, 25.0 - climb))
-    hm = placement_bounds(lim, "hold", oracle_estimate=True, source_static=False)
+    hm = placement_bounds(lim, "hold", oracle_estimate=True, source_slow=False)
     assert (hm.source_m, hm.z_min_m, hm.z_max_m) == pytest.approx((52.0 + b, 4.0 + b, 23.0 - b))
     n = placement_bounds(lim, "none")
     assert (n.source_m, n.uav_m, n.obstacle_m, n.z_min_m, n.z_max_m) == (50.0, 1.0, 5.0, 2.0, 25.0)
