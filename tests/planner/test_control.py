@@ -440,4 +440,5 @@ def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_ever
         worst_source = min(worst_source, float(np.linalg.norm(p - src, axis=-1).min() - LIM.d_source_m))
         worst_uav = min(worst_uav, float(np.linalg.norm(p[0] - p[1]) - LIM.d_uav_m))
         assert (p[:, 2] <= LIM.z_max_m + 1e-9).all()
+    print(f"head-on under the ceiling: smallest source margin {worst_source:+.2f} m, inter-drone {worst_uav:+.2f} m")
     assert worst_source >= 0.0 and worst_uav >= 0.0, (worst_source, worst_uav)
