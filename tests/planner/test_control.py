@@ -442,3 +442,85 @@ def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_ever
         assert (p[:, 2] <= LIM.z_max_m + 1e-9).all()
     print(f"head-on under the ceiling: smallest source margin {worst_source:+.2f} m, inter-drone {worst_uav:+.2f} m")
     assert worst_source >= 0.0 and worst_uav >= 0.0, (worst_source, worst_uav)
+
+
+def test_the_loiter_path_is_the_minimum_speed_polygon_on_its_circle():
+    """planner.control.loiter_path against eq. 2 and a closed form: every step v_min Δt long,
+    the heading turning by exactly φ_max per step (left, then right), the tilt back to level at
+    θ_max per step; once level, the vertices lie on one circle of radius
+    R = v_min Δt / (2 sin(φ_max/2)), on the side of the turn."""
+    from planner.control import loiter_path, loiter_radius_m, loiter_steps
+
+    rng = np.random.default_rng(3)
+    R = loiter_radius_m(LIM)
+    assert R == pytest.approx(0.5 / (2.0 * math.sin(math.radians(25.0))))
+    for _ in range(20):
+        end = rng.uniform(-50, 50, 3)
+        psi, theta = rng.uniform(-math.pi, math.pi), rng.uniform(-0.5 * math.pi, 0.5 * math.pi)
+        path = loiter_path(end, psi, theta, LIM)
+        assert path.shape == (2, loiter_steps(LIM), 3)
+        for side, sign in ((0, 1.0), (1, -1.0)):
+            pts = np.vstack([end, path[side]])
+            steps = np.diff(pts, axis=0)
+            assert np.linalg.norm(steps, axis=-1) == pytest.approx(np.full(len(steps), LIM.step_min_m))
+            tilt = np.arcsin(steps[:, 2] / LIM.step_min_m)
+            j = np.arange(1, len(steps) + 1)
+            assert tilt == pytest.approx(np.sign(theta) * np.maximum(abs(theta) - j * LIM.tilt_change_max_rad, 0.0), abs=1e-9)
+            heading = np.arctan2(steps[:, 1], steps[:, 0])
+            turn = (np.diff(np.concatenate(([psi], heading))) + math.pi) % (2 * math.pi) - math.pi
+            assert turn == pytest.approx(np.full(len(steps), sign * LIM.heading_change_max_rad))
+            level = pts[np.argmax(tilt == 0.0) :]  # from the start of the first level step
+            assert len(level) >= 8
+            # The circle through three level vertices, and every other level vertex on it.
+            a, b, c = level[0, :2], level[1, :2], level[2, :2]
+            A = 2.0 * np.array([b - a, c - a])
+            centre = np.linalg.solve(A, np.array([b @ b - a @ a, c @ c - a @ a]))
+            assert np.linalg.norm(level[:, :2] - centre, axis=-1) == pytest.approx(np.full(len(level), R))
+            assert np.ptp(level[:, 2]) == pytest.approx(0.0, abs=1e-12)
+            # Left of the first level step's heading for a left turn, right for a right one.
+            d = b - a
+            assert sign * (d[0] * (centre - a)[1] - d[1] * (centre - a)[0]) > 0.0
+
+
+def test_the_loiters_first_step_is_a_candidate_of_the_envelope():
+    """A drone whose last step had a loiter certificate can fly the loiter: its first step, to
+    either side, is among the safety filter's candidates for the next step."""
+    from planner.control import _envelope_candidates, loiter_path
+
+    rng = np.random.default_rng(4)
+    prev = rng.normal(size=(30, 3))
+    prev *= rng.uniform(LIM.step_min_m, LIM.step_max_m, (30, 1)) / np.linalg.norm(prev, axis=-1, keepdims=True)
+    cand, _ = _envelope_candidates(prev, np.ones(30, bool), LIM)
+    psi, theta = np.arctan2(prev[:, 1], prev[:, 0]), np.arctan2(prev[:, 2], np.hypot(prev[:, 0], prev[:, 1]))
+    first = loiter_path(np.zeros((30, 3)), psi, theta, LIM)[:, :, 0, :]  # (30, 2, 3)
+    gap = np.linalg.norm(cand[:, None, :, :] - first[:, :, None, :], axis=-1).min(-1)
+    assert gap.max() < 1e-12
+
+
+def test_a_drone_pressed_into_the_corner_of_keep_out_building_and_ceiling_keeps_every_distance():
+    """One drone per seed near the corner where the source keep-out (a true, static source 2 m
+    up), a building and the 25 m ceiling meet, pressed toward it by a gradient 60 % towards the
+    corner and 40 % random, 200 seeds × 120 steps. Every clearance is exactly known, so the
+    loiter certificate must keep them all. Without it (the one-step filter, commit 3dfa258)
+    a drone ended 0.21 m inside d_S*."""
+    rng = np.random.default_rng(5)
+    seeds, src = 200, np.array([0.0, 0.0, 2.0])
+    bmin, bmax = np.array([[6.0, 40.0, 0.0]]), np.array([[16.0, 60.0, 30.0]])
+    r0 = math.sqrt((LIM.d_source_m + 2.0) ** 2 - 22.0 ** 2)
+    p = np.array([0.0, r0, 24.0]) + rng.uniform(-1.0, 1.0, (seeds, 3)) * [1.0, 0.5, 0.3]
+    prev = np.zeros((seeds, 3))
+    corner = np.array([5.0, 46.0, 25.0])
+    worst = {"source": np.inf, "obstacle": np.inf, "altitude": np.inf}
+    for _ in range(120):
+        g = rng.normal(size=(seeds, 3))
+        toward = (p - corner) / np.linalg.norm(p - corner, axis=-1, keepdims=True)
+        grad = 0.6 * toward + 0.4 * g / np.linalg.norm(g, axis=-1, keepdims=True)
+        r = control_step(p, prev, grad, np.full(seeds, int(FimStatus.OK)), np.zeros((seeds, 1, 3)), np.zeros((seeds, 1), bool),
+                         np.zeros((seeds, 1)), np.broadcast_to(src, (seeds, 3)), np.full(seeds, LIM.d_source_m), bmin, bmax, LIM,
+                         rng.random((seeds, 2)), source_exact=True)
+        prev, p = r.displacement, r.next_position
+        worst["source"] = min(worst["source"], float((np.linalg.norm(p - src, axis=-1) - LIM.d_source_m).min()))
+        worst["obstacle"] = min(worst["obstacle"], float((distance_to_boxes(p, bmin, bmax) - LIM.d_obstacle_m).min()))
+        worst["altitude"] = min(worst["altitude"], float(np.minimum(LIM.z_max_m - p[:, 2], p[:, 2] - LIM.z_min_m).min()))
+    print(f"corner of keep-out, building and ceiling: smallest margins {worst}")
+    assert min(worst.values()) >= -1e-9, worst
