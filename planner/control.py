@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -721,23 +721,53 @@ def _certificate(scene: _Scene, cons: _Constraints, hard: _Clearances, limits: L
 
 def _certified(end: FloatArray, step: FloatArray, cert: _Certificate, bmin: FloatArray, bmax: FloatArray, limits: Limits) -> BoolArray:
     """(n, C) whether a loiter path from each end position (n, C, 3) after ``step`` (n, C, 3)
-    keeps every clearance of ``cert`` (flat batch n): to the left or to the right."""
-    if loiter_steps(limits) == 0:
-        return np.ones(end.shape[:-1], dtype=bool)
+    keeps every clearance of ``cert`` (flat batch n): to the left or to the right.
+
+    Every vertex of a loiter path is within :func:`_loiter_reach_m` of its end and every
+    clearance is 1-Lipschitz, so a clearance (a peer, the source, the buildings, the altitude
+    box) whose margin at every end exceeds the requirement by that reach is not scored along
+    the paths (exact)."""
+    n, C = end.shape[:2]
+    if loiter_steps(limits) == 0 or n * C == 0:
+        return np.ones((n, C), dtype=bool)
+    reach = _loiter_reach_m(limits) + 1e-9
+    c, need = cert.clear, cert.need[:, None, :]  # (n, 1, 4)
+    planes = None if c.planes is None else c.planes[..., None, :, :]
+    peer_end = peer_distance(end, c.peers[..., None, :, :], planes, c.d_uav_m) - c.peer_required[..., None, :]  # (n, C, N)
+    cols = (peer_end - reach < need[..., UAV : UAV + 1]).any(axis=(0, 1))
+    ds = end - c.source[..., None, :]
+    src_on = bool((np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None] - reach < need[..., SOURCE]).any())
+    obs_on = bool((distance_to_boxes(end, bmin, bmax) - c.obstacle_required - reach < need[..., OBSTACLE]).any())
+    z = end[..., 2]
+    alt_on = bool((np.minimum(limits.z_max_m - z, z - limits.z_min_m) - reach < need[..., ALTITUDE]).any())
+    if not (cols.any() or src_on or obs_on or alt_on):
+        return np.ones((n, C), dtype=bool)
     _, psi, theta = _spherical(step)
     path = loiter_path(end, psi, theta, limits)  # (n, C, 2, K, 3)
     path = np.concatenate((np.broadcast_to(end[..., None, None, :], path.shape[:-2] + (1, 3)), path), -2)  # and the end itself
-    n, C, _, K, _ = path.shape
+    K = path.shape[-2]
     flat = path.reshape(n, C * 2 * K, 3)
-    c = cert.clear
-    m = np.empty(flat.shape[:-1] + (4,))
-    m[..., UAV] = _peer_margin(flat, c)
-    ds = flat - c.source[..., None, :]
-    m[..., SOURCE] = np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None]
-    m[..., OBSTACLE] = distance_to_boxes(flat, bmin, bmax) - c.obstacle_required
-    m[..., ALTITUDE] = np.minimum(limits.z_max_m - flat[..., 2], flat[..., 2] - limits.z_min_m)
-    ok = (m >= cert.need[:, None, :]).all(-1).reshape(n, C, 2, K).all(-1)
-    return np.asarray(ok.any(-1))
+    flat_need = cert.need[:, None, :]
+    ok = np.ones(flat.shape[:-1], dtype=bool)
+    if cols.any():
+        near = _Clearances(
+            c.peers[..., cols, :],
+            c.peer_required[..., cols],
+            c.source,
+            c.source_required,
+            c.obstacle_required,
+            None if c.planes is None else c.planes[..., cols, :],
+            c.d_uav_m,
+        )
+        ok &= _peer_margin(flat, near) >= flat_need[..., UAV]
+    if src_on:
+        ds = flat - c.source[..., None, :]
+        ok &= np.sqrt((ds * ds).sum(-1)) - c.source_required[..., None] >= flat_need[..., SOURCE]
+    if obs_on:
+        ok &= distance_to_boxes(flat, bmin, bmax) - c.obstacle_required >= flat_need[..., OBSTACLE]
+    if alt_on:
+        ok &= np.minimum(limits.z_max_m - flat[..., 2], flat[..., 2] - limits.z_min_m) >= flat_need[..., ALTITUDE]
+    return np.asarray(ok.reshape(n, C, 2, K).all(-1).any(-1))
 
 
 def _safety_filter(
@@ -806,6 +836,40 @@ def _safety_filter(
         infeasible[idx] = inf_b
         active[idx] |= margins_b < 0.0
     return u, active, filtered, infeasible
+
+
+def _certified_lazily(
+    p: FloatArray,
+    cand: FloatArray,
+    tiers: Sequence[tuple[BoolArray, FloatArray]],
+    cert: _Certificate,
+    bmin: FloatArray,
+    bmax: FloatArray,
+    limits: Limits,
+) -> BoolArray:
+    """(n, C) :func:`_certified` of the candidate steps ``cand`` (n, C, 3) from ``p`` (n, 3), as far as
+    the filter's pick needs it. ``tiers``: (eligible (n, C), score (n, C)) in order; per row, the
+    eligible candidates of the first tier are checked best score first until one is certified,
+    then, where none is, those of the next tier. Candidates left unchecked are False; the best
+    certified candidate of the first tier that has one, and so the pick, is the one a full check
+    gives (ties in order of index). A filtered step mostly checks one or a few candidates."""
+    n, C = cand.shape[:2]
+    certified = np.zeros((n, C), dtype=bool)
+    done = np.zeros(n, dtype=bool)
+    for eligible, score in tiers:
+        order = np.argsort(np.where(eligible, -score, np.inf), axis=-1, kind="stable")
+        open_rows: BoolArray = np.asarray(eligible.any(-1) & ~done)
+        for lo, hi in ((0, 1), (1, 5), (5, C)):
+            rows = np.nonzero(open_rows)[0]
+            if rows.size == 0 or lo >= C:
+                break
+            cols = order[rows, lo:hi]
+            r = rows[:, None]
+            ok = eligible[r, cols] & _certified(p[rows, None, :] + cand[r, cols], cand[r, cols], _cert_subset(cert, (rows,)), bmin, bmax, limits)
+            certified[r, cols] |= ok
+            open_rows[rows] = ~ok.any(-1)
+            done[rows] |= ok.any(-1)
+    return certified
 
 
 def _cert_subset(cert: _Certificate, idx: tuple[NDArray[np.intp], ...]) -> _Certificate:
@@ -968,10 +1032,13 @@ def _envelope_search(
     tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
     infeasible = np.asarray(~tiers[1][0].any(-1))
     if cert is not None:
-        certified = _certified(p[:, None, :] + cand, cand, cert, bmin, bmax, limits)
+        # Tier 0's pick is the closest strict certified candidate, tier 0''s the certified one that
+        # comes closest to the buffers: only as many candidates are checked as those picks need.
+        buffers = np.minimum(slack[..., UAV], slack[..., SOURCE])
+        certified = _certified_lazily(p, cand, [(strict, tiers[0][1]), (np.ones_like(strict), buffers)], cert, bmin, bmax, limits)
         # 0. every clearance with its buffers and a loiter certificate after the step; 0'. a
         # loiter certificate, the buffers given up (the step that comes closest to them).
-        tiers[0:0] = [(strict & certified, tiers[0][1]), (certified, np.minimum(slack[..., UAV], slack[..., SOURCE]))]
+        tiers[0:0] = [(strict & certified, tiers[0][1]), (certified, buffers)]
     pick = exact_phys.argmax(-1)  # 9. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)
