@@ -130,8 +130,8 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
     b per step (:meth:`missions.schema.Mission.source_is_slow`; with ``oracle_estimate``, the hold
     margins are then the drone's own step).
 
-    The source keep-out of the default rule is held about the estimate: d_S* + max(3σ, 1.5 m),
-    which for a converged estimate (3σ below it) is d_S* + 1.5 m, the inflation floor
+    The source keep-out of the default rule is held about the estimate: d_S* + max(3σ, min(4σ,
+    3 m), 1.5 m), which for a converged estimate (4σ below 1.5 m) is d_S* + 1.5 m, the inflation floor
     :data:`planner.agent.SOURCE_INFLATION_MIN_M`; planning with the true source
     (``oracle_estimate``, ``fimnav montecarlo --oracle-estimate``) it is d_S*. Below, K is that
     keep-out.

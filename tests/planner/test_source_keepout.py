@@ -192,3 +192,53 @@ def test_score_test_off_keeps_the_wrong_prior(rng: np.random.Generator) -> None:
 def test_new_config_fields_are_validated(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
         EstimatorConfig(**{field: value})
+
+
+# ------------------------------------------------------------- the keep-out's inflation
+
+
+@pytest.mark.parametrize(
+    "sigma_m,inflation_m",
+    [
+        (0.0, 1.5),  # the floor
+        (0.3, 1.5),  # 4σ = 1.2 m, below the floor
+        (0.5, 2.0),  # 4σ
+        (0.64, 2.56),  # 4σ (the paper/joint D case below: error 2.50 m)
+        (0.75, 3.0),  # 4σ reaches its 3 m limit
+        (0.9, 3.0),  # 3σ = 2.7 m, the tail term held at 3 m
+        (1.2, 3.6),  # 3σ
+        (10.0, 30.0),  # 3σ
+        (20.0, 50.0),  # 3σ capped at d_S*
+    ],
+)
+def test_keep_out_inflation_is_four_sigma_up_to_three_metres_then_three_sigma(sigma_m: float, inflation_m: float) -> None:
+    """d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*), written out per regime (docs/control.md,
+    "Source keep-out"): continuous, and never below the former max(3σ, 1.5 m)."""
+    limits = Limits(d_source_m=D_SOURCE_M)
+    got = float(source_keepout_m(limits, sigma_m)) - D_SOURCE_M
+    assert got == pytest.approx(inflation_m, abs=1e-12)
+    assert got >= min(max(3.0 * sigma_m, 1.5), D_SOURCE_M)
+
+
+def test_keep_out_inflation_is_continuous_and_non_decreasing_in_sigma() -> None:
+    """No jump where one regime hands over to the next (σ = 0.375, 0.75 and 1 m, and the cap)."""
+    sigma = np.linspace(0.0, 25.0, 250_001)
+    inflation = source_keepout_m(Limits(d_source_m=D_SOURCE_M), sigma) - D_SOURCE_M
+    steps = np.diff(inflation)
+    assert steps.min() >= 0.0
+    assert steps.max() <= 4.0 * (sigma[1] - sigma[0]) + 1e-12
+
+
+def test_a_converged_joint_estimate_four_sigma_off_keeps_every_drone_outside_d_s() -> None:
+    """paper/joint, D, 100 trials, the first 152 steps (in-process simulator, safety measured on
+    the true positions): with the keep-out's former inflation max(3σ, 1.5 m) drone 10 of trial
+    99 came 0.03 m inside d_S* at step 151, its converged estimate 2.50 m off with σ = 0.64 m
+    (3.9σ, along its own line of sight). With 4σ for a converged estimate no drone-step crosses
+    d_S*. Reduced from the fault grid's no-fault cell of that run."""
+    from missions.loader import load_mission
+    from missions.simulator import RunSpec, simulate
+
+    mission = load_mission("paper/joint")
+    result = simulate(RunSpec(mission, "D", 100, 152))
+    worst = float(np.min(result.margins_m["source"]))
+    assert result.violations()["source"] == 0, f"worst source margin {worst:.3f} m"
