@@ -230,15 +230,14 @@ def test_keep_out_inflation_is_continuous_and_non_decreasing_in_sigma() -> None:
 
 
 def test_a_converged_joint_estimate_four_sigma_off_keeps_every_drone_outside_d_s() -> None:
-    """paper/joint, D, 100 trials, the first 152 steps (in-process simulator, safety measured on
-    the true positions): with the keep-out's former inflation max(3σ, 1.5 m) drone 10 of trial
-    99 came 0.03 m inside d_S* at step 151, its converged estimate 2.50 m off with σ = 0.64 m
-    (3.9σ, along its own line of sight). With 4σ for a converged estimate no drone-step crosses
-    d_S*. Reduced from the fault grid's no-fault cell of that run."""
+    """paper/joint, D, trial 99 of the fault grid's no-fault cell, replayed alone for its first
+    152 steps (in-process simulator, ``RunSpec.first_trial``; safety measured on the true
+    positions). With the keep-out's former inflation max(3σ, 1.5 m) its drone 10 came 0.03 m
+    inside d_S* at step 151, its converged estimate 2.50 m off with σ = 0.64 m (3.9σ, along its
+    own line of sight). With 4σ for a converged estimate no drone-step crosses d_S*."""
     from missions.loader import load_mission
     from missions.simulator import RunSpec, simulate
 
-    mission = load_mission("paper/joint")
-    result = simulate(RunSpec(mission, "D", 100, 152))
+    result = simulate(RunSpec(load_mission("paper/joint"), "D", 1, 152, first_trial=99))
     worst = float(np.min(result.margins_m["source"]))
     assert result.violations()["source"] == 0, f"worst source margin {worst:.3f} m"
