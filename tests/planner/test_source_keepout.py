@@ -1,10 +1,10 @@
 """A wrong source estimate must never also be a confident one (issue 7: source keep-out).
 
-The planner keeps drone i out of a sphere of radius d_S* + min(3σ, d_S*) about its estimate
-(planner.agent.source_keepout_m, σ the estimate's largest standard deviation from the
-estimator's information). The true source's d_S* sphere lies inside it only while the estimate
-error is at most min(3σ, d_S*): a gross error with a small claimed σ lets the drone fly into the
-true d_S* sphere.
+The planner keeps drone i out of a sphere of radius d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*)
+about its estimate (planner.agent.source_keepout_m, σ the estimate's largest standard deviation
+from the estimator's information). The true source's d_S* sphere lies inside it only while the
+estimate error is at most that inflation: a gross error with a small claimed σ lets the drone
+fly into the true d_S* sphere.
 
 The recorded case: drone 7 of trial 39 of ``missions/paper/ranging_nlos.yaml`` with D-optimality
 (ranging-only swarm, buildings), the records its estimator received at each of the 550 steps
