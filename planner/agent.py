@@ -167,8 +167,7 @@ def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
     error's tail reaches 4σ (paper/joint, D: an estimate 2.50 m off with σ = 0.64 m, 3.9σ, took
     a drone 0.03 m inside d_S*; over 100 trials of paper/joint and paper/heterogeneous, A and D,
     flown with 3σ, the error beyond max(3σ, 1.5 m) reached 0.74 m where a drone was within 2 m
-    of its keep-out,
-    and beyond max(4σ, 1.5 m) 0.04 m). The tail term stops at 3 m, where 3σ takes over: a
+    of its keep-out, and beyond max(4σ, 1.5 m) 0.04 m). The tail term stops at 3 m, where 3σ takes over: a
     ranging estimate (σ of metres) keeps 3σ, as a wider keep-out moves its swarm out and grows
     its σ (4σ throughout: paper/ranging_los, A, final mean PEB 32.7 → 57.8 m over 100 trials).
     """
