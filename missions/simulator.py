@@ -295,6 +295,8 @@ class _Simulation:
         self.fallback = np.empty((K, M, N), dtype=bool)
         self.filtered = np.empty((K, M, N), dtype=bool)
         self.loiter = np.empty((K, M, N), dtype=bool)
+        #: Each drone's keep-out of its last step (centre, radius), planner.agent.followable_keepout_m.
+        self.last_keepout: tuple[FloatArray, FloatArray] | None = None
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
 
     def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
@@ -366,6 +368,7 @@ class _Simulation:
             oracle_slow=self.spec.mission.source_is_slow(),
             own_ranges=own,
             loitering=self.loiter[k - 1] if k > 0 else None,
+            last_keepout=self.last_keepout,
             lost_contact=view.cut,
             own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
         )
@@ -373,6 +376,7 @@ class _Simulation:
         self.fallback[k] = step.singular
         self.filtered[k] = step.filtered
         self.loiter[k] = planned.loiter
+        self.last_keepout = (planned.keepout_centre_m, planned.keepout_m)
         self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
         return step
 

@@ -177,6 +177,45 @@ def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
     return limits.d_source_m + np.minimum(inflation, limits.d_source_m)
 
 
+def followable_keepout_m(
+    limits: Limits,
+    own_position: ArrayLike,
+    centre_m: ArrayLike,
+    radius_m: ArrayLike,
+    sigma_m: ArrayLike,
+    last_centre_m: ArrayLike | None,
+    last_radius_m: ArrayLike | None,
+) -> FloatArray:
+    """The keep-out radius (...), m, a drone at ``own_position`` (..., 3) plans with this step:
+    ``radius_m`` about ``centre_m`` (..., 3) (the estimate), except that about an estimate too
+    uncertain to cover the source (3σ ≥ d_S*: the inflation is capped, :func:`source_keepout_m`)
+    its boundary advances on the drone by at most the turn buffer b per step.
+
+    An uncertain estimate wanders: in paper/dynamic_source, D, its centre moved by a median
+    1.7 m and a 90th percentile 6.6 m per step (20 % loss, 3 steps of delay; 1.9 m and 6.4 m
+    without faults), and the keep-out's boundary advanced on a drone by more than v_max Δt at
+    one drone-step in ten. No step can keep such a constraint, and the safety filter, which
+    assumes a constraint that moves by less than b per step, falls through its tiers: two
+    drones hugging it were squeezed 0.18 m inside d_U* (trial 33). Such a keep-out claims no
+    coverage of the source (3σ is beyond its cap), so the radius is
+    r̃ = min(r, max(r̃' + |x − ĉ| − |x − ĉ'| + b, d_S* + :data:`SOURCE_INFLATION_MIN_M`)),
+    primes of the last step: the margin |x − ĉ| − r̃ shrinks by at most b while the drone holds
+    still, and an estimate that jumped is followed at b per step. A trusted estimate (3σ <
+    d_S*), a keep-out that was not there last step (−inf) or no last step: r unchanged.
+    """
+    r = np.asarray(radius_m, dtype=float)
+    if last_centre_m is None or last_radius_m is None:
+        return r
+    x = np.asarray(own_position, dtype=float)
+    last_r = np.asarray(last_radius_m, dtype=float)
+    moved = np.linalg.norm(x - np.asarray(centre_m, dtype=float), axis=-1) - np.linalg.norm(x - np.asarray(last_centre_m, dtype=float), axis=-1)
+    floor = limits.d_source_m + min(SOURCE_INFLATION_MIN_M, limits.d_source_m)
+    with np.errstate(invalid="ignore"):
+        limited = np.minimum(r, np.maximum(last_r + moved + limits.turn_buffer_m, floor))
+    uncertain = SOURCE_SIGMA_FACTOR * np.asarray(sigma_m, dtype=float) >= limits.d_source_m
+    return np.where(uncertain & np.isfinite(r) & np.isfinite(last_r), limited, r)
+
+
 @dataclass(frozen=True, eq=False)
 class OwnRanges:
     """A drone's own last ranges (eq. 3), combined: the evidence of its distance to the source
@@ -340,6 +379,8 @@ class PlanResult:
     step: StepResult
     cost: CostGradient
     keepout_m: FloatArray
+    #: (..., 3) m, ENU, the centre of the keep-out of ``keepout_m`` (the estimate it planned with).
+    keepout_centre_m: FloatArray
     #: (...) bool, the drone loitered: its own ranges put the source within reach of d_S*
     #: and its estimate gave no direction to trust (:func:`loiter_gradient`).
     loiter: NDArray[np.bool_]
@@ -469,15 +510,18 @@ def _status_and_keepout(
     oracle: bool,
     own: OwnRanges | None,
     loitering: ArrayLike | None,
+    last_keepout: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> tuple[NDArray[np.int8], FloatArray, NDArray[np.bool_]]:
     """The FIM status the control step sees, the source keep-out radius (...), m, and where the
     drone loiters (...) instead of descending its cost.
 
     With an oracle source: the cost's status, the plain d_S* and no loiter. Otherwise an
     estimate that is not observable counts as a singular FIM (the paper's fallback) and has no
-    keep-out (−inf); an observable one has :func:`source_keepout_m` of its largest σ. With the
-    drone's own ranges (``own``) it loiters where :func:`must_loiter` says so (its status then
-    OK: the loiter is not the singular fallback's wander).
+    keep-out (−inf); an observable one has :func:`source_keepout_m` of its largest σ, limited
+    by :func:`followable_keepout_m` against ``last_keepout`` (centre (..., 3), radius (...), m,
+    of the last step). With the drone's own ranges (``own``) it loiters where
+    :func:`must_loiter` says so (its status then OK: the loiter is not the singular fallback's
+    wander), and keeps no keep-out where it is inside it.
     """
     obs = np.asarray(estimate.observable, dtype=bool)
     batch = np.shape(own_position)[:-1]
@@ -486,15 +530,20 @@ def _status_and_keepout(
     status = np.where(obs, cg.status, np.int8(FimStatus.SINGULAR))
     sigma = estimate_sigma_m(estimate.information)
     keepout = np.where(obs, source_keepout_m(limits, sigma), -np.inf)
+    if last_keepout is not None:
+        keepout = followable_keepout_m(limits, own_position, p_hat, keepout, sigma, last_keepout[0], last_keepout[1])
     if own is None:
         return status, keepout, np.zeros(batch, dtype=bool)
     d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
     loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own, loitering), batch)
-    # A loitering drone does not trust its estimate: no keep-out about it either. Kept, the
-    # keep-out about an estimate 140 m off on the far side pushed a loitering drone straight at
-    # the source (paper/ranging_nlos A, 20 % loss and 3 steps of delay, trial 82: 29.6 m inside
-    # d_S*), as the filter's fallback tier picks the step that gains the most clearance from it.
-    keepout = np.where(loiter, -np.inf, keepout)
+    # A loitering drone does not trust its estimate: inside the keep-out about it, it keeps
+    # none. Kept, the keep-out about an estimate 140 m off on the far side pushed a loitering
+    # drone straight at the source (paper/ranging_nlos A, 20 % loss and 3 steps of delay, trial
+    # 82: 29.6 m inside d_S*), as the filter's fallback tier picks the step that gains the most
+    # clearance from it. Outside it, it keeps it: its own noisy ranges can contradict a right
+    # estimate, and without it drones of paper/joint D and paper/heterogeneous A (20 % loss)
+    # loitering by a converged estimate (0.2-0.5 m off) came up to 0.30 m inside d_S*.
+    keepout = np.where(loiter & (d_est < keepout), -np.inf, keepout)
     return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
 
 
@@ -562,6 +611,7 @@ def plan(
     oracle_slow: bool = True,
     own_ranges: OwnRanges | None = None,
     loitering: ArrayLike | None = None,
+    last_keepout: tuple[ArrayLike, ArrayLike] | None = None,
     lost_contact: ArrayLike | None = None,
     own_then_m: ArrayLike | None = None,
 ) -> PlanResult:
@@ -589,6 +639,9 @@ def plan(
             :func:`loiter_gradient`). None: the keep-out about the estimate alone.
         loitering: (...) bool, drone i loitered at its last step (:attr:`PlanResult.loiter`;
             the hysteresis of :func:`must_loiter`). None: it did not.
+        last_keepout: drone i's keep-out of its last step, (:attr:`PlanResult.keepout_centre_m`,
+            :attr:`PlanResult.keepout_m`): the keep-out about an uncertain estimate advances on
+            the drone by at most b per step (:func:`followable_keepout_m`). None: not limited.
         lost_contact: (..., N) bool, peers this drone has lost contact with by a network fault
             (a partition, their planner gone from the liveliness view), not by distance: the
             hop argument of :func:`collision_relevant` ("not a neighbour, so farther than
@@ -639,7 +692,15 @@ def plan(
         config.sensing.components,
     )
     status, keepout, loiter = _status_and_keepout(
-        cg, own_position, p_hat, estimate, limits, oracle=oracle_source is not None, own=own_ranges, loitering=loitering
+        cg,
+        own_position,
+        p_hat,
+        estimate,
+        limits,
+        oracle=oracle_source is not None,
+        own=own_ranges,
+        loitering=loitering,
+        last_keepout=last_keepout,
     )
     gradient = np.where(loiter[..., None], loiter_gradient(previous_step), cg.gradient) if loiter.any() else cg.gradient
     peer_rows, peers, ages, planes = _peer_constraints(config, view, step_index, lost_contact, own_then_m)
@@ -662,4 +723,4 @@ def plan(
         peer_planes=planes,
         source_exact=oracle_source is not None and oracle_slow,
     )
-    return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), loiter=loiter)
+    return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), keepout_centre_m=np.asarray(p_hat), loiter=loiter)

@@ -103,6 +103,8 @@ class StepCore:
         self.own_ranges: deque[tuple[float, bool]] = deque(maxlen=OWN_RANGE_WINDOW)
         #: This drone loitered at its last planned step (planner.agent.must_loiter).
         self.loitering = False
+        #: This drone's keep-out of its last planned step (centre, radius), planner.agent.plan.
+        self.last_keepout: tuple[np.ndarray, np.ndarray] | None = None
         #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
         #: when each peer's last record was taken (the partition planes, planner.agent.plan).
         self.own_track: dict[int, np.ndarray] = {}
@@ -215,8 +217,10 @@ class StepCore:
 
     def skip_control_draws(self, steps: int) -> None:
         """Advance the control stream past ``steps`` steps not planned (taken over, rejoined
-        later), so the draws of a later step stay those of its step."""
+        later), so the draws of a later step stay those of its step. The last planned step's
+        keep-out is forgotten: the first step planned again is not rate-limited against it."""
         self.ctrl_rng.random(steps * CONTROL_DRAWS)
+        self.last_keepout = None
 
     def view_estimate_plan(self, k: int, own_m: np.ndarray) -> tuple[Any, int, Any]:
         """Step k after the records are in: delayed view, source estimate (with the records
@@ -226,6 +230,7 @@ class StepCore:
         self.used_steps = np.maximum(self.used_steps, view.saved_steps)
         result = self._plan(k, own_m, view)
         self.loitering = bool(np.asarray(result.loiter))
+        self.last_keepout = (result.keepout_centre_m, result.keepout_m)
         return view, rows, result
 
     def _estimate(self, view: Any) -> tuple[est.EstimatorState, int]:
@@ -263,6 +268,7 @@ class StepCore:
             step_index=k,
             own_ranges=own,
             loitering=self.loitering,
+            last_keepout=self.last_keepout,
             lost_contact=lost if own_then is not None else None,
             own_then_m=own_then,
         )
