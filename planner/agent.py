@@ -521,7 +521,7 @@ def _status_and_keepout(
     by :func:`followable_keepout_m` against ``last_keepout`` (centre (..., 3), radius (...), m,
     of the last step). With the drone's own ranges (``own``) it loiters where
     :func:`must_loiter` says so (its status then OK: the loiter is not the singular fallback's
-    wander), and keeps no keep-out where it is inside it.
+    wander), and keeps no keep-out where it is inside it and its ranges contradict it.
     """
     obs = np.asarray(estimate.observable, dtype=bool)
     batch = np.shape(own_position)[:-1]
@@ -536,14 +536,18 @@ def _status_and_keepout(
         return status, keepout, np.zeros(batch, dtype=bool)
     d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
     loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own, loitering), batch)
-    # A loitering drone does not trust its estimate: inside the keep-out about it, it keeps
-    # none. Kept, the keep-out about an estimate 140 m off on the far side pushed a loitering
+    # A loitering drone whose own ranges contradict its estimate keeps no keep-out about that
+    # estimate where it is inside it. Kept, the keep-out about an estimate 140 m off on the far side pushed a loitering
     # drone straight at the source (paper/ranging_nlos A, 20 % loss and 3 steps of delay, trial
     # 82: 29.6 m inside d_S*), as the filter's fallback tier picks the step that gains the most
     # clearance from it. Outside it, it keeps it: its own noisy ranges can contradict a right
     # estimate, and without it drones of paper/joint D and paper/heterogeneous A (20 % loss)
-    # loitering by a converged estimate (0.2-0.5 m off) came up to 0.30 m inside d_S*.
-    keepout = np.where(loiter & (d_est < keepout), -np.inf, keepout)
+    # loitering by a converged estimate (0.2-0.5 m off) came up to 0.30 m inside d_S*. An
+    # uncertain estimate the ranges do not contradict is still the best guess of where the
+    # source is: dropped about it too, a loitering drone of paper/dynamic_source D (3 steps of
+    # delay, trial 25), its estimate 0.5-18 m off, was 3.5 m inside d_S* as the source drifted
+    # in over 71 steps.
+    keepout = np.where(loiter & np.asarray(own.contradicts(d_est), dtype=bool) & (d_est < keepout), -np.inf, keepout)
     return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
 
 

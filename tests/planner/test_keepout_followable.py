@@ -5,7 +5,7 @@ An uncertain estimate (3σ ≥ d_S*, the keep-out's inflation capped) wanders by
 its keep-out's boundary may advance on a drone by at most the turn buffer b per step, the most
 the safety filter assumes of a moving constraint. A trusted estimate's keep-out is never
 limited. A loitering drone keeps no keep-out about the estimate it does not trust where it is
-inside it, and keeps it where it is outside it.
+inside it and its own ranges contradict it, and keeps it otherwise.
 
 References: closed forms of the distances (the margin |x − ĉ| − r̃ recomputed here from the
 positions), and the rule's own statement of which radius applies where.
@@ -94,11 +94,17 @@ def _keepout_while_loitering(distance_to_estimate_m: float, sigma_m: float) -> t
     return float(keepout), bool(loiter)
 
 
-def test_a_loitering_drone_drops_the_untrusted_keep_out_only_from_inside() -> None:
-    """Own ranges at 40 m and an uncertain estimate (3σ ≥ d_S*): the drone loiters. 42 m from
-    the estimate it is inside its 100 m keep-out and keeps none (fleeing it has no known
-    direction away from the source); 142 m from it, outside, it keeps the 100 m."""
-    assert _keepout_while_loitering(42.0, UNCERTAIN_SIGMA_M) == (-np.inf, True)
-    assert _keepout_while_loitering(142.0, UNCERTAIN_SIGMA_M) == (pytest.approx(2.0 * LIM.d_source_m), True)
-    # Contradicted by the ranges though certain (3σ < d_S*): outside its keep-out, kept.
-    assert _keepout_while_loitering(140.0, 10.0) == (pytest.approx(float(source_keepout_m(LIM, 10.0))), True)
+def test_a_loitering_drone_drops_only_a_contradicted_keep_out_and_only_from_inside() -> None:
+    """Own ranges at 40 m put the source within reach: the drone loiters by an uncertain
+    estimate (3σ ≥ d_S*) or one its ranges contradict (a source 75 m or more away is, at
+    z < −3; 42 m is not). Where the ranges contradict the estimate and the drone is inside the
+    keep-out about it, it keeps none (fleeing it has no known direction away from the source);
+    outside it, or by an uncertain estimate the ranges do not contradict (a moving source's, a
+    drone's best guess), it keeps it."""
+    capped = pytest.approx(2.0 * LIM.d_source_m)
+    assert _keepout_while_loitering(90.0, UNCERTAIN_SIGMA_M) == (-np.inf, True)  # contradicted, inside 100 m
+    assert _keepout_while_loitering(142.0, UNCERTAIN_SIGMA_M) == (capped, True)  # contradicted, outside
+    assert _keepout_while_loitering(42.0, UNCERTAIN_SIGMA_M) == (capped, True)  # uncertain, not contradicted
+    certain = float(source_keepout_m(LIM, 10.0))  # 3σ = 30 m < d_S*: 80 m
+    assert _keepout_while_loitering(75.0, 10.0) == (-np.inf, True)  # contradicted, inside
+    assert _keepout_while_loitering(140.0, 10.0) == (pytest.approx(certain), True)  # contradicted, outside
