@@ -537,10 +537,10 @@ def _status_and_keepout(
     d_est = np.linalg.norm(np.asarray(own_position, dtype=float) - p_hat, axis=-1)
     loiter = np.broadcast_to(must_loiter(limits, sigma, obs, d_est, own, loitering), batch)
     # A loitering drone whose own ranges contradict its estimate keeps no keep-out about that
-    # estimate where it is inside it. Kept, the keep-out about an estimate 140 m off on the far side pushed a loitering
-    # drone straight at the source (paper/ranging_nlos A, 20 % loss and 3 steps of delay, trial
-    # 82: 29.6 m inside d_S*), as the filter's fallback tier picks the step that gains the most
-    # clearance from it. Outside it, it keeps it: its own noisy ranges can contradict a right
+    # estimate where it is inside it. Kept, the keep-out about an estimate 140 m off on the far
+    # side pushed a loitering drone straight at the source (paper/ranging_nlos A, 20 % loss and
+    # 3 steps of delay, trial 82: 29.6 m inside d_S*), as the filter's fallback tier picks the
+    # step that gains the most clearance from it. Outside it, it keeps it: its own noisy ranges can contradict a right
     # estimate, and without it drones of paper/joint D and paper/heterogeneous A (20 % loss)
     # loitering by a converged estimate (0.2-0.5 m off) came up to 0.30 m inside d_S*. An
     # uncertain estimate the ranges do not contradict is still the best guess of where the
