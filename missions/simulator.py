@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PlanView, own_ranges, plan
+from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, own_ranges, plan
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
@@ -297,6 +297,8 @@ class _Simulation:
         self.loiter = np.empty((K, M, N), dtype=bool)
         #: Each drone's keep-out of its last step (centre, radius), planner.agent.followable_keepout_m.
         self.last_keepout: tuple[FloatArray, FloatArray] | None = None
+        #: Each drone's drift of its peers, planner.agent.PeerDrift.
+        self.drift = PeerDrift.empty((M, N, N))
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
 
     def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
@@ -355,7 +357,8 @@ class _Simulation:
         # Each drone's own last ranges bound its distance to the source (second keep-out).
         lo = max(0, k - OWN_RANGE_WINDOW + 1)
         own = own_ranges(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
-        plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops)
+        self.drift = self.drift.update(view.positions_m, view.saved, view.have)
+        plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops, self.drift.drift_m)
         planned = plan(
             self.config,
             self.pos,

@@ -397,6 +397,8 @@ class PlanView:
         los: (..., N) bool, LOS flag of each record.
         age_steps: (..., N) k − ℓ, the age in steps of each record (0 where none).
         hops: (..., N) hop counts from drone i (−1 unreachable), for :func:`collision_relevant`.
+        drift_m: (..., N, 3) each peer's last step as drone i's last two records of it give it,
+            m per step, ENU (NaN: unknown; :class:`PeerDrift`); None: unknown for all.
     """
 
     own_mask: NDArray[np.bool_]
@@ -405,6 +407,7 @@ class PlanView:
     los: NDArray[np.bool_]
     age_steps: NDArray[np.int64]
     hops: NDArray[np.int64]
+    drift_m: FloatArray | None = None
 
     @classmethod
     def from_records(cls, own_index: int, records: Sequence[_Record | None], saved_steps: ArrayLike, step_index: int, hops: ArrayLike) -> PlanView:
@@ -416,6 +419,45 @@ class PlanView:
         own[own_index] = True
         ages = np.where(valid, step_index - np.asarray(saved_steps), 0)
         return cls(own, positions, valid, los, ages, np.asarray(hops))
+
+
+#: The longest gap (steps) between two records of a peer that still gives its last step.
+DRIFT_MAX_GAP_STEPS = 4
+
+
+@dataclass(frozen=True, eq=False)
+class PeerDrift:
+    """Each peer's last step as drone i's records of it give it (leading batch dims ``...``).
+
+    Attributes:
+        positions_m: (..., N, 3) the newest record of each peer, m, ENU (NaN: none).
+        saved_steps: (..., N) its step ℓ (−1: none).
+        drift_m: (..., N, 3) the peer's mean step between its two newest records, m per step,
+            ENU; NaN where drone i holds fewer than two, or they are more than
+            :data:`DRIFT_MAX_GAP_STEPS` steps apart.
+    """
+
+    positions_m: FloatArray
+    saved_steps: NDArray[np.int64]
+    drift_m: FloatArray
+
+    def update(self, positions_m: ArrayLike, saved_steps: ArrayLike, valid: ArrayLike) -> PeerDrift:
+        """The drift after this step's view: ``positions_m`` (..., N, 3), m, of the records
+        taken at ``saved_steps`` (..., N), where ``valid``."""
+        pos = np.asarray(positions_m, dtype=float)
+        ok = np.asarray(valid, dtype=bool)
+        saved = np.where(ok, np.asarray(saved_steps), -1)
+        new = ok & (saved > self.saved_steps)
+        gap = saved - self.saved_steps
+        usable = new & (self.saved_steps >= 0) & (gap <= DRIFT_MAX_GAP_STEPS)
+        step = (pos - self.positions_m) / np.maximum(gap, 1)[..., None]
+        drift = np.where(usable[..., None], step, np.where(new[..., None], np.nan, self.drift_m))
+        return PeerDrift(np.where(new[..., None], pos, self.positions_m), np.where(new, saved, self.saved_steps), drift)
+
+    @classmethod
+    def empty(cls, shape: tuple[int, ...]) -> PeerDrift:
+        """No record yet, for views of shape ``shape`` (..., N)."""
+        return cls(np.full(shape + (3,), np.nan), np.full(shape, -1, dtype=np.int64), np.full(shape + (3,), np.nan))
 
 
 class SourceEstimate(Protocol):
@@ -726,5 +768,6 @@ def plan(
         perturbation_rad=config.perturbation_rad,
         peer_planes=planes,
         source_exact=oracle_source is not None and oracle_slow,
+        peer_drift_m=view.drift_m,
     )
     return PlanResult(step=step, cost=cg, keepout_m=np.asarray(keepout), keepout_centre_m=np.asarray(p_hat), loiter=loiter)

@@ -221,12 +221,18 @@ class _Clearances:
     obstacle_required: float
     planes: FloatArray | None = None  # (..., N, 3) unit normals of plane rows (zeros: a point peer)
     d_uav_m: float = 0.0
+    # (..., N, 3) a peer's dead-reckoned position now and at the end of the step (NaN: none,
+    # or not inside its reachable ball), :func:`_dead_reckoning_kept`.
+    reckoned_now: FloatArray | None = None
+    reckoned_next: FloatArray | None = None
 
 
 def _subset(c: _Clearances, idx: tuple[NDArray[np.intp], ...]) -> _Clearances:
     keep = np.broadcast_to(c.source_required, c.source.shape[:-1])
     planes = None if c.planes is None else c.planes[idx]
-    return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required, planes, c.d_uav_m)
+    now = None if c.reckoned_now is None else c.reckoned_now[idx]
+    nxt = None if c.reckoned_next is None else c.reckoned_next[idx]
+    return _Clearances(c.peers[idx], c.peer_required[idx], c.source[idx], keep[idx], c.obstacle_required, planes, c.d_uav_m, now, nxt)
 
 
 def peer_distance(x: FloatArray, peers: FloatArray, planes: FloatArray | None, d_uav_m: float) -> FloatArray:
@@ -286,6 +292,7 @@ def control_step(
     perturbation_rad: float = math.radians(20.0),
     peer_planes: ArrayLike | None = None,
     source_exact: bool = False,
+    peer_drift_m: ArrayLike | None = None,
 ) -> StepResult:
     """One drone's control step: eq. 14 under constraints (15-17) and the limits of eq. 2/7.
 
@@ -314,6 +321,10 @@ def control_step(
             mode) and moves less than b per step: its constraint acts within v_max Δt + b instead of
             2 v_max Δt + b, the altitude box's within one level step's climb
             (:func:`source_activation_margin_m`, :func:`altitude_activation_margin_m`).
+        peer_drift_m: (..., N, 3), m per step, ENU: each peer's last step as drone i's last two
+            records of it give it (NaN: unknown): within a filter tier, a drone inside a peer's
+            reachable ball prefers the steps that do not bring it nearer the peer's
+            dead-reckoned position (:func:`_dead_reckoning_kept`). None: unknown for all.
 
     Returns:
         The :class:`StepResult`.
@@ -322,10 +333,13 @@ def control_step(
     if p.ndim == 1:
         # One drone: run the batched code on a batch of one and unwrap.
         one = (previous_step, gradient, status, peers, peer_mask, peer_age_steps, source_estimate, source_keepout_m)
-        return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes, source_exact)
+        drift = None if peer_drift_m is None else np.asarray(peer_drift_m, dtype=float)[None]
+        return _one_drone(p, one, boxes_min, boxes_max, limits, perturbation_uniforms, xi, perturbation_rad, peer_planes, source_exact, drift)
     prev = np.asarray(previous_step, dtype=float)
     grad = np.asarray(gradient, dtype=float)
-    scene = _scene(p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max, source_exact)
+    scene = _scene(
+        p, peers, peer_mask, peer_age_steps, peer_planes, source_estimate, source_keepout_m, boxes_min, boxes_max, source_exact, peer_drift_m
+    )
     batch = p.shape[:-1]
 
     # 1. Constraint values g = d - d* and their gradients (unit normals) w.r.t. p_i.
@@ -375,6 +389,7 @@ def _one_drone(
     perturbation_rad: float,
     peer_planes: ArrayLike | None,
     source_exact: bool = False,
+    peer_drift_m: FloatArray | None = None,
 ) -> StepResult:
     """:func:`control_step` of one drone (``p`` (3,)): the batched code on a batch of one,
     unwrapped. ``per_drone``: previous step, gradient, status, peers, peer mask, peer ages,
@@ -398,6 +413,7 @@ def _one_drone(
         perturbation_rad,
         None if peer_planes is None else np.asarray(peer_planes, dtype=float)[None],
         source_exact,
+        peer_drift_m,
     )
     return StepResult(*(np.asarray(getattr(r, f))[0] for f in ("next_position", "displacement", "active", "singular", "filtered", "infeasible")))
 
@@ -407,7 +423,8 @@ class _Scene:
     """What one control step keeps clear of, batched (internal): own position p (..., 3), m,
     ENU; peer rows (..., N, 3), m, their mask (..., N) and age in steps (..., N); the unit
     normals of lost-contact plane rows (..., N, 3) or None; the source estimate (..., 3), m,
-    its keep-out (...), m; obstacle boxes (B, 3), m, ENU."""
+    its keep-out (...), m; obstacle boxes (B, 3), m, ENU; each peer's last step (..., N, 3), m
+    (NaN: unknown) or None."""
 
     p: FloatArray
     peers: FloatArray
@@ -419,6 +436,7 @@ class _Scene:
     bmin: FloatArray
     bmax: FloatArray
     source_exact: bool = False
+    drift: FloatArray | None = None
 
 
 def _scene(
@@ -432,6 +450,7 @@ def _scene(
     boxes_min: ArrayLike,
     boxes_max: ArrayLike,
     source_exact: bool = False,
+    peer_drift_m: ArrayLike | None = None,
 ) -> _Scene:
     """:func:`control_step`'s inputs as a :class:`_Scene` of arrays (same units and shapes)."""
     # A source estimate shared by the whole batch is broadcast: the safety filter indexes it
@@ -447,6 +466,7 @@ def _scene(
         np.asarray(boxes_min, dtype=float).reshape(-1, 3),
         np.asarray(boxes_max, dtype=float).reshape(-1, 3),
         source_exact,
+        None if peer_drift_m is None else np.asarray(peer_drift_m, dtype=float),
     )
 
 
@@ -648,6 +668,13 @@ def _filter_requirements(scene: _Scene, cons: _Constraints, limits: Limits) -> _
     now[..., UAV] = (peer_now - peer_need).min(-1, initial=np.inf)
     need = np.minimum(now, 0.0)
     need[..., UAV] = 0.0
+    reckoned_now = reckoned_next = None
+    if scene.drift is not None:
+        # Inside a peer's reachable ball (its record no longer bounds where it is), where the
+        # peer is likely to be: its record moved on by its last step, per step of the record's age.
+        inside = point & scene.mask & (peer_now_eff + 2.0 * tb < 0.0) & np.isfinite(scene.drift).all(-1)
+        reckoned_now = np.where(inside[..., None], q + scene.age[..., None] * scene.drift, np.nan)
+        reckoned_next = reckoned_now + scene.drift
     return _Requirements(
         now,
         need,
@@ -655,7 +682,12 @@ def _filter_requirements(scene: _Scene, cons: _Constraints, limits: Limits) -> _
         dataclasses.replace(clear, peer_required=clear.peer_required + peer_need_loose),
         # Without the turn-away buffers 2b: the reachable ball itself, the end-of-step distance
         # that still keeps d_U* whatever the peer does (a margin already below it may not shrink).
-        dataclasses.replace(clear, peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now_eff + 2.0 * tb, 0.0)),
+        dataclasses.replace(
+            clear,
+            peer_required=clear.peer_required - 2.0 * tb + np.minimum(peer_now_eff + 2.0 * tb, 0.0),
+            reckoned_now=reckoned_now,
+            reckoned_next=reckoned_next,
+        ),
     )
 
 
@@ -683,6 +715,8 @@ def _near_peers_only(req: _Requirements, scene: _Scene, dist: FloatArray, limits
             c.obstacle_required,
             None if planes is None else planes[..., cols, :],
             limits.d_uav_m,
+            None if c.reckoned_now is None else c.reckoned_now[..., cols, :],
+            None if c.reckoned_next is None else c.reckoned_next[..., cols, :],
         )
         for c in (req.strict, req.loose, req.hard)
     )
@@ -970,6 +1004,29 @@ def _relaxation_tiers(
     return tiers, exact_phys
 
 
+def _dead_reckoning_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, limits: Limits) -> BoolArray | None:
+    """(n, C) the candidate steps ``cand`` from ``p`` (n, 3) that do not bring drone i nearer
+    the dead-reckoned position of a peer whose reachable ball it is inside (``hard.reckoned_now``
+    and ``hard.reckoned_next``: the peer's record moved on by its last step per step of age, now
+    and at the end of the step): |p + u − r_j'| ≥ min(|p − r_j|, d_U* + 2 v_max Δt + 2b), m.
+    None where no such peer (every candidate keeps it).
+
+    Inside a peer's reachable ball the record no longer bounds where the peer is, and "not
+    nearer the record" lets two drones flying side by side with late records close on each other
+    (the record of a co-moving peer lies behind it). Not a guarantee (the peer may have turned
+    since its record): it orders the steps within a tier of the filter, it never licenses one.
+    """
+    if hard.reckoned_now is None or hard.reckoned_next is None:
+        return None
+    known: BoolArray = np.asarray(np.isfinite(hard.reckoned_now).all(-1))  # (n, N)
+    if not known.any():
+        return None
+    d_now = np.linalg.norm(p[:, None, :] - hard.reckoned_now, axis=-1)  # (n, N)
+    d_next = np.linalg.norm(p[:, None, None, :] + cand[:, :, None, :] - hard.reckoned_next[:, None, :, :], axis=-1)  # (n, C, N)
+    floor = np.minimum(d_now, limits.d_uav_m + 2.0 * limits.step_max_m + 2.0 * limits.turn_buffer_m)
+    return np.asarray((~known[:, None, :] | (d_next >= floor[:, None, :])).all(-1))
+
+
 def _record_clearance_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, step_max_m: float) -> BoolArray:
     """(n, C) the candidates that keep every peer's clearance as if its record were of now:
     d_U* + v_max Δt from a heard peer's record (not its whole reachable ball: the peer's own
@@ -1031,14 +1088,22 @@ def _envelope_search(
     slack = margins - need[:, None, :]
     tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
     infeasible = np.asarray(~tiers[1][0].any(-1))
+    reckoned = _dead_reckoning_kept(p, cand, hard, limits) if hard is not None else None
     if cert is not None:
         # Tier 0's pick is the closest strict certified candidate, tier 0''s the certified one that
         # comes closest to the buffers: only as many candidates are checked as those picks need.
         buffers = np.minimum(slack[..., UAV], slack[..., SOURCE])
-        certified = _certified_lazily(p, cand, [(strict, tiers[0][1]), (np.ones_like(strict), buffers)], cert, bmin, bmax, limits)
+        everyone = np.ones_like(strict)
+        lazy = [(strict, tiers[0][1]), (everyone, buffers)]
+        if reckoned is not None:
+            lazy = [(strict & reckoned, tiers[0][1]), lazy[0], (reckoned, buffers), lazy[1]]
+        certified = _certified_lazily(p, cand, lazy, cert, bmin, bmax, limits)
         # 0. every clearance with its buffers and a loiter certificate after the step; 0'. a
         # loiter certificate, the buffers given up (the step that comes closest to them).
         tiers[0:0] = [(strict & certified, tiers[0][1]), (certified, buffers)]
+    if reckoned is not None:
+        # Within each tier, the steps that keep clear of the peers' dead-reckoned positions first.
+        tiers = [t for ok, score in tiers for t in ((ok & reckoned, score), (ok, score))]
     pick = exact_phys.argmax(-1)  # 9. least bad for obstacles and altitude
     for ok, score in reversed(tiers):
         pick = np.where(ok.any(-1), np.where(ok, score, -np.inf).argmax(-1), pick)

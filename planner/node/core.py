@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
@@ -18,7 +18,7 @@ import numpy as np
 from comms.latency import DelayedView
 from comms.messages import Observation, Status
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PlanView, measurements_from_records, own_ranges, plan
+from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, measurements_from_records, own_ranges, plan
 from planner.geometry import vec3
 from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
@@ -105,6 +105,8 @@ class StepCore:
         self.loitering = False
         #: This drone's keep-out of its last planned step (centre, radius), planner.agent.plan.
         self.last_keepout: tuple[np.ndarray, np.ndarray] | None = None
+        #: Each peer's last step from this drone's records of it (planner.agent.PeerDrift).
+        self.peer_drift = PeerDrift.empty((self.count,))
         #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
         #: when each peer's last record was taken (the partition planes, planner.agent.plan).
         self.own_track: dict[int, np.ndarray] = {}
@@ -247,6 +249,8 @@ class StepCore:
 
     def _plan(self, k: int, own_m: np.ndarray, view: Any) -> Any:
         plan_view = PlanView.from_records(self.index, view.records, view.saved_steps, k, view.hops)
+        self.peer_drift = self.peer_drift.update(plan_view.positions_m, view.saved_steps, plan_view.valid)
+        plan_view = replace(plan_view, drift_m=self.peer_drift.drift_m)
         # Peers whose planner left the liveliness view (a partition, not distance): kept apart
         # by the bisector planes of the step of their last record (planner.agent.plan).
         left = self.swarm.left
