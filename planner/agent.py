@@ -68,7 +68,11 @@ OWN_RANGE_WINDOW: int = 10
 OWN_RANGE_SIGMA_FACTOR: float = 2.0
 #: Standard deviations by which a drone's own ranges must put the source nearer than its
 #: estimate for the estimate to count as contradicted (:meth:`OwnRanges.contradicts`).
-OWN_RANGE_CONTRADICTION_SIGMAS: float = 3.0
+OWN_RANGE_CONTRADICTION_SIGMAS: float = 2.5
+#: A drone loitering because its ranges contradicted its estimate holds the estimate
+#: contradicted until they put the source nearer by fewer than this many standard deviations
+#: (the contradiction's hysteresis, :func:`must_loiter`).
+OWN_RANGE_RELEASE_SIGMAS: float = 1.0
 #: A loitering drone whose estimate is still not to be trusted resumes its cost only once its
 #: own ranges' lower bound reaches this many times d_S* + a (:func:`must_loiter`).
 OWN_RANGE_CLEAR_FACTOR: float = 1.5
@@ -304,12 +308,26 @@ def must_loiter(
     without ranges.
     """
     sigma = np.asarray(sigma_m, dtype=float)
-    untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | own.contradicts(distance_m)
+    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
+    untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | contradicted(own, distance_m, was)
     near = limits.d_source_m + source_activation_margin_m(limits)
     lower = own.lower_bound_m()
-    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
     stay = was & (lower < OWN_RANGE_CLEAR_FACTOR * near)
     return np.asarray(untrusted & ((lower < near) | stay))
+
+
+def contradicted(own: OwnRanges, distance_m: ArrayLike, loitering: ArrayLike | None = None) -> NDArray[np.bool_]:
+    """(...) True where a drone's own ranges ``own`` contradict its estimate at ``distance_m``
+    (m): by :data:`OWN_RANGE_CONTRADICTION_SIGMAS` (:meth:`OwnRanges.contradicts`), and for a
+    drone ``loitering`` at its last step by :data:`OWN_RANGE_RELEASE_SIGMAS` only. Without the
+    hysteresis a drone whose ranges put the source 2-3 σ nearer than an estimate 65-75 m off
+    left its loiter each time the statistic rose above −3, and the keep-out about that estimate
+    pushed it toward the source between loiters (paper/ranging_nlos A, 20 % loss, trial 0:
+    10.4 m inside d_S*)."""
+    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
+    return np.asarray(
+        np.where(was, own.contradicts(distance_m, OWN_RANGE_RELEASE_SIGMAS), own.contradicts(distance_m, OWN_RANGE_CONTRADICTION_SIGMAS)), dtype=bool
+    )
 
 
 def collision_relevant(hops: ArrayLike, d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
@@ -589,7 +607,7 @@ def _status_and_keepout(
     # source is: dropped about it too, a loitering drone of paper/dynamic_source D (3 steps of
     # delay, trial 25), its estimate 0.5-18 m off, was 3.5 m inside d_S* as the source drifted
     # in over 71 steps.
-    keepout = np.where(loiter & np.asarray(own.contradicts(d_est), dtype=bool) & (d_est < keepout), -np.inf, keepout)
+    keepout = np.where(loiter & contradicted(own, d_est, loitering) & (d_est < keepout), -np.inf, keepout)
     return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
 
 
