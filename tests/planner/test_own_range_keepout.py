@@ -29,7 +29,10 @@ from scipy import stats
 
 from planner import FimStatus, Limits, control_step
 from planner.agent import (
+    OWN_RANGE_CONTRADICTION_SIGMAS,
+    OWN_RANGE_RELEASE_SIGMAS,
     OWN_RANGE_WINDOW,
+    contradicted,
     estimate_sigma_m,
     loiter_gradient,
     must_loiter,
@@ -77,19 +80,22 @@ def test_lower_bound_missing_ranges() -> None:
 
 def test_contradiction_test_false_alarm_and_power(rng: np.random.Generator) -> None:
     """Ranges of eq. 3-5 (γ = 2) at a known distance d: an estimate at d is called contradicted
-    with probability Φ(−3) (the one-sided normal tail, scipy); one at 2 d almost always (the
-    power of the test for ten LOS ranges, closed form: with d̄ = d (1 + r n), z = (d̄/2d − 1)/r =
-    n/2 − 1/(2r), so P(z < −3) = Φ(1/r − 6), r the relative standard deviation of d̄)."""
+    with probability Φ(−k) (k = 2.5, the one-sided normal tail, scipy); one at 2 d almost always
+    (the power of the test for ten LOS ranges, closed form: with d̄ = d (1 + r n),
+    z = (d̄/2d − 1)/r = n/2 − 1/(2r), so P(z < −k) = Φ(1/r − 2k), r the relative standard
+    deviation of d̄)."""
     n, w = 200_000, OWN_RANGE_WINDOW
     d = rng.uniform(20.0, 200.0, n)
     los = np.ones((n, w), dtype=bool)
     r = d[:, None] + _relative_sigma(los) * d[:, None] * rng.standard_normal((n, w))
     own = own_ranges(r, los, CHANNEL)
-    p = stats.norm.sf(3.0)
+    k = OWN_RANGE_CONTRADICTION_SIGMAS
+    assert k == 2.5
+    p = stats.norm.sf(k)
     frac = float(np.mean(own.contradicts(d)))
     assert abs(frac - p) < 5.0 * math.sqrt(p * (1.0 - p) / n), (frac, p)
     rel = float(_relative_sigma(np.array(True))) / math.sqrt(w)  # about d; the same about 2 d (γ = 2)
-    power = stats.norm.cdf(1.0 / rel - 6.0)
+    power = stats.norm.cdf(1.0 / rel - 2.0 * k)
     frac2 = float(np.mean(own.contradicts(2.0 * d)))
     assert abs(frac2 - power) < 5.0 * math.sqrt(power * (1.0 - power) / n) + 1e-3, (frac2, power)
     none = own_ranges(np.full((3, w), np.nan), np.ones((3, w), bool), CHANNEL)
@@ -253,5 +259,25 @@ def test_must_loiter_hysteresis_values() -> None:
     assert bool(must_loiter(LIM, 20.0, True, 100.0, mid, True))  # untrusted, still within 1.5×: stays
     assert not bool(must_loiter(LIM, 20.0, True, 100.0, mid, False))  # not loitering: does not start
     assert not bool(must_loiter(LIM, 20.0, True, 100.0, mid, None))
-    assert not bool(must_loiter(LIM, 10.0, True, 100.0, mid, True))  # trusted again: resumes
+    assert not bool(must_loiter(LIM, 10.0, True, 85.0, mid, True))  # trusted again: resumes
     assert not bool(must_loiter(LIM, 20.0, True, 160.0, clear, True))  # clear by its own ranges
+
+
+def test_the_contradiction_has_hysteresis() -> None:
+    """Closed form: ten LOS ranges all at d̄ against an estimate at d give z = (d̄/d − 1)/r(d)
+    (r(d) from eq. 5's σ at d, γ = 2); the estimate is contradicted below z = −2.5, and for a
+    drone loitering at the last step below z = −1 (:func:`contradicted`), so a drone whose
+    ranges put the source between 1 and 2.5 σ nearer goes on loitering but does not start."""
+    los = np.ones(OWN_RANGE_WINDOW, bool)
+    own = own_ranges(np.full(OWN_RANGE_WINDOW, 40.0), los, CHANNEL)
+    r1 = float(own.relative_sd(1.0))  # r(d) = r(1) d^(1 - γ/2): the same at every d for γ = 2
+    assert float(own.relative_sd(50.0)) == pytest.approx(r1)
+    for z, start, stay in ((-3.0, True, True), (-2.0, False, True), (-0.5, False, False)):
+        d = 40.0 / (1.0 + z * r1)  # the estimate's distance that gives z
+        assert bool(contradicted(own, d)) is start, z
+        assert bool(contradicted(own, d, False)) is start, z
+        assert bool(contradicted(own, d, True)) is stay, z
+        # σ = 10 m (3σ < d_S*): trusted but for the ranges; the bound (40 m ranges) is below d_S* + a.
+        assert bool(must_loiter(LIM, 10.0, True, d, own, False)) is start, z
+        assert bool(must_loiter(LIM, 10.0, True, d, own, True)) is stay, z
+    assert OWN_RANGE_CONTRADICTION_SIGMAS == 2.5 and OWN_RANGE_RELEASE_SIGMAS == 1.0
