@@ -607,7 +607,7 @@ def _status_and_keepout(
     # source is: dropped about it too, a loitering drone of paper/dynamic_source D (3 steps of
     # delay, trial 25), its estimate 0.5-18 m off, was 3.5 m inside d_S* as the source drifted
     # in over 71 steps.
-    keepout = np.where(loiter & contradicted(own, d_est, loitering) & (d_est < keepout), -np.inf, keepout)
+    keepout = np.where(loiter & contradicted(own, d_est) & (d_est < keepout), -np.inf, keepout)
     return np.where(loiter, np.int8(FimStatus.OK), status), keepout, loiter
 
 
