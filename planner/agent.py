@@ -319,7 +319,8 @@ def must_loiter(
 def contradicted(own: OwnRanges, distance_m: ArrayLike, loitering: ArrayLike | None = None) -> NDArray[np.bool_]:
     """(...) True where a drone's own ranges ``own`` contradict its estimate at ``distance_m``
     (m): by :data:`OWN_RANGE_CONTRADICTION_SIGMAS` (:meth:`OwnRanges.contradicts`), and for a
-    drone ``loitering`` at its last step by :data:`OWN_RANGE_RELEASE_SIGMAS` only. Without the
+    drone ``loitering`` at its last step by :data:`OWN_RANGE_RELEASE_SIGMAS` only (the loiter's
+    hysteresis; the keep-out is dropped only at the entry threshold). Without the
     hysteresis a drone whose ranges put the source 2-3 σ nearer than an estimate 65-75 m off
     left its loiter each time the statistic rose above −3, and the keep-out about that estimate
     pushed it toward the source between loiters (paper/ranging_nlos A, 20 % loss, trial 0:
