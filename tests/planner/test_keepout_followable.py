@@ -84,20 +84,20 @@ def test_batched_rows_are_limited_one_by_one(rng: np.random.Generator) -> None:
         assert out[i] == followable_keepout_m(LIM, x[i], c[i], r[i], sigma[i], last_c[i], last_r[i])
 
 
-def _keepout_while_loitering(distance_to_estimate_m: float, sigma_m: float) -> tuple[float, bool]:
+def _keepout_while_loitering(distance_to_estimate_m: float, sigma_m: float, loitering: bool | None = None) -> tuple[float, bool]:
     own = own_ranges(np.full(OWN_RANGE_WINDOW, 40.0), np.ones(OWN_RANGE_WINDOW, bool), CHANNEL)  # source within reach
     x = np.array([0.0, 0.0, 20.0])
     p_hat = x + np.array([distance_to_estimate_m, 0.0, 0.0])
     estimate = SimpleNamespace(estimate_m=p_hat, information=np.eye(3) / sigma_m**2, observable=np.array(True))
     cost = SimpleNamespace(status=np.array(np.int8(FimStatus.OK)))
-    _, keepout, loiter = _status_and_keepout(cost, x, p_hat, estimate, LIM, oracle=False, own=own, loitering=None)  # type: ignore[arg-type]
+    _, keepout, loiter = _status_and_keepout(cost, x, p_hat, estimate, LIM, oracle=False, own=own, loitering=loitering)  # type: ignore[arg-type]
     return float(keepout), bool(loiter)
 
 
 def test_a_loitering_drone_drops_only_a_contradicted_keep_out_and_only_from_inside() -> None:
     """Own ranges at 40 m put the source within reach: the drone loiters by an uncertain
     estimate (3σ ≥ d_S*) or one its ranges contradict (a source 75 m or more away is, at
-    z < −3; 42 m is not). Where the ranges contradict the estimate and the drone is inside the
+    z < −2.5; 42 m is not). Where the ranges contradict the estimate and the drone is inside the
     keep-out about it, it keeps none (fleeing it has no known direction away from the source);
     outside it, or by an uncertain estimate the ranges do not contradict (a moving source's, a
     drone's best guess), it keeps it."""
@@ -108,3 +108,19 @@ def test_a_loitering_drone_drops_only_a_contradicted_keep_out_and_only_from_insi
     certain = float(source_keepout_m(LIM, 10.0))  # 3σ = 30 m < d_S*: 80 m
     assert _keepout_while_loitering(75.0, 10.0) == (-np.inf, True)  # contradicted, inside
     assert _keepout_while_loitering(140.0, 10.0) == (pytest.approx(certain), True)  # contradicted, outside
+
+
+def test_the_keep_out_is_dropped_at_the_entry_threshold_not_the_loiters_hysteresis() -> None:
+    """Ranges at 40 m against a converged estimate (σ = 10 m, keep-out 80 m) 53.2 m away:
+    z = (40/53.2 − 1)/r = −2 (closed form, r = 0.1238 for ten LOS ranges, γ = 2). A drone that
+    loitered at the last step goes on loitering (held contradicted down to z = −1) but keeps
+    the keep-out (dropped only below z = −2.5); one that did not loiter does not start."""
+    own = own_ranges(np.full(OWN_RANGE_WINDOW, 40.0), np.ones(OWN_RANGE_WINDOW, bool), CHANNEL)
+    d = 40.0 / (1.0 - 2.0 * float(own.relative_sd(1.0)))
+    assert d == pytest.approx(53.2, abs=0.1)
+    certain = pytest.approx(float(source_keepout_m(LIM, 10.0)))
+    assert _keepout_while_loitering(d, 10.0, loitering=True) == (certain, True)
+    assert _keepout_while_loitering(d, 10.0, loitering=False) == (certain, False)
+    # At z = −3 both the loiter and the drop apply.
+    d3 = 40.0 / (1.0 - 3.0 * float(own.relative_sd(1.0)))
+    assert _keepout_while_loitering(d3, 10.0, loitering=True) == (-np.inf, True)
