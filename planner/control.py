@@ -1032,12 +1032,20 @@ def _record_clearance_kept(p: FloatArray, cand: FloatArray, hard: _Clearances, s
     d_U* + v_max Δt from a heard peer's record (not its whole reachable ball: the peer's own
     filter keeps this drone's ball, which alone keeps the pair d_U* apart) and the drone's own
     side of every lost peer's plane (up to the plane itself, not d_U*/2 short of it). A drone
-    already nearer than that may not come nearer."""
+    already nearer than that may not come nearer, nor may a drone already inside a heard peer's
+    reachable ball (where ``hard`` requires the distance now): approaching a late record down to
+    d_U* + v_max Δt, two drones pushed toward each other by their own source keep-outs closed
+    on each other 0.4-0.7 m a step and met 0.24 m inside d_U* (paper/dynamic_source A, 20 %
+    loss and 3 steps of delay)."""
     now = peer_distance(p, hard.peers, hard.planes, hard.d_uav_m)
     required = np.full(now.shape, hard.d_uav_m + step_max_m)
+    inside = now - hard.peer_required <= 1e-9
     if hard.planes is not None:
-        required = np.where((hard.planes != 0.0).any(-1), 0.5 * hard.d_uav_m, required)
-    required = np.where(np.isfinite(hard.peer_required), np.minimum(required, now), -np.inf)
+        plane = (hard.planes != 0.0).any(-1)
+        required = np.where(plane, 0.5 * hard.d_uav_m, required)
+        inside &= ~plane
+    required = np.where(inside, now, np.minimum(required, now))
+    required = np.where(np.isfinite(hard.peer_required), required, -np.inf)
     return _peer_margin(p[:, None, :] + cand, dataclasses.replace(hard, peer_required=required)) >= 0.0
 
 

@@ -140,3 +140,45 @@ def test_a_squeezed_drone_keeps_the_source_keep_out_and_a_heard_peers_record_d_u
     d_source, _, d_peer = squeeze(plane=False)
     assert d_source >= 50.0 - 0.02 - 1e-9
     assert d_peer >= LIM.d_uav_m + LIM.step_max_m
+
+
+def test_a_squeezed_drone_inside_a_peers_reachable_ball_comes_no_nearer_its_record() -> None:
+    """Inside a heard peer's reachable ball (its ``hard`` requirement is the distance now), the
+    squeezed drone comes no nearer the peer's record, not even down to d_U* + v_max Δt: it gives
+    the source keep-out up instead. Outside the ball, the same squeeze keeps the keep-out and
+    approaches the record (the test above)."""
+    from planner.control import SOURCE, UAV, _Clearances, _envelope_search
+
+    tb = LIM.turn_buffer_m
+    p = np.array([[0.0, 0.0, 10.0]])
+    prev = np.array([[LIM.step_max_m, 0.0, 0.0]])  # flying +x: every step has dx > 0
+    source = np.array([[20.0, -50.0, 10.0]])
+    d_source = float(np.linalg.norm(p[0] - source[0]))
+    # The keep-out is 1 cm in deficit: no step may bring the drone nearer the source, which asks
+    # for dy >= 0.4 dx, toward the record at (3, 5): every such step comes nearer it.
+    record = np.array([3.0, 5.0, 10.0])
+    d_record = float(np.linalg.norm(p[0] - record))
+    assert d_record > LIM.d_uav_m + LIM.step_max_m  # the record clearance alone would allow it
+    need = np.zeros((1, 4))
+    need[0, SOURCE] = -0.01 - tb
+    strict = _Clearances(
+        peers=record[None, None],
+        peer_required=np.array([[LIM.d_uav_m + 4.0 * LIM.step_max_m + 2.0 * tb]]),  # a record 3 steps old
+        source=source,
+        source_required=np.array([d_source + 0.01 + tb]),
+        obstacle_required=LIM.d_obstacle_m,
+        d_uav_m=LIM.d_uav_m,
+    )
+
+    def pick(hard_required: float) -> np.ndarray:
+        hard = _Clearances(record[None, None], np.array([[hard_required]]), source, strict.source_required, LIM.d_obstacle_m, None, LIM.d_uav_m)
+        step, margins, _ = _envelope_search(p, prev, prev, np.array([True]), need, strict, np.zeros((0, 3)), np.zeros((0, 3)), LIM, strict, hard)
+        assert margins[0, UAV] < 0.0  # the peer's strict requirement is not met: a relaxed tier
+        return p[0] + step[0]
+
+    inside = pick(d_record)  # inside the ball: the hard requirement is the distance now
+    assert np.linalg.norm(inside - record) >= d_record - 1e-9
+    assert np.linalg.norm(inside - source[0]) < d_source  # the keep-out gave way
+    outside = pick(d_record - 0.5)  # outside: the ball itself may shrink to d_U* + v_max Δt
+    assert np.linalg.norm(outside - source[0]) >= d_source - 1e-9
+    assert LIM.d_uav_m + LIM.step_max_m <= np.linalg.norm(outside - record) < d_record
