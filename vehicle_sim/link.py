@@ -468,6 +468,8 @@ class MavlinkLink:
         self.bad_frames = 0
         self.frames_in = 0
         self.frames_out = 0
+        #: Datagrams (or stream reads) taken from the transport, valid or not.
+        self.reads_in = 0
         #: Frames not written to the .tlog because they carry the signing key (SETUP_SIGNING).
         self.frames_not_logged = 0
         self._tlog: BinaryIO | None = None
@@ -554,6 +556,7 @@ class MavlinkLink:
         """Drain the transport and return the valid messages received, in order."""
         out: list[Any] = []
         for peer, data in self.transport.read():
+            self.reads_in += 1
             if not data:
                 if isinstance(peer, tuple) and peer and peer[0] == "closed":
                     self._parsers.pop(peer[1], None)

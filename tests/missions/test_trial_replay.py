@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from missions.loader import load_mission
+from missions.results import violating_drones
 from missions.simulator import RunSpec, simulate
 
 
@@ -38,8 +39,6 @@ def test_a_trial_replayed_alone_flies_as_it_did_in_the_larger_run(overrides: dic
 
 def test_a_replayed_trial_is_reported_under_its_own_number() -> None:
     """``violating_drones`` names the trial by its number in the run it came from."""
-    from missions.results import violating_drones
-
     mission = load_mission("paper/joint", {"constraints.activation": "paper"})
     whole = violating_drones(simulate(RunSpec(mission, "A", 3, 200)))
     alone = violating_drones(simulate(RunSpec(mission, "A", 1, 200, first_trial=2)))

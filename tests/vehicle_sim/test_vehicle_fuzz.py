@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -17,6 +16,7 @@ import pytest
 from vehicle_sim.config import VehicleConfig
 from vehicle_sim.link import mavlink_module
 
+from tests.support.wait import wait_for
 from tests.vehicle_sim.clients import mavlink as R, wait_msg
 from tests.vehicle_sim.memlink import decode_all, gcs_encoder, memory_vehicle
 
@@ -144,11 +144,13 @@ def test_fuzz_over_udp_keeps_the_vehicle_alive(make_rig):
     rng = np.random.default_rng(7)
     frames = _mutations(rng, _seed_frames(1), 1000)
     host, port = rig.vehicle.link.transport.sock.getsockname()[:2]
+    reads0 = rig.vehicle.link.reads_in
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         for i, f in enumerate(frames):
             s.sendto(f, (host, port))
             if i % 100 == 99:
-                time.sleep(0.001)  # let the vehicle's socket buffer drain
+                # Let the vehicle read what was sent before sending more (its socket buffer).
+                wait_for(lambda n=i + 1: rig.vehicle.link.reads_in >= reads0 + n, 10.0, f"the vehicle to read {i + 1} datagrams", interval_s=0.005)
     assert rig.command(R.MAV_CMD_REQUEST_MESSAGE, R.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == 0
     wait_msg(rig.client, "HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=3)
     assert _state_without_time(rig.vehicle) == before
