@@ -23,8 +23,9 @@ factors whose product it is:
   error), links left in a building's shadow, a swarm not converged or in a local optimum.
 
 Printed per run: P*, the run's final mean PEB and its ratio, the three factors, the median final
-distance from the source, the share of final links that are NLOS and the median final estimate
-error. The PEB of eq. 18 is taken at the true source (at the end of the run for a moving source).
+distance from the source, the share of final links that are NLOS, the median final estimate
+error and the run's violating drone-steps over every family (inter-drone, source, obstacle,
+altitude, speed, turn rate; ``SimulationResult.violations``, on the true positions). The PEB of eq. 18 is taken at the true source (at the end of the run for a moving source).
 The optimum minimises the A cost (the smallest PEB) for either criterion.
 """
 
@@ -87,8 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--criterion", nargs="+", default=["A", "D"], choices=["A", "D"])
     ap.add_argument("--starts", type=int, default=8, help="random starts of the optimum (as fimnav optimum)")
     args = ap.parse_args(argv)
-    print("| run | source | P* [m] | PEB [m] | PEB / P* | hold | distance | arrangement | median distance [m] | NLOS links | median error [m] |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| run | source | P* [m] | PEB [m] | PEB / P* | hold | distance | arrangement | median distance [m] | NLOS links | median error [m] | violating drone-steps |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for name in args.missions:
         mission = load_mission(resolve_mission(f"paper/{name}"))
         limits = mission.limits()
@@ -105,12 +108,14 @@ def main(argv: list[str] | None = None) -> int:
             spec = RunSpec(mission, criterion, args.trials, mission.steps)
             for oracle in (True, False):
                 hold, p_hold = holds[oracle], p_holds[oracle]
-                peb, dist, nlos, err = final_facts(mission, simulate(spec, oracle_estimate=oracle))
+                result = simulate(spec, oracle_estimate=oracle)
+                peb, dist, nlos, err = final_facts(mission, result)
+                violations = sum(result.violations().values())
                 at_distance = dataclasses.replace(hold, source_m=dist, rule="custom")
                 p_dist = optimum_peb_m(mission, at_distance, args.starts)
                 print(
                     f"| paper/{name} {criterion} | {'true' if oracle else 'estimated'} | {p_filter:.2f} | {peb:.2f} | {peb / p_filter:.3f} "
-                    f"| {p_hold / p_filter:.3f} | {p_dist / p_hold:.3f} | {peb / p_dist:.3f} | {dist:.1f} | {100 * nlos:.0f} % | {err:.2f} |",
+                    f"| {p_hold / p_filter:.3f} | {p_dist / p_hold:.3f} | {peb / p_dist:.3f} | {dist:.1f} | {100 * nlos:.0f} % | {err:.2f} | {violations} |",
                     flush=True,
                 )
     return 0
