@@ -485,6 +485,18 @@ class Controller(_Section):
         return math.radians(self.random_perturbation_deg)
 
 
+class EstimatorSpec(_Section):
+    """The source estimator's options (:class:`planner.estimator.EstimatorConfig`); the search
+    box is ``source.search_box``, the forgetting factor follows from the source's motion."""
+
+    range_memory_cells: Int = Field(
+        0,
+        ge=0,
+        le=4096,
+        description="Cells of the range memory that re-checks a ranging estimate on the exact likelihood of every range so far (docs/estimator.md); 0: off.",
+    )
+
+
 class Fence(_Section):
     """Horizontal geofence of the mission frame (m, ENU). Must contain the starts and the source."""
 
@@ -679,6 +691,7 @@ class Mission(_Section):
     constraints: Constraints = Constraints()
     comms: Comms = Comms()
     controller: Controller = Controller()
+    estimator: EstimatorSpec = EstimatorSpec()
     fence: Fence = Fence()
     zenoh: ZenohSpec = ZenohSpec()
     vehicles: Vehicles = Vehicles()
@@ -707,14 +720,20 @@ class Mission(_Section):
 
     def estimator_config(self) -> EstimatorConfig:
         """The source estimator's settings for this mission: the search box (or the fence and
-        any height) as bounds; a forgetting factor of 0.97 per step for a moving source."""
+        any height) as bounds; a forgetting factor of 0.97 per step for a moving source; the
+        range memory of ``estimator.range_memory_cells`` cells."""
         box = self.source.search_box
         if box is not None:
             lo, hi = box.min_m, box.max_m
         else:
             f = self.fence
             lo, hi = (f.x_min_m, f.y_min_m, -math.inf), (f.x_max_m, f.y_max_m, math.inf)
-        return EstimatorConfig(forgetting=1.0 if self.source.is_static else 0.97, bounds_min_m=lo, bounds_max_m=hi)
+        return EstimatorConfig(
+            forgetting=1.0 if self.source.is_static else 0.97,
+            bounds_min_m=lo,
+            bounds_max_m=hi,
+            range_memory_cells=self.estimator.range_memory_cells,
+        )
 
     def planner_config(self, criterion: Criterion | None = None, sensing: SensingTable = SENSING) -> PlannerConfig:
         """Everything a drone's planning step takes from this mission (:class:`PlannerConfig`),

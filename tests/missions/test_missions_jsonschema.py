@@ -42,7 +42,7 @@ def test_schema_structure(schema: dict[str, Any]) -> None:
     assert set(schema["required"]) == {"id", "drones", "source"}
     props = schema["properties"]
     for key in ("id", "seed", "dt_s", "steps", "trials", "criterion", "origin", "drones", "source", "obstacles",
-                "channel", "constraints", "comms", "controller", "fence", "zenoh", "vehicles", "end_action",
+                "channel", "constraints", "comms", "controller", "estimator", "fence", "zenoh", "vehicles", "end_action",
                 "altitude_reference", "takeoff_alt_m", "description"):
         assert key in props, key
     for name, definition in schema["$defs"].items():

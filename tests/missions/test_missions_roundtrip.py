@@ -123,6 +123,17 @@ def test_overrides_dotted_and_nested() -> None:
     assert m.drones.roles == ("joint",) * 4 and m.drones.start_positions_m().shape == (4, 3)
 
 
+def test_estimator_range_memory_reaches_the_planner() -> None:
+    """``estimator.range_memory_cells`` (default 0, off) is the planner's estimator setting."""
+    assert load_mission(PAPER / "ranging_los.yaml").planner_config().estimator.range_memory_cells == 0
+    m = load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": 64})
+    config = m.planner_config().estimator
+    assert config.range_memory_cells == 64
+    assert config.forgetting == 1.0 and config.bounds_max_m == m.estimator_config().bounds_max_m  # the rest as before
+    with pytest.raises(MissionError, match=r"\(override\) estimator.range_memory_cells: .*0.*found -1"):
+        load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": -1})
+
+
 def test_override_errors_say_so() -> None:
     with pytest.raises(MissionError) as info:
         load_mission(PAPER / "joint.yaml", {"constraints.activtion": "paper"})
