@@ -25,8 +25,8 @@ factors whose product it is:
 Printed per run: P*, the run's final mean PEB and its ratio, the three factors, the median final
 distance from the source, the share of final links that are NLOS, the median final estimate
 error and the run's violating drone-steps over every family (inter-drone, source, obstacle,
-altitude, speed, turn rate; ``SimulationResult.violations``, on the true positions). The PEB of eq. 18 is taken at the true source (at the end of the run for a moving source).
-The optimum minimises the A cost (the smallest PEB) for either criterion.
+altitude, speed, turn rate; ``SimulationResult.violations``, on the true positions). The PEB of
+eq. 18 is taken at the true source (at the end of the run for a moving source). The optimum minimises the A cost (the smallest PEB) for either criterion.
 """
 
 from __future__ import annotations

@@ -255,14 +255,15 @@ class OwnRanges:
         dbar = np.where(have, self.mean_m, 1.0)
         return np.where(have, dbar / (1.0 + sigma_factor * self.relative_sd(dbar)), np.inf)
 
-    def contradicts(self, distance_m: ArrayLike, sigma_factor: float = OWN_RANGE_CONTRADICTION_SIGMAS) -> NDArray[np.bool_]:
+    def contradicts(self, distance_m: ArrayLike, sigma_factor: ArrayLike = OWN_RANGE_CONTRADICTION_SIGMAS) -> NDArray[np.bool_]:
         """True where the ranges say the source is nearer than ``distance_m`` (the distance to
-        the estimate, m): z = (d̄/d − 1)/r(d) < −k, the one-sided test of d̄ against a
-        source at that distance (false alarm Φ(−k), 0.62 % at the default k = 2.5). False without ranges."""
+        the estimate, m): z = (d̄/d − 1)/r(d) < −k, k = ``sigma_factor`` (broadcast), the
+        one-sided test of d̄ against a source at that distance (false alarm Φ(−k), 0.62 % at the
+        default k = 2.5). False without ranges."""
         d = np.maximum(np.asarray(distance_m, dtype=float), 1e-9)
         have = self.weight > 0.0
         z = (np.where(have, self.mean_m, 0.0) / d - 1.0) / self.relative_sd(d)
-        return have & (z < -sigma_factor)
+        return np.asarray(have & (z < -np.asarray(sigma_factor, dtype=float)), dtype=bool)
 
 
 def own_ranges(range_m: ArrayLike, los: ArrayLike, channel: Channel) -> OwnRanges:
@@ -308,10 +309,10 @@ def must_loiter(
     without ranges.
     """
     sigma = np.asarray(sigma_m, dtype=float)
-    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
-    untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | contradicted(own, distance_m, was)
+    untrusted = ~np.asarray(observable, dtype=bool) | (SOURCE_SIGMA_FACTOR * sigma >= limits.d_source_m) | contradicted(own, distance_m, loitering)
     near = limits.d_source_m + source_activation_margin_m(limits)
     lower = own.lower_bound_m()
+    was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
     stay = was & (lower < OWN_RANGE_CLEAR_FACTOR * near)
     return np.asarray(untrusted & ((lower < near) | stay))
 
@@ -326,9 +327,7 @@ def contradicted(own: OwnRanges, distance_m: ArrayLike, loitering: ArrayLike | N
     pushed it toward the source between loiters (paper/ranging_nlos A, 20 % loss, trial 0:
     10.4 m inside d_S*)."""
     was = np.zeros((), dtype=bool) if loitering is None else np.asarray(loitering, dtype=bool)
-    return np.asarray(
-        np.where(was, own.contradicts(distance_m, OWN_RANGE_RELEASE_SIGMAS), own.contradicts(distance_m, OWN_RANGE_CONTRADICTION_SIGMAS)), dtype=bool
-    )
+    return own.contradicts(distance_m, np.where(was, OWN_RANGE_RELEASE_SIGMAS, OWN_RANGE_CONTRADICTION_SIGMAS))
 
 
 def collision_relevant(hops: ArrayLike, d_hop_m: float, limits: Limits) -> NDArray[np.bool_]:
