@@ -153,76 +153,90 @@ def insert(
     each batch element independently (a batch element holds what the same rows give with batch
     shape ()).
 
-    The rows within reach of a cell of their σ_r0 (as the cells were before the call) join the
-    nearest such cell together; each other row in turn joins the nearest cell of its σ_r0 whose mean position is within ``radius_fraction``
-    × max(mean range, 1 m) of it; else the first empty cell; else the nearest cell of its σ_r0;
-    else the nearest cell.
+    Against the cells as they were before the call: a row within ``radius_fraction`` × max(mean
+    range, 1 m) of a cell of its σ_r0 joins the nearest such cell. The others form groups: a row
+    within ``radius_fraction`` × max(range, 1 m) of an earlier row of the call (its σ_r0) shares
+    that row's cell; the first row of each group takes an empty cell, in row order; once none is
+    left, the group's rows join the nearest cell of their σ_r0 (else the nearest cell) as the
+    cells were before the call. Vectorised: no loop over rows or batch elements.
     """
     if memory.cells == 0 or ranges.shape[-1] == 0:
         return memory
-    ps, n, s1, s2, s0, tt, qq = (np.array(getattr(memory, f), copy=True) for f in RangeMemory.__dataclass_fields__)
-    pp = (positions * positions).sum(axis=-1)  # (..., M)
-    C = memory.cells
-    cell_ids = np.arange(C)
-    # First, at once: the rows within reach of a cell of their σ_r0 (the cells as they were
-    # before this call) join the nearest such cell.
-    cells = Cells.of(memory)
-    c = cells.n.shape[-1]  # the occupied prefix
-    dist = np.sqrt(((cells.centre[..., None, :, :] - positions[..., :, None, :]) ** 2).sum(axis=-1))  # (..., M, c)
-    radius = radius_fraction * np.maximum(np.abs(cells.s1) / np.where(cells.n > 0.0, cells.n, 1.0), 1.0)
-    same = (cells.n > 0.0)[..., None, :] & (s0[..., None, :c] == sigma_r0[..., :, None])
-    near = np.where(same & (dist <= radius[..., None, :]), dist, np.inf)
-    merged = np.zeros(weights.shape, dtype=bool)
-    if c > 0:
-        best = np.argmin(near, axis=-1)  # (..., M)
-        merged = (weights > 0.0) & np.isfinite(np.take_along_axis(near, best[..., None], axis=-1)[..., 0])
-    if np.any(merged):
-        hit = np.where((cell_ids[:c] == best[..., None]) & merged[..., None], weights[..., None], 0.0)  # (..., M, c)
-        ps[..., :c, :] += np.einsum("...mc,...mi->...ci", hit, positions)
-        n[..., :c] += hit.sum(axis=-2)
-        s1[..., :c] += np.einsum("...mc,...m->...c", hit, ranges)
-        s2[..., :c] += np.einsum("...mc,...m->...c", hit, ranges * ranges)
-        tt[..., :c, :] += np.einsum("...mc,...mi->...ci", hit, ranges[..., None] * positions)
-        qq[..., :c] += np.einsum("...mc,...m->...c", hit, pp)
-    rest = np.nonzero(np.any((weights > 0.0) & ~merged, axis=tuple(range(weights.ndim - 1))))[0]
-    # Then the others, one at a time.
-    for k in rest:
-        w = np.where(merged[..., k], 0.0, weights[..., k])
-        use = w > 0.0
-        if not np.any(use):
-            continue
-        p, d, s = positions[..., k, :], ranges[..., k], sigma_r0[..., k]
-        full = n >= _EMPTY
-        safe_n = np.where(full, n, 1.0)
-        centre = ps / safe_n[..., None]
-        dist = np.sqrt(((centre - p[..., None, :]) ** 2).sum(axis=-1))
-        radius = radius_fraction * np.maximum(np.abs(s1) / safe_n, 1.0)
-        same = full & (s0 == s[..., None])
-        near = np.where(same, dist, np.inf)
-        best_same = np.argmin(near, axis=-1)
-        d_best = np.take_along_axis(near, best_same[..., None], axis=-1)[..., 0]
-        r_best = np.take_along_axis(radius, best_same[..., None], axis=-1)[..., 0]
-        empty = ~full
-        first_empty = np.argmax(empty, axis=-1)
-        has_empty = np.any(empty, axis=-1)
-        has_same = np.isfinite(d_best)
-        nearest_any = np.argmin(np.where(full, dist, np.inf), axis=-1)
-        cell = np.where(
-            has_same & (d_best <= r_best),
-            best_same,
-            np.where(has_empty, first_empty, np.where(has_same, best_same, nearest_any)),
-        )
-        hit = (cell_ids == cell[..., None]) & use[..., None]  # (..., C) one-hot
-        fresh = hit & empty
-        wh = np.where(hit, w[..., None], 0.0)
-        ps = ps + wh[..., None] * p[..., None, :]
-        n = n + wh
-        s1 = s1 + wh * d[..., None]
-        s2 = s2 + wh * (d * d)[..., None]
-        tt = tt + wh[..., None] * (d[..., None] * p)[..., None, :]
-        qq = qq + wh * pp[..., k, None]
-        s0 = np.where(fresh, s[..., None], s0)
-    return RangeMemory(ps, n, s1, s2, s0, tt, qq)
+    batch = memory.weight.shape[:-1]
+    C, M = memory.cells, ranges.shape[-1]
+    B = int(np.prod(batch, dtype=np.int64))
+    ps, n, s1, s2, s0, tt, qq = (
+        np.array(getattr(memory, f), dtype=float, copy=True).reshape((B, C) + getattr(memory, f).shape[len(batch) + 1 :])
+        for f in RangeMemory.__dataclass_fields__
+    )
+    pos = np.broadcast_to(positions, batch + (M, 3)).reshape(B, M, 3)
+    rng = np.broadcast_to(ranges, batch + (M,)).reshape(B, M)
+    w = np.broadcast_to(weights, batch + (M,)).reshape(B, M)
+    sig = np.broadcast_to(sigma_r0, batch + (M,)).reshape(B, M)
+    use = w > 0.0
+    full_all = n >= _EMPTY  # (B, C)
+    occupied = np.nonzero(np.any(full_all, axis=0))[0]
+    c = int(occupied[-1]) + 1 if occupied.size else 1  # the occupied prefix (at least one cell)
+    full = full_all[:, :c]
+    centre = ps[:, :c] / np.where(full, n[:, :c], 1.0)[..., None]
+    diff = centre[:, None, :, :] - pos[:, :, None, :]
+    dist = np.sqrt(np.einsum("bmci,bmci->bmc", diff, diff))  # (B, M, c)
+    radius = radius_fraction * np.maximum(np.abs(s1[:, :c]) / np.where(full, n[:, :c], 1.0), 1.0)  # (B, c)
+    same = full[:, None, :] & (s0[:, None, :c] == sig[:, :, None])
+    near_same = np.where(same, dist, np.inf)
+    best_same = np.argmin(near_same, axis=-1)  # (B, M)
+    d_same = np.take_along_axis(near_same, best_same[..., None], axis=-1)[..., 0]
+    r_same = np.take_along_axis(radius, best_same, axis=-1)
+    merged = use & (d_same <= r_same)
+    # The others: a row within reach of an earlier one of this call (its range as the mean
+    # range) shares that row's cell; the first row of each such group takes an empty cell, in
+    # row order, and once none is left the group's rows join the nearest cell of their σ_r0.
+    fresh_row = use & ~merged
+    ids = np.arange(M)
+    gap = np.sqrt(((pos[:, :, None, :] - pos[:, None, :, :]) ** 2).sum(axis=-1))  # (B, M, M) [i, j]
+    reach = radius_fraction * np.maximum(np.abs(rng), 1.0)  # (B, M)
+    joins = (
+        fresh_row[:, :, None]
+        & fresh_row[:, None, :]
+        & (sig[:, :, None] == sig[:, None, :])
+        & (gap <= reach[:, :, None])
+        & (ids[:, None] <= ids[None, :])
+    )
+    leader = np.argmax(joins, axis=1)  # (B, M): the first row that reaches row j (itself at worst)
+    for _ in range(max(1, int(np.ceil(np.log2(M))) + 1)):  # follow chains to their first row
+        leader = np.take_along_axis(leader, leader, axis=-1)
+    first = fresh_row & (leader == ids)
+    rank = np.cumsum(first, axis=-1) - 1  # (B, M)
+    empty = ~full_all
+    n_empty = empty.sum(axis=-1)  # (B,)
+    empty_ids = np.argsort(~empty, axis=-1, kind="stable")  # empty cells first, in order
+    takes_empty = first & (rank < n_empty[:, None])
+    empty_cell = np.take_along_axis(empty_ids, np.clip(rank, 0, C - 1), axis=-1)
+    in_new = fresh_row & np.take_along_axis(takes_empty, leader, axis=-1)
+    new_cell = np.take_along_axis(empty_cell, leader, axis=-1)
+    nearest_any = np.argmin(np.where(full[:, None, :], dist, np.inf), axis=-1)
+    fallback = np.where(np.isfinite(d_same), best_same, nearest_any)
+    cell = np.where(merged, best_same, np.where(in_new, new_cell, fallback))
+    bi, mi = np.nonzero(use)
+    ci = cell[bi, mi]
+    wv, dv, pv = w[bi, mi], rng[bi, mi], pos[bi, mi]
+    np.add.at(ps, (bi, ci), wv[:, None] * pv)
+    np.add.at(n, (bi, ci), wv)
+    np.add.at(s1, (bi, ci), wv * dv)
+    np.add.at(s2, (bi, ci), wv * dv * dv)
+    np.add.at(tt, (bi, ci), (wv * dv)[:, None] * pv)
+    np.add.at(qq, (bi, ci), wv * (pv * pv).sum(axis=-1))
+    tb, tm = np.nonzero(takes_empty)
+    s0[tb, cell[tb, tm]] = sig[tb, tm]
+    return RangeMemory(
+        ps.reshape(batch + (C, 3)),
+        n.reshape(batch + (C,)),
+        s1.reshape(batch + (C,)),
+        s2.reshape(batch + (C,)),
+        s0.reshape(batch + (C,)),
+        tt.reshape(batch + (C, 3)),
+        qq.reshape(batch + (C,)),
+    )
 
 
 def _terms(cells: Cells, x: FloatArray, gamma: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -278,30 +292,41 @@ def polish(
 ) -> tuple[FloatArray, FloatArray]:
     """Fisher-scoring (Levenberg-Marquardt) minimisation of :func:`nll` from x (..., 3), m,
     ENU, projected by ``clip`` (into the search box), each step kept only if the cost does not
-    increase; at most ``iterations``, fewer once every step is shorter than ``tolerance_m``.
+    increase; at most ``iterations``; a point stops once its projected step is shorter than ``tolerance_m``.
     ``memory`` may have fewer batch axes than x (its cells broadcast over the leading ones).
     Returns the point and its cost (...,)."""
     cells = Cells.of(memory)
     extra = x.shape[: x.ndim - 1 - memory.weight.ndim + 1]
     if extra:
         cells = cells.broadcast(extra)
-    cost = _nll(cells, x, gamma)
+    shape = x.shape[:-1]
+    # Flattened, so that each iteration evaluates only the points still moving.
+    flat = Cells(*(np.reshape(getattr(cells, f), (-1,) + getattr(cells, f).shape[len(shape) :]) for f in Cells.__dataclass_fields__))
+    x = np.array(x, dtype=float).reshape(-1, 3)
+    cost = _nll(flat, x, gamma)
     mu = np.full(cost.shape, 1e-3)
+    live = np.ones(cost.shape, dtype=bool)
     eye = np.eye(3)
     for _ in range(iterations):
-        g, F = _gradient_fisher(cells, x, gamma, True)
-        diag = np.einsum("...ii->...i", F)
-        H = F + (mu[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye
-        step = -np.linalg.solve(H, g[..., None])[..., 0]
-        cand = clip(x + step)
-        c_new = _nll(cells, cand, gamma)
-        ok = np.isfinite(c_new) & (c_new <= cost)
-        x = np.where(ok[..., None], cand, x)
-        cost = np.where(ok, c_new, cost)
-        mu = np.where(ok, mu / 3.0, mu * 4.0)
-        if not np.any(ok & (np.abs(step).max(axis=-1) > tolerance_m)):
+        idx = np.nonzero(live)[0]
+        if idx.size == 0:
             break
-    return x, cost
+        sub = flat if idx.size == live.size else Cells(*(getattr(flat, f)[idx] for f in Cells.__dataclass_fields__))
+        xi, mi = x[idx], mu[idx]
+        g, F = _gradient_fisher(sub, xi, gamma, True)
+        diag = np.einsum("...ii->...i", F)
+        H = F + (mi[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye
+        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        cand = clip(xi + step)
+        c_new = _nll(sub, cand, gamma)
+        ok = np.isfinite(c_new) & (c_new <= cost[idx])
+        x[idx] = np.where(ok[..., None], cand, xi)
+        cost[idx] = np.where(ok, c_new, cost[idx])
+        mu[idx] = np.where(ok, mi / 3.0, mi * 4.0)
+        # A point is done once its step (projected into the box), taken or not, is shorter
+        # than the tolerance.
+        live[idx] = np.abs(cand - xi).max(axis=-1) > tolerance_m
+    return x.reshape(shape + (3,)), cost.reshape(shape)
 
 
 def best_start(

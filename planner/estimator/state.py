@@ -118,8 +118,11 @@ class EstimatorConfig:
             there, claimed in full (it is the likelihood, not the biased PL cost). Elements that
             used bearings keep the PL re-check (``recheck_threshold``).
         range_memory_radius: a range joins a memory cell within this fraction of the cell's
-            mean range (0.2: 12 m at 60 m, against a ranging std of 23 m there; the offsets
-            within a cell are kept to first order).
+            mean range (0.05: 3 m at 60 m). The offsets within a cell enter the residuals to
+            first order, but each range's variance σ_r0² d^γ is taken at the cell's centre, a
+            relative error of up to γ × this fraction; for NLOS ranges the variance carries
+            more than half of a range's information (γ²/(2d²) against 1/(σ_r0² d²)), so wide
+            cells pull the exact-likelihood optimum off the source.
         recheck_likelihood_drop: with the range memory, the negative log-likelihood by which
             the current estimate must exceed the best optimum before it moves there (a
             log-likelihood ratio; 1: the estimate is off its own likelihood's optimum by more
@@ -167,7 +170,7 @@ class EstimatorConfig:
     recheck_trust: float = 0.1
     recheck_window_rows: int = 50
     range_memory_cells: int = 0
-    range_memory_radius: float = 0.2
+    range_memory_radius: float = 0.05
     recheck_likelihood_drop: float = 1.0
     consistency_threshold: float | None = 25.0
     consistency_forgetting: float = 0.9

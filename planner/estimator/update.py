@@ -301,10 +301,14 @@ def _recheck_memory(
     move = _scatter(np.zeros_like(use), moved, use)
     x_new = _scatter(start.x, x_best, use)
     # The prior: the memory's cost (every past range) re-linearised at the new estimate.
-    g, F = rmem.gradient_fisher(mem, x_best, gamma, config.range_cost == "ml")
-    eta = _scatter(start.prior.vector, np.einsum("...ij,...j->...i", F, x_best) - g, use)
-    F = _scatter(start.prior.information, F, use)
-    return _moved(start, move, x_new, _Prior(F, F, eta))
+    g, H = rmem.gradient_fisher(mem, x_best, gamma, config.range_cost == "ml")
+    # Its Fisher information, as every other record's, includes the variance's dependence on
+    # the distance (γ²/(2d²) per range; for NLOS ranges more than half of it).
+    _, F = rmem.gradient_fisher(mem, x_best, gamma, True)
+    eta = _scatter(start.prior.vector, np.einsum("...ij,...j->...i", H, x_best) - g, use)
+    H = _scatter(start.prior.information, H, use)
+    F = _scatter(start.prior.fisher, F, use)
+    return _moved(start, move, x_new, _Prior(H, F, eta))
 
 
 def _innovation_gate(state: EstimatorState, config: EstimatorConfig) -> _Gate | None:
