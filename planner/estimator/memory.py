@@ -179,15 +179,20 @@ def insert(
     c = int(occupied[-1]) + 1 if occupied.size else 1  # the occupied prefix (at least one cell)
     full = full_all[:, :c]
     centre = ps[:, :c] / np.where(full, n[:, :c], 1.0)[..., None]
-    diff = centre[:, None, :, :] - pos[:, :, None, :]
-    dist = np.sqrt(np.einsum("bmci,bmci->bmc", diff, diff))  # (B, M, c)
+    # Squared distances row to cell, ‖p̄‖² − 2 p̄·p + ‖p‖² (B, M, c), compared squared.
+    dist2 = np.maximum(
+        np.einsum("bci,bci->bc", centre, centre)[:, None, :]
+        - 2.0 * np.matmul(pos, centre.transpose(0, 2, 1))
+        + np.einsum("bmi,bmi->bm", pos, pos)[..., None],
+        0.0,
+    )
     radius = radius_fraction * np.maximum(np.abs(s1[:, :c]) / np.where(full, n[:, :c], 1.0), 1.0)  # (B, c)
     same = full[:, None, :] & (s0[:, None, :c] == sig[:, :, None])
-    near_same = np.where(same, dist, np.inf)
+    near_same = np.where(same, dist2, np.inf)
     best_same = np.argmin(near_same, axis=-1)  # (B, M)
     d_same = np.take_along_axis(near_same, best_same[..., None], axis=-1)[..., 0]
     r_same = np.take_along_axis(radius, best_same, axis=-1)
-    merged = use & (d_same <= r_same)
+    merged = use & (d_same <= r_same * r_same)
     # The others: a row within reach of an earlier one of this call (its range as the mean
     # range) shares that row's cell; the first row of each such group takes an empty cell, in
     # row order, and once none is left the group's rows join the nearest cell of their σ_r0.
@@ -214,18 +219,23 @@ def insert(
     empty_cell = np.take_along_axis(empty_ids, np.clip(rank, 0, C - 1), axis=-1)
     in_new = fresh_row & np.take_along_axis(takes_empty, leader, axis=-1)
     new_cell = np.take_along_axis(empty_cell, leader, axis=-1)
-    nearest_any = np.argmin(np.where(full[:, None, :], dist, np.inf), axis=-1)
+    nearest_any = np.argmin(np.where(full[:, None, :], dist2, np.inf), axis=-1)
     fallback = np.where(np.isfinite(d_same), best_same, nearest_any)
     cell = np.where(merged, best_same, np.where(in_new, new_cell, fallback))
     bi, mi = np.nonzero(use)
-    ci = cell[bi, mi]
+    flat = bi * C + cell[bi, mi]  # the cell of each row, in the flattened (B·C) cells
     wv, dv, pv = w[bi, mi], rng[bi, mi], pos[bi, mi]
-    np.add.at(ps, (bi, ci), wv[:, None] * pv)
-    np.add.at(n, (bi, ci), wv)
-    np.add.at(s1, (bi, ci), wv * dv)
-    np.add.at(s2, (bi, ci), wv * dv * dv)
-    np.add.at(tt, (bi, ci), (wv * dv)[:, None] * pv)
-    np.add.at(qq, (bi, ci), wv * (pv * pv).sum(axis=-1))
+
+    def add(values: FloatArray) -> FloatArray:
+        return np.bincount(flat, weights=values, minlength=B * C).reshape(B, C)
+
+    n += add(wv)
+    s1 += add(wv * dv)
+    s2 += add(wv * dv * dv)
+    qq += add(wv * np.einsum("ri,ri->r", pv, pv))
+    for i in range(3):
+        ps[..., i] += add(wv * pv[:, i])
+        tt[..., i] += add(wv * dv * pv[:, i])
     tb, tm = np.nonzero(takes_empty)
     s0[tb, cell[tb, tm]] = sig[tb, tm]
     return RangeMemory(
@@ -244,10 +254,10 @@ def _terms(cells: Cells, x: FloatArray, gamma: float) -> tuple[FloatArray, Float
     variance σ_r0² d^γ and the residual sum Σ w (d̂ − ‖x − p‖)² (..., C), to first order in the
     records' offsets p − p̄ from the centre: S2 − 2(S1 d − u·lever) + nd² + spread."""
     r = x[..., None, :] - cells.centre
-    d = np.maximum(np.sqrt((r * r).sum(axis=-1)), 1e-3)
+    d = np.maximum(np.sqrt(np.einsum("...ci,...ci->...c", r, r)), 1e-3)
     u = r / d[..., None]
     var = cells.s0sq * (d * d if gamma == 2.0 else d**gamma)
-    resid2 = cells.s2 - 2.0 * (d * cells.s1 - (u * cells.lever).sum(axis=-1)) + cells.n * d * d + cells.spread
+    resid2 = cells.s2 - 2.0 * (d * cells.s1 - np.einsum("...ci,...ci->...c", u, cells.lever)) + cells.n * d * d + cells.spread
     return d, u, var, resid2
 
 
@@ -273,8 +283,8 @@ def _gradient_fisher(cells: Cells, x: FloatArray, gamma: float, full_likelihood:
         info = info + 0.5 * cells.n * (gamma / d) ** 2
     # The lever term u·lever turns with u: ∂u/∂x = (I − uuᵀ)/d.
     lev = cells.lever / (var * d)[..., None]
-    tangential = lev - (u * lev).sum(axis=-1, keepdims=True) * u
-    g = np.einsum("...c,...ci->...i", dfd, u) + tangential.sum(axis=-2)
+    # Σ_c (lev_c − (u_c·lev_c) u_c), without forming the per-cell tangential vectors.
+    g = np.einsum("...c,...ci->...i", dfd - np.einsum("...ci,...ci->...c", u, lev), u) + lev.sum(axis=-2)
     F = np.einsum("...c,...ci,...cj->...ij", info, u, u)
     return g, F
 
@@ -314,8 +324,15 @@ def polish(
         sub = flat if idx.size == live.size else Cells(*(getattr(flat, f)[idx] for f in Cells.__dataclass_fields__))
         xi, mi = x[idx], mu[idx]
         g, F = _gradient_fisher(sub, xi, gamma, True)
+        # Projected Newton: a coordinate held at the box by the descent direction is fixed
+        # (its row and column of the system dropped), so that a point on the box's face
+        # slides along it instead of zigzagging into it.
+        free = clip(xi - 1e-6 * np.sign(g)) != xi
+        both = free[..., :, None] & free[..., None, :]
+        F = np.where(both, F, 0.0)
+        g = np.where(free, g, 0.0)
         diag = np.einsum("...ii->...i", F)
-        H = F + (mi[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye
+        H = F + (mi[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye + np.where(free, 0.0, 1.0)[..., None] * eye
         step = -np.linalg.solve(H, g[..., None])[..., 0]
         cand = clip(xi + step)
         c_new = _nll(sub, cand, gamma)
