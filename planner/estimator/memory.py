@@ -227,7 +227,7 @@ def insert(
     wv, dv, pv = w[bi, mi], rng[bi, mi], pos[bi, mi]
 
     def add(values: FloatArray) -> FloatArray:
-        return np.bincount(flat, weights=values, minlength=B * C).reshape(B, C)
+        return np.asarray(np.bincount(flat, weights=values, minlength=B * C), dtype=float).reshape(B, C)
 
     n += add(wv)
     s1 += add(wv * dv)
