@@ -304,7 +304,7 @@ def _recheck_memory(
     g, H = rmem.gradient_fisher(mem, x_best, gamma, config.range_cost == "ml")
     # Its Fisher information, as every other record's, includes the variance's dependence on
     # the distance (γ²/(2d²) per range; for NLOS ranges more than half of it).
-    _, F = rmem.gradient_fisher(mem, x_best, gamma, True)
+    F = H if config.range_cost == "ml" else rmem.gradient_fisher(mem, x_best, gamma, True)[1]
     eta = _scatter(start.prior.vector, np.einsum("...ij,...j->...i", H, x_best) - g, use)
     H = _scatter(start.prior.information, H, use)
     F = _scatter(start.prior.fisher, F, use)
