@@ -132,6 +132,10 @@ class Cells:
         spread = np.where(full, np.maximum(memory.position_square_sum[..., :c] - n * (centre * centre).sum(axis=-1), 0.0), 0.0)
         return Cells(centre, n, s1, np.where(full, memory.square_sum[..., :c], 0.0), memory.sigma_r0[..., :c] ** 2, lever, spread)
 
+    def take(self, rows: NDArray[np.int64]) -> Cells:
+        """The cells of the elements ``rows`` of a flattened (elements, C) set of cells."""
+        return Cells(*(getattr(self, f)[rows] for f in Cells.__dataclass_fields__))
+
     def broadcast(self, shape: tuple[int, ...]) -> Cells:
         """The cells with a leading batch shape ``shape`` added (to evaluate several points)."""
         return Cells(*(np.broadcast_to(getattr(self, f), shape + getattr(self, f).shape) for f in Cells.__dataclass_fields__))
@@ -306,14 +310,16 @@ def polish(
     ``memory`` may have fewer batch axes than x (its cells broadcast over the leading ones).
     Returns the point and its cost (...,)."""
     cells = Cells.of(memory)
-    extra = x.shape[: x.ndim - 1 - memory.weight.ndim + 1]
-    if extra:
-        cells = cells.broadcast(extra)
     shape = x.shape[:-1]
-    # Flattened, so that each iteration evaluates only the points still moving.
-    flat = Cells(*(np.reshape(getattr(cells, f), (-1,) + getattr(cells, f).shape[len(shape) :]) for f in Cells.__dataclass_fields__))
+    nb = memory.weight.ndim - 1  # the memory's batch axes, the trailing ones of x's
+    elems = int(np.prod(memory.weight.shape[:-1], dtype=np.int64))
+    # The cells flattened to (elements, C); point p of the flattened x uses element p mod elems.
+    flat = Cells(*(np.reshape(getattr(cells, f), (elems,) + getattr(cells, f).shape[nb:]) for f in Cells.__dataclass_fields__))
     x = np.array(x, dtype=float).reshape(-1, 3)
-    cost = _nll(flat, x, gamma)
+    elem = np.arange(x.shape[0]) % elems
+    cost = np.empty(x.shape[0])
+    for ch in _chunks(np.arange(x.shape[0])):
+        cost[ch] = _nll(flat.take(elem[ch]), x[ch], gamma)
     mu = np.full(cost.shape, 1e-3)
     live = np.ones(cost.shape, dtype=bool)
     eye = np.eye(3)
@@ -321,29 +327,44 @@ def polish(
         idx = np.nonzero(live)[0]
         if idx.size == 0:
             break
-        sub = flat if idx.size == live.size else Cells(*(getattr(flat, f)[idx] for f in Cells.__dataclass_fields__))
-        xi, mi = x[idx], mu[idx]
-        g, F = _gradient_fisher(sub, xi, gamma, True)
-        # Projected Newton: a coordinate held at the box by the descent direction is fixed
-        # (its row and column of the system dropped), so that a point on the box's face
-        # slides along it instead of zigzagging into it.
-        free = clip(xi - 1e-6 * np.sign(g)) != xi
-        both = free[..., :, None] & free[..., None, :]
-        F = np.where(both, F, 0.0)
-        g = np.where(free, g, 0.0)
-        diag = np.einsum("...ii->...i", F)
-        H = F + (mi[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye + np.where(free, 0.0, 1.0)[..., None] * eye
-        step = -np.linalg.solve(H, g[..., None])[..., 0]
-        cand = clip(xi + step)
-        c_new = _nll(sub, cand, gamma)
-        ok = np.isfinite(c_new) & (c_new <= cost[idx])
-        x[idx] = np.where(ok[..., None], cand, xi)
-        cost[idx] = np.where(ok, c_new, cost[idx])
-        mu[idx] = np.where(ok, mi / 3.0, mi * 4.0)
-        # A point is done once its step (projected into the box), taken or not, is shorter
-        # than the tolerance.
-        live[idx] = np.abs(cand - xi).max(axis=-1) > tolerance_m
+        # In chunks of points, so that the (points, C) arrays stay in the cache.
+        for ch in _chunks(idx):
+            sub = flat.take(elem[ch])
+            xi, mi = x[ch], mu[ch]
+            g, F = _gradient_fisher(sub, xi, gamma, True)
+            # Projected Newton: a coordinate held at the box by the descent direction is fixed
+            # (its row and column of the system dropped), so that a point on the box's face
+            # slides along it instead of zigzagging into it.
+            free = clip(xi - 1e-6 * np.sign(g)) != xi
+            both = free[..., :, None] & free[..., None, :]
+            F = np.where(both, F, 0.0)
+            g = np.where(free, g, 0.0)
+            diag = np.einsum("...ii->...i", F)
+            H = (
+                F
+                + (mi[..., None] * diag + 1e-9 * diag.sum(axis=-1, keepdims=True) + 1e-12)[..., None] * eye
+                + np.where(free, 0.0, 1.0)[..., None] * eye
+            )
+            step = -np.linalg.solve(H, g[..., None])[..., 0]
+            cand = clip(xi + step)
+            c_new = _nll(sub, cand, gamma)
+            ok = np.isfinite(c_new) & (c_new <= cost[ch])
+            x[ch] = np.where(ok[..., None], cand, xi)
+            cost[ch] = np.where(ok, c_new, cost[ch])
+            mu[ch] = np.where(ok, mi / 3.0, mi * 4.0)
+            # A point is done once its step (projected into the box), taken or not, is
+            # shorter than the tolerance.
+            live[ch] = np.abs(cand - xi).max(axis=-1) > tolerance_m
     return x.reshape(shape + (3,)), cost.reshape(shape)
+
+
+#: Points per chunk of the memory's evaluations (their (points, C) arrays stay in the cache).
+_CHUNK = 128
+
+
+def _chunks(idx: NDArray[np.int64]) -> list[NDArray[np.int64]]:
+    """``idx`` in consecutive pieces of at most :data:`_CHUNK`."""
+    return [idx[k : k + _CHUNK] for k in range(0, idx.size, _CHUNK)]
 
 
 def best_start(
