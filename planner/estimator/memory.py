@@ -119,18 +119,29 @@ class Cells:
 
     @staticmethod
     def of(memory: RangeMemory) -> Cells:
-        """The occupied cells of ``memory``."""
+        """The occupied cells of ``memory``, padded with empty ones to a multiple of
+        :data:`_BLOCK` cells (for :func:`_cell_sum`)."""
         full = memory.weight >= _EMPTY
         occupied = np.nonzero(np.any(full, axis=tuple(range(full.ndim - 1))))[0]
         c = int(occupied[-1]) + 1 if occupied.size else 0
-        full = full[..., :c]
-        safe_n = np.where(full, memory.weight[..., :c], 1.0)
-        n = np.where(full, memory.weight[..., :c], 0.0)
-        s1 = np.where(full, memory.range_sum[..., :c], 0.0)
-        centre = memory.position_sum[..., :c, :] / safe_n[..., None]
-        lever = np.where(full[..., None], memory.cross_sum[..., :c, :] - s1[..., None] * centre, 0.0)
-        spread = np.where(full, np.maximum(memory.position_square_sum[..., :c] - n * (centre * centre).sum(axis=-1), 0.0), 0.0)
-        return Cells(centre, n, s1, np.where(full, memory.square_sum[..., :c], 0.0), memory.sigma_r0[..., :c] ** 2, lever, spread)
+        width = -(-c // _BLOCK) * _BLOCK
+
+        def cut(a: FloatArray, fill: float, vector: bool = False) -> FloatArray:
+            """``a``'s first c cells, padded with ``fill`` to ``width`` cells."""
+            a = a[..., :c, :] if vector else a[..., :c]
+            pad = [(0, 0)] * a.ndim
+            pad[a.ndim - 2 if vector else a.ndim - 1] = (0, width - c)
+            return np.pad(a, pad, constant_values=fill)
+
+        weight = cut(memory.weight, 0.0)
+        full = weight >= _EMPTY
+        safe_n = np.where(full, weight, 1.0)
+        n = np.where(full, weight, 0.0)
+        s1 = np.where(full, cut(memory.range_sum, 0.0), 0.0)
+        centre = cut(memory.position_sum, 0.0, vector=True) / safe_n[..., None]
+        lever = np.where(full[..., None], cut(memory.cross_sum, 0.0, vector=True) - s1[..., None] * centre, 0.0)
+        spread = np.where(full, np.maximum(cut(memory.position_square_sum, 0.0) - n * (centre * centre).sum(axis=-1), 0.0), 0.0)
+        return Cells(centre, n, s1, np.where(full, cut(memory.square_sum, 0.0), 0.0), cut(memory.sigma_r0, 1.0) ** 2, lever, spread)
 
     def take(self, rows: NDArray[np.int64]) -> Cells:
         """The cells of the elements ``rows`` of a flattened (elements, C) set of cells."""
@@ -253,6 +264,27 @@ def insert(
     )
 
 
+#: Where each entry of a symmetric 3 × 3 matrix is in (xx, yy, zz, xy, yz, xz).
+_SYM = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]])
+
+#: Cells summed together before the running sum of :func:`_cell_sum`.
+_BLOCK = 8
+
+
+def _cell_sum(a: FloatArray, axis: int) -> FloatArray:
+    """Sum of ``a`` over its cell axis (a multiple of :data:`_BLOCK` long): within blocks of
+    :data:`_BLOCK` cells, then block after block (a cumulative sum's last entry). A batch
+    element's sum then does not depend on how many empty cells its batch pads it with
+    (``Cells.of`` keeps the batch's occupied cells): numpy's pairwise ``sum`` groups the terms
+    by the axis' length, so a trial would change in the last bits with the batch it runs in."""
+    axis = axis % a.ndim
+    c = a.shape[axis]
+    if c == 0:
+        return np.zeros(a.shape[:axis] + a.shape[axis + 1 :])
+    blocks = a.reshape(a.shape[:axis] + (c // _BLOCK, _BLOCK) + a.shape[axis + 1 :]).sum(axis=axis + 1)
+    return np.take(np.cumsum(blocks, axis=axis), -1, axis=axis)
+
+
 def _terms(cells: Cells, x: FloatArray, gamma: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Per cell at x (..., 3): distance d = ‖x − p̄‖ (..., C), unit vector u (..., C, 3),
     variance σ_r0² d^γ and the residual sum Σ w (d̂ − ‖x − p‖)² (..., C), to first order in the
@@ -267,7 +299,7 @@ def _terms(cells: Cells, x: FloatArray, gamma: float) -> tuple[FloatArray, Float
 
 def _nll(cells: Cells, x: FloatArray, gamma: float) -> FloatArray:
     d, _, var, resid2 = _terms(cells, x, gamma)
-    return (0.5 * resid2 / var + 0.5 * gamma * cells.n * np.log(d)).sum(axis=-1)
+    return _cell_sum(0.5 * resid2 / var + 0.5 * gamma * cells.n * np.log(d), axis=-1)
 
 
 def nll(memory: RangeMemory, x: FloatArray, gamma: float) -> FloatArray:
@@ -288,8 +320,16 @@ def _gradient_fisher(cells: Cells, x: FloatArray, gamma: float, full_likelihood:
     # The lever term u·lever turns with u: ∂u/∂x = (I − uuᵀ)/d.
     lev = cells.lever / (var * d)[..., None]
     # Σ_c (lev_c − (u_c·lev_c) u_c), without forming the per-cell tangential vectors.
-    g = np.einsum("...c,...ci->...i", dfd - np.einsum("...ci,...ci->...c", u, lev), u) + lev.sum(axis=-2)
-    F = np.einsum("...c,...ci,...cj->...ij", info, u, u)
+    radial = dfd - np.einsum("...ci,...ci->...c", u, lev)
+    g = _cell_sum(radial[..., None] * u + lev, axis=-2)
+    # F = Σ_c info_c u_c u_cᵀ, from its six distinct entries.
+    wu = info[..., None] * u
+    prods = np.empty(u.shape[:-1] + (6,))
+    np.multiply(wu, u, out=prods[..., :3])
+    np.multiply(wu[..., :2], u[..., 1:], out=prods[..., 3:5])
+    np.multiply(wu[..., 0], u[..., 2], out=prods[..., 5])
+    f6 = _cell_sum(prods, axis=-2)
+    F = f6[..., _SYM]
     return g, F
 
 
@@ -381,7 +421,7 @@ def best_start(
     v = vecs[..., :, 0]  # (..., 3) smallest eigenvalue
     occupied = cells.n > 0.0
     dist = np.sqrt(((x[..., None, :] - cells.centre) ** 2).sum(axis=-1))
-    reach = np.where(occupied, dist, 0.0).sum(axis=-1) / np.maximum(occupied.sum(axis=-1), 1)
+    reach = _cell_sum(np.where(occupied, dist, 0.0), axis=-1) / np.maximum(occupied.sum(axis=-1), 1)
     t = np.linspace(-1.0, 1.0, points)
     pts = clip(x[..., None, :] + (t[:, None] * reach[..., None, None]) * v[..., None, :])  # (..., P, 3)
     pts = np.concatenate((pts, cand[..., None, :]), axis=-2)
