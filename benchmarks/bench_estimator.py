@@ -3,7 +3,8 @@
 Prints the median wall time of one update for the Monte Carlo shape, batch (trials, drones) =
 (100, 10) with 10 new records per element, and for one planner (batch ``()``, 10 records), in
 the steady state (every element initialised, gate active, warm start) and for the first call
-(pseudo-linear initialisation). Also prints the same for a few configurations.
+(pseudo-linear initialisation). Also prints the same for a few configurations, and one planner's
+ranging-only estimator over 550 calls without and with the range memory.
 
     python benchmarks/bench_estimator.py [--repeat 50]
 """
@@ -77,7 +78,38 @@ def main(argv: Sequence[str] | None = None) -> int:
             t_first = _median_ms(first, meas, channel, config, max(args.repeat // 5, 3))
             t_warm = _median_ms(warm, meas, channel, config, args.repeat)
             print(f"batch {str(batch):9s} {name:15s} steady {t_warm:8.3f} ms   first call {t_first:8.3f} ms")
+    _range_memory(rng, channel)
     return 0
+
+
+def _range_memory(rng: np.random.Generator, channel: Channel, calls: int = 550, cells: int = 256) -> None:
+    """One planner's estimator (batch ``()``) over a mission's worth of calls, ten LOS ranging
+    records each (drones 40-120 m around a source 2 m up, 2-25 m high), without and with the
+    range memory: the median of every call and of the re-check calls (every
+    ``recheck_every``-th), back to back, twice."""
+    source = np.array([0.0, 0.0, 2.0])
+    meas = []
+    nan = np.full(10, np.nan)
+    for _ in range(calls):
+        az, rad = rng.uniform(-np.pi, np.pi, 10), rng.uniform(40.0, 120.0, 10)
+        pos = np.column_stack((rad * np.cos(az), rad * np.sin(az), rng.uniform(2.0, 25.0, 10)))
+        r = np.linalg.norm(pos - source, axis=-1)
+        noisy = r + rng.normal(size=10) * channel.sigma_r0_los * r ** (channel.gamma / 2)
+        meas.append(Measurements(positions_m=pos, range_m=noisy, azimuth_rad=nan, elevation_rad=nan, los=np.ones(10, dtype=bool)))
+    for _ in range(2):
+        for n in (0, cells):
+            config = EstimatorConfig(bounds_min_m=(-1000.0, -1000.0, 0.0), bounds_max_m=(1000.0, 1000.0, 30.0), range_memory_cells=n)
+            state = initial_state((), config)
+            times = []
+            for m in meas:
+                t0 = time.perf_counter()
+                state = update(state, m, channel, config)
+                times.append(time.perf_counter() - t0)
+            every = config.recheck_every
+            print(
+                f"batch ()        ranging, range_memory_cells={n:<4d} {calls} calls: median {1e3 * statistics.median(times):7.3f} ms, "
+                f"re-check calls {1e3 * statistics.median(times[every - 1 :: every]):7.3f} ms, total {sum(times):6.2f} s"
+            )
 
 
 if __name__ == "__main__":
