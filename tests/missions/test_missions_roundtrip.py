@@ -124,14 +124,8 @@ def test_overrides_dotted_and_nested() -> None:
 
 
 def test_estimator_range_memory_reaches_the_planner() -> None:
-    """``estimator.range_memory_cells`` is the planner's estimator setting; by default 256 for a
-    static source and 0 (off) for a moving one, where an explicit memory is refused."""
-    assert load_mission(PAPER / "ranging_los.yaml").planner_config().estimator.range_memory_cells == 256
-    assert load_mission(PAPER / "dynamic_source.yaml").planner_config().estimator.range_memory_cells == 0
-    off = load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": 0})
-    assert off.planner_config().estimator.range_memory_cells == 0
-    with pytest.raises(MissionError, match=r"estimator.range_memory_cells: expected 0 or null for a moving source.*found 64"):
-        load_mission(PAPER / "dynamic_source.yaml", {"estimator.range_memory_cells": 64})
+    """``estimator.range_memory_cells`` (default 0, off) is the planner's estimator setting."""
+    assert load_mission(PAPER / "ranging_los.yaml").planner_config().estimator.range_memory_cells == 0
     m = load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": 64})
     config = m.planner_config().estimator
     assert config.range_memory_cells == 64
