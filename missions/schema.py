@@ -493,7 +493,10 @@ class EstimatorSpec(_Section):
         0,
         ge=0,
         le=4096,
-        description="Cells of the range memory that re-checks a ranging estimate on the exact likelihood of every range so far (docs/estimator.md); 0: off.",
+        description=(
+            "Cells of the range memory that re-checks a ranging estimate on the exact likelihood of every range so far "
+            "(docs/estimator.md); 0: off; a static source only."
+        ),
     )
 
 
@@ -809,6 +812,12 @@ class Mission(_Section):
         def who(i: int) -> str:
             return f"drone {i + 1} at {_fmt(starts[i])}"
 
+        if self.estimator.range_memory_cells and not self.source.is_static:
+            raise fail(
+                "estimator.range_memory_cells",
+                "0 for a moving source (the memory keeps old ranges as evidence of where a static source is)",
+                self.estimator.range_memory_cells,
+            )
         if self.vehicles.overrides and len(self.vehicles.overrides) != n:
             raise fail("vehicles.overrides", f"0 or {n} entries (drones.count)", f"{len(self.vehicles.overrides)} entries")
 

@@ -132,6 +132,9 @@ def test_estimator_range_memory_reaches_the_planner() -> None:
     assert config.forgetting == 1.0 and config.bounds_max_m == m.estimator_config().bounds_max_m  # the rest as before
     with pytest.raises(MissionError, match=r"\(override\) estimator.range_memory_cells: .*0.*found -1"):
         load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": -1})
+    # A moving source's old ranges say where it was, not where it is: no memory.
+    with pytest.raises(MissionError, match=r"estimator.range_memory_cells: expected 0 for a moving source.*found 64"):
+        load_mission(PAPER / "dynamic_source.yaml", {"estimator.range_memory_cells": 64})
 
 
 def test_override_errors_say_so() -> None:
