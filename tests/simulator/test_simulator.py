@@ -35,9 +35,12 @@ def test_other_seed_other_noise() -> None:
     assert not np.array_equal(a.estimates_m, b.estimates_m)
 
 
-def test_trial_does_not_depend_on_batch_size() -> None:
-    """Trial m draws from its own streams: trial 0 alone equals trial 0 of a batch of 3."""
-    m = paper_mission("ranging_nlos")
+@pytest.mark.parametrize("memory_cells", [0, 256])
+def test_trial_does_not_depend_on_batch_size(memory_cells: int) -> None:
+    """Trial m draws from its own streams: trial 0 alone equals trial 0 of a batch of 3, also
+    with the range memory (whose cell sums must not depend on how many cells the batch's other
+    trials occupy)."""
+    m = paper_mission("ranging_nlos", **{"estimator.range_memory_cells": memory_cells})
     one = simulate(RunSpec(m, "D", 1, 30))
     three = simulate(RunSpec(m, "D", 3, 30))
     np.testing.assert_allclose(one.positions_m[:, 0], three.positions_m[:, 0], rtol=0, atol=1e-9)
