@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.proc import with_default_interrupt
 from tests.support.wait import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -42,9 +43,11 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Signals, status: int) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # Started as from a terminal (SIGINT at its default): the command honours an inherited
+    # ignored SIGINT on purpose, and the suite's own process may have it ignored.
     proc = subprocess.Popen(
-        [sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
-         "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")],
+        with_default_interrupt([sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
+                                "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")]),
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
     try:

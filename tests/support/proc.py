@@ -63,6 +63,17 @@ def with_default_hangup(argv: Sequence[str]) -> list[str]:
     return with_hangup(argv, "SIG_DFL")
 
 
+def with_default_interrupt(argv: Sequence[str]) -> list[str]:
+    """``argv`` as started from a terminal: with SIGINT at its default action and unblocked,
+    whatever this process has (exec keeps an ignored or blocked signal, and the process that
+    runs the suite, e.g. a pytest-xdist worker, can have SIGINT ignored)."""
+    code = (
+        "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+        "signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT]); os.execvp(sys.argv[1], sys.argv[1:])"
+    )
+    return [sys.executable, "-c", code, *argv]
+
+
 class Proc:
     """``argv`` in its own session, its output gathered in memory by two reader threads.
 
