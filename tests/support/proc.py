@@ -48,10 +48,19 @@ def stop_group(p: subprocess.Popen[bytes], sig: int = signal.SIGTERM, grace_s: f
     return p.poll()
 
 
+def with_signal(argv: Sequence[str], name: str, disposition: str) -> list[str]:
+    """``argv`` run with signal ``name`` (e.g. "SIGHUP") set to ``disposition`` ("SIG_DFL" or
+    "SIG_IGN") and unblocked, which exec keeps."""
+    code = (
+        f"import os, signal, sys; signal.signal(signal.{name}, signal.{disposition}); "
+        f"signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.{name}]); os.execvp(sys.argv[1], sys.argv[1:])"
+    )
+    return [sys.executable, "-c", code, *argv]
+
+
 def with_hangup(argv: Sequence[str], disposition: str) -> list[str]:
     """``argv`` run with SIGHUP set to ``disposition`` ("SIG_DFL" or "SIG_IGN"), which exec keeps."""
-    code = f"import os, signal, sys; signal.signal(signal.SIGHUP, signal.{disposition}); os.execvp(sys.argv[1], sys.argv[1:])"
-    return [sys.executable, "-c", code, *argv]
+    return with_signal(argv, "SIGHUP", disposition)
 
 
 def with_default_hangup(argv: Sequence[str]) -> list[str]:
@@ -67,11 +76,7 @@ def with_default_interrupt(argv: Sequence[str]) -> list[str]:
     """``argv`` as started from a terminal: with SIGINT at its default action and unblocked,
     whatever this process has (exec keeps an ignored or blocked signal, and the process that
     runs the suite, e.g. a pytest-xdist worker, can have SIGINT ignored)."""
-    code = (
-        "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
-        "signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT]); os.execvp(sys.argv[1], sys.argv[1:])"
-    )
-    return [sys.executable, "-c", code, *argv]
+    return with_signal(argv, "SIGINT", "SIG_DFL")
 
 
 class Proc:
