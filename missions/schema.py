@@ -485,17 +485,22 @@ class Controller(_Section):
         return math.radians(self.random_perturbation_deg)
 
 
+#: Cells of the range memory for a static source when the mission file gives none: enough for a
+#: paper mission's ranges at the estimator's cell radius (docs/estimator.md).
+RANGE_MEMORY_CELLS = 256
+
+
 class EstimatorSpec(_Section):
     """The source estimator's options (:class:`planner.estimator.EstimatorConfig`); the search
     box is ``source.search_box``, the forgetting factor follows from the source's motion."""
 
-    range_memory_cells: Int = Field(
-        0,
+    range_memory_cells: Int | None = Field(
+        None,
         ge=0,
         le=4096,
         description=(
             "Cells of the range memory that re-checks a ranging estimate on the exact likelihood of every range so far "
-            "(docs/estimator.md); 0: off; a static source only."
+            "(docs/estimator.md); 0: off; default (null): 256 for a static source, 0 for a moving one."
         ),
     )
 
@@ -724,7 +729,8 @@ class Mission(_Section):
     def estimator_config(self) -> EstimatorConfig:
         """The source estimator's settings for this mission: the search box (or the fence and
         any height) as bounds; a forgetting factor of 0.97 per step for a moving source; the
-        range memory of ``estimator.range_memory_cells`` cells."""
+        range memory of ``estimator.range_memory_cells`` cells (by default 256 for a static source
+        and off for a moving one, whose old ranges are not evidence of where it is now)."""
         box = self.source.search_box
         if box is not None:
             lo, hi = box.min_m, box.max_m
@@ -735,8 +741,16 @@ class Mission(_Section):
             forgetting=1.0 if self.source.is_static else 0.97,
             bounds_min_m=lo,
             bounds_max_m=hi,
-            range_memory_cells=self.estimator.range_memory_cells,
+            range_memory_cells=self.range_memory_cells(),
         )
+
+    def range_memory_cells(self) -> int:
+        """Cells of the estimator's range memory: ``estimator.range_memory_cells`` if given, else
+        :data:`RANGE_MEMORY_CELLS` for a static source and 0 (off) for a moving one."""
+        cells = self.estimator.range_memory_cells
+        if cells is not None:
+            return cells
+        return RANGE_MEMORY_CELLS if self.source.is_static else 0
 
     def planner_config(self, criterion: Criterion | None = None, sensing: SensingTable = SENSING) -> PlannerConfig:
         """Everything a drone's planning step takes from this mission (:class:`PlannerConfig`),
@@ -812,11 +826,12 @@ class Mission(_Section):
         def who(i: int) -> str:
             return f"drone {i + 1} at {_fmt(starts[i])}"
 
-        if self.estimator.range_memory_cells and not self.source.is_static:
+        cells = self.estimator.range_memory_cells
+        if cells and not self.source.is_static:
             raise fail(
                 "estimator.range_memory_cells",
-                "0 for a moving source (the memory keeps old ranges as evidence of where a static source is)",
-                self.estimator.range_memory_cells,
+                "0 or null for a moving source (the memory keeps old ranges as evidence of where a static source is)",
+                cells,
             )
         if self.vehicles.overrides and len(self.vehicles.overrides) != n:
             raise fail("vehicles.overrides", f"0 or {n} entries (drones.count)", f"{len(self.vehicles.overrides)} entries")

@@ -61,8 +61,9 @@ Method, per call of :func:`update` and per batch element (vectorised over both):
    calls the squared-range PL solution of all past ranges (each weighted at the estimate of
    the call it leaves a raw range window, ``recheck_window_rows``) replaces the estimate when it is
    much better on the PL cost and on the new records, claiming only ``recheck_trust`` of that
-   solution's information (it can be biased by tens of metres). With the optional range
-   memory (``range_memory_cells``, :mod:`planner.estimator.memory`), an element that has used
+   solution's information (it can be biased by tens of metres). With the range memory
+   (``range_memory_cells``, :mod:`planner.estimator.memory`; a mission's default for a static
+   source), an element that has used
    only ranges is re-checked on the exact likelihood of every range so far instead, and its
    prior re-linearised at the likelier optimum. Optional innovation gate;
    a score test of the recent records against the estimate (``consistency_threshold``).

@@ -28,8 +28,9 @@ exact for ranges taken at one position; the variance is taken at the centre (a r
 of order γ δ/d). When every cell is taken, a range joins the nearest cell of its σ_r0 (or the
 nearest cell) whatever the distance: the memory degrades gracefully and never grows.
 
-The memory is off by default (``range_memory_cells`` = 0); ``docs/estimator.md`` gives what it
-changes and why it is not yet the default.
+``EstimatorConfig`` leaves the memory off (``range_memory_cells`` = 0); a mission file turns it on
+with 256 cells for a static source (``estimator.range_memory_cells``). ``docs/estimator.md``
+gives what it changes.
 """
 
 from __future__ import annotations

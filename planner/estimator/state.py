@@ -109,7 +109,7 @@ class EstimatorConfig:
             times too short) from dominating the summary. The re-check uses the summary plus
             the ranges still in the window, weighted at the current estimate.
         range_memory_cells: cells of the range memory (:mod:`planner.estimator.memory`; 0, the
-            default, turns it off): every range so far, compressed by where it was taken. For
+            default here, turns it off; a mission file sets 256 for a static source): every range so far, compressed by where it was taken. For
             an element that has used ranges only, the re-check then polishes the current
             estimate and the best start of the other basin (the PL solution, or a point along
             the least-informed direction) on the exact likelihood of all ranges, and moves to

@@ -124,17 +124,20 @@ def test_overrides_dotted_and_nested() -> None:
 
 
 def test_estimator_range_memory_reaches_the_planner() -> None:
-    """``estimator.range_memory_cells`` (default 0, off) is the planner's estimator setting."""
-    assert load_mission(PAPER / "ranging_los.yaml").planner_config().estimator.range_memory_cells == 0
+    """``estimator.range_memory_cells`` is the planner's estimator setting; by default 256 for a
+    static source and 0 (off) for a moving one, where an explicit memory is refused."""
+    assert load_mission(PAPER / "ranging_los.yaml").planner_config().estimator.range_memory_cells == 256
+    assert load_mission(PAPER / "dynamic_source.yaml").planner_config().estimator.range_memory_cells == 0
+    off = load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": 0})
+    assert off.planner_config().estimator.range_memory_cells == 0
+    with pytest.raises(MissionError, match=r"estimator.range_memory_cells: expected 0 or null for a moving source.*found 64"):
+        load_mission(PAPER / "dynamic_source.yaml", {"estimator.range_memory_cells": 64})
     m = load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": 64})
     config = m.planner_config().estimator
     assert config.range_memory_cells == 64
     assert config.forgetting == 1.0 and config.bounds_max_m == m.estimator_config().bounds_max_m  # the rest as before
     with pytest.raises(MissionError, match=r"\(override\) estimator.range_memory_cells: .*0.*found -1"):
         load_mission(PAPER / "ranging_los.yaml", {"estimator.range_memory_cells": -1})
-    # A moving source's old ranges say where it was, not where it is: no memory.
-    with pytest.raises(MissionError, match=r"estimator.range_memory_cells: expected 0 for a moving source.*found 64"):
-        load_mission(PAPER / "dynamic_source.yaml", {"estimator.range_memory_cells": 64})
 
 
 def test_override_errors_say_so() -> None:
