@@ -78,9 +78,13 @@ class Command:
     name: str
     args: tuple[str, ...]
     out: Path
+    #: The results directory of the same runs without faults, whose baselines this command
+    #: reads instead of simulating them again (``--baselines``; the same numbers).
+    baselines: Path | None = None
 
     def argv(self) -> list[str]:
-        return ["montecarlo", *self.args, "--out", str(self.out)]
+        reuse = ["--baselines", str(self.baselines)] if self.baselines is not None else []
+        return ["montecarlo", *self.args, "--out", str(self.out), *reuse]
 
     def shown(self) -> str:
         """The command as a user types it (results directory left to its default)."""
@@ -101,6 +105,7 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
         "fig3": Command("fig3", (*(f"paper/{n}" for n in FIG3_NAMES), "--criterion", "both", *size, *par, *fig), out / "fig3"),
     }
     fault_size = ["--trials", str(trials or FAULT_TRIALS), *(["--steps", str(steps)] if steps else [])]
+    first = out / "faults-loss{:g}-delay{}".format(*FAULT_SETTINGS[0])
     for loss, delay in FAULT_SETTINGS:
         name = f"faults-loss{loss:g}-delay{delay}"
         cmds[name] = Command(
@@ -108,6 +113,7 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
             ("paper/heterogeneous", *fault_size, "--no-figures",
              "--set", f"comms.faults.loss={loss:g}", "--set", f"comms.faults.extra_delay_steps={delay}"),
             out / name,
+            first if loss or delay else None,
         )
     grid_size = ["--trials", str(trials or GRID_TRIALS), *(["--steps", str(steps)] if steps else [])]
     for g, (_, sets) in enumerate(GRID_SETTINGS):
@@ -116,6 +122,7 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
             (*(f"paper/{n}" for n in PAPER_NAMES), "--criterion", "both", *grid_size, *par, "--no-figures",
              *(a for kv in sets for a in ("--set", kv))),
             out / f"grid-{g}",
+            out / "grid-0" if sets else None,
         )
     return cmds
 

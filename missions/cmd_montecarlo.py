@@ -60,6 +60,14 @@ def register(subparsers: Any) -> None:
         "recorded to OUT/view/<run>.rrd for fimnav view; needs pip install 'fimnav[view]'",
     )
     p.add_argument("--view-port", type=int, metavar="PORT", help="--view: the web viewer's port (default: a free one)")
+    p.add_argument(
+        "--baselines",
+        type=Path,
+        metavar="DIR",
+        help="with injected faults: take each run's fault-free baseline (its PEB penalty's reference) from the results "
+        "directory DIR of an earlier fimnav montecarlo of the same missions without faults, where it has the same "
+        "mission, criterion, trials and steps, instead of simulating it again",
+    )
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value (repeatable)")
     p.set_defaults(func=run)
 
@@ -100,7 +108,9 @@ def run(args: argparse.Namespace) -> int:
     # A run with injected faults is summarised with its PEB penalty against the same run without
     # them: those baselines run here, with the runs (in the pool when --jobs > 1), not one after
     # another while the summaries are written.
-    baselines = [dataclasses.replace(s, mission=without_faults(s.mission)) for s in specs if s.mission.comms.faults.enabled]
+    # With --baselines, a baseline found in an earlier run's results is read, not simulated.
+    known = {i: _known_baseline(args.baselines, s, args.oracle_estimate) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
+    baselines = [dataclasses.replace(specs[i], mission=without_faults(specs[i].mission)) for i, ref in known.items() if ref is None]
     jobs = [(s, False) for s in specs] + [(b, True) for b in baselines]
     total = sum(s.steps for s, _ in jobs)
     t0 = time.perf_counter()
@@ -138,7 +148,10 @@ def run(args: argparse.Namespace) -> int:
             pool.join()
     results = outcomes[: len(specs)]
     clean = iter(outcomes[len(specs) :])
-    penalties = [fault_penalty(r.spec.mission, r, next(clean)) if r.spec.mission.comms.faults.enabled else None for r in results]
+    penalties = [
+        fault_penalty(r.spec.mission, r, next(clean) if known[i] is None else known[i]) if r.spec.mission.comms.faults.enabled else None
+        for i, r in enumerate(results)
+    ]
     extras = None
     if args.optimum:
         from missions.cmd_optimum import run_optimum_summary
@@ -208,6 +221,31 @@ def _worker_signals() -> None:
             signal.signal(signum, signal.SIG_DFL)
     if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _known_baseline(directory: Path | None, spec: Any, oracle: bool) -> Any:
+    """The :class:`missions.simulator.PenaltyReference` of ``spec`` (a run with faults) in the
+    results ``directory`` (``--baselines``), or None when there is none to use there: then
+    the baseline is simulated, and a line on stderr says why."""
+    if directory is None:
+        return None
+    from missions.results import PENALTY_REFERENCE, spec_name
+    from missions.simulator import PenaltyReference
+
+    path = directory / "runs" / spec_name(spec) / PENALTY_REFERENCE
+    if not path.is_file():
+        why = f"no {path}"
+    else:
+        try:
+            ref = PenaltyReference.load(path)
+        except ValueError as exc:
+            why = str(exc)
+        else:
+            if ref.matches(spec, oracle):
+                return ref
+            why = f"{path} is another run (mission, criterion, trials, steps or flags differ)"
+    print(f"montecarlo: --baselines: {why}; simulating {spec.label} without faults", file=sys.stderr)
+    return None
 
 
 def _f(x: float | None) -> str:

@@ -15,6 +15,9 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
                                 the same mission without faults; with ``fimnav montecarlo
                                 --optimum``: "optimum", the optimal placement's PEB, and
                                 "final_peb_over_optimum")
+      runs/<run>/penalty_reference.npz   a run without faults: what the PEB penalty of the same
+                                run with faults needs from it (``fimnav montecarlo --baselines
+                                OUT``; missions.simulator.PenaltyReference)
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
 was used).
@@ -32,12 +35,19 @@ from typing import Any
 import numpy as np
 
 from missions.loader import mission_to_yaml
-from missions.simulator import SAFETY_FAMILIES, SimulationResult, fault_penalty
+from missions.simulator import SAFETY_FAMILIES, PenaltyReference, RunSpec, SimulationResult, fault_penalty
+
+#: File name of a fault-free run's :class:`PenaltyReference` in its ``runs/<run>/`` directory.
+PENALTY_REFERENCE = "penalty_reference.npz"
 
 
 def run_name(result: SimulationResult) -> str:
     """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
-    spec = result.spec
+    return spec_name(result.spec)
+
+
+def spec_name(spec: RunSpec) -> str:
+    """:func:`run_name` of the run of ``spec``."""
     suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
     return f"{spec.mission.id}_{spec.criterion}{suffix}"
 
@@ -169,6 +179,8 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
     from missions.exports import write_exports
 
     write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
+    if not result.spec.mission.comms.faults.enabled:
+        PenaltyReference.of(result).save(run_dir / PENALTY_REFERENCE)
     summary = summarize(result, penalty) | (extra or {})
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

@@ -25,8 +25,11 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -490,7 +493,92 @@ def mean_record_age(result: SimulationResult) -> float:
     return float(ages[held].mean()) if held.any() else float("nan")
 
 
-def fault_penalty(mission: Mission, result: SimulationResult, baseline: SimulationResult | None = None) -> dict[str, float | None]:
+@dataclass(frozen=True)
+class PenaltyReference:
+    """What :func:`fault_penalty` takes from a fault-free run: enough to compare a run with
+    injected faults against it without simulating it again (``fimnav montecarlo --baselines``).
+
+    Attributes:
+        mission_json: the fault-free mission as run (pydantic JSON): a run with faults matches
+            it when ``without_faults`` of its mission gives the same text.
+        criterion, trials, steps, first_trial: the run's :class:`RunSpec` (criterion "A"/"D").
+        oracle_estimate, float32_positions: the simulation's flags (a distributed run counts as
+            float32 positions).
+        peb_mean_m: per step, the mean PEB (eq. 18) over drones and trials (singular views
+            skipped), (K,), m.
+        final_trial_means_m: per trial, the mean final PEB over drones, (M,), m.
+        trial_means_m: per trial, the mean over steps of the mean PEB over drones, (M,), m.
+        mean_record_age_steps: :func:`mean_record_age`, steps.
+        runtime_s: the run's wall time, s.
+    """
+
+    mission_json: str
+    criterion: str
+    trials: int
+    steps: int
+    first_trial: int
+    oracle_estimate: bool
+    float32_positions: bool
+    peb_mean_m: FloatArray
+    final_trial_means_m: FloatArray
+    trial_means_m: FloatArray
+    mean_record_age_steps: float
+    runtime_s: float
+
+    @classmethod
+    def of(cls, result: SimulationResult, steps: int | None = None) -> PenaltyReference:
+        """The reference of a fault-free ``result``, over its first ``steps`` steps (default all)."""
+        spec = result.spec
+        peb = result.peb_m if steps is None else result.peb_m[:steps]
+        k = peb.shape[0]
+        return cls(
+            mission_json=spec.mission.model_dump_json(),
+            criterion=spec.criterion,
+            trials=spec.trials,
+            steps=spec.steps,
+            first_trial=spec.first_trial,
+            oracle_estimate=bool(result.extra.get("oracle_estimate", 0.0)),
+            float32_positions=bool(result.extra.get("float32_positions", 0.0) or result.extra.get("distributed", 0.0)),
+            peb_mean_m=result.peb_stats()["mean"][:k],
+            final_trial_means_m=_trial_means(peb[k - 1 : k]),
+            trial_means_m=_trial_means(peb),
+            mean_record_age_steps=mean_record_age(result),
+            runtime_s=float(result.runtime_s),
+        )
+
+    def matches(self, spec: RunSpec, oracle_estimate: bool) -> bool:
+        """True when this is the fault-free reference of ``spec`` (a run with faults, planned
+        with the true source if ``oracle_estimate``): the same mission without faults, the same
+        criterion, trials, steps and first trial, the same flags (float32 positions off)."""
+        return (
+            self.mission_json == without_faults(spec.mission).model_dump_json()
+            and (self.criterion, self.trials, self.steps, self.first_trial) == (spec.criterion, spec.trials, spec.steps, spec.first_trial)
+            and (self.oracle_estimate, self.float32_positions) == (oracle_estimate, False)
+        )
+
+    def save(self, path: Path) -> None:
+        """Write to ``path`` (numpy ``.npz``, float64 exact)."""
+        arrays: dict[str, Any] = {f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        with path.open("wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> PenaltyReference:
+        """Read what :meth:`save` wrote; ValueError naming the file if it is not such a file."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+            kwargs: dict[str, object] = {}
+            for f in dataclasses.fields(cls):
+                v = data[f.name]
+                kwargs[f.name] = v.astype(np.float64) if v.ndim else v.item()
+            ref = cls(**kwargs)  # type: ignore[arg-type]
+        except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a fault-free run's PEB reference ({type(exc).__name__}: {exc})") from None
+        return ref
+
+
+def fault_penalty(mission: Mission, result: SimulationResult, baseline: SimulationResult | PenaltyReference | None = None) -> dict[str, float | None]:
     """PEB penalty of the injected loss and delay: ``result`` (run with ``mission.comms.faults``)
     against the same mission without faults.
 
@@ -503,7 +591,7 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
     Args:
         mission: the mission as run (with faults).
         result: its result (in-process or distributed).
-        baseline: the fault-free result, if already computed.
+        baseline: the fault-free result, or its :class:`PenaltyReference`, if already computed.
 
     Returns:
         JSON-ready dict: the fault settings, final mean PEB (m) with and without faults, their
@@ -521,16 +609,24 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
             oracle_estimate=bool(flags.get("oracle_estimate", 0.0)),
             float32_positions=bool(flags.get("float32_positions", 0.0) or flags.get("distributed", 0.0)),
         )
-    faulty, clean = result.peb_stats()["mean"], baseline.peb_stats()["mean"]
+    faulty = result.peb_stats()["mean"]
+    if isinstance(baseline, SimulationResult):
+        baseline = PenaltyReference.of(baseline, min(len(faulty), baseline.peb_m.shape[0]))
+    clean = baseline.peb_mean_m
     k = min(len(faulty), len(clean))
+    if len(baseline.trial_means_m) != result.peb_m.shape[1] or k != len(clean):
+        raise ValueError(
+            f"fault_penalty: the baseline has {len(baseline.trial_means_m)} trials × {len(clean)} steps, "
+            f"the run {result.peb_m.shape[1]} × {len(faulty)}"
+        )
     final_f, final_b = float(faulty[k - 1]), float(clean[k - 1])
     both = np.isfinite(faulty[:k]) & np.isfinite(clean[:k])  # steps where every view is singular are skipped
     mean_f = float(faulty[:k][both].mean()) if both.any() else float("nan")
     mean_b = float(clean[:k][both].mean()) if both.any() else float("nan")
 
     # Per trial (same seeds: paired, common random numbers): the spread of the penalty.
-    se_final = _paired_se(_trial_means(result.peb_m[k - 1 : k]), _trial_means(baseline.peb_m[k - 1 : k]))
-    se_mean = _paired_se(_trial_means(result.peb_m[:k]), _trial_means(baseline.peb_m[:k]))
+    se_final = _paired_se(_trial_means(result.peb_m[k - 1 : k]), baseline.final_trial_means_m)
+    se_mean = _paired_se(_trial_means(result.peb_m[:k]), baseline.trial_means_m)
     init_f, init_b = float(faulty[0]), float(clean[0])
 
     def num(x: float) -> float | None:
@@ -553,7 +649,7 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
         "baseline_initial_peb_mean_m": num(init_b),
         "initial_peb_penalty_ratio": num(init_f / init_b) if init_b > 0 else None,
         "mean_record_age_steps": num(mean_record_age(result)),
-        "baseline_mean_record_age_steps": num(mean_record_age(baseline)),
+        "baseline_mean_record_age_steps": num(baseline.mean_record_age_steps),
         "baseline_runtime_s": round(baseline.runtime_s, 3),
     }
     if "fault_lost_fraction" in result.extra:
