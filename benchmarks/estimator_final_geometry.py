@@ -1,4 +1,4 @@
-"""Estimator accuracy against the bound in the paper's final ranging geometry.
+"""Estimator accuracy against the bound in a paper mission's final geometry (by default the ranging one).
 
     python benchmarks/estimator_final_geometry.py [--mission paper/ranging_los] [--trials 400] [--snapshots 1 10 50] [--memory-cells 64]
         [--geometry final|optimum] [--z-max METRES]
@@ -10,12 +10,15 @@ the safe rule's end-of-step distances, 8 starts, seed 0), the placement with the
 that keeps the drones d_S* plus the turn buffer from the source and inside the altitude box.
 ``--z-max`` replaces the ceiling of that box (as ``--set constraints.z_max_m=METRES``; for
 ``final`` the simulated trial flies under it too); the first line printed then also names the
-box. Each trial draws ``K`` snapshots of the ten ranges there (the paper's channel, seeded
-noise) and gives them to (a) fimnav's estimator with the mission's settings, one call per
-snapshot as a planner would, (b) the same with the range memory (``range_memory_cells``), and
+box. Each trial draws ``K`` snapshots of the ten drones' records there (their roles' ranges
+and bearings, the paper's channel, seeded noise) and gives them to (a) fimnav's estimator with the mission's settings but without the
+range memory, one call per snapshot as a planner would, (b) the same with the range memory of
+``--memory-cells`` cells (``range_memory_cells``; a mission's default for a static source is
+256, and held still the drones' ranges fill a few cells, so 64 act as 256 would), and
 (c) the exact maximum-likelihood estimate of the same ranges (d̂ ~ N(d, σ_r0² d^γ), minimised by
 Nelder-Mead from the true source and from the estimator's answer, the better kept), unbounded
-and (d) in the mission's search box (L-BFGS-B from (c), clipped). Printed per K: the PEB of the
+and (d) in the mission's search box (L-BFGS-B from (c), clipped); (c) and (d) for a ranging-only
+swarm, "—" for a swarm with bearings. Printed per K: the PEB of the
 K snapshots (√tr J⁻¹ at the true source, eq. 18), each estimate's RMSE/PEB, and for (a) and (b)
 the mean height error (m) and the share of trials more than 10 m above the source.
 """
@@ -83,14 +86,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--z-max", type=float, default=None, metavar="METRES", help="ceiling of the altitude box (default: the mission's)")
     args = ap.parse_args(argv)
     m = load_mission(args.mission, None if args.z_max is None else {"constraints.z_max_m": args.z_max})
-    ch, cfg = m.channel.to_planner(), m.estimator_config()
+    ch = m.channel.to_planner()
+    cfg = dataclasses.replace(m.estimator_config(), range_memory_cells=0)  # (a): without the memory
     src = np.array(m.source.position_m, dtype=float)
     final, what = drone_positions(m, args.geometry)  # (N, 3), m, ENU
     n = final.shape[0]
     bmin = np.array([o.min_m for o in m.obstacles], dtype=float).reshape(-1, 3)
     bmax = np.array([o.max_m for o in m.obstacles], dtype=float).reshape(-1, 3)
-    los = line_of_sight(src, final, bmin, bmax)
-    ranging, bearing = np.ones(n, bool), np.zeros(n, bool)
+    los = line_of_sight(final, src, bmin, bmax)  # (N,)
+    roles = m.drones.roles
+    ranging = np.array([r in ("ranging", "joint") for r in roles])
+    bearing = np.array([r in ("bearing", "joint") for r in roles])
+    ranges_only = not bearing.any()  # the exact ML (c, d) is of ranges only
     if args.geometry != "final" or args.z_max is not None:
         what += f", altitude box z in [{m.constraints.z_min_m:g}, {m.constraints.z_max_m:g}] m"
     print(
@@ -98,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         f"distances {np.round(np.linalg.norm(final - src, axis=1), 1).tolist()} m"
     )
     print(
-        "| K | PEB (m) | estimator ×PEB | height bias (m) | > 10 m above | with range memory ×PEB | height bias (m) | > 10 m above "
+        "| K | PEB (m) | without range memory ×PEB | height bias (m) | > 10 m above | with range memory ×PEB | height bias (m) | > 10 m above "
         "| exact ML ×PEB | exact ML in the search box ×PEB |"
     )
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
@@ -118,8 +125,8 @@ def main(argv: list[str] | None = None) -> int:
             meas = est.Measurements(
                 positions_m=np.broadcast_to(final, (T, n, 3)).copy(),
                 range_m=obs.range_m,
-                azimuth_rad=np.full((T, n), np.nan),
-                elevation_rad=np.full((T, n), np.nan),
+                azimuth_rad=obs.azimuth_rad,
+                elevation_rad=obs.elevation_rad,
                 los=np.broadcast_to(los, (T, n)).copy(),
             )
             state = est.update(state, meas, ch, cfg)
@@ -127,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
         d_hat = np.stack(ranges, 1)  # (T, K, N)
         s0sq = np.where(los, ch.sigma_r0_los**2, ch.sigma_r0_nlos**2)
 
-        ml, ml_box = np.empty((T, 3)), np.empty((T, 3))
+        ml, ml_box = np.full((T, 3), np.nan), np.full((T, 3), np.nan)
         bounds = list(zip(np.maximum(lo, -1e4), np.minimum(hi, 1e4), strict=True))
-        for t in range(T):
+        for t in range(T if ranges_only else 0):
             data = (final, d_hat[t], s0sq, ch.gamma)
             fits = [
                 minimize(range_nll, x0, args=data, method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-7, "maxiter": 4000})
@@ -138,15 +145,15 @@ def main(argv: list[str] | None = None) -> int:
             ml[t] = min(fits, key=lambda r: r.fun).x
             ml_box[t] = minimize(range_nll, np.clip(ml[t], lo, hi), args=data, method="L-BFGS-B", bounds=bounds).x
 
-        def ratio(x: np.ndarray, peb: float = peb) -> float:
-            return math.sqrt(float(((x - src) ** 2).sum(1).mean())) / peb
+        def ratio(x: np.ndarray, peb: float = peb) -> str:
+            return "—" if np.isnan(x).all() else f"{math.sqrt(float(((x - src) ** 2).sum(1).mean())) / peb:.2f}"
 
         def up(x: np.ndarray) -> str:
             return f"{float((x[:, 2] - src[2]).mean()):.2f} | {100 * float((x[:, 2] - src[2] > 10).mean()):.0f} %"
 
         print(
-            f"| {K} | {peb:.2f} | {ratio(state.estimate_m):.2f} | {up(state.estimate_m)} | {ratio(state_m.estimate_m):.2f} | {up(state_m.estimate_m)} "
-            f"| {ratio(ml):.2f} | {ratio(ml_box):.2f} |"
+            f"| {K} | {peb:.2f} | {ratio(state.estimate_m)} | {up(state.estimate_m)} | {ratio(state_m.estimate_m)} | {up(state_m.estimate_m)} "
+            f"| {ratio(ml)} | {ratio(ml_box)} |"
         )
     return 0
 
