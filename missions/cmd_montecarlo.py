@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 from comms.errors import UsageError
 
 if TYPE_CHECKING:
+    from missions.simulator import PenaltyReference, RunSpec
     from planner.params import Criterion
 
 
@@ -223,7 +224,7 @@ def _worker_signals() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def _known_baseline(directory: Path | None, spec: Any, oracle: bool) -> Any:
+def _known_baseline(directory: Path | None, spec: RunSpec, oracle: bool) -> PenaltyReference | None:
     """The :class:`missions.simulator.PenaltyReference` of ``spec`` (a run with faults) in the
     results ``directory`` (``--baselines``), or None when there is none to use there: then
     the baseline is simulated, and a line on stderr says why."""
