@@ -1,6 +1,6 @@
 """Regenerate every result table and figure of the documentation from scratch.
 
-    python docs/regenerate.py                 # the full size the docs quote (about 5 min on 2 cores)
+    python docs/regenerate.py                 # the full size the docs quote (about two hours on 2 cores)
     python docs/regenerate.py --trials 5 --steps 100 --out /tmp/quick --no-docs   # a quick look
 
 It runs the ``fimnav montecarlo`` commands that the docs name (the same code path, in this
