@@ -130,11 +130,9 @@ class SimulationResult:
         """Per step: mean PEB over drones and trials (eq. 18, singular views excluded), its 10th
         and 90th percentiles (singular views count as +inf), and the singular fraction."""
         peb = self.peb_m.reshape(self.peb_m.shape[0], -1)
-        finite = np.isfinite(peb)
-        count = finite.sum(-1)
-        mean = np.divide(np.where(finite, peb, 0.0).sum(-1), count, out=np.full(peb.shape[0], np.nan), where=count > 0)
+        count = np.isfinite(peb).sum(-1)
         return {
-            "mean": mean,
+            "mean": _step_means(self.peb_m),
             "p10": np.percentile(peb, 10, axis=-1, method="nearest"),
             "p90": np.percentile(peb, 90, axis=-1, method="nearest"),
             "singular_fraction": 1.0 - count / peb.shape[1],
@@ -539,7 +537,7 @@ class PenaltyReference:
             first_trial=spec.first_trial,
             oracle_estimate=bool(result.extra.get("oracle_estimate", 0.0)),
             float32_positions=bool(result.extra.get("float32_positions", 0.0) or result.extra.get("distributed", 0.0)),
-            peb_mean_m=result.peb_stats()["mean"][:k],
+            peb_mean_m=_step_means(peb),
             final_trial_means_m=_trial_means(peb[k - 1 : k]),
             trial_means_m=_trial_means(peb),
             mean_record_age_steps=mean_record_age(result),
@@ -655,6 +653,15 @@ def fault_penalty(mission: Mission, result: SimulationResult, baseline: Simulati
     if "fault_lost_fraction" in result.extra:
         out["lost_fraction"] = float(result.extra["fault_lost_fraction"])
     return out
+
+
+def _step_means(peb_m: FloatArray) -> FloatArray:
+    """Per step, the mean PEB over trials and drones (singular views skipped), from PEB
+    (K, M, N); NaN at a step without a finite PEB."""
+    peb = peb_m.reshape(peb_m.shape[0], -1)
+    finite = np.isfinite(peb)
+    count = finite.sum(-1)
+    return np.divide(np.where(finite, peb, 0.0).sum(-1), count, out=np.full(peb.shape[0], np.nan), where=count > 0)
 
 
 def _trial_means(peb_m: FloatArray) -> FloatArray:
