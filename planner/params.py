@@ -58,6 +58,12 @@ class Channel:
         """Ranging std at d0 = 1 m in NLOS, σ_r0 = (ln10/10)(σ_sh/γ) (eq. 5), metres."""
         return LN10_OVER_10 * self.sigma_ratio_nlos
 
+    @cached_property
+    def kernel_array(self) -> NDArray[np.float64]:
+        """The channel as the compiled kernels take it (:mod:`planner.kernels`):
+        (γ, σ_r0,LOS², σ_r0,NLOS², σ_b²), m² and rad²."""
+        return np.array([self.gamma, self.sigma_r0_los**2, self.sigma_r0_nlos**2, self.sigma_bearing_rad**2])
+
     def sigma_r0(self, los: ArrayLike) -> NDArray[np.float64]:
         """σ_r0 of each link (eq. 5), metres: the LOS value where ``los`` (bool, any shape),
         the NLOS value elsewhere. The ranging std at distance d is σ_r0 d^(γ/2)."""
@@ -115,3 +121,11 @@ class Limits:
             total += math.cos(k * alpha)
             k += 1
         return self.step_max_m * total
+
+    @cached_property
+    def kernel_array(self) -> NDArray[np.float64]:
+        """The limits as the compiled kernels take them, with the values derived from them
+        (turn buffer, loiter path, activation margins): :func:`planner.control.limits_array`."""
+        from planner.control import limits_array  # imported here: planner.control imports this module
+
+        return limits_array(self)
