@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comms.faults import FaultBuffer
-from missions.schema import Faults, Mission
+from missions.format.schema import Faults, Mission
 from planner import estimator as est
 from planner.agent import plan
 from planner.control import StepResult
