@@ -498,7 +498,7 @@ def plan(
         oracle_source: plan with this source position instead of the estimate (research mode:
             the paper's "estimate given"), with the plain d_S* keep-out.
         oracle_slow: the oracle source moves less than b per step
-            (:meth:`missions.schema.Mission.source_is_slow`): its constraint then acts within
+            (:meth:`missions.format.schema.Mission.source_is_slow`): its constraint then acts within
             v_max Δt + b (:func:`planner.control.source_activation_margin_m` with ``exact``).
 
     The policies (docs/control.md): the own link's predicted line of sight in the planning FIM

@@ -4,7 +4,7 @@ A drone's *role* (paper sec. II-B) says which measurement *components* it takes:
 (κ_j = 1) measures the distance d̂, ``bearing`` (β_j = 1) the azimuth φ̂ and elevation θ̂,
 ``joint`` both. Everything that depends on a role reads it from here:
 
-* :data:`ROLES`, the role table: the mission schema's role names (``missions/schema.py``),
+* :data:`ROLES`, the role table: the mission schema's role names (``missions/format/schema.py``),
   the payload's and the planner's (κ, β) flags (``vehicle_sim/payload.py``,
   :class:`planner.config.PlannerConfig`), the wire format's role bits (``comms/messages.py``).
 * :data:`RANGE` and :data:`BEARING`, the measurement components, each with its Fisher
