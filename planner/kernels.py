@@ -328,23 +328,38 @@ def eigvalsh3(J, work):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def inverse3(J, out):  # type: ignore[no-untyped-def]
-    """``out`` = J⁻¹ of a 3×3 matrix by cofactors (its determinant returned)."""
-    c00 = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
-    c01 = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
-    c02 = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
-    det = J[0, 0] * c00 + J[0, 1] * c01 + J[0, 2] * c02
-    inv = 1.0 / det
-    out[0, 0] = c00 * inv
-    out[1, 0] = c01 * inv
-    out[2, 0] = c02 * inv
-    out[0, 1] = (J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2]) * inv
-    out[1, 1] = (J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]) * inv
-    out[2, 1] = (J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1]) * inv
-    out[0, 2] = (J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1]) * inv
-    out[1, 2] = (J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2]) * inv
-    out[2, 2] = (J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]) * inv
-    return det
+def inverse3(J, out, lu):  # type: ignore[no-untyped-def]
+    """``out`` = J⁻¹ of a 3×3 matrix by an LU factorisation with partial pivoting (as LAPACK's
+    gesv: error ~ cond(J) ε); ``lu``: scratch (3, 3)."""
+    p0, p1, p2 = 0, 1, 2
+    for i in range(3):
+        for k in range(3):
+            lu[i, k] = J[i, k]
+    for k in range(2):
+        best = k
+        for i in range(k + 1, 3):
+            best = i if abs(lu[i, k]) > abs(lu[best, k]) else best
+        if best != k:
+            for c in range(3):
+                lu[k, c], lu[best, c] = lu[best, c], lu[k, c]
+            if k == 0:
+                p0, p1, p2 = (p1, p0, p2) if best == 1 else (p2, p1, p0)
+            else:
+                p1, p2 = p2, p1
+        for i in range(k + 1, 3):
+            lu[i, k] = lu[i, k] / lu[k, k]
+            for c in range(k + 1, 3):
+                lu[i, c] -= lu[i, k] * lu[k, c]
+    for col in range(3):
+        # Solve L U x = e_col permuted: b_i = 1 where the row came from ``col``.
+        y0 = 1.0 * (p0 == col)
+        y1 = 1.0 * (p1 == col) - lu[1, 0] * y0
+        y2 = 1.0 * (p2 == col) - lu[2, 0] * y0 - lu[2, 1] * y1
+        x2 = y2 / lu[2, 2]
+        x1 = (y1 - lu[1, 2] * x2) / lu[1, 1]
+        out[0, col] = (y0 - lu[0, 1] * x1 - lu[0, 2] * x2) / lu[0, 0]
+        out[1, col] = x1
+        out[2, col] = x2
 
 
 @njit(no_cpython_wrapper=True)
@@ -369,7 +384,7 @@ def invert(J, inv, work):  # type: ignore[no-untyped-def]
             for j in range(3):
                 inv[i, j] = 0.0
         return SINGULAR, -np.inf
-    inverse3(J, inv)
+    inverse3(J, inv, work)
     status = ILL if rcond <= ILL_CONDITIONED_RCOND else OK
     return status, math.log(e0) + math.log(e1) + math.log(e2)
 
@@ -1907,3 +1922,39 @@ def candidates_batch(prev, has_prev, lim):  # type: ignore[no-untyped-def]
     for i in range(n):
         envelope_candidates(prev[i], has_prev[i], lim, cand[i], th[i])
     return cand, th
+
+
+@njit(cache=True)
+def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, loose, hard, source, keepout, bmin, bmax, lim):  # type: ignore[no-untyped-def]
+    """The envelope search (:func:`envelope_search`) of one drone at ``p`` whose step ``u`` failed,
+    with given peer requirements (strict, loose, hard (N,), m), margins it must keep ``need``
+    (4,) and loiter-certificate needs ``need_c`` (4,; +inf: no certificate), no dead reckoning.
+    Returns (the step (3,), its margins (4,), infeasible): the filter's last stage on its own,
+    for tests of its tiers."""
+    N = peers.shape[0]
+    wn, reck, idx, _, _, gates, env = workspace(N)
+    for j in range(N):
+        wn[W_PLANE, j] = 1.0 * ((planes[j, 0] != 0.0) | (planes[j, 1] != 0.0) | (planes[j, 2] != 0.0))
+        wn[W_STRICT, j], wn[W_LOOSE, j], wn[W_HARD, j] = strict[j], loose[j], hard[j]
+        idx[j] = j
+        for a in range(3):
+            reck[0, j, a] = np.nan
+            reck[1, j, a] = np.nan
+    step = u.copy()
+    cert = (peers, planes, wn, idx, N, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, gates)
+    infeasible, margins = envelope_search(p, step, prev, has_prev, need, peers, planes, wn, reck, idx, N, source, keepout, cert, env)
+    return step, margins.copy(), infeasible
+
+
+@njit(cache=True)
+def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):  # type: ignore[no-untyped-def]
+    """:func:`dead_reckoning_kept` of one drone at ``p`` (3,) for candidate steps (C, 3) and the
+    peers' dead-reckoned positions now and next (N, 3) (NaN: none): (kept (C,), whether any peer
+    has one)."""
+    N = reck_now.shape[0]
+    reck = np.empty((2, N, 3))
+    reck[0], reck[1] = reck_now, reck_next
+    idx = np.arange(N)
+    ok = np.zeros(cand.shape[0], dtype=np.bool_)
+    known = dead_reckoning_kept(p, cand, reck, idx, N, lim, ok)
+    return ok, known

@@ -23,6 +23,7 @@ from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
 from planner.node.swarm import Swarm
 from planner.randomness import CONTROL_DRAWS, control_rng
+from planner.step import OWN_TRACK_STEPS as OWN_TRACK_STEPS  # re-exported by planner.node
 from planner.step import DroneState, StepScene
 
 

@@ -19,8 +19,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from comms.faults import FaultBuffer, FaultModel
-from planner import FimStatus, Limits, control_step, distance_to_boxes, hop_counts, update_saved_steps
+from planner import FimStatus, Limits, distance_to_boxes, hop_counts, update_saved_steps
 from planner.network import NEVER
+from tests.planner.stepping import control_step_of
 
 LIM = Limits()  # the paper's case study: d_U*=1, d_S*=50, d_O*=5, 0.5-1 m/step, 50°, z in [2, 25]
 NO_BOX = np.zeros((0, 3))
@@ -63,7 +64,7 @@ def one_step(
     n = peers.shape[0]
     age = np.zeros(n) if age is None else np.asarray(age, dtype=float)
     keepout = limits.d_source_m if keepout is None else keepout
-    return control_step(
+    return control_step_of(
         np.asarray(p, dtype=float), np.asarray(prev, dtype=float), np.asarray(grad, dtype=float), int(status),
         peers, np.ones(n, bool), age, np.asarray(source, dtype=float), keepout, boxes[0], boxes[1], limits,
         np.asarray(uniforms, dtype=float), xi=xi, perturbation_rad=perturbation_rad,
@@ -260,10 +261,10 @@ def test_batched_step_equals_loop(rng):
     src = np.array([0.0, 60.0, 10.0])
     boxes = (np.array([[-5.0, 20.0, 0.0]]), np.array([[5.0, 30.0, 20.0]]))
     uni = rng.random((S, N, 2))
-    r = control_step(p, prev, grad, status, peers, mask, age, src, 50.0, *boxes, LIM, uni)
+    r = control_step_of(p, prev, grad, status, peers, mask, age, src, 50.0, *boxes, LIM, uni)
     for s in range(S):
         for i in range(N):
-            one = control_step(p[s, i], prev[s, i], grad[s, i], status[s, i], peers[s, i], mask[s, i], age[s, i], src, 50.0, *boxes, LIM, uni[s, i])
+            one = control_step_of(p[s, i], prev[s, i], grad[s, i], status[s, i], peers[s, i], mask[s, i], age[s, i], src, 50.0, *boxes, LIM, uni[s, i])
             np.testing.assert_allclose(r.next_position[s, i], one.next_position, atol=1e-12)
             np.testing.assert_array_equal(r.active[s, i], one.active)
 
@@ -350,7 +351,7 @@ def simulate(
         age = np.where(mask, k - known_step, 0).astype(float)
         to_target = p - target  # ∇C of a cost growing away from the target
         grad = to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.zeros((seeds, N), np.int8), peers, mask, age, src, limits.d_source_m, *boxes, limits, rng.random((seeds, N, 2)))
+        r = control_step_of(p, prev, grad, np.zeros((seeds, N), np.int8), peers, mask, age, src, limits.d_source_m, *boxes, limits, rng.random((seeds, N, 2)))
         assert np.isfinite(r.next_position).all()
         prev, p = r.displacement, r.next_position
         trajectory.append(p.copy())
@@ -433,7 +434,7 @@ def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_ever
     for _ in range(40):
         to_target = target - p
         grad = -to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.full(2, int(FimStatus.OK)), p[::-1, None, :], np.ones((2, 1), bool), np.zeros((2, 1)),
+        r = control_step_of(p, prev, grad, np.full(2, int(FimStatus.OK)), p[::-1, None, :], np.ones((2, 1), bool), np.zeros((2, 1)),
                          np.broadcast_to(src, (2, 3)), np.full(2, LIM.d_source_m), NO_BOX, NO_BOX, LIM, np.full((2, 2), 0.5),
                          source_exact=True)
         prev, p = r.displacement, r.next_position
@@ -515,7 +516,7 @@ def test_a_drone_pressed_into_the_corner_of_keep_out_building_and_ceiling_keeps_
         g = rng.normal(size=(seeds, 3))
         toward = (p - corner) / np.linalg.norm(p - corner, axis=-1, keepdims=True)
         grad = 0.6 * toward + 0.4 * g / np.linalg.norm(g, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.full(seeds, int(FimStatus.OK)), np.zeros((seeds, 1, 3)), np.zeros((seeds, 1), bool),
+        r = control_step_of(p, prev, grad, np.full(seeds, int(FimStatus.OK)), np.zeros((seeds, 1, 3)), np.zeros((seeds, 1), bool),
                          np.zeros((seeds, 1)), np.broadcast_to(src, (seeds, 3)), np.full(seeds, LIM.d_source_m), bmin, bmax, LIM,
                          rng.random((seeds, 2)), source_exact=True)
         prev, p = r.displacement, r.next_position
