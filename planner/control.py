@@ -153,8 +153,8 @@ def limits_array(limits: Limits) -> FloatArray:
     """The limits array of the compiled control step (:func:`planner.kernels.limits_array`): the
     values of ``limits``, its activation rule and the values derived from them here (turn buffer,
     loiter path, activation margins). Cached on the limits (:attr:`planner.params.Limits.kernel_array`)."""
-    values = (limits.d_uav_m, limits.d_source_m, limits.d_obstacle_m, limits.step_min_m, limits.step_max_m)
-    values += (limits.heading_change_max_rad, limits.tilt_change_max_rad, limits.z_min_m, limits.z_max_m)
+    distances = (limits.d_uav_m, limits.d_source_m, limits.d_obstacle_m, limits.step_min_m, limits.step_max_m)
+    values = distances + (limits.heading_change_max_rad, limits.tilt_change_max_rad, limits.z_min_m, limits.z_max_m)
     derived = (
         limits.turn_buffer_m,
         float(loiter_steps(limits)),

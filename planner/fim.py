@@ -247,7 +247,7 @@ def cost_gradient(
     else:
         batch = np.broadcast_shapes(J.shape[:-2], src.shape[:-1], p.shape[:-1], rng.shape, brg.shape, q.shape)
     use_gq = own_los_gradient is not None
-    gq = K.as_batch(own_los_gradient if use_gq else np.zeros(3), batch + (3,), float, 1)
+    gq = K.as_batch(np.zeros(3) if own_los_gradient is None else own_los_gradient, batch + (3,), float, 1)
     vectors = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(p, batch + (3,), float, 1))
     flags = (K.as_batch(rng, batch, bool, 0), K.as_batch(brg, batch, bool, 0), K.as_batch(q, batch, float, 0))
     value, grad, status, M = K.cost_gradient_batch(K.as_batch(J, batch + (3, 3), float, 2), *vectors, *flags, gq, use_gq, channel.kernel_array, d)

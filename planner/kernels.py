@@ -23,16 +23,20 @@ Imports: numpy and numba only.
 from __future__ import annotations
 
 import math
+from typing import Any
 
+import numba
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+#: numba's decorator, typed loosely: the kernels' Python signatures are their docstrings'.
+njit: Any = numba.njit
 
-def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> NDArray:  # type: ignore[type-arg]
+
+def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> NDArray[Any]:
     """``a`` broadcast to ``shape`` as a C-contiguous ``dtype`` array with the leading dimensions
     (all but the last ``tail``) flattened into one batch axis: the form the entry kernels take."""
-    arr = np.asarray(a, dtype=dtype)
+    arr: NDArray[Any] = np.asarray(a, dtype=dtype)
     if arr.shape != shape:
         arr = np.broadcast_to(arr, shape)
     return np.ascontiguousarray(arr).reshape((math.prod(shape[: len(shape) - tail]),) + shape[len(shape) - tail :])
@@ -44,7 +48,7 @@ NO_EXIT_M: float = 1.0e4
 
 
 @njit(no_cpython_wrapper=True)
-def box_signed_distance(x, y, z, bmin, bmax, b):  # type: ignore[no-untyped-def]
+def box_signed_distance(x, y, z, bmin, bmax, b):
     """Signed distance (m) of the point (x, y, z) to box b: the distance to its surface outside,
     minus the distance to its nearest face inside."""
     ox = x - min(max(x, bmin[b, 0]), bmax[b, 0])
@@ -58,7 +62,7 @@ def box_signed_distance(x, y, z, bmin, bmax, b):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def distance_to_boxes(x, y, z, bmin, bmax):  # type: ignore[no-untyped-def]
+def distance_to_boxes(x, y, z, bmin, bmax):
     """Signed distance (m) of the point (x, y, z) to the nearest box; +inf without boxes (eq. 17)."""
     best = np.inf
     for b in range(bmin.shape[0]):
@@ -69,7 +73,7 @@ def distance_to_boxes(x, y, z, bmin, bmax):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):  # type: ignore[no-untyped-def]
+def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):
     """Signed distance (m) to the nearest box, its unit gradient written to ``grad`` (3,): from the
     nearest surface point outside, the outward normal of the nearest face inside; +inf and
     zeros without boxes. The nearest box is the first of the smallest distance."""
@@ -113,7 +117,7 @@ def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):  # type: ignore[
 
 
 @njit(no_cpython_wrapper=True)
-def _crossing_exit(p, s, lo, hi, out):  # type: ignore[no-untyped-def]
+def _crossing_exit(p, s, lo, hi, out):
     """Unit direction ``out`` (3,) in which the drone p moves a link s → p that crosses the box
     [lo, hi] out of it: per face, the displacement along its normal that takes the part of the
     segment inside the box past it (max over the segment's entry and exit parameters); the
@@ -155,7 +159,7 @@ def _crossing_exit(p, s, lo, hi, out):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def link_clearance(p, s, bmin, bmax, b, samples, cutoff_m, grad, work):  # type: ignore[no-untyped-def]
+def link_clearance(p, s, bmin, bmax, b, samples, cutoff_m, grad, work):
     """Clearance c (m) of the link s → p from box b and its gradient w.r.t. p, written to ``grad``
     (3,) (:func:`planner.geometry.link_clearance_with_gradient`): the smallest signed distance
     to the box of the points s + t (p − s), t = (m + 1)/``samples``; ∇c = t* ∇d at the sampled
@@ -224,7 +228,7 @@ def link_clearance(p, s, bmin, bmax, b, samples, cutoff_m, grad, work):  # type:
 
 
 @njit(cache=True)
-def distances_batch(points, bmin, bmax, with_gradient):  # type: ignore[no-untyped-def]
+def distances_batch(points, bmin, bmax, with_gradient):
     """Signed distances (n,) of points (n, 3) to the nearest box and, if ``with_gradient``,
     their unit gradients (n, 3) (zeros otherwise)."""
     n = points.shape[0]
@@ -239,7 +243,7 @@ def distances_batch(points, bmin, bmax, with_gradient):  # type: ignore[no-untyp
 
 
 @njit(cache=True)
-def link_clearance_batch(p, s, bmin, bmax, samples, cutoff_m):  # type: ignore[no-untyped-def]
+def link_clearance_batch(p, s, bmin, bmax, samples, cutoff_m):
     """Clearances (n, B) and gradients (n, B, 3) of the links s → p (n, 3) from every box."""
     n, nb = p.shape[0], bmin.shape[0]
     c = np.empty((n, nb))
@@ -269,7 +273,7 @@ def channel_array(gamma: float, sigma_r0_los: float, sigma_r0_nlos: float, sigma
 
 
 @njit(no_cpython_wrapper=True)
-def _rotate(a, p, q, r, late):  # type: ignore[no-untyped-def]
+def _rotate(a, p, q, r, late):
     """One Jacobi rotation of the symmetric 3×3 ``a`` zeroing a[p, q] (r the third index); after
     the first sweeps (``late``) an a[p, q] negligible beside both a[p, p] and a[q, q] is set to
     zero instead (relative accuracy of the small eigenvalues)."""
@@ -304,7 +308,7 @@ def _rotate(a, p, q, r, late):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def eigvalsh3(J, work):  # type: ignore[no-untyped-def]
+def eigvalsh3(J, work):
     """Eigenvalues (ascending, three floats) of the symmetric 3×3 ``J`` by cyclic Jacobi
     rotations (``work``: scratch (3, 3))."""
     for i in range(3):
@@ -328,7 +332,7 @@ def eigvalsh3(J, work):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def inverse3(J, out, lu):  # type: ignore[no-untyped-def]
+def inverse3(J, out, lu):
     """``out`` = J⁻¹ of a 3×3 matrix by an LU factorisation with partial pivoting (as LAPACK's
     gesv: error ~ cond(J) ε); ``lu``: scratch (3, 3)."""
     p0, p1, p2 = 0, 1, 2
@@ -363,7 +367,7 @@ def inverse3(J, out, lu):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def invert(J, inv, work):  # type: ignore[no-untyped-def]
+def invert(J, inv, work):
     """Health, inverse and ln det of a symmetric 3×3 FIM (:func:`planner.fim.invert_fim`): the
     status code (λ_min ≤ 1e-12 λ_max, λ_max ≤ 0 or a non-finite entry: singular, ``inv`` zeros,
     ln det −inf; λ_min ≤ 1e-8 λ_max: ill-conditioned) and ln det J = Σ ln λ. ``inv``: (3, 3) out."""
@@ -390,7 +394,7 @@ def invert(J, inv, work):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):  # type: ignore[no-untyped-def]
+def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     """J += the range and bearing terms (eqs. 10-12) of the drones at ``positions`` (N, 3) seen
     from the source ``src`` (3,): ``ranging``, ``bearing`` (N,) bool (κ_j, β_j, and the view
     holds the record), ``los_w`` (N,) the LOS flag or weight q in [0, 1]; ``J`` (3, 3), m⁻²."""
@@ -443,7 +447,7 @@ def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):  # type: igno
 
 
 @njit(no_cpython_wrapper=True)
-def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, grad, M, work):  # type: ignore[no-untyped-def]
+def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, grad, M, work):
     """Cost C of eq. 6 at ``J`` (``criterion_d``: −ln det J, else tr J⁻¹) and its gradient
     w.r.t. the drone's own position ``p`` (eq. 14), written to ``grad`` (3,): −∂ tr(M J_own)/∂r
     of the own range and bearing terms (r = src − p, M = ∂C/∂J, written to ``M`` (3, 3)) plus,
@@ -527,7 +531,7 @@ def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criteri
 
 
 @njit(cache=True)
-def fim_batch(src, positions, ranging, bearing, los_w, ch):  # type: ignore[no-untyped-def]
+def fim_batch(src, positions, ranging, bearing, los_w, ch):
     """J (B, 3, 3) of B views: sources (B, 3), positions (B, N, 3), masks and LOS weights (B, N)."""
     n = positions.shape[0]
     J = np.zeros((n, 3, 3))
@@ -537,7 +541,7 @@ def fim_batch(src, positions, ranging, bearing, los_w, ch):  # type: ignore[no-u
 
 
 @njit(cache=True)
-def cost_gradient_batch(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d):  # type: ignore[no-untyped-def]
+def cost_gradient_batch(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d):
     """:func:`own_gradient` of B drones: J (B, 3, 3), src, p (B, 3), ranging, bearing (B,) bool,
     q (B,), grad_q (B, 3). Returns (C (B,), ∇C (B, 3), status (B,) int8, M (B, 3, 3))."""
     n = J.shape[0]
@@ -554,7 +558,7 @@ def cost_gradient_batch(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, 
 
 
 @njit(cache=True)
-def invert_batch(J):  # type: ignore[no-untyped-def]
+def invert_batch(J):
     """(J⁻¹ (B, 3, 3), ln det J (B,), status (B,) int8) of B FIMs (:func:`invert`)."""
     n = J.shape[0]
     inv = np.empty((n, 3, 3))
@@ -611,20 +615,20 @@ def limits_array(values: tuple[float, ...], safe: bool, derived: tuple[float, ..
 
 # --------------------------------------------------------------------------- small helpers
 @njit(no_cpython_wrapper=True)
-def spherical(x, y, z):  # type: ignore[no-untyped-def]
+def spherical(x, y, z):
     """(length, heading Ψ from east, tilt Θ) of a step (eq. 1), m and rad."""
     return math.sqrt(x * x + y * y + z * z), math.atan2(y, x), math.atan2(z, math.hypot(x, y))
 
 
 @njit(no_cpython_wrapper=True)
-def cartesian(s, psi, theta):  # type: ignore[no-untyped-def]
+def cartesian(s, psi, theta):
     """The step of length s, heading Ψ and tilt Θ (eq. 1): s (cos Ψ cos Θ, sin Ψ cos Θ, sin Θ)."""
     sc = s * math.cos(theta)
     return sc * math.cos(psi), sc * math.sin(psi), s * math.sin(theta)
 
 
 @njit(no_cpython_wrapper=True)
-def tilt_buffer(tilt, lim):  # type: ignore[no-untyped-def]
+def tilt_buffer(tilt, lim):
     """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0:
     v_max Δt Σ_{k=1..3} max(0, sin(Θ − k θ_max))."""
     tmax = lim[L_TMAX]
@@ -633,13 +637,13 @@ def tilt_buffer(tilt, lim):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def altitude_margin(z, tilt, lim):  # type: ignore[no-untyped-def]
+def altitude_margin(z, tilt, lim):
     """Margin (m) of a height z to the altitude box after a step of tilt Θ (:func:`tilt_buffer`)."""
     return min(lim[L_ZMAX] - z - tilt_buffer(tilt, lim), z - lim[L_ZMIN] - tilt_buffer(-tilt, lim))
 
 
 @njit(no_cpython_wrapper=True)
-def peer_distance(x, y, z, peers, planes, flags, j, d_uav):  # type: ignore[no-untyped-def]
+def peer_distance(x, y, z, peers, planes, flags, j, d_uav):
     """Distance (m) of (x, y, z) to peer row j: Euclidean to a point row; (x − m)·n + d_U*/2 to a
     plane row (``flags[j]`` > 0: point m, unit normal n = ``planes[j]``;
     :func:`planner.control.peer_distance`)."""
@@ -650,7 +654,7 @@ def peer_distance(x, y, z, peers, planes, flags, j, d_uav):  # type: ignore[no-u
 
 
 @njit(no_cpython_wrapper=True)
-def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):  # type: ignore[no-untyped-def]
+def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):
     """Smallest peer margin (m) of (x, y, z) over the peer rows ``idx[:n_idx]``: min_j d_j − required_j (+inf: none)."""
     best = np.inf
     for k in range(n_idx):
@@ -660,7 +664,7 @@ def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):  # 
 
 
 @njit(no_cpython_wrapper=True)
-def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, source_required, obstacle_required, bmin, bmax, lim, out):  # type: ignore[no-untyped-def]
+def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, source_required, obstacle_required, bmin, bmax, lim, out):
     """Clearance margins (m) of the end position (x, y, z) of a step of tilt Θ, per family, to
     ``out`` (4,): nearest peer (``required`` per peer row), source, nearest obstacle, altitude
     box (with the height still climbed while the tilt swings back, :func:`tilt_buffer`)."""
@@ -673,7 +677,7 @@ def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, sou
 
 # --------------------------------------------------------------------------- eqs. 15-17 and 14
 @njit(no_cpython_wrapper=True)
-def _select3(sel, col, v, c):  # type: ignore[no-untyped-def]
+def _select3(sel, col, v, c):
     """Keep the three smallest values in ``sel`` (3,) with their columns in ``col``; a tie keeps
     the earlier column first (a stable sort's first three)."""
     if v < sel[2]:
@@ -689,7 +693,7 @@ def _select3(sel, col, v, c):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, source_exact, wn, vec, active):  # type: ignore[no-untyped-def]
+def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, source_exact, wn, vec, active):
     """Constraint values g = d − d* of eqs. 15-17 less their activation margins (safe rule: one
     step of both parties' motion and the turn-away buffers, docs/control.md): every peer (to
     ``wn[W_GT]``, with the distances to ``wn[W_DIST]`` and the plane flags to ``wn[W_PLANE]``),
@@ -733,7 +737,7 @@ def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, s
 
 
 @njit(no_cpython_wrapper=True)
-def _normal(c, p, peers, planes, wn, source, vec):  # type: ignore[no-untyped-def]
+def _normal(c, p, peers, planes, wn, source, vec):
     """Unit normal w.r.t. p of constraint column ``c`` (peers, source, obstacle, altitude top,
     altitude bottom) to ``vec[V_NRM]``."""
     N = peers.shape[0]
@@ -755,7 +759,7 @@ def _normal(c, p, peers, planes, wn, source, vec):  # type: ignore[no-untyped-de
 
 
 @njit(no_cpython_wrapper=True)
-def _orthogonalise(U, V, m):  # type: ignore[no-untyped-def]
+def _orthogonalise(U, V, m):
     """One-sided Jacobi SVD of the 3 × m matrix ``U`` (in place; ``V`` (3, 3) the accumulated
     rotations): afterwards U's columns are orthogonal and A = U Vᵀ."""
     for i in range(3):
@@ -783,7 +787,7 @@ def _orthogonalise(U, V, m):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def projection(A, g, m, P, corr, V):  # type: ignore[no-untyped-def]
+def projection(A, g, m, P, corr, V):
     """Eq. 14's projection onto the m active constraints of unit normals A[:, :m] (3 × m) and
     values g[:m]: P = I − N (NᵀN)⁻¹ Nᵀ to ``P`` (3, 3) and the correction −N (NᵀN)⁻¹ g to
     ``corr`` (3,), m, with a pseudo-inverse (singular values up to 1e-6 of the largest count as
@@ -811,7 +815,7 @@ def projection(A, g, m, P, corr, V):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def active_projection(p, peers, planes, wn, source, vec, m33):  # type: ignore[no-untyped-def]
+def active_projection(p, peers, planes, wn, source, vec, m33):
     """P (``m33[2]``) and the correction (``vec[V_CORR]``) of eq. 14 over the active ones among
     the three most violated constraints (:func:`constraints`); returns whether any is active."""
     A, V, P = m33[0], m33[1], m33[2]
@@ -834,13 +838,13 @@ def active_projection(p, peers, planes, wn, source, vec, m33):  # type: ignore[n
 
 
 @njit(no_cpython_wrapper=True)
-def _mul(P, x, y, z):  # type: ignore[no-untyped-def]
+def _mul(P, x, y, z):
     """P (x, y, z) for a 3 × 3 P."""
     return P[0, 0] * x + P[0, 1] * y + P[0, 2] * z, P[1, 0] * x + P[1, 1] * y + P[1, 2] * z, P[2, 0] * x + P[2, 1] * y + P[2, 2] * z
 
 
 @njit(no_cpython_wrapper=True)
-def descent(grad, P, projected, xi, lim):  # type: ignore[no-untyped-def]
+def descent(grad, P, projected, xi, lim):
     """The gradient step −ξ P∇C of eq. 14, m (P applied where ``projected``): ξ given (``xi``, m
     per unit gradient), or (``xi`` NaN) normalised to v_max Δt; a projected gradient up to 1e-9
     of the gradient is zero."""
@@ -859,7 +863,7 @@ def descent(grad, P, projected, xi, lim):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):  # type: ignore[no-untyped-def]
+def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
     """Steps 2-3 of one drone's step: the descent of eq. 14 (or, with a singular J, the paper's
     fallback: the last heading and tilt perturbed uniformly by ±``pert`` rad, a random heading
     before the first step), plus the correction, under the kinematic limits of eq. 2 (length in
@@ -890,7 +894,7 @@ def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
 
 # --------------------------------------------------------------------------- the safety filter's requirements
 @njit(no_cpython_wrapper=True)
-def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):  # type: ignore[no-untyped-def]
+def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     """The safety filter's requirements (docs/control.md, :func:`planner.control._filter_requirements`).
 
     Per peer j of age a_j: the reachable ball of its record, d_U* + (a_j + 1) v_max Δt + 2b at the
@@ -945,7 +949,7 @@ def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):  #
 
 
 @njit(no_cpython_wrapper=True)
-def kept_peers(wn, idx, lim, prune):  # type: ignore[no-untyped-def]
+def kept_peers(wn, idx, lim, prune):
     """The peer rows the filter scores, to ``idx``; returns their number. All, or (``prune``) only
     those whose clearance now is within 2 (v_max Δt + the loiter's reach) of the smallest, per
     requirement variant: the others can never be the nearest after one step (exact)."""
@@ -971,7 +975,7 @@ def kept_peers(wn, idx, lim, prune):  # type: ignore[no-untyped-def]
 
 # --------------------------------------------------------------------------- the loiter certificate
 @njit(no_cpython_wrapper=True)
-def loiter_step(psi, theta, turn, v, lim):  # type: ignore[no-untyped-def]
+def loiter_step(psi, theta, turn, v, lim):
     """Step v ≥ 1 of the loiter path (:func:`planner.control.loiter_path`) after a step of heading
     Ψ and tilt Θ to one side (``turn`` ±1): v_min Δt at heading Ψ + v φ_max · turn, the tilt
     returning to level at θ_max per step."""
@@ -984,7 +988,7 @@ def loiter_step(psi, theta, turn, v, lim):  # type: ignore[no-untyped-def]
 @njit(no_cpython_wrapper=True)
 def _loiter_side_ok(
     ex, ey, ez, psi, theta, turn, gates, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim
-):  # type: ignore[no-untyped-def]
+):
     """Whether the loiter path to one side (``turn`` ±1) from the end (ex, ey, ez) of a step of
     heading Ψ and tilt Θ keeps the certificate's clearances at every vertex (the end itself, then
     K steps of v_min Δt turning at φ_max, the tilt returning to level at θ_max): the peer rows
@@ -1009,7 +1013,7 @@ def _loiter_side_ok(
 
 
 @njit(no_cpython_wrapper=True)
-def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, gates):  # type: ignore[no-untyped-def]
+def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, gates):
     """Whether a loiter path (:func:`planner.control.loiter_path`) from the end position (ex, ey,
     ez) after the step (sx, sy, sz) keeps every clearance of the loiter certificate (the peers'
     reachable balls ``wn[W_HARD]``, the keep-out ``source_required``, ``obstacle_required`` from
@@ -1035,7 +1039,7 @@ def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, sou
 
 # --------------------------------------------------------------------------- the envelope search
 @njit(no_cpython_wrapper=True)
-def envelope_candidates(prev, has_prev, lim, cand, th):  # type: ignore[no-untyped-def]
+def envelope_candidates(prev, has_prev, lim, cand, th):
     """The kinematic envelope's candidate steps to ``cand`` (C, 3), m, and their tilts to ``th``
     (C,), rad: 9 headings × 5 tilts across the allowed turn from the previous step ``prev`` (a
     full circle of headings, tilts within ±θ_max of level, before the first step) × {v_min,
@@ -1063,7 +1067,7 @@ def envelope_candidates(prev, has_prev, lim, cand, th):  # type: ignore[no-untyp
 
 
 @njit(no_cpython_wrapper=True)
-def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc):  # type: ignore[no-untyped-def]
+def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc):
     """Per candidate step c of ``cand``: its margins per family (the peers' against the loose
     requirements, ``mc[0, c]``), its slack over ``need`` (``mc[1, c]``), the scores the tiers
     maximise (rows ``S_*`` of ``wc``) and which tiers it passes (rows ``O_*`` of ``okc``; tier 4's
@@ -1124,7 +1128,7 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
 
 
 @njit(no_cpython_wrapper=True)
-def record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, ok):  # type: ignore[no-untyped-def]
+def record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, ok):
     """``ok`` (C,) &= the candidates that keep every peer's clearance as if its record were of now:
     d_U* + v_max Δt from a heard peer's record, the own side of a lost peer's plane; a drone
     already nearer (or inside the peer's reachable ball, ``wn[W_HARD]``) may not come nearer
@@ -1144,7 +1148,7 @@ def record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, ok):  # t
 
 
 @njit(no_cpython_wrapper=True)
-def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):  # type: ignore[no-untyped-def]
+def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     """``ok`` (C,): the candidates that do not bring the drone nearer the dead-reckoned position
     of a peer whose reachable ball it is inside (``reck``: now and at the end of the step):
     |p + u − r_j'| ≥ min(|p − r_j|, d_U* + 2 v_max Δt + 2b)
@@ -1170,7 +1174,7 @@ def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):  # type: ignore[no-
 
 
 @njit(no_cpython_wrapper=True)
-def _top_first(eligible, scores, order):  # type: ignore[no-untyped-def]
+def _top_first(eligible, scores, order):
     """The eligible candidates to ``order``, the five of best score first (ties in order of index,
     as a stable sort), the rest after; returns their number."""
     n = 0
@@ -1188,7 +1192,7 @@ def _top_first(eligible, scores, order):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def certified_lazily(p, cand, eligible, scores, marks, order, cert):  # type: ignore[no-untyped-def]
+def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     """Check the eligible candidates of one lazy tier for a loiter certificate, best score first,
     in chunks of 1, 4 and the rest, until a chunk holds a certified one; mark those in ``marks``
     (C,). Returns whether one was found (:func:`planner.control._certified_lazily`). ``cert``:
@@ -1207,7 +1211,7 @@ def certified_lazily(p, cand, eligible, scores, marks, order, cert):  # type: ig
 
 
 @njit(no_cpython_wrapper=True)
-def _argmax_where(ok, scores):  # type: ignore[no-untyped-def]
+def _argmax_where(ok, scores):
     """numpy's argmax of where(ok, scores, −inf): the first index of the largest value."""
     pick = 0
     best = scores[0] if ok[0] else -np.inf
@@ -1219,7 +1223,7 @@ def _argmax_where(ok, scores):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def envelope_pick(okc, wc, has_reck):  # type: ignore[no-untyped-def]
+def envelope_pick(okc, wc, has_reck):
     """The envelope search's pick: the first tier (most demanding first) that some candidate
     passes, its best score; each tier first among the candidates that keep clear of the peers'
     dead-reckoned positions (``has_reck``); else the largest physical margin."""
@@ -1252,7 +1256,7 @@ def envelope_pick(okc, wc, has_reck):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env):  # type: ignore[no-untyped-def]
+def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env):
     """The best step of the kinematic envelope for a drone at ``p`` whose limited step ``u`` failed
     the safety filter (:func:`planner.control._envelope_search`, docs/control.md); the step to
     ``u``. Returns (infeasible: no candidate keeps every clearance with the loose peer
@@ -1286,7 +1290,7 @@ def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_
 
 # --------------------------------------------------------------------------- one drone's step
 @njit(no_cpython_wrapper=True)
-def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, source, keepout, g_s, g_o, bmin, bmax, lim, u, active, ws):  # type: ignore[no-untyped-def]
+def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, source, keepout, g_s, g_o, bmin, bmax, lim, u, active, ws):
     """Step 4 of :func:`control_one` (safe rule): check the limited step ``u`` (3,), m, of tilt Θ
     against the required clearances (:func:`requirements`) and the loiter certificate
     (:func:`certified`); where it fails, replace it with the envelope search's pick
@@ -1323,7 +1327,7 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
 
 
 @njit(no_cpython_wrapper=True)
-def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, active, ws):  # type: ignore[no-untyped-def]
+def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, active, ws):
     """One drone's control step (eqs. 14-17 and 2, and the safety filter with the safe rule):
     the step to ``u`` (3,), m, the active constraint families to ``active`` (4,); returns
     (singular, filtered, infeasible) (:func:`planner.control.control_step`). ``ws``: the
@@ -1346,7 +1350,7 @@ def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, 
 
 
 @njit(no_cpython_wrapper=True)
-def workspace(N):  # type: ignore[no-untyped-def]
+def workspace(N):
     """The scratch arrays of :func:`control_one` for N peer rows."""
     C = N_CANDIDATES
     env = (
@@ -1369,7 +1373,7 @@ def workspace(N):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact):  # type: ignore[no-untyped-def]
+def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact):
     """:func:`control_one` of B drones (a leading axis B: p, prev, grad (B, 3), status (B,) int8,
     peers (B, N, 3), mask (B, N) bool, age (B, N), planes, drift (B, N, 3), source (B, 3),
     keepout (B,), uni (B, 2)). Returns (u (B, 3), active (B, 4), singular, filtered, infeasible (B,))."""
@@ -1442,7 +1446,7 @@ STATUS_OK = 0
 
 
 @njit(no_cpython_wrapper=True)
-def normal_cdf(a):  # type: ignore[no-untyped-def]
+def normal_cdf(a):
     """Φ(a), the standard normal CDF (cephes' ndtr: 0.5 + 0.5 erf(a/√2) near 0, erfc in the tails)."""
     x = a * 0.7071067811865476
     z = abs(x)
@@ -1453,7 +1457,7 @@ def normal_cdf(a):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):  # type: ignore[no-untyped-def]
+def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     """Predicted line of sight q = Π_b Φ(c_b/s) of the link s → p (c_b its clearance from building
     b, :func:`link_clearance`, s = :data:`LOS_SOFTNESS_M`) and its gradient w.r.t. p to ``grad``
     (3,), 1/m: q̄ Σ_b (φ(v_b)/Φ(v_b)) ∇c_b / s, v_b = max(c_b/s, −1), q̄ = Π_b Φ(v_b); bounded by the
@@ -1480,7 +1484,7 @@ def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):  # type: igno
 
 
 @njit(no_cpython_wrapper=True)
-def source_keepout(sigma, lim):  # type: ignore[no-untyped-def]
+def source_keepout(sigma, lim):
     """Keep-out radius (m) about an estimate of largest standard deviation σ (m):
     d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*) (:func:`planner.agent.source_keepout_m`)."""
     d_s = lim[L_DSRC]
@@ -1490,7 +1494,7 @@ def source_keepout(sigma, lim):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def followable(p, centre, r, sigma, last_centre, last_r, lim):  # type: ignore[no-untyped-def]
+def followable(p, centre, r, sigma, last_centre, last_r, lim):
     """The keep-out radius (m) a drone at ``p`` plans with (:func:`planner.agent.followable_keepout_m`):
     about an estimate too uncertain to cover the source (3σ ≥ d_S*) its boundary advances on the
     drone by at most b per step from the last step's (``last_centre``, ``last_r``; NaN: none)."""
@@ -1505,7 +1509,7 @@ def followable(p, centre, r, sigma, last_centre, last_r, lim):  # type: ignore[n
 
 
 @njit(no_cpython_wrapper=True)
-def own_range_stats(ranges, los, ch):  # type: ignore[no-untyped-def]
+def own_range_stats(ranges, los, ch):
     """(d̄, Σw) of a drone's own last ranges (NaN: none) and their LOS flags: the weighted mean with
     w = 1/σ_r0² of each range's LOS or NLOS σ_r0 (eq. 5), NaN and 0 without ranges
     (:func:`planner.agent.own_ranges`)."""
@@ -1520,7 +1524,7 @@ def own_range_stats(ranges, los, ch):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def own_relative_sd(weight, gamma, d):  # type: ignore[no-untyped-def]
+def own_relative_sd(weight, gamma, d):
     """r(d) = 1/√(Σw d^(2−γ)), the relative standard deviation of the own ranges' mean about a
     distance d (m); +inf without ranges (:meth:`planner.agent.OwnRanges.relative_sd`)."""
     d = max(d, 1e-9)
@@ -1529,7 +1533,7 @@ def own_relative_sd(weight, gamma, d):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def own_lower_bound(mean, weight, gamma, k):  # type: ignore[no-untyped-def]
+def own_lower_bound(mean, weight, gamma, k):
     """d̄ / (1 + k r(d̄)), the own ranges' lower confidence bound on the distance (m); +inf without
     ranges (:meth:`planner.agent.OwnRanges.lower_bound_m`)."""
     if not weight > 0.0:
@@ -1538,7 +1542,7 @@ def own_lower_bound(mean, weight, gamma, k):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def own_contradicts(mean, weight, gamma, d, k):  # type: ignore[no-untyped-def]
+def own_contradicts(mean, weight, gamma, d, k):
     """The own ranges put the source nearer than the distance d (m) to the estimate by more than k
     standard deviations: (d̄/d − 1)/r(d) < −k (:meth:`planner.agent.OwnRanges.contradicts`)."""
     d = max(d, 1e-9)
@@ -1548,7 +1552,7 @@ def own_contradicts(mean, weight, gamma, d, k):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):  # type: ignore[no-untyped-def]
+def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     """Whether the drone loiters instead of descending its cost (:func:`planner.agent.must_loiter`):
     its estimate gives no direction to trust (not observable, 3σ ≥ d_S*, or contradicted by its
     own ranges, with the hysteresis of a drone ``loitering`` at its last step) and its ranges'
@@ -1561,7 +1565,7 @@ def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim): 
 
 
 @njit(no_cpython_wrapper=True)
-def estimate_sigma(information, work):  # type: ignore[no-untyped-def]
+def estimate_sigma(information, work):
     """Largest standard deviation (m) of an estimate with Fisher information (3, 3): 1/√λ_min,
     +inf where λ_min ≤ 0 (:func:`planner.agent.estimate_sigma_m`)."""
     lmin = eigvalsh3(information, work)[0]
@@ -1569,7 +1573,7 @@ def estimate_sigma(information, work):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def loiter_gradient(prev, out):  # type: ignore[no-untyped-def]
+def loiter_gradient(prev, out):
     """The gradient a loitering drone descends, to ``out`` (3,): minus the horizontal unit vector
     90° to the left of its last step (east where it has none; :func:`planner.agent.loiter_gradient`)."""
     lx, ly = -prev[1], prev[0]
@@ -1599,7 +1603,7 @@ def loiter_gradient(prev, out):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new):  # type: ignore[no-untyped-def]
+def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new):
     """Drone b's carried state after the records of step k: its own range (NaN: none) and LOS flag
     enter its window (oldest first), its position ``p`` its track (slot k mod T), and each peer's
     newest record updates the peer's drift (its mean step between its two newest records, NaN
@@ -1637,7 +1641,7 @@ def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new)
 
 
 @njit(no_cpython_wrapper=True)
-def bisector_plane(a, b, lost, point, normal):  # type: ignore[no-untyped-def]
+def bisector_plane(a, b, lost, point, normal):
     """The plane two drones that lost contact keep apart by (:func:`planner.control.lost_contact_planes`):
     to ``point`` the midpoint of a (this drone then) and b (the peer's last record), to ``normal``
     the unit normal (a − b)/|a − b|, where ``lost`` and a ≠ b; else b and zeros."""
@@ -1651,7 +1655,7 @@ def bisector_plane(a, b, lost, point, normal):  # type: ignore[no-untyped-def]
 
 
 @njit(no_cpython_wrapper=True)
-def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_start, hop_rule, rows, mask, ages, planes):  # type: ignore[no-untyped-def]
+def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_start, hop_rule, rows, mask, ages, planes):
     """The peer rows of drone i's anti-collision constraint (:func:`planner.agent.plan`): the peers
     heard directly (``hop_rule``: h_ij = 1; else every known peer), each at its record with the
     record's age; a lost-contact peer (``lost``, a partition) as the bisector plane between the
@@ -1675,7 +1679,7 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
 
 
 @njit(no_cpython_wrapper=True)
-def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch, work):  # type: ignore[no-untyped-def]
+def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch, work):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
     loiters (:func:`planner.agent._status_and_keepout`, docs/control.md): an unobservable estimate
     counts as singular and has no keep-out (−inf); an observable one has :func:`source_keepout` of
@@ -1698,7 +1702,7 @@ def keepout_policy(p, p_hat, information, observable, status, ranges, range_los,
 
 
 @njit(no_cpython_wrapper=True)
-def plan_one(b, scene, cost, old, new, config, out, ws):  # type: ignore[no-untyped-def]
+def plan_one(b, scene, cost, old, new, config, out, ws):
     """Drone b's planning step after its cost (:func:`planner.agent.plan`): the carried state's
     update (:func:`advance_state`), the keep-out and loiter policy (:func:`keepout_policy`; with
     an oracle source: its plain d_S*), the peer rows (:func:`peer_rows`) and the control step
@@ -1765,7 +1769,7 @@ def plan_one(b, scene, cost, old, new, config, out, ws):  # type: ignore[no-unty
 
 
 @njit(cache=True)
-def plan_batch(scene, cost, old, config):  # type: ignore[no-untyped-def]
+def plan_batch(scene, cost, old, config):
     """The planning step of B drones after their costs (:func:`plan_one`). ``scene``: (own index
     (B,), position (B, 3), own range (B,), own LOS (B,), view positions (B, N, 3), valid (B, N),
     saved steps (B, N), hop counts (B, N), lost contact (B, N), estimate (B, 3), information
@@ -1798,7 +1802,7 @@ def plan_batch(scene, cost, old, config):  # type: ignore[no-untyped-def]
 
 # --------------------------------------------------------------------------- entries of the public helpers
 @njit(cache=True)
-def own_los_batch(p, s, measured, use_measured, bmin, bmax):  # type: ignore[no-untyped-def]
+def own_los_batch(p, s, measured, use_measured, bmin, bmax):
     """:func:`own_los` of n links s → p (n, 3), measured flags (n,): (q (n,), ∇q (n, 3))."""
     n = p.shape[0]
     q = np.empty(n)
@@ -1810,7 +1814,7 @@ def own_los_batch(p, s, measured, use_measured, bmin, bmax):  # type: ignore[no-
 
 
 @njit(cache=True)
-def policy_batch(sigma, observable, d_est, mean, weight, loitering, gamma, lim):  # type: ignore[no-untyped-def]
+def policy_batch(sigma, observable, d_est, mean, weight, loitering, gamma, lim):
     """Per element (n,): the keep-out of σ (:func:`source_keepout`), whether the drone loiters
     (:func:`must_loiter`) and whether its ranges contradict the estimate at d_est with the
     loiter's hysteresis (:func:`own_contradicts` by 1 σ while ``loitering``, else 2.5 σ)."""
@@ -1825,7 +1829,7 @@ def policy_batch(sigma, observable, d_est, mean, weight, loitering, gamma, lim):
 
 
 @njit(cache=True)
-def own_range_batch(mean, weight, gamma, d, k):  # type: ignore[no-untyped-def]
+def own_range_batch(mean, weight, gamma, d, k):
     """Per element (n,) of own-range statistics (d̄, Σw): the relative standard deviation at d
     (:func:`own_relative_sd`), the lower bound with k σ (:func:`own_lower_bound`), and whether
     they contradict an estimate at d by k σ (:func:`own_contradicts`)."""
@@ -1839,7 +1843,7 @@ def own_range_batch(mean, weight, gamma, d, k):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def own_ranges_batch(ranges, los, ch):  # type: ignore[no-untyped-def]
+def own_ranges_batch(ranges, los, ch):
     """:func:`own_range_stats` of n windows (n, W): (d̄ (n,), Σw (n,))."""
     n = ranges.shape[0]
     mean = np.empty(n)
@@ -1850,7 +1854,7 @@ def own_ranges_batch(ranges, los, ch):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def followable_batch(p, centre, r, sigma, last_centre, last_r, lim):  # type: ignore[no-untyped-def]
+def followable_batch(p, centre, r, sigma, last_centre, last_r, lim):
     """:func:`followable` of n drones (positions and centres (n, 3), radii and σ (n,))."""
     out = np.empty(r.shape[0])
     for i in range(r.shape[0]):
@@ -1859,7 +1863,7 @@ def followable_batch(p, centre, r, sigma, last_centre, last_r, lim):  # type: ig
 
 
 @njit(cache=True)
-def small_batch(information, prev):  # type: ignore[no-untyped-def]
+def small_batch(information, prev):
     """Per element: the largest standard deviation of an estimate (:func:`estimate_sigma`) of
     information (n, 3, 3), and the loiter gradient (:func:`loiter_gradient`) of last steps (m, 3)."""
     sigma = np.empty(information.shape[0])
@@ -1873,7 +1877,7 @@ def small_batch(information, prev):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def peer_distance_batch(x, peers, planes, d_uav):  # type: ignore[no-untyped-def]
+def peer_distance_batch(x, peers, planes, d_uav):
     """Peer distances (n, N) of positions x (n, 3) to peer rows (n, N, 3) with plane normals
     (n, N, 3; zeros for point rows) (:func:`peer_distance`)."""
     n, N = peers.shape[0], peers.shape[1]
@@ -1887,7 +1891,7 @@ def peer_distance_batch(x, peers, planes, d_uav):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True)
-def planes_batch(a, b, lost):  # type: ignore[no-untyped-def]
+def planes_batch(a, b, lost):
     """:func:`bisector_plane` of m pairs (a, b (m, 3), lost (m,)): (points (m, 3), normals (m, 3))."""
     m = a.shape[0]
     points = np.empty((m, 3))
@@ -1898,7 +1902,7 @@ def planes_batch(a, b, lost):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def loiter_batch(end, psi, theta, lim):  # type: ignore[no-untyped-def]
+def loiter_batch(end, psi, theta, lim):
     """The loiter paths' vertices (n, 2, K, 3) from ends (n, 3) after steps of heading and tilt (n,)
     (:func:`loiter_step`, to the left then to the right)."""
     n, K = end.shape[0], int(lim[L_LOITER_K])
@@ -1914,7 +1918,7 @@ def loiter_batch(end, psi, theta, lim):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def candidates_batch(prev, has_prev, lim):  # type: ignore[no-untyped-def]
+def candidates_batch(prev, has_prev, lim):
     """:func:`envelope_candidates` of n previous steps (n, 3): (steps (n, C, 3), tilts (n, C))."""
     n = prev.shape[0]
     cand = np.empty((n, N_CANDIDATES, 3))
@@ -1925,7 +1929,7 @@ def candidates_batch(prev, has_prev, lim):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, loose, hard, source, keepout, bmin, bmax, lim):  # type: ignore[no-untyped-def]
+def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, loose, hard, source, keepout, bmin, bmax, lim):
     """The envelope search (:func:`envelope_search`) of one drone at ``p`` whose step ``u`` failed,
     with given peer requirements (strict, loose, hard (N,), m), margins it must keep ``need``
     (4,) and loiter-certificate needs ``need_c`` (4,; +inf: no certificate), no dead reckoning.
@@ -1947,7 +1951,7 @@ def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, lo
 
 
 @njit(cache=True)
-def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):  # type: ignore[no-untyped-def]
+def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):
     """:func:`dead_reckoning_kept` of one drone at ``p`` (3,) for candidate steps (C, 3) and the
     peers' dead-reckoned positions now and next (N, 3) (NaN: none): (kept (C,), whether any peer
     has one)."""

@@ -20,9 +20,9 @@ from comms.messages import Done, Message, MessageKind, Observation, Status, Tick
 from missions.format.loader import load_mission
 from planner import estimator as est
 from planner.agent import plan, records_as_arrays
-from planner.step import DroneState, StepScene
 from planner.node import NodeError, NodeOptions, PlannerNode
 from planner.randomness import CONTROL_DRAWS, control_rng
+from planner.step import DroneState, StepScene
 from tests.external.helpers import write_mission
 from tests.node.fakes import FakeLink, FakeSession
 
