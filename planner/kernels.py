@@ -447,6 +447,22 @@ def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
 
 
 @njit(no_cpython_wrapper=True)
+def criterion_derivative(J, criterion_d, M, work):
+    """The cost C of eq. 6 at ``J`` and M = ∂C/∂J to ``M`` (3, 3): C = tr J⁻¹, M = −J⁻² (A);
+    C = −ln det J, M = −J⁻¹ (``criterion_d``). Returns (C, status); singular: (+inf, 2), M = 0.
+    ``work``: scratch (2, 3, 3)."""
+    inv = work[0]
+    status, logdet = invert(J, inv, work[1])
+    for i in range(3):
+        for k in range(3):
+            mik = -(inv[i, 0] * inv[0, k] + inv[i, 1] * inv[1, k] + inv[i, 2] * inv[2, k])
+            M[i, k] = -inv[i, k] if criterion_d else mik
+    if status == SINGULAR:
+        return np.inf, status
+    return (-logdet if criterion_d else inv[0, 0] + inv[1, 1] + inv[2, 2]), status
+
+
+@njit(no_cpython_wrapper=True)
 def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, grad, M, work):
     """Cost C of eq. 6 at ``J`` (``criterion_d``: −ln det J, else tr J⁻¹) and its gradient
     w.r.t. the drone's own position ``p`` (eq. 14), written to ``grad`` (3,): −∂ tr(M J_own)/∂r
@@ -454,26 +470,12 @@ def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criteri
     if ``use_grad_q``, tr(M (J_own,LOS − J_own,NLOS)) ∇q (q the own LOS weight, ``grad_q``
     (3,), 1/m). Returns (C, status); a singular J gives (+inf, 2) and a zero gradient.
     ``work``: scratch (2, 3, 3)."""
-    inv = work[0]
-    status, logdet = invert(J, inv, work[1])
     grad[0] = 0.0
     grad[1] = 0.0
     grad[2] = 0.0
+    value, status = criterion_derivative(J, criterion_d, M, work)
     if status == SINGULAR:
-        for i in range(3):
-            for k in range(3):
-                M[i, k] = 0.0
-        return np.inf, status
-    if criterion_d:
-        value = -logdet
-        for i in range(3):
-            for k in range(3):
-                M[i, k] = -inv[i, k]
-    else:
-        value = inv[0, 0] + inv[1, 1] + inv[2, 2]
-        for i in range(3):
-            for k in range(3):
-                M[i, k] = -(inv[i, 0] * inv[0, k] + inv[i, 1] * inv[1, k] + inv[i, 2] * inv[2, k])
+        return value, status
     gamma, s2l, s2n, sb2 = ch[CH_GAMMA], ch[CH_S2_LOS], ch[CH_S2_NLOS], ch[CH_SB2]
     rx, ry, rz = src[0] - p[0], src[1] - p[1], src[2] - p[2]
     rho2 = max(rx * rx + ry * ry, RHO_FLOOR_M * RHO_FLOOR_M)

@@ -127,7 +127,7 @@ def placement_bounds(limits: Limits, rule: MarginRule = "filter", oracle_estimat
     """The distances a placement keeps, from a mission's limits (docs/control.md, "Constraint
     activation"; b = :attr:`Limits.turn_buffer_m`, a = 2 v_max Δt + b the activation margin,
     :func:`planner.control.source_activation_margin_m`). ``source_slow``: the source moves less than
-    b per step (:meth:`missions.format.schema.Mission.source_is_slow`; with ``oracle_estimate``, the hold
+    b per step (:meth:`missions.schema.Mission.source_is_slow`; with ``oracle_estimate``, the hold
     margins are then the drone's own step).
 
     The source keep-out of the default rule is held about the estimate: d_S* + max(3σ, min(4σ,

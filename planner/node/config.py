@@ -190,7 +190,7 @@ class NodeConfig:
 
     @classmethod
     def from_mission(cls, mission: Any, options: NodeOptions) -> NodeConfig:
-        """Resolve the options against the mission (``missions.format.schema.Mission``, duck-typed):
+        """Resolve the options against the mission (``missions.schema.Mission``, duck-typed):
         the drone's vehicle settings, the setpoint frame, the signing key (read and
         permission-checked here: a refused key starts nothing). NodeError for a drone id
         outside the mission."""

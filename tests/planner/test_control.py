@@ -272,23 +272,10 @@ def test_batched_step_equals_loop(rng):
 # ---------------------------------------------------------------- closed-loop safety
 
 
-def simulate(
-    scenario: str, activation: str, seeds: int, steps: int, d_hop_m: float | None = None, h_max: int = 2, extra_delay_steps: int = 0
-) -> dict[str, float]:
-    """Drones pushed by a constant attractive gradient (unit vector to a target), all stepping at
-    once. Each sees the others' current positions (``d_hop_m=None``) or, through the delayed
-    view of planner.network (disk graph of radius d_hop, h_max hops, memory buffer), their
-    positions of step ℓ = k − h + 1 with age h − 1. With ``extra_delay_steps`` D > 0 each record
-    is also late by a uniform 0..D steps (comms.faults, the injected delay of the fault grid;
-    its own seeded stream per seed and receiver), and a peer whose first records have not
-    arrived is kept clear of at its start position, aged k (as planner.agent.plan does).
-    Returns the worst margin of every safety distance over all steps and seeds (negative =
-    violated)."""
-    limits = replace(LIM, activation=activation)
-    rng = np.random.default_rng([ord(c) for c in scenario + activation] + [int(d_hop_m or 0)])
+def _scenario(scenario: str, rng: np.random.Generator, seeds: int, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Start positions (seeds, N, 3), targets, source and boxes of a scenario of :func:`simulate`."""
     src = FAR_SOURCE
     boxes = (NO_BOX, NO_BOX)
-    N = 4
     centre = np.array([0.0, 0.0, 12.0])
     ang = np.linspace(0, 2 * np.pi, N, endpoint=False)[None] + rng.uniform(-0.3, 0.3, (seeds, N))
     ring = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], -1)
@@ -314,6 +301,25 @@ def simulate(
         target = p + np.where(np.arange(N)[:, None] % 2 == 0, [30.0, 0.0, 500.0], [-30.0, 0.0, -500.0])
     else:
         raise ValueError(scenario)
+    return p, target, src, boxes
+
+
+def simulate(
+    scenario: str, activation: str, seeds: int, steps: int, d_hop_m: float | None = None, h_max: int = 2, extra_delay_steps: int = 0
+) -> dict[str, float]:
+    """Drones pushed by a constant attractive gradient (unit vector to a target), all stepping at
+    once. Each sees the others' current positions (``d_hop_m=None``) or, through the delayed
+    view of planner.network (disk graph of radius d_hop, h_max hops, memory buffer), their
+    positions of step ℓ = k − h + 1 with age h − 1. With ``extra_delay_steps`` D > 0 each record
+    is also late by a uniform 0..D steps (comms.faults, the injected delay of the fault grid;
+    its own seeded stream per seed and receiver), and a peer whose first records have not
+    arrived is kept clear of at its start position, aged k (as planner.agent.plan does).
+    Returns the worst margin of every safety distance over all steps and seeds (negative =
+    violated)."""
+    limits = replace(LIM, activation=activation)
+    rng = np.random.default_rng([ord(c) for c in scenario + activation] + [int(d_hop_m or 0)])
+    N = 4
+    p, target, src, boxes = _scenario(scenario, rng, seeds, N)
     prev = np.zeros_like(p)
     trajectory = [p.copy()]
     saved = np.full((seeds, N, N), NEVER)
