@@ -524,11 +524,13 @@ def plan(
     kscene = _kernel_scene(scene, p_hat, batch, n)
     kconfig = _kernel_config(config, scene.step_index, oracle_source is not None, oracle_source is not None and oracle_slow, n)
     cost = (K.as_batch(cg.gradient, batch + (3,), float, 1), K.as_batch(cg.status, batch, np.int8, 0))
-    (u, active, flags, keepout, loiter), new = K.plan_batch(kscene, cost, state.kernel_arrays(), kconfig)
-    u = u.reshape(batch + (3,))
+    old = state.kernel_arrays()
+    new = tuple(np.empty_like(a) for a in old)
+    u, flags, keepout = np.empty(batch + (3,)), np.empty(batch + (8,), dtype=bool), np.empty(batch + (1,))
+    K.plan_batch(kscene, cost, old, kconfig, new, (u.reshape(-1, 3), flags.reshape(-1, 8), keepout.reshape(-1, 1)))
     p = np.asarray(scene.own_position_m, dtype=float)
-    step = StepResult(p + u, u, active.reshape(batch + (4,)), *(f.reshape(batch) for f in flags))
-    return PlanResult(step, cg, keepout.reshape(batch), np.asarray(p_hat), loiter.reshape(batch), DroneState.from_kernel_arrays(new, batch))
+    step = StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
+    return PlanResult(step, cg, keepout[..., 0], np.asarray(p_hat), flags[..., 7], DroneState.from_kernel_arrays(new, batch))
 
 
 def _scene_cost(config: PlannerConfig, scene: StepScene, own: NDArray[np.bool_], p_hat: FloatArray) -> CostGradient:

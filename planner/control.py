@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -285,30 +286,49 @@ def control_step(
     p = np.asarray(scene.own_position_m, dtype=float)
     peers = np.asarray(scene.peers_m, dtype=float)
     batch, n = p.shape[:-1], peers.shape[-2]
+    args = _one_drone(scene, p, peers) if p.ndim == 1 and peers.ndim == 2 else _batch_args(scene, p, peers, batch, n)
+    u, flags = np.empty(batch + (3,)), np.empty(batch + (7,), dtype=bool)
+    xi_value = np.nan if xi is None else float(xi)
+    K.control_batch(
+        *args,
+        *as_boxes(boxes_min, boxes_max),
+        limits.kernel_array,
+        xi_value,
+        float(perturbation_rad),
+        bool(source_exact),
+        u.reshape(-1, 3),
+        flags.reshape(-1, 7),
+    )
+    return StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
+
+
+def _batch_args(scene: ControlScene, p: FloatArray, peers: FloatArray, batch: tuple[int, ...], n: int) -> tuple[NDArray[Any], ...]:
+    """The scene's arrays, broadcast to the batch and flattened, in the order of
+    :func:`planner.kernels.control_batch`."""
     planes = np.zeros(batch + (n, 3)) if scene.peer_planes is None else scene.peer_planes
     drift = np.full(batch + (n, 3), np.nan) if scene.peer_drift_m is None else scene.peer_drift_m
-    vectors = [K.as_batch(x, batch + (3,), float, 1) for x in (p, scene.previous_step_m, scene.gradient)]
-    rows = [K.as_batch(x, batch + (n, 3), float, 2) for x in (peers, planes, drift)]
-    u, active, singular, filtered, infeasible = K.control_batch(
-        *vectors,
+    return (
+        *(K.as_batch(x, batch + (3,), float, 1) for x in (p, scene.previous_step_m, scene.gradient)),
         K.as_batch(scene.status, batch, np.int8, 0),
-        rows[0],
+        K.as_batch(peers, batch + (n, 3), float, 2),
         K.as_batch(scene.peer_mask, batch + (n,), bool, 1),
         K.as_batch(scene.peer_age_steps, batch + (n,), float, 1),
-        rows[1],
-        rows[2],
+        K.as_batch(planes, batch + (n, 3), float, 2),
+        K.as_batch(drift, batch + (n, 3), float, 2),
         K.as_batch(scene.source_m, batch + (3,), float, 1),
         K.as_batch(scene.source_keepout_m, batch, float, 0),
         K.as_batch(scene.perturbation_uniforms, batch + (2,), float, 1),
-        *as_boxes(boxes_min, boxes_max),
-        limits.kernel_array,
-        np.nan if xi is None else float(xi),
-        float(perturbation_rad),
-        bool(source_exact),
     )
-    u = u.reshape(batch + (3,))
-    flags = (x.reshape(batch) for x in (singular, filtered, infeasible))
-    return StepResult(p + u, u, active.reshape(batch + (4,)), *flags)
+
+
+def _one_drone(scene: ControlScene, p: FloatArray, peers: FloatArray) -> tuple[NDArray[Any], ...]:
+    """:func:`_batch_args` of one drone's scene (no leading dimension; a batch of one, as views)."""
+    n = peers.shape[0]
+    planes = np.zeros((1, n, 3)) if scene.peer_planes is None else K.one_drone(scene.peer_planes)
+    drift = np.full((1, n, 3), np.nan) if scene.peer_drift_m is None else K.one_drone(scene.peer_drift_m)
+    one = (K.one_drone(p), K.one_drone(scene.previous_step_m), K.one_drone(scene.gradient), np.full(1, scene.status, dtype=np.int8))
+    rows = (K.one_drone(peers), K.one_drone(scene.peer_mask, bool), K.one_drone(scene.peer_age_steps), planes, drift)
+    return one + rows + (K.one_drone(scene.source_m), np.full(1, scene.source_keepout_m, dtype=float), K.one_drone(scene.perturbation_uniforms))
 
 
 def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) -> tuple[FloatArray, FloatArray]:

@@ -59,7 +59,7 @@ class FimStatus(IntEnum):
 
 def _extras(components: Sequence[SensingComponent]) -> Sequence[SensingComponent]:
     """The components after range and bearing, which the kernels cover (registry order)."""
-    if tuple(components[:2]) != (RANGE, BEARING):
+    if len(components) < 2 or components[0] is not RANGE or components[1] is not BEARING:
         raise ValueError(f"components: expected range and bearing first, found {[c.name for c in components[:2]]}")
     return components[2:]
 
@@ -106,13 +106,17 @@ def fisher_information(
     src, pos = np.asarray(source, dtype=float), np.asarray(positions, dtype=float)
     rng, brg, los_w = np.asarray(ranging, dtype=bool), np.asarray(bearing, dtype=bool), np.asarray(los, dtype=float)
     n = pos.shape[-2]
-    if src.ndim == 1 and pos.ndim == 2 and rng.ndim == brg.ndim == los_w.ndim == 1:
-        batch: tuple[int, ...] = ()
+    if src.ndim == 1 and pos.ndim == 2 and rng.shape == brg.shape == los_w.shape == (n,):  # one view
+        J = np.zeros((1, 3, 3))
+        one = (K.one_drone(src), K.one_drone(pos), K.one_drone(rng, bool), K.one_drone(brg, bool), K.one_drone(los_w))
+        K.fim_batch(*one, channel.kernel_array, J)
+        J = J[0]
     else:
         batch = np.broadcast_shapes(src.shape[:-1], pos.shape[:-2], rng.shape[:-1], brg.shape[:-1], los_w.shape[:-1])
-    args = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(pos, batch + (n, 3), float, 2))
-    masks = (K.as_batch(rng, batch + (n,), bool, 1), K.as_batch(brg, batch + (n,), bool, 1), K.as_batch(los_w, batch + (n,), float, 1))
-    J = K.fim_batch(*args, *masks, channel.kernel_array).reshape(batch + (3, 3))
+        args = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(pos, batch + (n, 3), float, 2))
+        masks = (K.as_batch(rng, batch + (n,), bool, 1), K.as_batch(brg, batch + (n,), bool, 1), K.as_batch(los_w, batch + (n,), float, 1))
+        J = np.zeros(batch + (3, 3))
+        K.fim_batch(*args, *masks, channel.kernel_array, J.reshape(-1, 3, 3))
     if extra_masks:
         J = J + _extra_fim(src, pos, rng, brg, los_w, channel, extra_masks, components, extras)
     return J
@@ -166,8 +170,9 @@ def invert_fim(fim: ArrayLike) -> FimInverse:
     """
     J = np.asarray(fim, dtype=float)
     batch = J.shape[:-2]
-    inv, logdet, status = K.invert_batch(K.as_batch(J, J.shape, float, 2))
-    return FimInverse(inverse=inv.reshape(batch + (3, 3)), logdet=logdet.reshape(batch), status=status.reshape(batch))
+    inv, out = np.empty(batch + (3, 3)), np.empty(batch + (2,))
+    K.invert_batch(K.as_batch(J, J.shape, float, 2), inv.reshape(-1, 3, 3), out.reshape(-1, 2))
+    return FimInverse(inverse=inv, logdet=out[..., 0], status=out[..., 1].astype(np.int8))
 
 
 def cost(fim: ArrayLike, criterion: Criterion) -> tuple[FloatArray, NDArray[np.int8]]:
@@ -242,18 +247,22 @@ def cost_gradient(
     J = np.asarray(fim, dtype=float)
     src, p = np.asarray(source, dtype=float), np.asarray(own_position, dtype=float)
     rng, brg, q = np.asarray(own_ranging, dtype=bool), np.asarray(own_bearing, dtype=bool), np.asarray(own_los, dtype=float)
-    if J.shape == (3, 3) and src.shape == p.shape == (3,) and rng.ndim == brg.ndim == q.ndim == 0:
+    use_gq = own_los_gradient is not None
+    gq_in = np.zeros(3) if own_los_gradient is None else own_los_gradient
+    if J.shape == (3, 3) and src.shape == p.shape == (3,) and rng.ndim == brg.ndim == q.ndim == 0:  # one drone
         batch: tuple[int, ...] = ()
+        args = (K.one_drone(J), K.one_drone(src), K.one_drone(p), rng.reshape(1), brg.reshape(1), q.reshape(1), K.one_drone(gq_in))
     else:
         batch = np.broadcast_shapes(J.shape[:-2], src.shape[:-1], p.shape[:-1], rng.shape, brg.shape, q.shape)
-    use_gq = own_los_gradient is not None
-    gq = K.as_batch(np.zeros(3) if own_los_gradient is None else own_los_gradient, batch + (3,), float, 1)
-    vectors = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(p, batch + (3,), float, 1))
-    flags = (K.as_batch(rng, batch, bool, 0), K.as_batch(brg, batch, bool, 0), K.as_batch(q, batch, float, 0))
-    value, grad, status, M = K.cost_gradient_batch(K.as_batch(J, batch + (3, 3), float, 2), *vectors, *flags, gq, use_gq, channel.kernel_array, d)
-    value, grad, status = value.reshape(batch), grad.reshape(batch + (3,)), status.reshape(batch)
+        vectors = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(p, batch + (3,), float, 1))
+        flags = (K.as_batch(rng, batch, bool, 0), K.as_batch(brg, batch, bool, 0), K.as_batch(q, batch, float, 0))
+        args = (K.as_batch(J, batch + (3, 3), float, 2), *vectors, *flags, K.as_batch(gq_in, batch + (3,), float, 1))
+    out = np.empty(batch + (14,))
+    K.cost_gradient_batch(*args, use_gq, channel.kernel_array, d, out.reshape(-1, 14))
+    value, grad, status = out[..., 0], out[..., 1:4], out[..., 4].astype(np.int8)
     if own_extra:
-        grad = grad + _extra_gradient(src - p, M.reshape(batch + (3, 3)), rng, brg, q, own_los_gradient, channel, own_extra, components, extras)
+        M = out[..., 5:].reshape(batch + (3, 3))
+        grad = grad + _extra_gradient(src - p, M, rng, brg, q, own_los_gradient, channel, own_extra, components, extras)
         grad = np.where((status == K.SINGULAR)[..., None], 0.0, grad)
     return CostGradient(value=value, gradient=grad, status=status)
 

@@ -92,8 +92,13 @@ def line_of_sight(positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike,
 
 def as_boxes(boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Box corners (B, 3), m, ENU, as C-contiguous float arrays (the form the kernels take)."""
-    bmin = np.ascontiguousarray(np.asarray(boxes_min, dtype=float).reshape(-1, 3))
-    return bmin, np.ascontiguousarray(np.asarray(boxes_max, dtype=float).reshape(-1, 3))
+    return _box_array(boxes_min), _box_array(boxes_max)
+
+
+def _box_array(corners: ArrayLike) -> FloatArray:
+    if isinstance(corners, np.ndarray) and corners.dtype == np.float64 and corners.ndim == 2 and corners.flags.c_contiguous:
+        return corners
+    return np.ascontiguousarray(np.asarray(corners, dtype=float).reshape(-1, 3))
 
 
 def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> FloatArray:

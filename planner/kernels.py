@@ -29,6 +29,15 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+
+def one_drone(a: ArrayLike, dtype: type = np.float64) -> NDArray[Any]:
+    """One drone's array as a batch of one (a view where ``a`` is already a C-contiguous array of
+    ``dtype``): the entry kernels' form without the broadcasting of :func:`as_batch`."""
+    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous:
+        return a[None]
+    return np.ascontiguousarray(a, dtype=dtype)[None]
+
+
 #: numba's decorator, typed loosely: the kernels' Python signatures are their docstrings'.
 njit: Any = numba.njit
 
@@ -37,9 +46,14 @@ def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> ND
     """``a`` broadcast to ``shape`` as a C-contiguous ``dtype`` array with the leading dimensions
     (all but the last ``tail``) flattened into one batch axis: the form the entry kernels take."""
     arr: NDArray[Any] = np.asarray(a, dtype=dtype)
+    cut = len(shape) - tail
     if arr.shape != shape:
         arr = np.broadcast_to(arr, shape)
-    return np.ascontiguousarray(arr).reshape((math.prod(shape[: len(shape) - tail]),) + shape[len(shape) - tail :])
+    if not arr.flags.c_contiguous:
+        arr = np.ascontiguousarray(arr)
+    if cut == 0:
+        return arr[None]  # one drone: a batch of one
+    return arr.reshape((math.prod(shape[:cut]),) + shape[cut:])
 
 
 # =========================================================================== geometry
@@ -533,43 +547,35 @@ def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criteri
 
 
 @njit(cache=True)
-def fim_batch(src, positions, ranging, bearing, los_w, ch):
-    """J (B, 3, 3) of B views: sources (B, 3), positions (B, N, 3), masks and LOS weights (B, N)."""
-    n = positions.shape[0]
-    J = np.zeros((n, 3, 3))
-    for b in range(n):
+def fim_batch(src, positions, ranging, bearing, los_w, ch, J):
+    """J (B, 3, 3) of B views, to ``J`` (zeros in): sources (B, 3), positions (B, N, 3), masks and
+    LOS weights (B, N)."""
+    for b in range(positions.shape[0]):
         add_fim_terms(src[b], positions[b], ranging[b], bearing[b], los_w[b], ch, J[b])
-    return J
 
 
 @njit(cache=True)
-def cost_gradient_batch(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d):
+def cost_gradient_batch(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, out):
     """:func:`own_gradient` of B drones: J (B, 3, 3), src, p (B, 3), ranging, bearing (B,) bool,
-    q (B,), grad_q (B, 3). Returns (C (B,), ∇C (B, 3), status (B,) int8, M (B, 3, 3))."""
-    n = J.shape[0]
-    value = np.empty(n)
-    grad = np.empty((n, 3))
-    status = np.empty(n, dtype=np.int8)
-    M = np.empty((n, 3, 3))
+    q (B,), grad_q (B, 3). To ``out`` (B, 14): C, ∇C (3), the status code, M (9, row-major)."""
     work = np.empty((2, 3, 3))
-    for b in range(n):
-        value[b], status[b] = own_gradient(
-            J[b], src[b], p[b], ranging[b], bearing[b], q[b], grad_q[b], use_grad_q, ch, criterion_d, grad[b], M[b], work
-        )
-    return value, grad, status, M
+    M = np.empty((3, 3))
+    for b in range(J.shape[0]):
+        value, status = own_gradient(J[b], src[b], p[b], ranging[b], bearing[b], q[b], grad_q[b], use_grad_q, ch, criterion_d, out[b, 1:4], M, work)
+        out[b, 0], out[b, 4] = value, status
+        for i in range(3):
+            for k in range(3):
+                out[b, 5 + 3 * i + k] = M[i, k]
 
 
 @njit(cache=True)
-def invert_batch(J):
-    """(J⁻¹ (B, 3, 3), ln det J (B,), status (B,) int8) of B FIMs (:func:`invert`)."""
-    n = J.shape[0]
-    inv = np.empty((n, 3, 3))
-    logdet = np.empty(n)
-    status = np.empty(n, dtype=np.int8)
+def invert_batch(J, inv, out):
+    """:func:`invert` of B FIMs (B, 3, 3): J⁻¹ to ``inv`` (B, 3, 3), (ln det J, status code) to
+    ``out`` (B, 2)."""
     work = np.empty((3, 3))
-    for b in range(n):
-        status[b], logdet[b] = invert(J[b], inv[b], work)
-    return inv, logdet, status
+    for b in range(J.shape[0]):
+        status, logdet = invert(J[b], inv[b], work)
+        out[b, 0], out[b, 1] = logdet, status
 
 
 # =========================================================================== control step
@@ -1375,17 +1381,14 @@ def workspace(N):
 
 
 @njit(cache=True)
-def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact):
+def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, flags):
     """:func:`control_one` of B drones (a leading axis B: p, prev, grad (B, 3), status (B,) int8,
     peers (B, N, 3), mask (B, N) bool, age (B, N), planes, drift (B, N, 3), source (B, 3),
-    keepout (B,), uni (B, 2)). Returns (u (B, 3), active (B, 4), singular, filtered, infeasible (B,))."""
-    B, N = peers.shape[0], peers.shape[1]
-    u = np.empty((B, 3))
-    active = np.zeros((B, 4), dtype=np.bool_)
-    flags = np.zeros((3, B), dtype=np.bool_)
-    ws = workspace(N)
-    for b in range(B):
-        flags[0, b], flags[1, b], flags[2, b] = control_one(
+    keepout (B,), uni (B, 2)): the steps to ``u`` (B, 3), to ``flags`` (B, 7) the active
+    families (4), singular, filtered, infeasible."""
+    ws = workspace(peers.shape[1])
+    for b in range(peers.shape[0]):
+        flags[b, 4], flags[b, 5], flags[b, 6] = control_one(
             p[b],
             prev[b],
             grad[b],
@@ -1405,10 +1408,9 @@ def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source
             pert,
             source_exact,
             u[b],
-            active[b],
+            flags[b, 0:4],
             ws,
         )
-    return u, active, flags[0], flags[1], flags[2]
 
 
 # =========================================================================== planning policy
@@ -1712,7 +1714,7 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
     own_index, p, own_range, own_los, view_pos, valid, saved, hops, lost, p_hat, information, observable, uni = scene
     grad, status = cost
     k, start, has_start, hop_rule, oracle, source_exact, bmin, bmax, lim, ch, xi, pert = config
-    u, active, flags, keepout_out, loiter_out = out
+    u, flags, extra = out
     rows, mask, ages, planes, g, work, cws = ws
     advance_state(b, k, p[b], own_range[b], own_los[b], view_pos[b], valid[b], saved[b], old, new)
     st, keepout, loiter = np.int64(status[b]), lim[L_DSRC], False
@@ -1739,7 +1741,7 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
     peer_rows(
         own_index[b], k, view_pos[b], valid[b], saved[b], hops[b], lost[b], new[ST_OWN_THEN][b], start, has_start, hop_rule, rows, mask, ages, planes
     )
-    flags[0, b], flags[1, b], flags[2, b] = control_one(
+    flags[b, 4], flags[b, 5], flags[b, 6] = control_one(
         p[b],
         old[ST_PREV][b],
         g,
@@ -1759,10 +1761,10 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
         pert,
         source_exact,
         u[b],
-        active[b],
+        flags[b, 0:4],
         cws,
     )
-    keepout_out[b], loiter_out[b] = keepout, loiter
+    extra[b, 0], flags[b, 7] = keepout, loiter
     for a in range(3):
         new[ST_PREV][b, a] = u[b, a]
         new[ST_KEEPOUT_CENTRE][b, a] = p_hat[b, a]
@@ -1771,35 +1773,20 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
 
 
 @njit(cache=True)
-def plan_batch(scene, cost, old, config):
+def plan_batch(scene, cost, old, config, new, out):
     """The planning step of B drones after their costs (:func:`plan_one`). ``scene``: (own index
     (B,), position (B, 3), own range (B,), own LOS (B,), view positions (B, N, 3), valid (B, N),
     saved steps (B, N), hop counts (B, N), lost contact (B, N), estimate (B, 3), information
     (B, 3, 3), observable (B,), uniforms (B, 2)); ``cost``: (∇C (B, 3), status (B,)); ``old``: the
     carried state's arrays (``ST_*``); ``config``: (k, start positions (N, 3), whether known, the
     hop rule, oracle, exact source, boxes min, max, ``lim``, ``ch``, ξ (NaN: normalised),
-    perturbation (rad)). Returns ((step (B, 3), active (B, 4), flags (3, B): singular, filtered,
-    infeasible, keep-out (B,), loiter (B,)), the new state's arrays)."""
-    B, N = scene[4].shape[0], scene[4].shape[1]
-    new = (
-        np.empty_like(old[0]),
-        np.empty_like(old[1]),
-        np.empty_like(old[2]),
-        np.empty_like(old[3]),
-        np.empty_like(old[4]),
-        np.empty_like(old[5]),
-        np.empty_like(old[6]),
-        np.empty_like(old[7]),
-        np.empty_like(old[8]),
-        np.empty_like(old[9]),
-        np.empty_like(old[10]),
-        np.empty_like(old[11]),
-    )
-    out = (np.empty((B, 3)), np.zeros((B, 4), dtype=np.bool_), np.zeros((3, B), dtype=np.bool_), np.empty(B), np.zeros(B, dtype=np.bool_))
+    perturbation (rad)). To ``new``: the new state's arrays (as ``old``); to ``out``: (the steps
+    (B, 3), flags (B, 8): the active families (4), singular, filtered, infeasible, loiter; the
+    keep-outs (B, 1), m)."""
+    N = scene[4].shape[1]
     ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N))
-    for b in range(B):
+    for b in range(scene[4].shape[0]):
         plan_one(b, scene, cost, old, new, config, out, ws)
-    return out, new
 
 
 # --------------------------------------------------------------------------- entries of the public helpers

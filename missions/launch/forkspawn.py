@@ -68,6 +68,7 @@ PRELOAD: tuple[str, ...] = (
     "comms.mavlink_client",
     "comms.session",
     "planner.node",
+    "planner.node.warm",  # loads (or, once after an install, compiles) the planning kernels before the fork
 )
 
 #: Environment variable of a launcher's child: the file descriptor of the read end of the
