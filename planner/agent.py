@@ -7,9 +7,11 @@ every drone, itself included, its estimate and its own measurement) and what it 
 its last step (:class:`planner.step.DroneState`), :func:`plan` returns the control step of
 :func:`planner.control.control_step` together with the cost of eq. 6 it descended and the state
 it carries to its next step. Batched over leading dimensions: the simulator passes (trials,
-drones), a planner node passes none. The cost is compiled in three kernels (the predicted line
-of sight, the FIM, its gradient) and the rest of the step in one (:func:`planner.kernels.plan_batch`:
-the carried state, keep-outs, loiter, peer rows, control step), each looping over the batch.
+drones), a planner node passes none. The whole step is one compiled kernel looping over the batch
+(:func:`planner.kernels.plan_batch`: the predicted line of sight, the FIM and its gradient, the
+carried state, keep-outs, loiter, peer rows, control step); with measurement components beyond
+range and bearing the cost is computed first (:func:`_planning_cost`, their own terms added) and
+given to it.
 
 Policies fixed here (docs/control.md):
 
@@ -515,19 +517,28 @@ def plan(
     step after it.
     """
     batch = scene.batch
-    own = scene.own_mask
     p_hat = (
         np.asarray(scene.estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), batch + (3,))
     )
-    cg = _scene_cost(config, scene, own, p_hat)
-    n = own.shape[-1]
+    n = np.shape(scene.view_valid)[-1]
     kscene = _kernel_scene(scene, p_hat, batch, n)
     kconfig = _kernel_config(config, scene.step_index, oracle_source is not None, oracle_source is not None and oracle_slow, n)
-    cost = (K.as_batch(cg.gradient, batch + (3,), float, 1), K.as_batch(cg.status, batch, np.int8, 0))
     old = state.kernel_arrays()
     new = tuple(np.empty_like(a) for a in old)
     u, flags, keepout = np.empty(batch + (3,)), np.empty(batch + (8,), dtype=bool), np.empty(batch + (1,))
-    K.plan_batch(kscene, cost, old, kconfig, new, (u.reshape(-1, 3), flags.reshape(-1, 8), keepout.reshape(-1, 1)))
+    out = (u.reshape(-1, 3), flags.reshape(-1, 8), keepout.reshape(-1, 1))
+    if config.criterion not in ("A", "D"):
+        raise ValueError(f"criterion: expected 'A' or 'D', found {config.criterion!r}")
+    roles = (np.ascontiguousarray(config.ranging, dtype=bool), np.ascontiguousarray(config.bearing, dtype=bool), config.criterion == "D")
+    view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
+    value, grad, status = np.empty(batch), np.empty(batch + (3,)), np.empty(batch, dtype=np.int8)
+    given = bool(config.extra_masks)
+    if given:
+        # Components beyond range and bearing: the cost here, each adding its own terms.
+        cg = _scene_cost(config, scene, scene.own_mask, p_hat)
+        value[...], grad[...], status[...] = cg.value, cg.gradient, cg.status
+    K.plan_batch(kscene, view_los, roles, old, kconfig, new, out, (value.reshape(-1), grad.reshape(-1, 3), status.reshape(-1)), given)
+    cg = CostGradient(value, grad, status)
     p = np.asarray(scene.own_position_m, dtype=float)
     step = StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
     return PlanResult(step, cg, keepout[..., 0], np.asarray(p_hat), flags[..., 7], DroneState.from_kernel_arrays(new, batch))

@@ -331,10 +331,8 @@ def eigvalsh3(J, work):
     for sweep in range(60):
         if work[0, 1] == 0.0 and work[0, 2] == 0.0 and work[1, 2] == 0.0:
             break
-        late = sweep > 3
-        _rotate(work, 0, 1, 2, late)
-        _rotate(work, 0, 2, 1, late)
-        _rotate(work, 1, 2, 0, late)
+        for p, q, r in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
+            _rotate(work, p, q, r, sweep > 3)
     e0, e1, e2 = work[0, 0], work[1, 1], work[2, 2]
     if e0 > e1:
         e0, e1 = e1, e0
@@ -1772,23 +1770,6 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
     new[ST_KEEPOUT][b] = keepout
 
 
-@njit(cache=True)
-def plan_batch(scene, cost, old, config, new, out):
-    """The planning step of B drones after their costs (:func:`plan_one`). ``scene``: (own index
-    (B,), position (B, 3), own range (B,), own LOS (B,), view positions (B, N, 3), valid (B, N),
-    saved steps (B, N), hop counts (B, N), lost contact (B, N), estimate (B, 3), information
-    (B, 3, 3), observable (B,), uniforms (B, 2)); ``cost``: (∇C (B, 3), status (B,)); ``old``: the
-    carried state's arrays (``ST_*``); ``config``: (k, start positions (N, 3), whether known, the
-    hop rule, oracle, exact source, boxes min, max, ``lim``, ``ch``, ξ (NaN: normalised),
-    perturbation (rad)). To ``new``: the new state's arrays (as ``old``); to ``out``: (the steps
-    (B, 3), flags (B, 8): the active families (4), singular, filtered, infeasible, loiter; the
-    keep-outs (B, 1), m)."""
-    N = scene[4].shape[1]
-    ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N))
-    for b in range(scene[4].shape[0]):
-        plan_one(b, scene, cost, old, new, config, out, ws)
-
-
 # --------------------------------------------------------------------------- entries of the public helpers
 @njit(cache=True)
 def own_los_batch(p, s, measured, use_measured, bmin, bmax):
@@ -1951,3 +1932,67 @@ def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):
     ok = np.zeros(cand.shape[0], dtype=np.bool_)
     known = dead_reckoning_kept(p, cand, reck, idx, N, lim, ok)
     return ok, known
+
+
+@njit(no_cpython_wrapper=True)
+def plan_cost(b, scene, view_los, roles, config, cost, ws):
+    """Drone b's cost of eq. 6 and its gradient w.r.t. its own position, to ``cost`` (value (B,),
+    ∇C (B, 3), status (B,)): the predicted line of sight q of its own link (:func:`own_los`; q = 1
+    without buildings), the FIM over its view at its estimate with the own term weighted by q
+    (:func:`add_fim_terms`), and :func:`own_gradient` with the LOS weight's gradient
+    (:func:`planner.agent._planning_cost`). ``roles``: (κ (N,), β (N,), the criterion is D)."""
+    own_index, p, _, _, view_pos, valid, _, _, _, p_hat, _, _, _ = scene
+    ranging, bearing, criterion_d = roles
+    bmin, bmax, ch = config[6], config[7], config[9]
+    rng, brg, los_w, gq, J, M, work, gwork = ws
+    i = own_index[b]
+    for j in range(valid.shape[1]):
+        rng[j] = ranging[j] & valid[b, j]
+        brg[j] = bearing[j] & valid[b, j]
+        los_w[j] = 1.0 * (view_los[b, j] | (j == i))
+    q = 1.0
+    boxes = bmin.shape[0] > 0
+    for a in range(3):
+        gq[a] = 0.0
+    if boxes:
+        q = own_los(p[b], p_hat[b], view_los[b, i], True, bmin, bmax, gq, gwork)
+        for j in range(valid.shape[1]):
+            los_w[j] = q if j == i else 1.0 * view_los[b, j]
+    for r in range(3):
+        for c in range(3):
+            J[r, c] = 0.0
+    add_fim_terms(p_hat[b], view_pos[b], rng, brg, los_w, ch, J)
+    values, grads, statuses = cost
+    values[b], statuses[b] = own_gradient(J, p_hat[b], p[b], ranging[i], bearing[i], q, gq, boxes, ch, criterion_d, grads[b], M, work)
+
+
+@njit(cache=True)
+def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
+    """The planning step of B drones (:func:`plan_cost`, unless ``given_cost``, then
+    :func:`plan_one`). ``scene``: (own index (B,), position (B, 3), own range (B,), own LOS (B,),
+    view positions (B, N, 3), valid (B, N), saved steps (B, N), hop counts (B, N), lost contact
+    (B, N), estimate (B, 3), information (B, 3, 3), observable (B,), uniforms (B, 2));
+    ``view_los``: the records' LOS flags (B, N); ``roles``: (κ (N,), β (N,), the criterion is D);
+    ``old``: the carried state's arrays (``ST_*``); ``config``: (k, start positions (N, 3),
+    whether known, the hop rule, oracle, exact source, boxes min, max, ``lim``, ``ch``, ξ (NaN:
+    normalised), perturbation (rad)). To ``new``: the new state's arrays (as ``old``); to
+    ``out``: (the steps (B, 3), flags (B, 8): the active families (4), singular, filtered,
+    infeasible, loiter; the keep-outs (B, 1), m); ``cost``: (value (B,), ∇C (B, 3), status (B,)),
+    computed here or (``given_cost``: a registry with further components, whose terms the caller
+    added) given."""
+    N = scene[4].shape[1]
+    wsc = (
+        np.empty(N, dtype=np.bool_),
+        np.empty(N, dtype=np.bool_),
+        np.empty(N),
+        np.empty(3),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+        np.empty((2, 3, 3)),
+        np.empty(9),
+    )
+    ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N))
+    for b in range(scene[4].shape[0]):
+        if not given_cost:
+            plan_cost(b, scene, view_los, roles, config, cost, wsc)
+        plan_one(b, scene, (cost[1], cost[2]), old, new, config, out, ws)

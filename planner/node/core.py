@@ -83,6 +83,8 @@ class StepCore:
     """
 
     def __init__(self, config: NodeConfig, view: DelayedView, swarm: Swarm, step_log: StepLog | None = None) -> None:
+        import planner.node.warm  # noqa: F401  # the compiled planning step, loaded before the first step (not during it)
+
         self.config = config
         self.view = view
         self.swarm = swarm
