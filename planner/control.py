@@ -120,9 +120,10 @@ def loiter_path(end: FloatArray, psi: FloatArray, theta: FloatArray, limits: Lim
     """
     e = np.asarray(end, dtype=float)
     shape = np.broadcast_shapes(e.shape[:-1], np.shape(psi), np.shape(theta))
-    ends = K.as_batch(e, shape + (3,), float, 1)
-    psis, thetas = K.as_batch(psi, shape, float, 0), K.as_batch(theta, shape, float, 0)
-    return K.loiter_batch(ends, psis, thetas, limits.kernel_array).reshape(shape + (2, loiter_steps(limits), 3))
+    psi_b, theta_b = np.broadcast_to(np.asarray(psi, dtype=float), shape), np.broadcast_to(np.asarray(theta, dtype=float), shape)
+    heading = np.stack((np.cos(theta_b) * np.cos(psi_b), np.cos(theta_b) * np.sin(psi_b), np.sin(theta_b)), -1)  # the step's direction
+    args = (K.as_batch(e, shape + (3,), float, 1), K.as_batch(heading, shape + (3,), float, 1))
+    return K.loiter_batch(*args, limits.kernel_array).reshape(shape + (2, loiter_steps(limits), 3))
 
 
 def loiter_steps(limits: Limits) -> int:
@@ -165,7 +166,9 @@ def limits_array(limits: Limits) -> FloatArray:
         altitude_activation_margin_m(limits),
         altitude_activation_margin_m(limits, exact_source=True),
     )
-    return K.limits_array(values, limits.activation == "safe", derived)
+    steps = np.arange(1.0, loiter_steps(limits) + 1.0) * limits.heading_change_max_rad
+    table = tuple(np.stack((np.cos(steps), np.sin(steps)), -1).ravel())  # the loiter path's turns
+    return K.limits_array(values, limits.activation == "safe", derived + table)
 
 
 def lost_contact_planes(own_then_m: ArrayLike, peer_then_m: ArrayLike, lost: ArrayLike) -> tuple[FloatArray, FloatArray]:

@@ -582,6 +582,8 @@ UAV, SOURCE, OBSTACLE, ALTITUDE = 0, 1, 2, 3
 L_DUAV, L_DSRC, L_DOBS, L_SMIN, L_SMAX, L_HMAX, L_TMAX, L_ZMIN, L_ZMAX, L_SAFE, L_TB = range(11)
 L_LOITER_K, L_LOITER_REACH, L_SRC_MARGIN, L_SRC_MARGIN_EXACT, L_ALT_MARGIN, L_ALT_MARGIN_EXACT = range(11, 17)
 L_SIZE = 17
+#: From index L_TABLE: cos and sin of v φ_max for the loiter path's steps v = 1..K (:func:`loiter_vertices`).
+L_TABLE = L_SIZE
 #: Relative cut-off of the constraint normals' pseudo-inverse (eq. 14's (NᵀN)⁻¹).
 PINV_RCOND: float = 1e-6
 #: A projected gradient shorter than this fraction of the gradient is zero.
@@ -901,7 +903,7 @@ def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
 # --------------------------------------------------------------------------- the safety filter's requirements
 @njit(no_cpython_wrapper=True)
 def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
-    """The safety filter's requirements (docs/control.md, :func:`planner.control._filter_requirements`).
+    """The safety filter's requirements (docs/control.md, "Safety filter").
 
     Per peer j of age a_j: the reachable ball of its record, d_U* + (a_j + 1) v_max Δt + 2b at the
     end of the step; a margin already in deficit may not shrink (strict: against the ball of now;
@@ -981,66 +983,78 @@ def kept_peers(wn, idx, lim, prune):
 
 # --------------------------------------------------------------------------- the loiter certificate
 @njit(no_cpython_wrapper=True)
-def loiter_step(psi, theta, turn, v, lim):
-    """Step v ≥ 1 of the loiter path (:func:`planner.control.loiter_path`) after a step of heading
-    Ψ and tilt Θ to one side (``turn`` ±1): v_min Δt at heading Ψ + v φ_max · turn, the tilt
-    returning to level at θ_max per step."""
-    tmax = lim[L_TMAX]
+def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
+    """The loiter paths (:func:`planner.control.loiter_path`) from the end (ex, ey, ez) of the step
+    (sx, sy, sz) to ``out`` (2, K + 1, 3): per side (left, right) the end itself, then K steps of
+    v_min Δt at the step's heading Ψ ± v φ_max (cos and sin of v φ_max from the limits' table),
+    the tilt Θ returning to level at θ_max per step."""
+    K = int(lim[L_LOITER_K])
+    rho = math.hypot(sx, sy)
+    cp, sp = (sx / rho, sy / rho) if rho > 0.0 else (1.0, 0.0)
+    theta = math.atan2(sz, rho)
+    smin, tmax = lim[L_SMIN], lim[L_TMAX]
     sgn = 1.0 if theta > 0.0 else (-1.0 if theta < 0.0 else 0.0)
-    th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
-    return cartesian(lim[L_SMIN], psi + turn * v * lim[L_HMAX], th_v)
+    for side in range(2):
+        turn = 1.0 - 2.0 * side
+        out[side, 0, 0], out[side, 0, 1], out[side, 0, 2] = ex, ey, ez
+        cx = cy = cz = 0.0
+        for v in range(1, K + 1):
+            ca, sa = lim[L_TABLE + 2 * v - 2], turn * lim[L_TABLE + 2 * v - 1]
+            th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
+            ct, st = (math.cos(th_v), math.sin(th_v)) if th_v != 0.0 else (1.0, 0.0)
+            sc = smin * ct
+            cx, cy, cz = cx + sc * (cp * ca - sp * sa), cy + sc * (sp * ca + cp * sa), cz + smin * st
+            out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
 
 
 @njit(no_cpython_wrapper=True)
-def _loiter_side_ok(
-    ex, ey, ez, psi, theta, turn, gates, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim
-):
-    """Whether the loiter path to one side (``turn`` ±1) from the end (ex, ey, ez) of a step of
-    heading Ψ and tilt Θ keeps the certificate's clearances at every vertex (the end itself, then
-    K steps of v_min Δt turning at φ_max, the tilt returning to level at θ_max): the peer rows
-    (against ``wn[W_HARD]``), the source, the obstacles and the altitude box where ``gates``
-    (4,) says they may be reached."""
-    d_uav = lim[L_DUAV]
-    cx = cy = cz = 0.0
-    for v in range(int(lim[L_LOITER_K]) + 1):
-        x, y, z = ex, ey, ez
-        if v > 0:
-            ux, uy, uz = loiter_step(psi, theta, turn, v, lim)
-            cx, cy, cz = cx + ux, cy + uy, cz + uz
-            x, y, z = ex + cx, ey + cy, ez + cz
-        bad = gates[UAV] & (peer_margin(x, y, z, peers, planes, wn[W_PLANE], wn[W_HARD], idx, n_idx, d_uav) < need[UAV])
-        dx, dy, dz = x - source[0], y - source[1], z - source[2]
-        bad = bad | (gates[SOURCE] & (math.sqrt(dx * dx + dy * dy + dz * dz) - source_required < need[SOURCE]))
-        bad = bad | (gates[OBSTACLE] & (distance_to_boxes(x, y, z, bmin, bmax) - obstacle_required < need[OBSTACLE]))
-        bad = bad | (gates[ALTITUDE] & (min(lim[L_ZMAX] - z, z - lim[L_ZMIN]) < need[ALTITUDE]))
-        if bad:
-            return False
-    return True
-
-
-@njit(no_cpython_wrapper=True)
-def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, gates):
-    """Whether a loiter path (:func:`planner.control.loiter_path`) from the end position (ex, ey,
-    ez) after the step (sx, sy, sz) keeps every clearance of the loiter certificate (the peers'
-    reachable balls ``wn[W_HARD]``, the keep-out ``source_required``, ``obstacle_required`` from
-    the obstacles, the altitude box) at least by ``need`` (4,), to the left or to the right. A
-    family whose margin at the end exceeds its need by the loiter's reach is not scored along the
-    path (every clearance is 1-Lipschitz: exact). ``gates``: scratch (4,) bool."""
+def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, cw):
+    """Whether a loiter path (:func:`loiter_vertices`) from the end position (ex, ey, ez) after the
+    step (sx, sy, sz) keeps every clearance of the loiter certificate (the peers' reachable balls
+    ``wn[W_HARD]``, the keep-out ``source_required``, ``obstacle_required`` from the obstacles,
+    the altitude box) at least by ``need`` (4,), to the left or to the right. A peer, the source,
+    a building or the altitude box whose margin at the end exceeds its need by the loiter's reach
+    is not scored along the path (every clearance is 1-Lipschitz: exact). ``cw``: scratch (peer
+    rows (N,), boxes (B,), vertices (2, K + 1, 3))."""
     if int(lim[L_LOITER_K]) == 0:
         return True
+    on_peers, on_boxes, verts = cw
     reach = lim[L_LOITER_REACH] + 1e-9
+    d_uav, hard, flags = lim[L_DUAV], wn[W_HARD], wn[W_PLANE]
+    n_on = 0
+    for k in range(n_idx):
+        j = idx[k]
+        if peer_distance(ex, ey, ez, peers, planes, flags, j, d_uav) - hard[j] - reach < need[UAV]:
+            on_peers[n_on] = j
+            n_on += 1
+    b_on = 0
+    for b in range(bmin.shape[0]):
+        if box_signed_distance(ex, ey, ez, bmin, bmax, b) - obstacle_required - reach < need[OBSTACLE]:
+            on_boxes[b_on] = b
+            b_on += 1
     dx, dy, dz = ex - source[0], ey - source[1], ez - source[2]
-    gates[UAV] = peer_margin(ex, ey, ez, peers, planes, wn[W_PLANE], wn[W_HARD], idx, n_idx, lim[L_DUAV]) - reach < need[UAV]
-    gates[SOURCE] = math.sqrt(dx * dx + dy * dy + dz * dz) - source_required - reach < need[SOURCE]
-    gates[OBSTACLE] = distance_to_boxes(ex, ey, ez, bmin, bmax) - obstacle_required - reach < need[OBSTACLE]
-    gates[ALTITUDE] = min(lim[L_ZMAX] - ez, ez - lim[L_ZMIN]) - reach < need[ALTITUDE]
-    if not (gates[UAV] | gates[SOURCE] | gates[OBSTACLE] | gates[ALTITUDE]):
+    src_on = math.sqrt(dx * dx + dy * dy + dz * dz) - source_required - reach < need[SOURCE]
+    alt_on = min(lim[L_ZMAX] - ez, ez - lim[L_ZMIN]) - reach < need[ALTITUDE]
+    if (n_on == 0) & (b_on == 0) & (not src_on) & (not alt_on):
         return True
-    _, psi, theta = spherical(sx, sy, sz)
-    args = (peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim)
-    if _loiter_side_ok(ex, ey, ez, psi, theta, 1.0, gates, *args):
-        return True
-    return _loiter_side_ok(ex, ey, ez, psi, theta, -1.0, gates, *args)
+    loiter_vertices(ex, ey, ez, sx, sy, sz, lim, verts)
+    for side in range(2):
+        ok = True
+        for v in range(verts.shape[1]):
+            x, y, z = verts[side, v, 0], verts[side, v, 1], verts[side, v, 2]
+            for k in range(n_on):
+                j = on_peers[k]
+                ok = ok & (peer_distance(x, y, z, peers, planes, flags, j, d_uav) - hard[j] >= need[UAV])
+            for k in range(b_on):
+                ok = ok & (box_signed_distance(x, y, z, bmin, bmax, on_boxes[k]) - obstacle_required >= need[OBSTACLE])
+            dx, dy, dz = x - source[0], y - source[1], z - source[2]
+            ok = ok & ((not src_on) | (math.sqrt(dx * dx + dy * dy + dz * dz) - source_required >= need[SOURCE]))
+            ok = ok & ((not alt_on) | (min(lim[L_ZMAX] - z, z - lim[L_ZMIN]) >= need[ALTITUDE]))
+            if not ok:
+                break
+        if ok:
+            return True
+    return False
 
 
 # --------------------------------------------------------------------------- the envelope search
@@ -1073,48 +1087,50 @@ def envelope_candidates(prev, has_prev, lim, cand, th):
 
 
 @njit(no_cpython_wrapper=True)
+def peer_margins(x, y, z, peers, planes, wn, idx, n_idx, d_uav):
+    """The smallest peer margins (m) of (x, y, z) over the peer rows ``idx[:n_idx]`` against the
+    strict, loose, hard and record-clearance requirements (rows of ``wn``), each distance once."""
+    m_s = m_l = m_h = m_r = np.inf
+    flags = wn[W_PLANE]
+    for k in range(n_idx):
+        j = idx[k]
+        d = peer_distance(x, y, z, peers, planes, flags, j, d_uav)
+        m_s, m_l = min(m_s, d - wn[W_STRICT, j]), min(m_l, d - wn[W_LOOSE, j])
+        m_h, m_r = min(m_h, d - wn[W_HARD, j]), min(m_r, d - wn[W_REC, j])
+    return m_s, m_l, m_h, m_r
+
+
+@njit(no_cpython_wrapper=True)
 def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc):
     """Per candidate step c of ``cand``: its margins per family (the peers' against the loose
     requirements, ``mc[0, c]``), its slack over ``need`` (``mc[1, c]``), the scores the tiers
-    maximise (rows ``S_*`` of ``wc``) and which tiers it passes (rows ``O_*`` of ``okc``; tier 4's
-    record clearance and the dead reckoning come after, docs/control.md)."""
-    smax, tb, d_uav = lim[L_SMAX], lim[L_TB], lim[L_DUAV]
+    maximise (rows ``S_*`` of ``wc``) and which tiers it passes (rows ``O_*`` of ``okc``; the dead
+    reckoning comes after, docs/control.md). The record clearance's requirements are in
+    ``wn[W_REC]`` (:func:`record_requirements`)."""
+    smax, tb = lim[L_SMAX], lim[L_TB]
     source_required = keepout + tb
     obstacle_required = lim[L_DOBS] + 0.5 * smax + tb
     margins, slack = mc[0], mc[1]
     for c in range(cand.shape[0]):
         x, y, z = p[0] + cand[c, 0], p[1] + cand[c, 1], p[2] + cand[c, 2]
-        score(
-            x,
-            y,
-            z,
-            th[c],
-            peers,
-            planes,
-            wn[W_PLANE],
-            wn[W_STRICT],
-            idx,
-            n_idx,
-            source,
-            source_required,
-            obstacle_required,
-            bmin,
-            bmax,
-            lim,
-            margins[c],
-        )
+        m_s, m_l, m_h, m_r = peer_margins(x, y, z, peers, planes, wn, idx, n_idx, lim[L_DUAV])
+        dx, dy, dz = x - source[0], y - source[1], z - source[2]
+        margins[c, SOURCE] = math.sqrt(dx * dx + dy * dy + dz * dz) - source_required
+        margins[c, OBSTACLE] = distance_to_boxes(x, y, z, bmin, bmax) - obstacle_required
+        margins[c, ALTITUDE] = altitude_margin(z, th[c], lim)
+        margins[c, UAV] = m_s
         ok = True
         for f in range(4):
             ok = ok & (margins[c, f] - need[f] >= 0.0)
         okc[O_STRICT, c] = ok
-        wc[S_STRICT_UAV, c] = margins[c, UAV] - need[UAV]
-        margins[c, UAV] = peer_margin(x, y, z, peers, planes, wn[W_PLANE], wn[W_LOOSE], idx, n_idx, d_uav)
+        wc[S_STRICT_UAV, c] = m_s - need[UAV]
+        margins[c, UAV] = m_l
         ok = True
         for f in range(4):
             slack[c, f] = margins[c, f] - need[f]
             ok = ok & (slack[c, f] >= 0.0)
         okc[O_SLACK, c] = ok
-        uav_hard = peer_margin(x, y, z, peers, planes, wn[W_PLANE], wn[W_HARD], idx, n_idx, d_uav) >= 0.0
+        uav_hard = m_h >= 0.0
         src_hard = margins[c, SOURCE] + tb >= min(need[SOURCE] + tb, 0.0)
         phys_obstacle = slack[c, OBSTACLE] + 0.5 * smax + tb
         exact = min(slack[c, OBSTACLE], slack[c, ALTITUDE])
@@ -1124,7 +1140,7 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
         wc[S_BUFFERS, c] = min(slack[c, UAV], slack[c, SOURCE])
         wc[S_SLACK_UAV, c], wc[S_SLACK_SRC, c], wc[S_SLACK_OBS, c], wc[S_EXACT, c] = slack[c, UAV], slack[c, SOURCE], slack[c, OBSTACLE], exact
         okc[O_T3, c] = (exact >= 0.0) & uav_hard & src_hard
-        okc[O_T4, c] = (exact >= 0.0) & src_hard
+        okc[O_T4, c] = (exact >= 0.0) & src_hard & (m_r >= 0.0)
         okc[O_T5, c] = (exact >= 0.0) & uav_hard
         okc[O_T6, c] = exact >= 0.0
         okc[O_T7, c] = (phys_obstacle >= 0.0) & (slack[c, ALTITUDE] >= 0.0)
@@ -1134,11 +1150,11 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
 
 
 @njit(no_cpython_wrapper=True)
-def record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, ok):
-    """``ok`` (C,) &= the candidates that keep every peer's clearance as if its record were of now:
-    d_U* + v_max Δt from a heard peer's record, the own side of a lost peer's plane; a drone
-    already nearer (or inside the peer's reachable ball, ``wn[W_HARD]``) may not come nearer
-    (:func:`planner.control._record_clearance_kept`). Uses ``wn[W_REC]``."""
+def record_requirements(p, peers, planes, wn, idx, n_idx, lim):
+    """The record clearance's requirements to ``wn[W_REC]`` (tier 4 of the envelope search): every
+    peer's clearance as if its record were of now, d_U* + v_max Δt from a heard peer's record, the
+    own side of a lost peer's plane; a drone already nearer (or inside the peer's reachable ball,
+    ``wn[W_HARD]``) may not come nearer (docs/control.md, the tier that gives up the peers' balls)."""
     d_uav, smax = lim[L_DUAV], lim[L_SMAX]
     for k in range(n_idx):
         j = idx[k]
@@ -1148,9 +1164,6 @@ def record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, ok):
         inside = (now - wn[W_HARD, j] <= 1e-9) & (not plane)
         required = now if inside else min(required, now)
         wn[W_REC, j] = required if math.isfinite(wn[W_HARD, j]) else -np.inf
-    for c in range(cand.shape[0]):
-        x, y, z = p[0] + cand[c, 0], p[1] + cand[c, 1], p[2] + cand[c, 2]
-        ok[c] = ok[c] & (peer_margin(x, y, z, peers, planes, wn[W_PLANE], wn[W_REC], idx, n_idx, d_uav) >= 0.0)
 
 
 @njit(no_cpython_wrapper=True)
@@ -1158,7 +1171,7 @@ def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     """``ok`` (C,): the candidates that do not bring the drone nearer the dead-reckoned position
     of a peer whose reachable ball it is inside (``reck``: now and at the end of the step):
     |p + u − r_j'| ≥ min(|p − r_j|, d_U* + 2 v_max Δt + 2b)
-    (:func:`planner.control._dead_reckoning_kept`). Returns False (``ok`` untouched) where no peer
+    (docs/control.md, "Where a peer is likely to be"). Returns False (``ok`` untouched) where no peer
     has one."""
     floor_max = lim[L_DUAV] + 2.0 * lim[L_SMAX] + 2.0 * lim[L_TB]
     known = False
@@ -1201,7 +1214,7 @@ def _top_first(eligible, scores, order):
 def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     """Check the eligible candidates of one lazy tier for a loiter certificate, best score first,
     in chunks of 1, 4 and the rest, until a chunk holds a certified one; mark those in ``marks``
-    (C,). Returns whether one was found (:func:`planner.control._certified_lazily`). ``cert``:
+    (C,). Returns whether one was found (the picks of tiers 0 and 0' need no more). ``cert``:
     the certificate's clearances (the arguments of :func:`certified` after the step)."""
     n = _top_first(eligible, scores, order)
     for lo, hi in ((0, 1), (1, 5), (5, cand.shape[0])):
@@ -1264,15 +1277,15 @@ def envelope_pick(okc, wc, has_reck):
 @njit(no_cpython_wrapper=True)
 def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env):
     """The best step of the kinematic envelope for a drone at ``p`` whose limited step ``u`` failed
-    the safety filter (:func:`planner.control._envelope_search`, docs/control.md); the step to
+    the safety filter (docs/control.md, "Safety filter"); the step to
     ``u``. Returns (infeasible: no candidate keeps every clearance with the loose peer
     requirements, the pick's margins (4,) with the peers' against them)."""
     cand, th, mc, wc, okc, order = env
     bmin, bmax, lim = cert[9], cert[10], cert[11]
     C = cand.shape[0]
     envelope_candidates(prev, has_prev, lim, cand, th)
+    record_requirements(p, peers, planes, wn, idx, n_idx, lim)
     envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc)
-    record_clearance_kept(p, cand, peers, planes, wn, idx, n_idx, lim, okc[O_T4])
     infeasible = True
     for c in range(C):
         infeasible = infeasible & (not okc[O_SLACK, c])
@@ -1303,7 +1316,7 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
     (:func:`envelope_search`). Every clearance is 1-Lipschitz and |u| ≤ v_max Δt: only a drone
     within v_max Δt of one (a loiter's reach for the certificate) has its step scored; the
     altitude box with the tilt allowance is checked for all. Returns (filtered, infeasible)."""
-    wn, reck, idx, _, vec, gates, env = ws
+    wn, reck, idx, _, vec, cw, env = ws
     smax, tb = lim[L_SMAX], lim[L_TB]
     requirements(peers, mask, age, drift, g_s, g_o, p[2], lim, wn, reck, vec)
     now, need, now_c, need_c = vec[V_NOW], vec[V_NEED], vec[V_NOW_C], vec[V_NEED_C]
@@ -1320,7 +1333,7 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
         sc = vec[V_SCORE]
         score(ex, ey, ez, theta, peers, planes, wn[W_PLANE], wn[W_STRICT], idx, n_idx, source, keepout + tb, obstacle_required, bmin, bmax, lim, sc)
         bad = bad | (sc[0] < need[0]) | (sc[1] < need[1]) | (sc[2] < need[2]) | (sc[3] < need[3])
-    cert = (peers, planes, wn, idx, n_idx, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, gates)
+    cert = (peers, planes, wn, idx, n_idx, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, cw)
     if near_c & (not bad):
         bad = not certified(ex, ey, ez, u[0], u[1], u[2], *cert)
     active[ALTITUDE] = active[ALTITUDE] | (alt < 0.0)
@@ -1356,8 +1369,9 @@ def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, 
 
 
 @njit(no_cpython_wrapper=True)
-def workspace(N):
-    """The scratch arrays of :func:`control_one` for N peer rows."""
+def workspace(N, K, nb):
+    """The scratch arrays of :func:`control_one` for N peer rows, loiter paths of K steps and nb
+    buildings."""
     C = N_CANDIDATES
     env = (
         np.empty((C, 3)),
@@ -1373,7 +1387,7 @@ def workspace(N):
         np.empty(N, dtype=np.int64),
         np.empty((3, 3, 3)),
         np.empty((N_VECTORS, 4)),
-        np.empty(4, dtype=np.bool_),
+        (np.empty(N, dtype=np.int64), np.empty(nb, dtype=np.int64), np.empty((2, K + 1, 3))),
         env,
     )
 
@@ -1384,7 +1398,7 @@ def control_batch(p, prev, grad, status, peers, mask, age, planes, drift, source
     peers (B, N, 3), mask (B, N) bool, age (B, N), planes, drift (B, N, 3), source (B, 3),
     keepout (B,), uni (B, 2)): the steps to ``u`` (B, 3), to ``flags`` (B, 7) the active
     families (4), singular, filtered, infeasible."""
-    ws = workspace(peers.shape[1])
+    ws = workspace(peers.shape[1], int(lim[L_LOITER_K]), bmin.shape[0])
     for b in range(peers.shape[0]):
         flags[b, 4], flags[b, 5], flags[b, 6] = control_one(
             p[b],
@@ -1683,7 +1697,7 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
 @njit(no_cpython_wrapper=True)
 def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch, work):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
-    loiters (:func:`planner.agent._status_and_keepout`, docs/control.md): an unobservable estimate
+    loiters (docs/control.md, "Own-range loiter"): an unobservable estimate
     counts as singular and has no keep-out (−inf); an observable one has :func:`source_keepout` of
     its largest σ, limited by :func:`followable` against the last step's keep-out; where the own
     ranges (``ranges``, ``range_los``: the window) say so (:func:`must_loiter`) the drone loiters
@@ -1872,18 +1886,15 @@ def planes_batch(a, b, lost):
 
 
 @njit(cache=True)
-def loiter_batch(end, psi, theta, lim):
-    """The loiter paths' vertices (n, 2, K, 3) from ends (n, 3) after steps of heading and tilt (n,)
-    (:func:`loiter_step`, to the left then to the right)."""
+def loiter_batch(end, step, lim):
+    """The loiter paths' vertices (n, 2, K, 3) from ends (n, 3) after steps (n, 3)
+    (:func:`loiter_vertices`, to the left then to the right, without the end itself)."""
     n, K = end.shape[0], int(lim[L_LOITER_K])
+    verts = np.empty((2, K + 1, 3))
     out = np.empty((n, 2, K, 3))
     for i in range(n):
-        for side in range(2):
-            cx = cy = cz = 0.0
-            for v in range(1, K + 1):
-                ux, uy, uz = loiter_step(psi[i], theta[i], 1.0 - 2.0 * side, v, lim)
-                cx, cy, cz = cx + ux, cy + uy, cz + uz
-                out[i, side, v - 1, 0], out[i, side, v - 1, 1], out[i, side, v - 1, 2] = end[i, 0] + cx, end[i, 1] + cy, end[i, 2] + cz
+        loiter_vertices(end[i, 0], end[i, 1], end[i, 2], step[i, 0], step[i, 1], step[i, 2], lim, verts)
+        out[i] = verts[:, 1:, :]
     return out
 
 
@@ -1906,7 +1917,7 @@ def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, lo
     Returns (the step (3,), its margins (4,), infeasible): the filter's last stage on its own,
     for tests of its tiers."""
     N = peers.shape[0]
-    wn, reck, idx, _, _, gates, env = workspace(N)
+    wn, reck, idx, _, _, cw, env = workspace(N, int(lim[L_LOITER_K]), bmin.shape[0])
     for j in range(N):
         wn[W_PLANE, j] = 1.0 * ((planes[j, 0] != 0.0) | (planes[j, 1] != 0.0) | (planes[j, 2] != 0.0))
         wn[W_STRICT, j], wn[W_LOOSE, j], wn[W_HARD, j] = strict[j], loose[j], hard[j]
@@ -1915,7 +1926,7 @@ def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, lo
             reck[0, j, a] = np.nan
             reck[1, j, a] = np.nan
     step = u.copy()
-    cert = (peers, planes, wn, idx, N, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, gates)
+    cert = (peers, planes, wn, idx, N, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, cw)
     infeasible, margins = envelope_search(p, step, prev, has_prev, need, peers, planes, wn, reck, idx, N, source, keepout, cert, env)
     return step, margins.copy(), infeasible
 
@@ -1940,7 +1951,7 @@ def plan_cost(b, scene, view_los, roles, config, cost, ws):
     ∇C (B, 3), status (B,)): the predicted line of sight q of its own link (:func:`own_los`; q = 1
     without buildings), the FIM over its view at its estimate with the own term weighted by q
     (:func:`add_fim_terms`), and :func:`own_gradient` with the LOS weight's gradient
-    (:func:`planner.agent._planning_cost`). ``roles``: (κ (N,), β (N,), the criterion is D)."""
+    (the cost :func:`planner.agent.plan` descends). ``roles``: (κ (N,), β (N,), the criterion is D)."""
     own_index, p, _, _, view_pos, valid, _, _, _, p_hat, _, _, _ = scene
     ranging, bearing, criterion_d = roles
     bmin, bmax, ch = config[6], config[7], config[9]
@@ -1991,7 +2002,8 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         np.empty((2, 3, 3)),
         np.empty(9),
     )
-    ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N))
+    lim, bmin = config[8], config[6]
+    ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N, int(lim[L_LOITER_K]), bmin.shape[0]))
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)
