@@ -2003,7 +2003,15 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         np.empty(9),
     )
     lim, bmin = config[8], config[6]
-    ws = (np.empty((N, 3)), np.zeros(N, dtype=np.bool_), np.empty(N), np.empty((N, 3)), np.empty(3), np.empty((3, 3)), workspace(N, int(lim[L_LOITER_K]), bmin.shape[0]))
+    ws = (
+        np.empty((N, 3)),
+        np.zeros(N, dtype=np.bool_),
+        np.empty(N),
+        np.empty((N, 3)),
+        np.empty(3),
+        np.empty((3, 3)),
+        workspace(N, int(lim[L_LOITER_K]), bmin.shape[0]),
+    )
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)
