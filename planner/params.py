@@ -60,9 +60,11 @@ class Channel:
 
     @cached_property
     def kernel_array(self) -> NDArray[np.float64]:
-        """The channel as the compiled kernels take it (:mod:`planner.kernels`):
+        """The channel as the compiled kernels take it (:func:`planner.kernels.channel_array`):
         (γ, σ_r0,LOS², σ_r0,NLOS², σ_b²), m² and rad²."""
-        return np.array([self.gamma, self.sigma_r0_los**2, self.sigma_r0_nlos**2, self.sigma_bearing_rad**2])
+        from planner.kernels import channel_array  # imported here: a vehicle process uses Channel without numba
+
+        return channel_array(self.gamma, self.sigma_r0_los, self.sigma_r0_nlos, self.sigma_bearing_rad)
 
     def sigma_r0(self, los: ArrayLike) -> NDArray[np.float64]:
         """σ_r0 of each link (eq. 5), metres: the LOS value where ``los`` (bool, any shape),
