@@ -34,6 +34,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cmd_handback",
     "missions.cmd_view",
     "missions.cmd_missions",
+    "missions.cmd_calibrate",
+    "missions.cmd_localize",
 )
 
 
