@@ -61,9 +61,9 @@ if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))
 
 from comms.geodesy import MissionFrame  # noqa: E402
-from missions.cli import main as fimnav  # noqa: E402
-from missions.cmd_calibrate import calibrate  # noqa: E402
-from missions.radiolog import read_flight_log  # noqa: E402
+from missions.cli.calibrate import calibrate  # noqa: E402
+from missions.cli.main import main as fimnav  # noqa: E402
+from missions.format.radiolog import read_flight_log  # noqa: E402
 from planner.radio.pathloss import Pattern, link_terms  # noqa: E402
 
 RUN = "2023-12-13_12_33_02"
