@@ -62,9 +62,12 @@ if str(REPO) not in sys.path[:1]:
 
 from comms.geodesy import MissionFrame  # noqa: E402
 from missions.cli.calibrate import calibrate  # noqa: E402
+from missions.cli.localize import options_from_args  # noqa: E402
+from missions.cli.main import build_parser  # noqa: E402
 from missions.cli.main import main as fimnav  # noqa: E402
 from missions.format.radiolog import read_flight_log  # noqa: E402
-from planner.radio.pathloss import Pattern, link_terms  # noqa: E402
+from planner.radio.localize import profile_loglik  # noqa: E402
+from planner.radio.pathloss import Pattern, link_terms, path_length_m, thin_by_distance  # noqa: E402
 
 RUN = "2023-12-13_12_33_02"
 PICKLE = "2023-12-13_12-45-02"
@@ -230,6 +233,17 @@ def horizontal_m(frame: MissionFrame, lat_lon: tuple[float, float], other: tuple
     return math.hypot(a[0] - b[0], a[1] - b[1])
 
 
+def deviance_at(argv: list[str], csv_path: Path, report: dict[str, Any], point_m: np.ndarray) -> float:
+    """2(ℓ̂ − ℓ_p(point)) of a ``fimnav localize`` run (its argv and report), the emitter at
+    ``point_m`` (the log's frame, m): the same samples (the report's spacing), the same options."""
+    args = build_parser().parse_args(argv)
+    flight = read_flight_log(csv_path, None, args.threshold_db, args.min_quality)
+    options, _ = options_from_args(args, flight)
+    used = flight.log.subset(thin_by_distance(path_length_m(flight.log.positions_m), report["spacing_m"]))
+    point = np.array([point_m[0], point_m[1], options.emitter_z_m if options.emitter_z_m is not None else point_m[2]])
+    return float(2.0 * (report["loglik"] - float(profile_loglik(used, options, point))))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repo", type=Path, required=True, help="a clone of github.com/SunLab-UGA/AERPAW_AFAR")
@@ -330,13 +344,20 @@ def main(argv: list[str] | None = None) -> int:
     result["by_distance"] = rows
 
     # --- localize: the main run and variants
+    spacing_listed = f"{cal.correlation_m:.1f}" if cal.correlation_m else "0"
+    known = ["--power", "known", "--reference-power-db", f"{fit.reference_power_db.value:.3f}", "--exponent", f"{fit.gamma.value:.4f}"]
     variants = [
         ("unknown power, γ free, isotropic", ["--pattern", "isotropic", *common]),
         ("unknown power, γ free, dipole (zenith null)", ["--pattern", "dipole", *common]),
-        ("as above, isotropic, threshold 0 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "0"]),
-        ("as above, isotropic, threshold 10 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "10"]),
+        ("threshold 0 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "0"]),
+        ("threshold 10 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "10"]),
         ("no censoring: every sample a measurement", ["--pattern", "isotropic"]),
-        ("unknown power, γ free, every sample (spacing 0)", ["--pattern", "isotropic", *common, "--spacing-m", "0"]),
+        ("spacing 0: every sample, as if independent", ["--pattern", "isotropic", *common, "--spacing-m", "0"]),
+        (
+            f"spacing {spacing_listed} m: the correlation distance at the listed position",
+            ["--pattern", "isotropic", *common, "--spacing-m", spacing_listed],
+        ),
+        ("power and γ known: calibrated at the listed position", ["--pattern", "isotropic", *common, *known]),
     ]
     result["localize"] = []
     for i, (name, extra) in enumerate(variants):
@@ -357,12 +378,14 @@ def main(argv: list[str] | None = None) -> int:
             "peb_m": report["peb_m"],
             "region_area_m2": report["region"]["area_m2"],
             "region_radius_m": report["region"]["radius_m"],
-            "listed_inside_region": None,
             "gamma": report["gamma"],
             "sigma_db": report["sigma_db"],
+            "threshold": report["region"]["threshold"],
             "used": report["used"],
             "spacing_m": report["spacing_m"],
         }
+        row["deviance_listed"] = deviance_at(argv, csv_path, report, np.array(frame.to_enu(rover[0], rover[1], rover_alt)))
+        row["listed_inside_region"] = row["deviance_listed"] <= report["region"]["threshold"]
         result["localize"].append(row)
         if i == 0:
             print("\n$ fimnav localize afar_run.csv " + " ".join(extra))

@@ -118,7 +118,7 @@ def calibrate(flight: FlightLog, source_m: np.ndarray, pattern_name: str, spacin
         kept = np.intersect1d(thin_by_distance(path, spacing), everything)
         fit = fit_on(kept)
     except ValueError as exc:
-        raise UsageError(f"calibrate: {exc}") from None
+        raise UsageError(f"{flight.path}: {exc}") from None
     mean = fit.reference_power_db.value - fit.gamma.value * 10.0 * np.log10(d) + terms.gain
     return Calibration(fit, len(kept), float(spacing), corr, source_m, d, mean)
 

@@ -271,6 +271,7 @@ def build_report(
         "peb_m": result.peb_m if math.isfinite(result.peb_m) else None,
         "region": {
             "level": options.level,
+            "threshold": result.region.threshold,
             "area_m2": result.region_area_m2,
             "radius_m": result.region_radius_m,
             "components": result.components,
@@ -278,6 +279,7 @@ def build_report(
         "reference_power_db": est(result.reference_power) if options.reference_power_db is None else {"given": options.reference_power_db},
         "gamma": est(result.gamma) if options.gamma is None else {"given": options.gamma},
         "sigma_db": result.sigma_db,
+        "loglik": result.loglik,
         "emitter_height_m": options.emitter_z_m if options.emitter_z_m is not None else "estimated",
         "pattern": options.pattern.name,
         "frame_origin": {"lat_deg": frame.origin.lat_deg, "lon_deg": frame.origin.lon_deg, "alt_m": frame.origin.alt_m},

@@ -87,6 +87,7 @@ class FlightLog:
     """A log read into the local frame.
 
     Attributes:
+        path: the file or directory read.
         log: the samples (:class:`planner.radio.localize.RadioLog`, local ENU m).
         frame: the frame of ``log`` (a mission's, or one about the first sample).
         lonlatalt: the samples' (longitude, latitude, altitude) (n, 3), for maps.
@@ -97,6 +98,7 @@ class FlightLog:
         notes: what the reader decided, one line each (ignored columns, the threshold).
     """
 
+    path: Path
     log: RadioLog
     frame: MissionFrame
     lonlatalt: FloatArray
@@ -308,6 +310,7 @@ def read_flight_log(
         time_s=np.asarray(rows.time) - rows.time[0],
     )
     return FlightLog(
+        path=path,
         log=log,
         frame=frame,
         lonlatalt=np.column_stack([lon, lat, alt]),
@@ -381,6 +384,7 @@ def _read_results_dir(path: Path, mission: Mission | None) -> FlightLog:
         time_s=np.asarray(t, dtype=float)[order],
     )
     return FlightLog(
+        path=path,
         log=log,
         frame=frame,
         lonlatalt=np.column_stack([g[:, 1], g[:, 0], g[:, 2]]),

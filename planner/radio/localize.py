@@ -58,6 +58,13 @@ _BATCH_ELEMENTS: int = 2_000_000
 #: Detected samples needed beyond the number of parameters.
 MIN_EXTRA_DETECTED: int = 5
 _Z95: float = 1.959963984540054
+#: Grid peaks whose profile log-likelihood is this far below the best are not climbed from.
+_START_MARGIN: float = 15.0
+#: Peaks of the refined grid this far below the first stage's maximum are not climbed from
+#: (a climb from a refined cell gains less).
+_REFINE_MARGIN: float = 3.0
+#: At most this many refined grids, each over the region of the one before.
+_REFINE_STAGES: int = 3
 
 
 @dataclass(frozen=True)
@@ -417,7 +424,9 @@ def _start_vector(full: _Full, point: FloatArray) -> FloatArray:
 def _scoring(full: _Full, x: FloatArray, lo: FloatArray, hi: FloatArray, iterations: int = 60) -> tuple[FloatArray, float]:
     """Fisher scoring with step halving on the full likelihood from x (ln σ as its last
     coordinate), the position kept in [lo, hi]: the expected information makes each step a
-    Newton step of the right scale (a few iterations), where a quasi-Newton method wanders."""
+    Newton step of the right scale (a few iterations), where a quasi-Newton method wanders.
+    Stops when the Newton decrement gᵀJ⁻¹g (twice the log-likelihood still to gain, to second
+    order) is below 1e-9: far below the deviance threshold (≈ 6) the region is drawn at."""
     f, g = full.nll(x)
     for _ in range(iterations):
         J = full.fisher(x)
@@ -429,8 +438,10 @@ def _scoring(full: _Full, x: FloatArray, lo: FloatArray, hi: FloatArray, iterati
         except np.linalg.LinAlgError:
             break
         decrement = float(-g @ step)
+        if decrement < 1e-9:
+            break
         t = 1.0
-        for _halving in range(40):
+        for _halving in range(30):
             cand = x + t * step
             cand[: full.q] = np.clip(cand[: full.q], lo, hi)
             fc, gc = full.nll(cand)
@@ -440,8 +451,6 @@ def _scoring(full: _Full, x: FloatArray, lo: FloatArray, hi: FloatArray, iterati
         else:
             break
         x, f, g = cand, fc, gc
-        if decrement < 1e-10:
-            break
     return x, -f
 
 
@@ -467,48 +476,115 @@ def _grid_points(options: LocalizeOptions, lo: FloatArray, hi: FloatArray) -> tu
     return x, y, np.stack([X, Y, Z], axis=-1)
 
 
-def maximum_likelihood(log: RadioLog, options: LocalizeOptions, starts: int = 3) -> tuple[FloatArray, float, FloatArray, RegionGrid]:
-    """The maximum-likelihood estimate: grid search over the area, then a climb from the best
-    ``starts`` separated grid maxima.
+@dataclass(frozen=True)
+class MaximumLikelihood:
+    """The maximum-likelihood fit of :func:`maximum_likelihood`.
 
-    Returns:
-        (x̂ = (p free coordinates, nuisance β, ln σ), ℓ̂, p̂ (3,) m, the coarse grid's deviance).
+    Attributes:
+        x: x̂ = (p's free coordinates, the nuisance parameters of
+            :attr:`LocalizeOptions.nuisance_names`, ln σ).
+        loglik: ℓ̂. estimate_m: p̂ (3,), m.
+        coarse: the deviance 2(ℓ̂ − ℓ_p) on the grid over the search area.
+        fine: the deviance on the refined grid about the region.
     """
-    full = _Full.of(log, options)
-    x_ax, y_ax, pts = _grid_points(options, np.asarray(options.area_min_m, float), np.asarray(options.area_max_m, float))
-    ll = profile_loglik(log, options, pts)  # (nz, ny, nx)
+
+    x: FloatArray
+    loglik: float
+    estimate_m: FloatArray
+    coarse: RegionGrid
+    fine: RegionGrid
+
+
+def _peaks(ll2: FloatArray, size: int) -> FloatArray:
+    """Flat indices of the separated local maxima of a grid (size × size neighbourhoods), best
+    first."""
+    peaks = (ll2 == ndimage.maximum_filter(ll2, size=size, mode="nearest")) & np.isfinite(ll2)
+    order = np.argsort(-np.where(peaks, ll2, -np.inf), axis=None)
+    return order[: int(peaks.sum())]
+
+
+def _grid_starts(ll: FloatArray, pts: FloatArray, starts: int, margin: float, size: int = 5) -> list[FloatArray]:
+    """Candidate points to climb from: the best ``starts`` peaks of the profile grid ``ll``
+    (nz, ny, nx) (maxima of their size × size neighbourhood), those more than ``margin`` below
+    the best left out (the best always in)."""
     ll2 = ll.max(axis=0)
     which_z = ll.argmax(axis=0)
-    # Separated local maxima of the horizontal profile, best first.
-    peaks = (ll2 == ndimage.maximum_filter(ll2, size=5, mode="nearest")) & np.isfinite(ll2)
-    order = np.argsort(-np.where(peaks, ll2, -np.inf), axis=None)[: max(1, starts)]
-    cands: list[FloatArray] = []
-    for flat in order:
+    best = float(ll2.max())
+    out: list[FloatArray] = []
+    for flat in _peaks(ll2, size)[: max(1, starts)]:
         iy, ix = np.unravel_index(flat, ll2.shape)
-        if peaks[iy, ix] or not cands:
-            cands.append(pts[which_z[iy, ix], iy, ix])
-    x_hat, ll_hat = _climb(full, cands, options)
-    ll_hat = max(ll_hat, float(ll2.max()))
-    threshold = float(chi2.ppf(options.level, options.dims))
-    coarse = RegionGrid(x_ax, y_ax, 2.0 * (ll_hat - ll2), threshold)
-    return x_hat, ll_hat, full.point(x_hat), coarse
+        if not out or ll2[iy, ix] > best - margin:
+            out.append(pts[which_z[iy, ix], iy, ix])
+    if not out:  # no finite peak: the grid's best point
+        iy, ix = np.unravel_index(int(np.nanargmax(ll2)), ll2.shape)
+        out.append(pts[which_z[iy, ix], iy, ix])
+    return out
 
 
-def _refined_region(log: RadioLog, options: LocalizeOptions, ll_hat: float, p_hat: FloatArray, coarse: RegionGrid) -> RegionGrid:
-    """The region on a grid over the bounding box of the coarse region (one coarse cell of
-    margin), or over two coarse cells about p̂ when the coarse grid holds no more than its cell."""
+def _fine_box(coarse: RegionGrid, p_hat: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The refined grid's horizontal box: the coarse region's bounding box with one coarse cell
+    of margin, or two coarse cells about p̂ when the coarse grid holds no more than its cell."""
     dx = coarse.x_m[1] - coarse.x_m[0]
     dy = coarse.y_m[1] - coarse.y_m[0]
     iy, ix = np.nonzero(coarse.mask)
     if len(ix) > 1:
-        lo = np.array([coarse.x_m[ix.min()] - dx, coarse.y_m[iy.min()] - dy])
-        hi = np.array([coarse.x_m[ix.max()] + dx, coarse.y_m[iy.max()] + dy])
-    else:
-        lo = p_hat[:2] - 2.0 * np.array([dx, dy])
-        hi = p_hat[:2] + 2.0 * np.array([dx, dy])
-    x_ax, y_ax, pts = _grid_points(options, lo, hi)
-    ll = profile_loglik(log, options, pts).max(axis=0)
-    return RegionGrid(x_ax, y_ax, 2.0 * (ll_hat - np.minimum(ll, ll_hat)), coarse.threshold)
+        return (np.array([coarse.x_m[ix.min()] - dx, coarse.y_m[iy.min()] - dy]), np.array([coarse.x_m[ix.max()] + dx, coarse.y_m[iy.max()] + dy]))
+    return p_hat[:2] - 2.0 * np.array([dx, dy]), p_hat[:2] + 2.0 * np.array([dx, dy])
+
+
+def maximum_likelihood(log: RadioLog, options: LocalizeOptions, starts: int = 3) -> MaximumLikelihood:
+    """The maximum-likelihood estimate, found in stages, and the deviance on the first and the
+    last grid.
+
+    1. A grid over the search area; a climb (Fisher scoring) from its best ``starts``
+       separated peaks.
+    2. Up to :data:`_REFINE_STAGES` refined grids, each over the region of the one before
+       (:func:`_fine_box`), until the region spans a third of the grid on both axes; a climb
+       from each one's peaks that are not the maximum seen again. A likelihood with a null in
+       the pattern has maxima closer together than a coarse cell (a ring about the null): the
+       refined grids find the one the first climb missed, and the last one draws the region.
+    """
+    full = _Full.of(log, options)
+    threshold = float(chi2.ppf(options.level, options.dims))
+    x_ax, y_ax, pts = _grid_points(options, np.asarray(options.area_min_m, float), np.asarray(options.area_max_m, float))
+    ll = profile_loglik(log, options, pts)  # (nz, ny, nx)
+    x_hat, ll_hat = _climb(full, _grid_starts(ll, pts, starts, _START_MARGIN), options)
+    coarse = RegionGrid(x_ax, y_ax, 2.0 * (ll_hat - ll.max(axis=0)), threshold)
+    lo, hi = _fine_box(coarse, full.point(x_hat))
+    fine = coarse
+    grids = [(ll, pts)]
+    for _stage in range(_REFINE_STAGES):
+        fx, fy, fpts = _grid_points(options, lo, hi)
+        fll = profile_loglik(log, options, fpts)
+        grids.append((fll, fpts))
+        p_hat = full.point(x_hat)
+        cell = math.hypot(fx[1] - fx[0], fy[1] - fy[0])
+        # Peaks of the refined grid close enough to the maximum to be it: climb from them too,
+        # unless one is the maximum seen again (nearby and not above it).
+        others = []
+        for p in _grid_starts(fll, fpts, starts, _REFINE_MARGIN, size=3):
+            value = float(profile_loglik(log, options, p))
+            if value > ll_hat or (value > ll_hat - _REFINE_MARGIN and math.hypot(*(p[:2] - p_hat[:2])) > 1.5 * cell):
+                others.append(p)
+        if others:
+            x2, ll2 = _climb(full, others, options)
+            if ll2 > ll_hat:
+                x_hat, ll_hat = x2, ll2
+        fine = RegionGrid(fx, fy, 2.0 * (ll_hat - fll.max(axis=0)), threshold)
+        # Zoom in while the region spans fewer than a third of the grid's cells on an axis: a
+        # pattern's null makes maxima closer together than such a cell.
+        iy, ix = np.nonzero(fine.mask)
+        if len(ix) and min(np.ptp(ix), np.ptp(iy)) + 1 >= options.grid // 3:
+            break
+        lo, hi = _fine_box(fine, full.point(x_hat))
+    # A grid point above every climb (a climb stopped short) is the estimate then.
+    for grid_ll, grid_pts in grids:
+        if float(grid_ll.max()) > ll_hat:
+            x_hat = _start_vector(full, grid_pts.reshape(-1, 3)[int(np.argmax(grid_ll))])
+            ll_hat = -full.nll(x_hat)[0]
+    coarse = RegionGrid(x_ax, y_ax, 2.0 * (ll_hat - ll.max(axis=0)), threshold)
+    fine = RegionGrid(fine.x_m, fine.y_m, 2.0 * (ll_hat - grids[-1][0].max(axis=0)), threshold)
+    return MaximumLikelihood(x_hat, ll_hat, full.point(x_hat), coarse, fine)
 
 
 def localize(log: RadioLog, options: LocalizeOptions) -> Localization:
@@ -521,9 +597,9 @@ def localize(log: RadioLog, options: LocalizeOptions) -> Localization:
     q, k = options.dims, len(options.nuisance_names)
     detected = log.detected
     if detected < q + k + 1 + MIN_EXTRA_DETECTED:
-        raise ValueError(f"localize: expected at least {q + k + 1 + MIN_EXTRA_DETECTED} detected samples, found {detected}")
-    x_hat, ll_hat, p_hat, coarse = maximum_likelihood(log, options)
-    region = _refined_region(log, options, ll_hat, p_hat, coarse)
+        raise ValueError(f"expected at least {q + k + 1 + MIN_EXTRA_DETECTED} detected samples to localize, found {detected}")
+    ml = maximum_likelihood(log, options)
+    x_hat, ll_hat, p_hat, coarse, region = ml.x, ml.loglik, ml.estimate_m, ml.coarse, ml.fine
     full = _Full.of(log, options)
     J = full.fisher(x_hat)
     reasons: list[str] = []
@@ -630,7 +706,7 @@ def thinning(log: RadioLog, options: LocalizeOptions, spacing_m: float | None, p
     if spacing_m is not None:
         return Thinning(thin_by_distance(path, spacing_m), float(spacing_m), None)
     pilot = log.subset(np.unique(np.linspace(0, len(log) - 1, min(len(log), pilot_samples)).astype(np.intp)))
-    x_hat, _, _, _ = maximum_likelihood(pilot, options)
+    x_hat = maximum_likelihood(pilot, options).x
     corr = residual_correlation_m(log, model_mean_db(log, options, x_hat))
     return Thinning(thin_by_distance(path, corr), corr, corr)
 

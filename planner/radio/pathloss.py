@@ -69,16 +69,24 @@ class Pattern:
     def gain_db(self, psi: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """(g(ψ) dB, dg/dψ dB/rad) at elevations ψ (rad, in [−π/2, π/2])."""
         psi = np.asarray(psi, dtype=float)
+        return self.gain_db_sc(np.sin(psi), np.cos(psi))
+
+    def gain_db_sc(self, sin_psi: ArrayLike, cos_psi: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """:meth:`gain_db` from sin ψ and cos ψ ≥ 0 (no trigonometry of ψ itself: the grid of a
+        localization evaluates it for every candidate and sample)."""
+        sn = np.asarray(sin_psi, dtype=float)
+        c = np.asarray(cos_psi, dtype=float)
         if self.name == "isotropic":
-            return np.zeros_like(psi), np.zeros_like(psi)
-        c = np.cos(psi)
-        inner = 0.5 * np.pi * np.sin(psi)
+            z = np.zeros(np.broadcast_shapes(sn.shape, c.shape))
+            return z, z
+        inner = (0.5 * np.pi) * sn
         ci = np.cos(inner)
         safe = (c > 1e-9) & (ci > 1e-12)
         cs = np.where(safe, c, 1.0)
         cis = np.where(safe, ci, 1.0)
-        g = np.where(safe, 2.0 * TEN_OVER_LN10 * (np.log(cis) - np.log(cs)), PATTERN_FLOOR_DB)
-        dg = np.where(safe, 2.0 * TEN_OVER_LN10 * (-np.tan(inner) * 0.5 * np.pi * c + np.tan(psi)), 0.0)
+        k = 2.0 * TEN_OVER_LN10
+        g = np.where(safe, k * (np.log(cis) - np.log(cs)), PATTERN_FLOOR_DB)
+        dg = np.where(safe, k * (-(np.sin(inner) / cis) * (0.5 * np.pi) * c + sn / cs), 0.0)
         low = g <= PATTERN_FLOOR_DB
         return np.where(low, PATTERN_FLOOR_DB, g), np.where(low, 0.0, dg)
 
@@ -123,7 +131,8 @@ def link_terms(emitter: ArrayLike, receivers: ArrayLike, pattern: Pattern, deriv
         rho = None
     else:
         rho = np.sqrt(rho2)
-        gain, dg = pattern.gain_db(np.arctan2(v[..., 2], rho))
+        inv_d = 1.0 / np.sqrt(d2)
+        gain, dg = pattern.gain_db_sc(v[..., 2] * inv_d, rho * inv_d)
     if not derivatives:
         empty = np.zeros(0)
         return LinkTerms(log_d=log_d, gain=gain, dlogd_dp=empty, dgain_dp=empty)
@@ -229,11 +238,11 @@ def fit_channel(
     thr = np.asarray(threshold_db, dtype=float)
     _check_samples(pw, cens, thr)
     if not (np.isfinite(d).all() and (d > 0.0).all()):
-        raise ValueError("fit_channel: expected positive finite distances")
+        raise ValueError("expected positive finite distances to fit the channel")
     lo = np.ones(d.shape, dtype=bool) if los is None else np.asarray(los, dtype=bool)
     g = np.zeros(d.shape) if gain_db is None else np.asarray(gain_db, dtype=float)
     if (~cens).sum() < 3:
-        raise ValueError(f"fit_channel: expected at least 3 detected samples, found {(~cens).sum()}")
+        raise ValueError(f"expected at least 3 detected samples to fit the channel, found {(~cens).sum()}")
     y = censored_values(pw, cens, thr)
     logd = 0.5 * TEN_OVER_LN10 * np.log(d * d)
     X = np.column_stack([np.ones_like(d), -logd])

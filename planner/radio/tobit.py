@@ -121,25 +121,27 @@ class LinearFit:
 
 @dataclass(frozen=True)
 class _Scaled:
-    """The scaled problem of :func:`fit_linear`: the detected samples' sufficient statistics
-    (Σ X̃X̃ᵀ, Σ X̃ỹ, Σ ỹ², their count) and the censored samples' rows (X̃, c̃)."""
+    """The scaled problem of :func:`fit_linear`, batch flattened to (B,): the detected samples'
+    sufficient statistics (Σ X̃X̃ᵀ, Σ X̃ỹ, Σ ỹ², their count) and the censored samples' rows
+    (X̃, c̃) with ∂z/∂(α, h) = (−X̃, c̃)."""
 
-    sxx: FloatArray  # (..., k, k)
-    sxy: FloatArray  # (..., k)
-    syy: FloatArray  # (...)
-    n_det: FloatArray  # (...)
-    xc: FloatArray  # (..., nc, k)
-    cc: FloatArray  # (..., nc)
-    const: FloatArray  # (...): −n_det ln √2π − Σ_det ln k_i
+    sxx: FloatArray  # (B, k, k)
+    sxy: FloatArray  # (B, k)
+    syy: FloatArray  # (B,)
+    n_det: float
+    xc: FloatArray  # (B, nc, k)
+    cc: FloatArray  # (B, nc)
+    dz: FloatArray  # (B, nc, k + 1)
+    const: FloatArray  # (B,): −n_det ln √2π − Σ_det ln k_i
 
-    def loglik(self, alpha: FloatArray, h: FloatArray) -> FloatArray:
-        """ℓ(α, h), (...)."""
-        quad = h * h * self.syy - 2.0 * h * (self.sxy * alpha).sum(-1) + np.einsum("...k,...kj,...j->...", alpha, self.sxx, alpha)
-        ll = self.n_det * np.log(h) - 0.5 * quad + self.const
-        if self.cc.shape[-1]:
-            z = h[..., None] * self.cc - (self.xc @ alpha[..., None])[..., 0]
-            ll = ll + log_ndtr(z).sum(-1)
-        return ll
+    def loglik(self, alpha: FloatArray, h: FloatArray, idx: NDArray[np.intp]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """ℓ(α, h) of the batch elements ``idx``, their censored rows' z = h c̃ − X̃α and ln Φ(z)."""
+        sxx, sxy = self.sxx[idx], self.sxy[idx]
+        quad = h * h * self.syy[idx] - 2.0 * h * (sxy * alpha).sum(-1) + (alpha[:, :, None] * sxx * alpha[:, None, :]).sum((-1, -2))
+        ll = self.n_det * np.log(h) - 0.5 * quad + self.const[idx]
+        z = h[:, None] * self.cc[idx] - (self.xc[idx] @ alpha[:, :, None])[:, :, 0]
+        log_phi = log_ndtr(z)
+        return ll + log_phi.sum(-1), z, log_phi
 
 
 def fit_linear(
@@ -149,7 +151,7 @@ def fit_linear(
     offset: ArrayLike = 0.0,
     scale: ArrayLike = 1.0,
     iterations: int = 60,
-    tol: float = 1e-10,
+    tol: float = 1e-9,
 ) -> LinearFit:
     r"""Maximum-likelihood fit of μ_i = o_i + X_i β, σ_i = k_i σ to censored samples, batched.
 
@@ -162,7 +164,7 @@ def fit_linear(
 
     is concave; Newton's method with step halving climbs it from the least-squares start. The
     detected samples enter through their sufficient statistics, so an iteration costs only the
-    censored samples.
+    censored samples, and only the batch elements not yet converged.
 
     Args:
         y: (..., n) detected power, or the threshold of a censored sample (dB).
@@ -183,79 +185,97 @@ def fit_linear(
     if cens.shape != (n,):
         raise ValueError(f"fit_linear: expected censored of shape ({n},), found {cens.shape}")
     batch = np.broadcast_shapes(X.shape[:-2], np.shape(y)[:-1], np.shape(offset)[:-1], np.shape(scale)[:-1])
-    kk = np.broadcast_to(np.asarray(scale, float), batch + (n,))
-    yt = (np.broadcast_to(np.asarray(y, float), batch + (n,)) - np.broadcast_to(np.asarray(offset, float), batch + (n,))) / kk
-    Xt = np.broadcast_to(X, batch + (n, k)) / kk[..., None]
+    nb = int(np.prod(batch, dtype=int))
+    kk = np.broadcast_to(np.asarray(scale, float), batch + (n,)).reshape(nb, n)
+    yt = (np.broadcast_to(np.asarray(y, float), batch + (n,)).reshape(nb, n) - np.broadcast_to(np.asarray(offset, float), batch + (n,)).reshape(nb, n)) / kk
+    Xt = np.broadcast_to(X, batch + (n, k)).reshape(nb, n, k) / kk[:, :, None]
     det = ~cens
-    Xd, yd = Xt[..., det, :], yt[..., det]
+    Xd, yd = Xt[:, det, :], yt[:, det]
     sxx = np.swapaxes(Xd, -1, -2) @ Xd
-    sxy = (np.swapaxes(Xd, -1, -2) @ yd[..., None])[..., 0]
+    sxy = (np.swapaxes(Xd, -1, -2) @ yd[:, :, None])[:, :, 0]
     nd = float(det.sum())
+    xc, cc = Xt[:, cens, :], yt[:, cens]
     prob = _Scaled(
         sxx=sxx,
         sxy=sxy,
         syy=(yd * yd).sum(-1),
-        n_det=np.full(batch, nd),
-        xc=Xt[..., cens, :],
-        cc=yt[..., cens],
-        const=-nd * _LOG_SQRT_2PI - np.log(kk[..., det]).sum(-1),
+        n_det=nd,
+        xc=xc,
+        cc=cc,
+        dz=np.concatenate([-xc, cc[:, :, None]], axis=-1),
+        const=-nd * _LOG_SQRT_2PI - np.log(kk[:, det]).sum(-1),
     )
     # Start: least squares on the detected samples and the censored ones at their threshold.
     if k:
-        A = sxx + 0.3 * (np.swapaxes(prob.xc, -1, -2) @ prob.xc) + 1e-9 * np.eye(k)
-        beta0 = np.linalg.solve(A, (sxy + 0.3 * (np.swapaxes(prob.xc, -1, -2) @ prob.cc[..., None])[..., 0])[..., None])[..., 0]
+        A = sxx + 0.3 * (np.swapaxes(xc, -1, -2) @ xc) + 1e-9 * np.eye(k)
+        beta0 = np.linalg.solve(A, (sxy + 0.3 * (np.swapaxes(xc, -1, -2) @ cc[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
     else:
-        beta0 = np.zeros(batch + (0,))
-    rss = prob.syy - 2.0 * (sxy * beta0).sum(-1) + np.einsum("...k,...kj,...j->...", beta0, sxx, beta0)
+        beta0 = np.zeros((nb, 0))
+    rss = prob.syy - 2.0 * (sxy * beta0).sum(-1) + (beta0[:, :, None] * sxx * beta0[:, None, :]).sum((-1, -2))
     h = 1.0 / np.sqrt(np.maximum(rss / max(nd, 1.0), 1e-6))
-    alpha = beta0 * h[..., None]
-    ll = prob.loglik(alpha, h)
-    converged = np.zeros(batch, dtype=bool)
+    alpha = beta0 * h[:, None]
+    every = np.arange(nb)
+    ll, z, log_phi = prob.loglik(alpha, h, every)
+    converged = np.zeros(nb, dtype=bool)
     m = k + 1
+    eye = np.eye(m)
+    idx = every
     for _ in range(iterations):
+        a, hh = alpha[idx], h[idx]
+        sxx_i, sxy_i = prob.sxx[idx], prob.sxy[idx]
         # Detected samples: g = (S_xy h − S_xx α, n/h − S_yy h + S_xyᵀα); H from the same sums.
-        g = np.empty(batch + (m,))
-        g[..., :k] = h[..., None] * sxy - (sxx @ alpha[..., None])[..., 0]
-        g[..., k] = nd / h - h * prob.syy + (sxy * alpha).sum(-1)
-        H = np.empty(batch + (m, m))
-        H[..., :k, :k] = -sxx
-        H[..., :k, k] = sxy
-        H[..., k, :k] = sxy
-        H[..., k, k] = -nd / (h * h) - prob.syy
-        if prob.cc.shape[-1]:
-            z = h[..., None] * prob.cc - (prob.xc @ alpha[..., None])[..., 0]
-            lam = inverse_mills(z)
-            dz = np.concatenate([-prob.xc, prob.cc[..., None]], axis=-1)  # ∂z/∂(α, h)
-            g += (np.swapaxes(dz, -1, -2) @ lam[..., None])[..., 0]
-            H -= np.swapaxes(dz, -1, -2) @ (dz * (lam * (z + lam))[..., None])
-        step = np.linalg.solve(H - 1e-12 * np.eye(m), -g[..., None])[..., 0]
-        t = np.ones(batch)
-        new_ll = np.full(batch, -np.inf)
-        new_alpha, new_h = alpha, h
-        todo = ~converged
+        g = np.empty((len(idx), m))
+        g[:, :k] = hh[:, None] * sxy_i - (sxx_i @ a[:, :, None])[:, :, 0]
+        g[:, k] = nd / hh - hh * prob.syy[idx] + (sxy_i * a).sum(-1)
+        H = np.empty((len(idx), m, m))
+        H[:, :k, :k] = -sxx_i
+        H[:, :k, k] = sxy_i
+        H[:, k, :k] = sxy_i
+        H[:, k, k] = -nd / (hh * hh) - prob.syy[idx]
+        if z.shape[-1]:
+            lam = np.exp(-0.5 * z * z - _LOG_SQRT_2PI - log_phi)  # φ(z)/Φ(z), Φ from the last ℓ
+            dz = prob.dz[idx]
+            g += (np.swapaxes(dz, -1, -2) @ lam[:, :, None])[:, :, 0]
+            H -= np.swapaxes(dz, -1, -2) @ (dz * (lam * (z + lam))[:, :, None])
+        step = np.linalg.solve(H - 1e-12 * eye, -g[:, :, None])[:, :, 0]
+        t = np.ones(len(idx))
+        ll_i = ll[idx]
+        new_ll = np.full(len(idx), -np.inf)
+        new_alpha, new_h, new_z, new_lp = a.copy(), hh.copy(), z.copy(), log_phi.copy()
+        todo = np.ones(len(idx), dtype=bool)
         for _halving in range(30):
-            cand_h = h + t * step[..., k]
-            cand_alpha = alpha + t[..., None] * step[..., :k]
+            sub = np.nonzero(todo)[0]
+            cand_h = hh[sub] + t[sub] * step[sub, k]
+            cand_alpha = a[sub] + t[sub, None] * step[sub, :k]
             ok_h = cand_h > 0.0
-            cand_ll = np.where(ok_h, prob.loglik(cand_alpha, np.where(ok_h, cand_h, 1.0)), -np.inf)
-            better = todo & (cand_ll >= ll - 1e-12 * np.abs(ll))
-            new_ll = np.where(better, cand_ll, new_ll)
-            new_h = np.where(better, cand_h, new_h)
-            new_alpha = np.where(better[..., None], cand_alpha, new_alpha)
-            todo = todo & ~better
+            cand_ll, cand_z, cand_lp = prob.loglik(cand_alpha, np.where(ok_h, cand_h, 1.0), idx[sub])
+            cand_ll = np.where(ok_h, cand_ll, -np.inf)
+            better = cand_ll >= ll_i[sub] - 1e-12 * np.abs(ll_i[sub])
+            won = sub[better]
+            new_ll[won], new_h[won], new_alpha[won] = cand_ll[better], cand_h[better], cand_alpha[better]
+            new_z[won], new_lp[won] = cand_z[better], cand_lp[better]
+            todo[won] = False
             if not todo.any():
                 break
-            t = np.where(todo, 0.5 * t, t)
+            t[todo] *= 0.5
         moved = np.isfinite(new_ll)
-        rel = np.abs(t[..., None] * step) / (np.abs(np.concatenate([alpha, h[..., None]], axis=-1)) + 1e-12)
-        alpha = np.where(moved[..., None], new_alpha, alpha)
-        h = np.where(moved, new_h, h)
-        ll = np.where(moved, new_ll, ll)
-        converged = converged | ~moved | (rel.max(-1, initial=0.0) < tol)
-        if converged.all():
+        rel = np.abs(t[:, None] * step) / (np.abs(np.concatenate([a, hh[:, None]], axis=-1)) + 1e-12)
+        alpha[idx[moved]] = new_alpha[moved]
+        h[idx[moved]] = new_h[moved]
+        ll[idx[moved]] = new_ll[moved]
+        done = ~moved | (rel.max(-1, initial=0.0) < tol)
+        converged[idx[done]] = True
+        keep = ~done
+        idx, z, log_phi = idx[keep], new_z[keep], new_lp[keep]
+        if not len(idx):
             break
     sigma = 1.0 / h
-    return LinearFit(beta=alpha * sigma[..., None], sigma=sigma, loglik=ll, converged=converged)
+    return LinearFit(
+        beta=(alpha * sigma[:, None]).reshape(batch + (k,)),
+        sigma=sigma.reshape(batch),
+        loglik=ll.reshape(batch),
+        converged=converged.reshape(batch),
+    )
 
 
 __all__ = ["LinearFit", "expected_information", "fit_linear", "inverse_mills", "loglik_terms"]
