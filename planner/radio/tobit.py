@@ -187,7 +187,9 @@ def fit_linear(
     batch = np.broadcast_shapes(X.shape[:-2], np.shape(y)[:-1], np.shape(offset)[:-1], np.shape(scale)[:-1])
     nb = int(np.prod(batch, dtype=int))
     kk = np.broadcast_to(np.asarray(scale, float), batch + (n,)).reshape(nb, n)
-    yt = (np.broadcast_to(np.asarray(y, float), batch + (n,)).reshape(nb, n) - np.broadcast_to(np.asarray(offset, float), batch + (n,)).reshape(nb, n)) / kk
+    yt = (
+        np.broadcast_to(np.asarray(y, float), batch + (n,)).reshape(nb, n) - np.broadcast_to(np.asarray(offset, float), batch + (n,)).reshape(nb, n)
+    ) / kk
     Xt = np.broadcast_to(X, batch + (n, k)).reshape(nb, n, k) / kk[:, :, None]
     det = ~cens
     Xd, yd = Xt[:, det, :], yt[:, det]

@@ -99,10 +99,10 @@ def test_fit_linear_batched_equals_one_by_one() -> None:
     # One censoring pattern for the batch (the design the localization has): reuse sample 0's.
     Y = np.stack([np.where(cens, 0.5, p[0]) for p in problems])
     XX = np.stack([p[2] for p in problems])
-    O = np.stack([p[3] for p in problems])
-    batch = fit_linear(Y, cens, XX, offset=O, scale=problems[0][4])
+    offsets = np.stack([p[3] for p in problems])
+    batch = fit_linear(Y, cens, XX, offset=offsets, scale=problems[0][4])
     for i in range(4):
-        one = fit_linear(Y[i], cens, XX[i], offset=O[i], scale=problems[0][4])
+        one = fit_linear(Y[i], cens, XX[i], offset=offsets[i], scale=problems[0][4])
         assert batch.loglik[i] == pytest.approx(float(one.loglik), abs=1e-9)
         assert np.allclose(batch.beta[i], one.beta, atol=1e-8)
 
