@@ -495,7 +495,7 @@ class MaximumLikelihood:
     fine: RegionGrid
 
 
-def _peaks(ll2: FloatArray, size: int) -> FloatArray:
+def _peaks(ll2: FloatArray, size: int) -> NDArray[np.intp]:
     """Flat indices of the separated local maxima of a grid (size × size neighbourhoods), best
     first."""
     peaks = (ll2 == ndimage.maximum_filter(ll2, size=size, mode="nearest")) & np.isfinite(ll2)
