@@ -204,6 +204,7 @@ def convert(repo: Path, run: str, pickle_name: str, min_alt_m: float, csv_path: 
         by_value.setdefault(struct.unpack("<f", struct.pack("<f", power[k][1]))[0], []).append(power[k][0])
     drift = [(r["radio_timestamp"] - by_value[r["Channel"]][0]).total_seconds() for r in records if len(by_value.get(r["Channel"], [])) == 1]
     return {
+        "ground_alt_m": float(pos[0, 2]),
         "power_samples": len(keys),
         "records": len(records),
         "position_updates": int(changed.sum()),
@@ -276,8 +277,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     flight = read_flight_log(csv_path, None, args.threshold_db, args.min_quality)
     frame = flight.frame
-    ground = float(flight.log.positions_m[:, 2].min())
-    rover_alt = ground
+    # The rover on the ground: the copter's altitude before take-off (the first position).
+    rover_alt = conv["ground_alt_m"]
     result: dict[str, Any] = {
         "conversion": conv,
         "rover_listed": rover,
@@ -288,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # --- calibrate at the listed rover position
     src = f"{rover[0]},{rover[1]},{rover_alt}"
-    common = ["--min-quality", str(args.min_quality), "--threshold-db", str(args.threshold_db)]
+    common = ["--min-quality", str(args.min_quality), "--threshold-db", str(args.threshold_db), "--emitter-alt", f"{rover_alt:.3f}"]
     cal_text = run_cli(["calibrate", str(csv_path), "--source", src, *common, "--out", str(out / "channel.yaml"), "--overwrite"])
     print("\n$ fimnav calibrate afar_run.csv --source LISTED_ROVER " + " ".join(common))
     print(cal_text.rstrip())
@@ -349,9 +350,9 @@ def main(argv: list[str] | None = None) -> int:
     variants = [
         ("unknown power, γ free, isotropic", ["--pattern", "isotropic", *common]),
         ("unknown power, γ free, dipole (zenith null)", ["--pattern", "dipole", *common]),
-        ("threshold 0 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "0"]),
-        ("threshold 10 dB", ["--pattern", "isotropic", "--min-quality", str(args.min_quality), "--threshold-db", "10"]),
-        ("no censoring: every sample a measurement", ["--pattern", "isotropic"]),
+        ("threshold 0 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "0", *common[4:]]),
+        ("threshold 10 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "10", *common[4:]]),
+        ("no censoring: every sample a measurement", ["--pattern", "isotropic", *common[4:]]),
         ("spacing 0: every sample, as if independent", ["--pattern", "isotropic", *common, "--spacing-m", "0"]),
         (
             f"spacing {spacing_listed} m: the correlation distance at the listed position",

@@ -127,6 +127,68 @@ def _float_or_free(name: str, text: str | None) -> float | str | None:
     return v
 
 
+def _search_area(args: argparse.Namespace, flight: FlightLog) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float], bool]:
+    """(area min, area max, heights searched, from a mission's search box) of the search."""
+    mission = flight.mission
+    box = mission.source.search_box if mission is not None else None
+    if box is not None:
+        return (box.min_m[0], box.min_m[1]), (box.max_m[0], box.max_m[1]), (box.min_m[2], box.max_m[2]), True
+    if not (math.isfinite(args.margin_m) and args.margin_m > 0.0):
+        raise UsageError(f"--margin-m: expected a positive number of metres, found {args.margin_m}")
+    pos = flight.log.positions_m
+    low = float(pos[:, 2].min())
+    return (
+        (float(pos[:, 0].min() - args.margin_m), float(pos[:, 1].min() - args.margin_m)),
+        (float(pos[:, 0].max() + args.margin_m), float(pos[:, 1].max() + args.margin_m)),
+        (low - GROUND_SEARCH_M, low),
+        False,
+    )
+
+
+def _emitter_height(args: argparse.Namespace, flight: FlightLog, z_range: tuple[float, float], boxed: bool, notes: list[str]) -> float | None:
+    """The emitter's height (m), or None to estimate it: ``--emitter-alt``, else free in a
+    mission's search box, else the log's lowest altitude when the log holds its take-off."""
+    alt = _float_or_free("--emitter-alt", args.emitter_alt)
+    pos = flight.log.positions_m
+    span = float(pos[:, 2].max() - pos[:, 2].min())
+    if alt == "free" or (alt is None and (boxed or span < TAKEOFF_SPAN_M)):
+        if not boxed:
+            notes.append(
+                f"emitter height estimated between {z_range[0]:.1f} and {z_range[1]:.1f} m (the log holds no take-off; --emitter-alt to set it)"
+            )
+        return None
+    if alt is None:
+        low = float(pos[:, 2].min())
+        notes.append(f"emitter height {low:.1f} m: the log's lowest altitude, its take-off point (an emitter on the ground; --emitter-alt to set)")
+        return low
+    return float(alt)
+
+
+def _channel_knowns(args: argparse.Namespace, flight: FlightLog) -> tuple[float | None, float | None]:
+    """(γ, P0): each the value known, or None to estimate it (``--exponent``, ``--power``)."""
+    mission = flight.mission
+    exponent = _float_or_free("--exponent", args.exponent)
+    gamma: float | None = None
+    if isinstance(exponent, float):
+        if not exponent > 0.0:
+            raise UsageError(f"--exponent: expected a positive exponent or 'free', found {args.exponent!r}")
+        gamma = exponent
+    elif exponent is None and mission is not None:
+        gamma = mission.channel.path_loss_exponent
+    if args.power != "known":
+        return gamma, None
+    reference = args.reference_power_db
+    if reference is None and mission is not None:
+        reference = mission.channel.reference_power_db
+    if reference is None and args.log.is_dir():
+        reference = 0.0  # a launch's ranges are read as power with 0 dB at 1 m
+    if reference is None:
+        raise UsageError(
+            "--power known: expected --reference-power-db or a mission whose channel has reference_power_db (fimnav calibrate writes it)"
+        )
+    return gamma, float(reference)
+
+
 def options_from_args(args: argparse.Namespace, flight: FlightLog) -> tuple[LocalizeOptions, list[str]]:
     """The :class:`planner.radio.localize.LocalizeOptions` of the arguments, the mission and the
     log, and notes saying what was assumed."""
@@ -137,59 +199,13 @@ def options_from_args(args: argparse.Namespace, flight: FlightLog) -> tuple[Loca
 
     mission = flight.mission
     notes: list[str] = []
-    pos = flight.log.positions_m
-    box = mission.source.search_box if mission is not None else None
-    if box is not None:
-        area_min, area_max = (box.min_m[0], box.min_m[1]), (box.max_m[0], box.max_m[1])
-        z_range = (box.min_m[2], box.max_m[2])
+    area_min, area_max, z_range, boxed = _search_area(args, flight)
+    emitter_z = _emitter_height(args, flight, z_range, boxed, notes)
+    gamma, reference = _channel_knowns(args, flight)
+    if args.bearing_sigma_deg:
+        sigma_b = math.radians(args.bearing_sigma_deg)
     else:
-        if not (math.isfinite(args.margin_m) and args.margin_m > 0.0):
-            raise UsageError(f"--margin-m: expected a positive number of metres, found {args.margin_m}")
-        area_min = (float(pos[:, 0].min() - args.margin_m), float(pos[:, 1].min() - args.margin_m))
-        area_max = (float(pos[:, 0].max() + args.margin_m), float(pos[:, 1].max() + args.margin_m))
-        low = float(pos[:, 2].min())
-        z_range = (low - GROUND_SEARCH_M, low)
-    alt = _float_or_free("--emitter-alt", args.emitter_alt)
-    emitter_z: float | None
-    span = float(pos[:, 2].max() - pos[:, 2].min())
-    if alt == "free" or (alt is None and (box is not None or span < TAKEOFF_SPAN_M)):
-        emitter_z = None
-        if box is None:
-            notes.append(
-                f"emitter height estimated between {z_range[0]:.1f} and {z_range[1]:.1f} m (the log holds no take-off; --emitter-alt to set it)"
-            )
-    elif alt is None:
-        emitter_z = float(pos[:, 2].min())
-        notes.append(
-            f"emitter height {emitter_z:.1f} m: the log's lowest altitude, its take-off point (an emitter on the ground; --emitter-alt to set)"
-        )
-    else:
-        emitter_z = float(alt)
-    exponent = _float_or_free("--exponent", args.exponent)
-    gamma: float | None
-    if exponent == "free" or (exponent is None and mission is None):
-        gamma = None
-    elif exponent is None:
-        assert mission is not None  # noqa: S101 - the branch above
-        gamma = mission.channel.path_loss_exponent
-    else:
-        gamma = float(exponent)
-        if not gamma > 0.0:
-            raise UsageError(f"--exponent: expected a positive exponent or 'free', found {args.exponent!r}")
-    reference: float | None = None
-    if args.power == "known":
-        reference = args.reference_power_db
-        if reference is None and mission is not None:
-            reference = mission.channel.reference_power_db
-        if reference is None and args.log.is_dir():
-            reference = 0.0  # a launch's ranges are read as power with 0 dB at 1 m
-        if reference is None:
-            raise UsageError(
-                "--power known: expected --reference-power-db or a mission whose channel has reference_power_db (fimnav calibrate writes it)"
-            )
-    sigma_b = (
-        math.radians(args.bearing_sigma_deg) if args.bearing_sigma_deg else (mission.channel.sigma_bearing_rad if mission else math.radians(10.0))
-    )
+        sigma_b = mission.channel.sigma_bearing_rad if mission is not None else math.radians(10.0)
     boxes_min, boxes_max = mission.obstacle_bounds() if mission is not None else (np.zeros((0, 3)), np.zeros((0, 3)))
     factor = mission.channel.sigma_ratio_nlos / mission.channel.sigma_ratio_los if mission is not None else 1.0
     try:

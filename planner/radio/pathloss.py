@@ -245,47 +245,16 @@ def fit_channel(
         raise ValueError(f"expected at least 3 detected samples to fit the channel, found {(~cens).sum()}")
     y = censored_values(pw, cens, thr)
     logd = 0.5 * TEN_OVER_LN10 * np.log(d * d)
-    X = np.column_stack([np.ones_like(d), -logd])
-    first = fit_linear(y[lo], cens[lo], X[lo], offset=g[lo]) if lo.sum() >= 3 else fit_linear(y, cens, X, offset=g)
-    has_nlos = bool((~lo).any())
-    start = np.array([first.beta[0], first.beta[1], math.log(first.sigma), math.log(first.sigma)])
-
-    def unpack(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        mu = x[0] - x[1] * logd + g
-        sig = np.where(lo, math.exp(x[2]), math.exp(x[3]))
-        return mu, sig
-
-    def nll(x: FloatArray) -> tuple[float, FloatArray]:
-        mu, sig = unpack(x)
-        ll, dmu, dsig = loglik_terms(y, cens, mu, sig)
-        grad = np.array([dmu.sum(), -(dmu * logd).sum(), (dsig * sig)[lo].sum(), (dsig * sig)[~lo].sum()])
-        return -float(ll.sum()), -grad
-
-    if has_nlos:
-        opt = minimize(nll, start, jac=True, method="BFGS", options={"gtol": 1e-9, "maxiter": 500})
-        x = np.asarray(opt.x, dtype=float)
-    else:
-        x = start
-    mu, sig = unpack(x)
-    ll = float(loglik_terms(y, cens, mu, sig)[0].sum())
-    # Expected information over (P0, γ, σ_L, σ_N): ∂μ/∂(P0, γ) = (1, −10 log10 d).
-    i_mm, i_ms, i_ss = expected_information(mu, sig, thr)
-    dmu = np.column_stack([np.ones_like(d), -logd])
-    dsg = np.column_stack([lo.astype(float), (~lo).astype(float)])
-    J = np.zeros((4, 4))
-    J[:2, :2] = np.einsum("n,ni,nj->ij", i_mm, dmu, dmu)
-    J[:2, 2:] = np.einsum("n,ni,nj->ij", i_ms, dmu, dsg)
-    J[2:, :2] = J[:2, 2:].T
-    J[2:, 2:] = np.einsum("n,ni,nj->ij", i_ss, dsg, dsg)
-    keep = [0, 1, 2, 3] if has_nlos else [0, 1, 2]
-    cov = np.linalg.inv(J[np.ix_(keep, keep)])
-    se = np.sqrt(np.diag(cov))
+    x = _channel_maximum(y, cens, logd, lo, g)
+    mu = x[0] - x[1] * logd + g
+    sig = np.where(lo, math.exp(x[2]), math.exp(x[3]))
+    se = _channel_standard_errors(mu, sig, thr, logd, lo)
 
     def wald(i: int, value: float) -> Estimate:
-        return Estimate(value, value - Z95 * se[i], value + Z95 * se[i])
+        return Estimate(value, value - Z95 * float(se[i]), value + Z95 * float(se[i]))
 
     def log_wald(i: int, value: float) -> Estimate:
-        f = math.exp(Z95 * se[i] / value)
+        f = math.exp(Z95 * float(se[i]) / value)
         return Estimate(value, value / f, value * f)
 
     det = ~cens
@@ -293,13 +262,47 @@ def fit_channel(
         reference_power_db=wald(0, float(x[0])),
         gamma=wald(1, float(x[1])),
         sigma_los_db=log_wald(2, math.exp(x[2])),
-        sigma_nlos_db=log_wald(3, math.exp(x[3])) if has_nlos else None,
+        sigma_nlos_db=log_wald(3, math.exp(x[3])) if (~lo).any() else None,
         detected=int(det.sum()),
         censored=int(cens.sum()),
         nlos=int((~lo).sum()),
         residual_rms_db=float(np.sqrt(np.mean((pw[det] - mu[det]) ** 2))),
-        loglik=ll,
+        loglik=float(loglik_terms(y, cens, mu, sig)[0].sum()),
     )
+
+
+def _channel_maximum(y: FloatArray, cens: BoolArray, logd: FloatArray, lo: BoolArray, g: FloatArray) -> FloatArray:
+    """x̂ = (P0, γ, ln σ_LOS, ln σ_NLOS) of :func:`fit_channel`: the exact censored fit of the
+    LOS samples (one σ), then with NLOS samples a quasi-Newton climb of the full likelihood."""
+    X = np.column_stack([np.ones_like(logd), -logd])
+    first = fit_linear(y[lo], cens[lo], X[lo], offset=g[lo]) if lo.sum() >= 3 else fit_linear(y, cens, X, offset=g)
+    start = np.array([first.beta[0], first.beta[1], math.log(first.sigma), math.log(first.sigma)])
+    if lo.all():
+        return start
+
+    def nll(x: FloatArray) -> tuple[float, FloatArray]:
+        mu = x[0] - x[1] * logd + g
+        sig = np.where(lo, math.exp(x[2]), math.exp(x[3]))
+        ll, dmu, dsig = loglik_terms(y, cens, mu, sig)
+        grad = np.array([dmu.sum(), -(dmu * logd).sum(), (dsig * sig)[lo].sum(), (dsig * sig)[~lo].sum()])
+        return -float(ll.sum()), -grad
+
+    return np.asarray(minimize(nll, start, jac=True, method="BFGS", options={"gtol": 1e-9, "maxiter": 500}).x, dtype=float)
+
+
+def _channel_standard_errors(mu: FloatArray, sig: FloatArray, thr: FloatArray, logd: FloatArray, lo: BoolArray) -> FloatArray:
+    """Standard errors of (P0, γ, σ_LOS[, σ_NLOS]) from the expected information of the censored
+    model (∂μ/∂(P0, γ) = (1, −10 log10 d); σ_NLOS only when a link is NLOS)."""
+    i_mm, i_ms, i_ss = expected_information(mu, sig, thr)
+    dmu = np.column_stack([np.ones_like(logd), -logd])
+    dsg = np.column_stack([lo.astype(float), (~lo).astype(float)])
+    J = np.zeros((4, 4))
+    J[:2, :2] = np.einsum("n,ni,nj->ij", i_mm, dmu, dmu)
+    J[:2, 2:] = np.einsum("n,ni,nj->ij", i_ms, dmu, dsg)
+    J[2:, :2] = J[:2, 2:].T
+    J[2:, 2:] = np.einsum("n,ni,nj->ij", i_ss, dsg, dsg)
+    keep = [0, 1, 2, 3] if (~lo).any() else [0, 1, 2]
+    return np.sqrt(np.diag(np.linalg.inv(J[np.ix_(keep, keep)])))
 
 
 def path_length_m(positions: ArrayLike) -> FloatArray:

@@ -144,6 +144,111 @@ class _Scaled:
         return ll + log_phi.sum(-1), z, log_phi
 
 
+def _scaled_problem(y: ArrayLike, cens: BoolArray, X: FloatArray, offset: ArrayLike, scale: ArrayLike) -> tuple[_Scaled, tuple[int, ...]]:
+    """The :class:`_Scaled` problem of :func:`fit_linear` and the batch shape."""
+    n, k = X.shape[-2], X.shape[-1]
+    batch = np.broadcast_shapes(X.shape[:-2], np.shape(y)[:-1], np.shape(offset)[:-1], np.shape(scale)[:-1])
+    nb = int(np.prod(batch, dtype=int))
+
+    def flat(v: ArrayLike) -> FloatArray:
+        return np.broadcast_to(np.asarray(v, float), batch + (n,)).reshape(nb, n)
+
+    kk = flat(scale)
+    yt = (flat(y) - flat(offset)) / kk
+    Xt = np.broadcast_to(X, batch + (n, k)).reshape(nb, n, k) / kk[:, :, None]
+    det = ~cens
+    Xd, yd = Xt[:, det, :], yt[:, det]
+    nd = float(det.sum())
+    xc, cc = Xt[:, cens, :], yt[:, cens]
+    prob = _Scaled(
+        sxx=np.swapaxes(Xd, -1, -2) @ Xd,
+        sxy=(np.swapaxes(Xd, -1, -2) @ yd[:, :, None])[:, :, 0],
+        syy=(yd * yd).sum(-1),
+        n_det=nd,
+        xc=xc,
+        cc=cc,
+        dz=np.concatenate([-xc, cc[:, :, None]], axis=-1),
+        const=-nd * _LOG_SQRT_2PI - np.log(kk[:, det]).sum(-1),
+    )
+    return prob, batch
+
+
+def _least_squares_start(prob: _Scaled) -> tuple[FloatArray, FloatArray]:
+    """(α, h) of least squares on the detected samples and the censored ones at their threshold."""
+    nb, k = prob.sxy.shape
+    if k:
+        xc, cc = prob.xc, prob.cc
+        A = prob.sxx + 0.3 * (np.swapaxes(xc, -1, -2) @ xc) + 1e-9 * np.eye(k)
+        beta0 = np.linalg.solve(A, (prob.sxy + 0.3 * (np.swapaxes(xc, -1, -2) @ cc[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
+    else:
+        beta0 = np.zeros((nb, 0))
+    rss = prob.syy - 2.0 * (prob.sxy * beta0).sum(-1) + (beta0[:, :, None] * prob.sxx * beta0[:, None, :]).sum((-1, -2))
+    h = 1.0 / np.sqrt(np.maximum(rss / max(prob.n_det, 1.0), 1e-6))
+    return beta0 * h[:, None], h
+
+
+def _newton_step(prob: _Scaled, a: FloatArray, hh: FloatArray, z: FloatArray, log_phi: FloatArray, idx: NDArray[np.intp]) -> FloatArray:
+    """Newton's step in (α, h) of the batch elements ``idx`` at (α, h) = (a, hh), their censored
+    rows at z with ln Φ(z) = ``log_phi``: (len(idx), k + 1)."""
+    k = a.shape[1]
+    m = k + 1
+    nd = prob.n_det
+    sxx_i, sxy_i = prob.sxx[idx], prob.sxy[idx]
+    # Detected samples: g = (S_xy h − S_xx α, n/h − S_yy h + S_xyᵀα); H from the same sums.
+    g = np.empty((len(idx), m))
+    g[:, :k] = hh[:, None] * sxy_i - (sxx_i @ a[:, :, None])[:, :, 0]
+    g[:, k] = nd / hh - hh * prob.syy[idx] + (sxy_i * a).sum(-1)
+    H = np.empty((len(idx), m, m))
+    H[:, :k, :k] = -sxx_i
+    H[:, :k, k] = sxy_i
+    H[:, k, :k] = sxy_i
+    H[:, k, k] = -nd / (hh * hh) - prob.syy[idx]
+    if z.shape[-1]:
+        lam = np.exp(-0.5 * z * z - _LOG_SQRT_2PI - log_phi)  # φ(z)/Φ(z), Φ from the last ℓ
+        dz = prob.dz[idx]
+        g += (np.swapaxes(dz, -1, -2) @ lam[:, :, None])[:, :, 0]
+        H -= np.swapaxes(dz, -1, -2) @ (dz * (lam * (z + lam))[:, :, None])
+    return np.asarray(np.linalg.solve(H - 1e-12 * np.eye(m), -g[:, :, None])[:, :, 0], dtype=float)
+
+
+@dataclass
+class _Iterate:
+    """The accepted points of one halving line search, for the batch elements of a step."""
+
+    ll: FloatArray
+    alpha: FloatArray
+    h: FloatArray
+    z: FloatArray
+    log_phi: FloatArray
+    t: FloatArray
+
+
+def _halving(
+    prob: _Scaled, a: FloatArray, hh: FloatArray, z: FloatArray, log_phi: FloatArray, ll_i: FloatArray, step: FloatArray, idx: NDArray[np.intp]
+) -> _Iterate:
+    """Step halving along ``step`` until ℓ does not decrease (30 halvings at most); ``ll`` −inf
+    where no point was accepted."""
+    k = a.shape[1]
+    out = _Iterate(np.full(len(idx), -np.inf), a.copy(), hh.copy(), z.copy(), log_phi.copy(), np.ones(len(idx)))
+    todo = np.ones(len(idx), dtype=bool)
+    for _ in range(30):
+        sub = np.nonzero(todo)[0]
+        cand_h = hh[sub] + out.t[sub] * step[sub, k]
+        cand_alpha = a[sub] + out.t[sub, None] * step[sub, :k]
+        ok_h = cand_h > 0.0
+        cand_ll, cand_z, cand_lp = prob.loglik(cand_alpha, np.where(ok_h, cand_h, 1.0), idx[sub])
+        cand_ll = np.where(ok_h, cand_ll, -np.inf)
+        better = cand_ll >= ll_i[sub] - 1e-12 * np.abs(ll_i[sub])
+        won = sub[better]
+        out.ll[won], out.h[won], out.alpha[won] = cand_ll[better], cand_h[better], cand_alpha[better]
+        out.z[won], out.log_phi[won] = cand_z[better], cand_lp[better]
+        todo[won] = False
+        if not todo.any():
+            break
+        out.t[todo] *= 0.5
+    return out
+
+
 def fit_linear(
     y: ArrayLike,
     censored: ArrayLike,
@@ -180,100 +285,32 @@ def fit_linear(
         fit then stops at the iteration cap with ``converged`` False.
     """
     X = np.asarray(X, dtype=float)
-    n, k = X.shape[-2], X.shape[-1]
     cens = np.asarray(censored, dtype=bool)
-    if cens.shape != (n,):
-        raise ValueError(f"fit_linear: expected censored of shape ({n},), found {cens.shape}")
-    batch = np.broadcast_shapes(X.shape[:-2], np.shape(y)[:-1], np.shape(offset)[:-1], np.shape(scale)[:-1])
-    nb = int(np.prod(batch, dtype=int))
-    kk = np.broadcast_to(np.asarray(scale, float), batch + (n,)).reshape(nb, n)
-    yt = (
-        np.broadcast_to(np.asarray(y, float), batch + (n,)).reshape(nb, n) - np.broadcast_to(np.asarray(offset, float), batch + (n,)).reshape(nb, n)
-    ) / kk
-    Xt = np.broadcast_to(X, batch + (n, k)).reshape(nb, n, k) / kk[:, :, None]
-    det = ~cens
-    Xd, yd = Xt[:, det, :], yt[:, det]
-    sxx = np.swapaxes(Xd, -1, -2) @ Xd
-    sxy = (np.swapaxes(Xd, -1, -2) @ yd[:, :, None])[:, :, 0]
-    nd = float(det.sum())
-    xc, cc = Xt[:, cens, :], yt[:, cens]
-    prob = _Scaled(
-        sxx=sxx,
-        sxy=sxy,
-        syy=(yd * yd).sum(-1),
-        n_det=nd,
-        xc=xc,
-        cc=cc,
-        dz=np.concatenate([-xc, cc[:, :, None]], axis=-1),
-        const=-nd * _LOG_SQRT_2PI - np.log(kk[:, det]).sum(-1),
-    )
-    # Start: least squares on the detected samples and the censored ones at their threshold.
-    if k:
-        A = sxx + 0.3 * (np.swapaxes(xc, -1, -2) @ xc) + 1e-9 * np.eye(k)
-        beta0 = np.linalg.solve(A, (sxy + 0.3 * (np.swapaxes(xc, -1, -2) @ cc[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
-    else:
-        beta0 = np.zeros((nb, 0))
-    rss = prob.syy - 2.0 * (sxy * beta0).sum(-1) + (beta0[:, :, None] * sxx * beta0[:, None, :]).sum((-1, -2))
-    h = 1.0 / np.sqrt(np.maximum(rss / max(nd, 1.0), 1e-6))
-    alpha = beta0 * h[:, None]
-    every = np.arange(nb)
-    ll, z, log_phi = prob.loglik(alpha, h, every)
-    converged = np.zeros(nb, dtype=bool)
-    m = k + 1
-    eye = np.eye(m)
-    idx = every
+    if cens.shape != (X.shape[-2],):
+        raise ValueError(f"fit_linear: expected censored of shape ({X.shape[-2]},), found {cens.shape}")
+    prob, batch = _scaled_problem(y, cens, X, offset, scale)
+    alpha, h = _least_squares_start(prob)
+    idx = np.arange(len(h))
+    ll, z, log_phi = prob.loglik(alpha, h, idx)
+    converged = np.zeros(len(h), dtype=bool)
     for _ in range(iterations):
         a, hh = alpha[idx], h[idx]
-        sxx_i, sxy_i = prob.sxx[idx], prob.sxy[idx]
-        # Detected samples: g = (S_xy h − S_xx α, n/h − S_yy h + S_xyᵀα); H from the same sums.
-        g = np.empty((len(idx), m))
-        g[:, :k] = hh[:, None] * sxy_i - (sxx_i @ a[:, :, None])[:, :, 0]
-        g[:, k] = nd / hh - hh * prob.syy[idx] + (sxy_i * a).sum(-1)
-        H = np.empty((len(idx), m, m))
-        H[:, :k, :k] = -sxx_i
-        H[:, :k, k] = sxy_i
-        H[:, k, :k] = sxy_i
-        H[:, k, k] = -nd / (hh * hh) - prob.syy[idx]
-        if z.shape[-1]:
-            lam = np.exp(-0.5 * z * z - _LOG_SQRT_2PI - log_phi)  # φ(z)/Φ(z), Φ from the last ℓ
-            dz = prob.dz[idx]
-            g += (np.swapaxes(dz, -1, -2) @ lam[:, :, None])[:, :, 0]
-            H -= np.swapaxes(dz, -1, -2) @ (dz * (lam * (z + lam))[:, :, None])
-        step = np.linalg.solve(H - 1e-12 * eye, -g[:, :, None])[:, :, 0]
-        t = np.ones(len(idx))
-        ll_i = ll[idx]
-        new_ll = np.full(len(idx), -np.inf)
-        new_alpha, new_h, new_z, new_lp = a.copy(), hh.copy(), z.copy(), log_phi.copy()
-        todo = np.ones(len(idx), dtype=bool)
-        for _halving in range(30):
-            sub = np.nonzero(todo)[0]
-            cand_h = hh[sub] + t[sub] * step[sub, k]
-            cand_alpha = a[sub] + t[sub, None] * step[sub, :k]
-            ok_h = cand_h > 0.0
-            cand_ll, cand_z, cand_lp = prob.loglik(cand_alpha, np.where(ok_h, cand_h, 1.0), idx[sub])
-            cand_ll = np.where(ok_h, cand_ll, -np.inf)
-            better = cand_ll >= ll_i[sub] - 1e-12 * np.abs(ll_i[sub])
-            won = sub[better]
-            new_ll[won], new_h[won], new_alpha[won] = cand_ll[better], cand_h[better], cand_alpha[better]
-            new_z[won], new_lp[won] = cand_z[better], cand_lp[better]
-            todo[won] = False
-            if not todo.any():
-                break
-            t[todo] *= 0.5
-        moved = np.isfinite(new_ll)
-        rel = np.abs(t[:, None] * step) / (np.abs(np.concatenate([a, hh[:, None]], axis=-1)) + 1e-12)
-        alpha[idx[moved]] = new_alpha[moved]
-        h[idx[moved]] = new_h[moved]
-        ll[idx[moved]] = new_ll[moved]
+        step = _newton_step(prob, a, hh, z, log_phi, idx)
+        new = _halving(prob, a, hh, z, log_phi, ll[idx], step, idx)
+        moved = np.isfinite(new.ll)
+        rel = np.abs(new.t[:, None] * step) / (np.abs(np.concatenate([a, hh[:, None]], axis=-1)) + 1e-12)
+        alpha[idx[moved]] = new.alpha[moved]
+        h[idx[moved]] = new.h[moved]
+        ll[idx[moved]] = new.ll[moved]
         done = ~moved | (rel.max(-1, initial=0.0) < tol)
         converged[idx[done]] = True
         keep = ~done
-        idx, z, log_phi = idx[keep], new_z[keep], new_lp[keep]
+        idx, z, log_phi = idx[keep], new.z[keep], new.log_phi[keep]
         if not len(idx):
             break
     sigma = 1.0 / h
     return LinearFit(
-        beta=(alpha * sigma[:, None]).reshape(batch + (k,)),
+        beta=(alpha * sigma[:, None]).reshape(batch + (alpha.shape[1],)),
         sigma=sigma.reshape(batch),
         loglik=ll.reshape(batch),
         converged=converged.reshape(batch),
