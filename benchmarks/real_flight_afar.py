@@ -290,8 +290,8 @@ def main(argv: list[str] | None = None) -> int:
     # --- calibrate at the listed rover position
     src = f"{rover[0]},{rover[1]},{rover_alt}"
     common = ["--min-quality", str(args.min_quality), "--threshold-db", str(args.threshold_db), "--emitter-alt", f"{rover_alt:.3f}"]
-    cal_text = run_cli(["calibrate", str(csv_path), "--source", src, *common, "--out", str(out / "channel.yaml"), "--overwrite"])
-    print("\n$ fimnav calibrate afar_run.csv --source LISTED_ROVER " + " ".join(common))
+    cal_text = run_cli(["calibrate", str(csv_path), "--source", src, *common[:4], "--out", str(out / "channel.yaml"), "--overwrite"])
+    print("\n$ fimnav calibrate afar_run.csv --source LISTED_ROVER " + " ".join(common[:4]))
     print(cal_text.rstrip())
     source_m = np.array(frame.to_enu(rover[0], rover[1], rover_alt))
     cal = calibrate(flight, source_m, "isotropic", None)
@@ -350,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     variants = [
         ("unknown power, γ free, isotropic", ["--pattern", "isotropic", *common]),
         ("unknown power, γ free, dipole (zenith null)", ["--pattern", "dipole", *common]),
+        ("unknown power, dipole, γ calibrated at the listed position", ["--pattern", "dipole", *common, "--exponent", f"{fit.gamma.value:.4f}"]),
         ("threshold 0 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "0", *common[4:]]),
         ("threshold 10 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "10", *common[4:]]),
         ("no censoring: every sample a measurement", ["--pattern", "isotropic", *common[4:]]),
@@ -391,14 +392,22 @@ def main(argv: list[str] | None = None) -> int:
         if i == 0:
             print("\n$ fimnav localize afar_run.csv " + " ".join(extra))
             print(text.rstrip())
-    print("\nvariant                                              verdict        to listed   to team    PEB     region")
+    print("\n| variant | samples used | verdict | to listed | to team | PEB | 95 % region | deviance at listed | γ |")
+    print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for row in result["localize"]:
-        verdict = "localized" if row["localized"] else "NOT localized"
-        team_d = f"{row['to_team_m']:6.1f} m" if row["to_team_m"] is not None else "   —"
-        peb = f"{row['peb_m']:6.1f} m" if row["peb_m"] is not None else "   inf"
+        verdict = "localized" if row["localized"] else "not localized"
+        team_d = f"{row['to_team_m']:.1f} m" if row["to_team_m"] is not None else "—"
+        peb = f"{row['peb_m']:.1f} m" if row["peb_m"] is not None else "∞"
+        g = row["gamma"]
+        gamma = f"{g['given']:.2f} (given)" if "given" in g else f"{g['value']:.2f} [{g['low95']:.2f}, {g['high95']:.2f}]"
+        region = f"{row['region_area_m2']:.0f} m² (r {row['region_radius_m']:.0f} m)"
         print(
-            f"{row['variant']:52s} {verdict:14s} {row['to_listed_m']:6.1f} m  {team_d}  {peb}  {row['region_area_m2']:8.0f} m² (r {row['region_radius_m']:.0f} m)"
+            f"| {row['variant']} | {row['used']} | {verdict} | {row['to_listed_m']:.1f} m | {team_d} | {peb} | {region} | {row['deviance_listed']:.1f} | {gamma} |"
         )
+    inside = sum(bool(r["listed_inside_region"]) for r in result["localize"])
+    print(
+        f"(the region is deviance <= {result['localize'][0]['threshold']:.2f}; the listed position is inside it in {inside} of {len(result['localize'])} variants)"
+    )
     if team:
         print(f"\nthe team's own estimate is {horizontal_m(frame, team, rover):.1f} m from the listed rover position")
         result["team_to_listed_m"] = horizontal_m(frame, team, rover)

@@ -22,7 +22,7 @@ from planner.radio.localize import (
     profile_loglik,
     thinning,
 )
-from planner.radio.pathloss import Pattern, link_terms
+from planner.radio.pathloss import Pattern
 
 GAMMA, SIGMA = 3.0, 6.0
 
@@ -37,6 +37,19 @@ def lawnmower(n: int = 360, half: float = 120.0, alt: float = 40.0, legs: int = 
     return np.concatenate(rows)
 
 
+def mean_power_db(source: np.ndarray, positions: np.ndarray, pattern: str, p0: float) -> np.ndarray:
+    """The model's mean power written out (independently of planner.radio): P0 − 10γ log10 d,
+    plus a vertical half-wave dipole's 20 log10(cos(π/2 sin ψ)/cos ψ), floored at −30 dB."""
+    v = positions - source
+    d = np.sqrt((v * v).sum(1))
+    mean = p0 - 10.0 * GAMMA * np.log10(d)
+    if pattern == "dipole":
+        sin_psi, cos_psi = v[:, 2] / d, np.hypot(v[:, 0], v[:, 1]) / d
+        with np.errstate(divide="ignore"):
+            mean += np.maximum(20.0 * np.log10(np.cos(0.5 * np.pi * sin_psi) / cos_psi), -30.0)
+    return mean
+
+
 def synthetic_log(
     rng: np.random.Generator,
     positions: np.ndarray,
@@ -48,11 +61,9 @@ def synthetic_log(
 ) -> RadioLog:
     """A log of the model: P0 unknown (drawn), γ = 3, σ = 6 dB, a threshold censoring about
     ``censored_share`` of the samples, the emitter's ``pattern``."""
-    terms = link_terms(source, positions, Pattern(pattern), derivatives=False)
     power0 = rng.uniform(-20.0, 40.0) if p0 is None else p0
-    mean = power0 - GAMMA * terms.log_d + terms.gain
-    y = mean + SIGMA * rng.standard_normal(len(positions))
-    threshold = float(np.quantile(power0 - GAMMA * terms.log_d, censored_share)) if censored_share > 0 else math.nan
+    y = mean_power_db(source, positions, pattern, power0) + SIGMA * rng.standard_normal(len(positions))
+    threshold = float(np.quantile(mean_power_db(source, positions, "isotropic", power0), censored_share)) if censored_share > 0 else math.nan
     cens = y < threshold if censored_share > 0 else np.zeros(len(y), dtype=bool)
     az = None
     if bearings:
@@ -243,19 +254,19 @@ def test_thinning_spaces_correlated_samples() -> None:
     pos = lawnmower(1200, legs=4)
     rng = np.random.default_rng(13)
     src = np.array([10.0, 10.0, 1.0])
-    terms = link_terms(src, pos, Pattern("isotropic"), derivatives=False)
+    mean = mean_power_db(src, pos, "isotropic", 10.0)
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     step = float(np.median(np.diff(path)))
     rho = math.exp(-step / 30.0)
     e = np.zeros(len(pos))
     for i in range(1, len(pos)):
         e[i] = rho * e[i - 1] + math.sqrt(1 - rho * rho) * rng.standard_normal()
-    y = 10.0 - GAMMA * terms.log_d + SIGMA * e
+    y = mean + SIGMA * e
     log = RadioLog(pos, y, np.zeros(len(pos), bool), np.full(len(pos), np.nan))
     thin = thinning(log, options(), None)
     assert thin.correlation_m is not None and 15.0 < thin.correlation_m < 60.0
     assert len(thin.kept) < len(pos) / 3
-    iid = RadioLog(pos, 10.0 - GAMMA * terms.log_d + SIGMA * rng.standard_normal(len(pos)), np.zeros(len(pos), bool), np.full(len(pos), np.nan))
+    iid = RadioLog(pos, mean + SIGMA * rng.standard_normal(len(pos)), np.zeros(len(pos), bool), np.full(len(pos), np.nan))
     assert len(thinning(iid, options(), None).kept) == len(pos)
     assert np.isfinite(model_mean_db(iid, options(), np.array([10.0, 10.0, 10.0, math.log(SIGMA)]))).all()
 
