@@ -323,8 +323,10 @@ def main(argv: list[str] | None = None) -> int:
     h = np.hypot(*(log.positions_m[:, :2] - source_m[:2]).T)
     resid = log.power_db - cal.mean_db
     dipole = link_terms(source_m, log.positions_m, Pattern("dipole"), derivatives=False).gain
+    pair = 2.0 * dipole
     rows = []
-    print("\nhorizontal distance   samples   unlocked   median residual (dB)   a dipole's gain (dB)")
+    print("\n| horizontal distance | samples | unlocked | median residual | a dipole's gain | a dipole pair's |")
+    print("|---|---:|---:|---:|---:|---:|")
     for lo, hi in ((0, 10), (10, 20), (20, 30), (30, 40), (40, 60), (60, 80), (80, 100), (100, 110), (110, 130)):
         m = (h >= lo) & (h < hi)
         if not m.any():
@@ -341,16 +343,30 @@ def main(argv: list[str] | None = None) -> int:
                 "dipole_gain_db": float(np.median(dipole[m])),
             }
         )
-        print(f"{lo:4d}-{hi:<4d} m {int(m.sum()):12d} {100 * log.censored[m].mean():9.0f} % {med:18.1f} {np.median(dipole[m]):20.1f}")
+        print(
+            f"| {lo}-{hi} m | {int(m.sum())} | {100 * log.censored[m].mean():.0f} % | {med:.1f} dB | {np.median(dipole[m]):.1f} dB | {np.median(pair[m]):.1f} dB |"
+        )
     result["by_distance"] = rows
 
     # --- localize: the main run and variants
     spacing_listed = f"{cal.correlation_m:.1f}" if cal.correlation_m else "0"
     known = ["--power", "known", "--reference-power-db", f"{fit.reference_power_db.value:.3f}", "--exponent", f"{fit.gamma.value:.4f}"]
-    variants = [
-        ("unknown power, γ free, isotropic", ["--pattern", "isotropic", *common]),
-        ("unknown power, γ free, dipole (zenith null)", ["--pattern", "dipole", *common]),
-        ("unknown power, dipole, γ calibrated at the listed position", ["--pattern", "dipole", *common, "--exponent", f"{fit.gamma.value:.4f}"]),
+    gammas = {name: calibrate(flight, source_m, name, None).fit.gamma.value for name in ("dipole", "dipole-pair")}
+    result["calibration"]["gamma_by_pattern"] = {"isotropic": fit.gamma.value, **gammas}
+    print(
+        "γ calibrated at the listed position with the pattern: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in result["calibration"]["gamma_by_pattern"].items())
+    )
+    variants = [("unknown power, γ free, isotropic", ["--pattern", "isotropic", *common])]
+    for name in ("dipole", "dipole-pair"):
+        variants.append((f"unknown power, γ free, {name}", ["--pattern", name, *common]))
+        variants.append(
+            (
+                f"unknown power, {name}, γ {gammas[name]:.2f} (calibrated at the listed position)",
+                ["--pattern", name, *common, "--exponent", f"{gammas[name]:.4f}"],
+            )
+        )
+    variants += [
         ("threshold 0 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "0", *common[4:]]),
         ("threshold 10 dB", ["--pattern", "isotropic", *common[:2], "--threshold-db", "10", *common[4:]]),
         ("no censoring: every sample a measurement", ["--pattern", "isotropic", *common[4:]]),
@@ -359,7 +375,10 @@ def main(argv: list[str] | None = None) -> int:
             f"spacing {spacing_listed} m: the correlation distance at the listed position",
             ["--pattern", "isotropic", *common, "--spacing-m", spacing_listed],
         ),
-        ("power and γ known: calibrated at the listed position", ["--pattern", "isotropic", *common, *known]),
+        (
+            f"power and γ known: P0 {fit.reference_power_db.value:.1f} dB, γ {fit.gamma.value:.2f} (calibrated at the listed position)",
+            ["--pattern", "isotropic", *common, *known],
+        ),
     ]
     result["localize"] = []
     for i, (name, extra) in enumerate(variants):

@@ -55,16 +55,18 @@ class Pattern:
     """An emitter's antenna gain as a function of the receiver's elevation ψ (dB).
 
     Attributes:
-        name: ``"isotropic"`` (0 dB) or ``"dipole"`` (a vertical half-wave dipole,
+        name: ``"isotropic"`` (0 dB), ``"dipole"`` (a vertical half-wave dipole,
             G(ψ) = [cos(π/2 · sin ψ)/cos ψ]², 0 dB at the horizon, a null at ψ = ±90°,
-            floored at :data:`PATTERN_FLOOR_DB`).
+            floored at :data:`PATTERN_FLOOR_DB`) or ``"dipole-pair"`` (vertical half-wave
+            dipoles at both ends, the receiver's too: the receiver sees the emitter at −ψ, so
+            the gain doubles in dB).
     """
 
     name: str
 
     def __post_init__(self) -> None:
-        if self.name not in ("isotropic", "dipole"):
-            raise ValueError(f"pattern: expected 'isotropic' or 'dipole', found {self.name!r}")
+        if self.name not in PATTERNS:
+            raise ValueError(f"pattern: expected one of {', '.join(repr(p) for p in PATTERNS)}, found {self.name!r}")
 
     def gain_db(self, psi: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """(g(ψ) dB, dg/dψ dB/rad) at elevations ψ (rad, in [−π/2, π/2])."""
@@ -88,11 +90,12 @@ class Pattern:
         g = np.where(safe, k * (np.log(cis) - np.log(cs)), PATTERN_FLOOR_DB)
         dg = np.where(safe, k * (-(np.sin(inner) / cis) * (0.5 * np.pi) * c + sn / cs), 0.0)
         low = g <= PATTERN_FLOOR_DB
-        return np.where(low, PATTERN_FLOOR_DB, g), np.where(low, 0.0, dg)
+        ends = 2.0 if self.name == "dipole-pair" else 1.0
+        return ends * np.where(low, PATTERN_FLOOR_DB, g), ends * np.where(low, 0.0, dg)
 
 
 #: The patterns by name.
-PATTERNS: tuple[str, ...] = ("isotropic", "dipole")
+PATTERNS: tuple[str, ...] = ("isotropic", "dipole", "dipole-pair")
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,13 @@ def test_dipole_gain_values_and_derivative() -> None:
     ref = 20 * np.log10(np.cos(0.5 * np.pi * np.sin(psi)) / np.cos(psi))
     assert np.allclose(g, np.maximum(ref, PATTERN_FLOOR_DB), atol=1e-10)
     assert Pattern("isotropic").gain_db(psi)[0].tolist() == [0.0] * len(psi)
+    pair_g, pair_dg = Pattern("dipole-pair").gain_db(psi)
+    assert np.allclose(pair_g, 2 * g) and np.allclose(pair_dg, 2 * dg)  # the receiver's dipole sees the same elevation
     with pytest.raises(ValueError, match="pattern"):
         Pattern("yagi")
 
 
-@pytest.mark.parametrize("name", ["isotropic", "dipole"])
+@pytest.mark.parametrize("name", ["isotropic", "dipole", "dipole-pair"])
 def test_link_terms_derivatives_match_finite_differences(name: str) -> None:
     rng = np.random.default_rng(2)
     rx = np.column_stack([rng.uniform(-80, 80, 12), rng.uniform(-80, 80, 12), rng.uniform(20, 60, 12)])
