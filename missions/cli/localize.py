@@ -30,6 +30,9 @@ TAKEOFF_SPAN_M: float = 10.0
 #: Without a take-off in the log (or a mission's search box), the emitter's height is searched
 #: this far below the lowest altitude flown (m).
 GROUND_SEARCH_M: float = 100.0
+#: The antenna patterns (:data:`planner.radio.pathloss.PATTERNS`, not imported here: ``fimnav
+#: --help`` stays quick).
+PATTERN_NAMES: tuple[str, ...] = ("isotropic", "dipole", "dipole-pair")
 #: Files ``fimnav localize`` writes in its output directory.
 OUTPUTS: tuple[str, ...] = ("localization.json", "localization.kml", "localization.geojson", "localization.png")
 
@@ -87,9 +90,9 @@ def add_log_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--pattern",
-        choices=("isotropic", "dipole"),
+        choices=PATTERN_NAMES,
         default="isotropic",
-        help="the emitter's antenna: isotropic (default) or a vertical dipole (zenith null)",
+        help="the antennas: isotropic (default), a vertical dipole at the emitter (a zenith null), or vertical dipoles at both ends",
     )
 
 

@@ -266,3 +266,10 @@ def test_a_results_directory_with_a_broken_step_log_line(tmp_path: Path, capsys:
     assert main(["localize", str(res)]) == 2
     err = capsys.readouterr().err
     assert "planner_3.jsonl: line 6: expected a step-log row" in err and err.count("\n") == 1
+
+
+def test_the_pattern_choices_are_the_cores() -> None:
+    from missions.cli.localize import PATTERN_NAMES
+    from planner.radio.pathloss import PATTERNS
+
+    assert PATTERN_NAMES == PATTERNS
