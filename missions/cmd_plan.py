@@ -41,6 +41,12 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="lockstep: take over a vehicle in flight from a planner that died (no pre-flight; fly from the clock's next step; append to --log)",
     )
+    p.add_argument(
+        "--taken-over",
+        action="store_true",
+        help="start with the drone taken over, whatever its mode: command nothing until fimnav handback "
+        "(fimnav launch restarts a planner so while a pilot flies its drone)",
+    )
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds to wait for a tick, a measurement or peers (default 30)")
     p.add_argument(
         "--preflight-timeout", type=float, default=120.0, help="seconds the readiness wait, take-off and flight to the start may take (default 120)"
@@ -135,6 +141,6 @@ def run(args: argparse.Namespace) -> int:
         rejoin=args.rejoin,
         tlog_path=args.tlog,
     )
-    summary = PlannerNode(mission, options).run()
+    summary = PlannerNode(mission, options, taken_over=args.taken_over).run()
     print(json.dumps(summary), flush=True)
     return 0

@@ -26,7 +26,7 @@ from comms.messages import Observation
 from planner.node.config import NodeConfig, NodeError
 from planner.node.core import OwnMeasurement, StepCore
 from planner.node.io import NodeIO
-from planner.node.realtime_preflight import RealtimePreflight
+from planner.node.realtime_preflight import STREAM_BEFORE_GUIDED_S, RealtimePreflight
 from planner.node.takeover import TakeoverWatch
 
 log = logging.getLogger("fimnav.plan")
@@ -92,7 +92,7 @@ class RealtimeDriver:
         self.grid = grid
         self.uav = config.uav
         self.dt_wall_s = config.dt_wall_s
-        self.preflight = RealtimePreflight(config, io, lambda: self.link_down_since is not None)
+        self.preflight = RealtimePreflight(config, io, lambda: self.link_down_since is not None, takeover)
         #: When the vehicle link was lost (monotonic s), while it is.
         self.link_down_since: float | None = None
         self.resume_needed = False
@@ -346,7 +346,20 @@ class RealtimeDriver:
         mode = self.io.guided_mode
         if not link.in_mode(mode):
             log.warning("uav %d: vehicle in %s after the link loss; switching back to %s", self.uav, link.mode_name(), mode)
+            pos = link.telemetry.position_enu_m
+            if not link.streaming and pos is not None:
+                # The failsafe's mode change, heard when the link came back, ended the stream:
+                # a hold where the vehicle is (PX4 enters OFFBOARD only with a stream running).
+                hold = pos.astype(float)
+                link.set_stream(lambda _t: (hold, None))
+                if self.io.profile.guided_needs_setpoint_stream:
+                    wall = self.io.clock.wall
+                    since = wall()
+                    self.io.wait(
+                        lambda: wall() - since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, self.config.step_timeout_s, "setpoint stream"
+                    )
             link.set_mode(mode)
+        link.left_guided = False
         log.info("uav %d: resumed in %s", self.uav, mode)
 
     # -- after the last step ----------------------------------------------------------------
