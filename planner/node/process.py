@@ -7,9 +7,9 @@ from collections.abc import Callable
 from typing import Any
 
 from comms.latency import DelayedView
-from comms.mavlink_client import VehicleLink
+from comms.mavlink_client import LinkError, VehicleLink
 from comms.session import SessionSettings, open_session
-from planner.node.config import NodeConfig, NodeOptions
+from planner.node.config import NodeConfig, NodeError, NodeOptions
 from planner.node.core import StepCore, build_view
 from planner.node.io import NodeClock, NodeIO
 from planner.node.lockstep import LockstepDriver
@@ -113,7 +113,10 @@ class PlannerNode:
                         self.predecessor_rows[j] = read_step_log(peer)
         self._step_log = StepLog(c.log_path, append=c.rejoin)
         self.core.step_log = self._step_log
-        self.io.link = self._link_factory(c.mavlink, c.sysid)
+        try:
+            self.io.link = self._link_factory(c.mavlink, c.sysid)
+        except LinkError as exc:
+            raise NodeError(f"uav {c.uav}: vehicle unreachable: {exc}") from None
 
     def close(self) -> None:
         """Release the link, the Zenoh session and the log (idempotent)."""

@@ -167,6 +167,12 @@ class RealtimeDriver:
             except LinkError as exc:
                 log.error("uav %d: resuming failed (%s); retrying next step", self.uav, exc)
                 self.resume_needed = True
+        if self.link_down_since is not None and self.io.clock.wall() - self.link_down_since > self.config.step_timeout_s:
+            raise NodeError(
+                f"uav {self.uav}: vehicle link at {self.config.mavlink} lost for good: no heartbeat for "
+                f"{self.io.clock.wall() - self.link_down_since:.0f} s (more than the step timeout); giving the drone up; "
+                f"meanwhile {self.io.profile.link_loss_failsafe}"
+            )
         if self.link_down_since is not None or self.resume_needed:
             self._publish_stale(k, w0)
             self.stale_steps += 1

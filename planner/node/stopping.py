@@ -70,7 +70,8 @@ def command_on_stop(io: NodeIO, takeover: TakeoverWatch, action: OnStop, reason:
         why_not = f"the vehicle is disarmed ({link.mode_name()})"
     if why_not is not None or link is None:
         outcome["reason"] = why_not
-        log.warning("uav %d: stopping (%s): on_stop %s not commanded: %s", uav, reason, action, why_not)
+        quiet = link is None or link.telemetry.heartbeats == 0 or not link.telemetry.armed
+        (log.info if quiet else log.warning)("uav %d: stopping (%s): on_stop %s not commanded: %s", uav, reason, action, why_not)
         return outcome
     mode = on_stop_mode(link, action)
     t0 = time.monotonic()

@@ -66,10 +66,10 @@ def ground_station_sets(port: int, flavour: str) -> None:
         gcs.close()
 
 
-def tlog_events(path: Path) -> list[tuple[float, str, Any]]:
+def tlog_events(path: Path, sysid: int = 1) -> list[tuple[float, str, Any]]:
     """(wall time, kind, value) of a vehicle's .tlog: ``mode`` (custom_mode of each vehicle
-    heartbeat), ``setpoint`` (from the planner), ``set_mode`` (DO_SET_MODE, value: its sender's
-    system id)."""
+    heartbeat of vehicle ``sysid``), ``setpoint`` (from the planner), ``set_mode`` (DO_SET_MODE,
+    value: its sender's system id)."""
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
@@ -77,7 +77,7 @@ def tlog_events(path: Path) -> list[tuple[float, str, Any]]:
     events: list[tuple[float, str, Any]] = []
     while (m := log.recv_match()) is not None:
         t, kind = float(m._timestamp), m.get_type()
-        if kind == "HEARTBEAT" and m.get_srcComponent() == 1 and m.get_srcSystem() == 1:
+        if kind == "HEARTBEAT" and m.get_srcComponent() == 1 and m.get_srcSystem() == sysid:
             events.append((t, "mode", (int(m.custom_mode), bool(m.base_mode & 128))))
         elif kind.startswith("SET_POSITION_TARGET"):
             events.append((t, "setpoint", None))
