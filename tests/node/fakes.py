@@ -193,6 +193,7 @@ class FakeLink:
         self.clock = FakeClockWatch(self.speedup)
         self.telemetry.armed = self.armed
         self.telemetry.custom_mode = 4
+        self.telemetry.heartbeats = 1
         self.telemetry.origin_global = self.origin
         self.telemetry.home_known = True
         self.report(self.position_m, -1)
