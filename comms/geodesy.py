@@ -58,7 +58,7 @@ class Origin:
     """Geodetic origin of a mission ENU frame (or of a vehicle's EKF frame).
 
     The one plain origin type: the mission schema's ``origin`` section converts to it
-    (``missions.schema.Origin.to_origin()``), the simulated vehicle's configuration holds it.
+    (``missions.format.schema.Origin.to_origin()``), the simulated vehicle's configuration holds it.
 
     Attributes:
         lat_deg, lon_deg: WGS84 latitude and longitude (degrees).
@@ -104,14 +104,14 @@ class GeoPoint:
 
 
 class OriginSection(Protocol):
-    """The schema's ``origin`` section (``missions.schema.Origin``; duck-typed: comms does not
+    """The schema's ``origin`` section (``missions.format.schema.Origin``; duck-typed: comms does not
     import missions): it converts to an :class:`Origin`."""
 
     def to_origin(self) -> Origin: ...
 
 
 class HasOrigin(Protocol):
-    """A mission (``missions.schema.Mission``): anything with an :class:`OriginSection`."""
+    """A mission (``missions.format.schema.Mission``): anything with an :class:`OriginSection`."""
 
     @property
     def origin(self) -> OriginSection: ...
@@ -150,7 +150,7 @@ class MissionFrame:
 
     @classmethod
     def of_mission(cls, mission: HasOrigin) -> MissionFrame:
-        """The frame of a ``missions.schema.Mission`` (its ``origin`` section)."""
+        """The frame of a ``missions.format.schema.Mission`` (its ``origin`` section)."""
         return cls.of_origin(mission.origin.to_origin())
 
     def to_global(self, x_m: float, y_m: float, z_m: float) -> GeoPoint:

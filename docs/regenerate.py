@@ -156,7 +156,7 @@ STAMP_FILE = "regenerate-stamp.txt"
 def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
     """Run one ``fimnav montecarlo`` command in this process; return its run summaries (the
     results directory also records ``when``, the commit and versions it ran at)."""
-    from missions.cli import main
+    from missions.cli.main import main
 
     print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
     if cmd.out.exists():

@@ -3,7 +3,7 @@
 * :class:`RealTimeClock`: sim time = speed-up × wall time elapsed since start.
 * :class:`TickQueue`: sim time advances only when a tick arrives, in process
   (:meth:`TickQueue.push`), from :class:`vehicle_sim.bridge.ZenohBridge` (a mission's clock,
-  :mod:`missions.clock`) or from Zenoh as JSON (:class:`ZenohTickSource`, key
+  :mod:`missions.launch.clock`) or from Zenoh as JSON (:class:`ZenohTickSource`, key
   ``fimnav/<mission_id>/clock/tick``, payload ``{"step": k, "t_s": t}``). The queue is thread
   safe and exposes a file descriptor that becomes readable when a tick is queued, so a select()
   loop wakes up at once.
@@ -91,7 +91,7 @@ def encode_tick(tick: Tick) -> bytes:
 class TickQueue:
     """Thread-safe queue of the lockstep ticks a vehicle host consumes; time never goes backwards.
 
-    Not the mission's clock (:class:`missions.clock.LockstepClock` publishes the ticks): this
+    Not the mission's clock (:class:`missions.launch.clock.LockstepClock` publishes the ticks): this
     queue only receives them. A tick whose ``time_s`` is earlier than the last accepted one, or whose ``step`` is not
     larger, is dropped with a warning (a duplicate or out-of-order message).
     """

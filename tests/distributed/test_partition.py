@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 
 from tests.distributed.partition_helpers import (
     HalfWatch,

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from comms.messages import Observation
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 from planner.node import NodeError, NodeOptions, PlannerNode
 from planner.node.realtime import PeerRecordGrid
 

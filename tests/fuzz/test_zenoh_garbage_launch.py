@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from comms.messages import Observation, Tick, encode
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 from tests.support.launch import PAPER, Launch, read_trajectories
 from tests.support.net import free_port

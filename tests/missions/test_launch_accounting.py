@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from comms.messages import Observation
-from missions.launcher import Launcher
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from missions.launch.launcher import Launcher
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 K, TAKEN_FROM, PILOT = 12, 8, 2  # steps, first taken-over step, the drone the pilot flies
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.liveview import STATE_COLOURS
+from missions.launch.liveview import STATE_COLOURS
 from tests.support.launch import PAPER, Launch, processes_mentioning
 from tests.support.wait import wait_for
 

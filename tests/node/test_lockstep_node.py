@@ -17,7 +17,7 @@ import pytest
 from comms import keys
 from comms.latency import DelayedView
 from comms.messages import Done, Message, MessageKind, Observation, Status, Tick
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 from planner import estimator as est
 from planner.agent import PlanView, own_ranges, plan
 from planner.node import NodeError, NodeOptions, PlannerNode

@@ -17,7 +17,7 @@ import pytest
 
 from comms import keys
 from comms.messages import Done, Message, MessageKind, Observation, Status
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 from planner.node import NodeOptions, PlannerNode
 from tests.external.helpers import write_mission
 from tests.node.fakes import FakeClock, FakeLink, FakeSession

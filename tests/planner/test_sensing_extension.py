@@ -22,9 +22,9 @@ import pytest
 from numpy.typing import ArrayLike
 
 from comms.messages import Observation, decode, encode
-from missions.loader import load_mission
-from missions.schema import Mission
-from missions.simulator import RunSpec, SimulationResult, simulate
+from missions.format.loader import load_mission
+from missions.format.schema import Mission
+from missions.study.simulator import RunSpec, SimulationResult, simulate
 from planner import Channel, cost, cost_gradient, fisher_information
 from planner.agent import measurements_from_records
 from planner.estimator import EstimatorConfig, EstimatorState, Measurements, initial_state, update

@@ -21,9 +21,9 @@ import pytest
 
 from comms.messages import Observation, encode
 from comms.session import SessionSettings, open_session
-from missions.loader import load_mission
-from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.format.schema import ZenohAuth, ZenohSpec, ZenohTls
+from missions.study.simulator import RunSpec, simulate
 
 from tests.security.certs import Authority
 from tests.support.launch import PAPER, Launch, read_trajectories

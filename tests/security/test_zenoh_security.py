@@ -1,5 +1,5 @@
 """Zenoh TLS and user/password authentication configured from the mission's ``zenoh`` section
-(``missions.schema.ZenohSpec`` → ``comms.session``), on 127.0.0.1 with certificates made by
+(``missions.format.schema.ZenohSpec`` → ``comms.session``), on 127.0.0.1 with certificates made by
 the test (tests/security/certs.py).
 
 Two legitimate nodes (A listens, B connects, both built from the mission's settings) exchange
@@ -22,7 +22,7 @@ import pytest
 
 from comms.messages import Observation, encode
 from comms.session import SessionSettings, open_session, zenoh_config
-from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
+from missions.format.schema import ZenohAuth, ZenohSpec, ZenohTls
 from comms.errors import UsageError
 
 from tests.security.certs import Authority, Node

@@ -16,9 +16,9 @@ from scipy.sparse.csgraph import shortest_path
 from comms.faults import FaultBuffer, FaultModel
 from comms.latency import DelayedView
 from comms.messages import Observation
-from missions.results import summarize
-from missions.schema import Faults
-from missions.simulator import RunSpec, fault_penalty, mean_record_age, simulate
+from missions.study.results import summarize
+from missions.format.schema import Faults
+from missions.study.simulator import RunSpec, fault_penalty, mean_record_age, simulate
 from tests.simulator.conftest import paper_mission
 
 FAULT_PURPOSE = 2  # the purpose id of the fault stream, written out: the reference does not import it

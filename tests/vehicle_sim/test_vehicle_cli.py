@@ -49,7 +49,7 @@ def test_several_vehicles_in_one_process():
 
 
 def test_mission_start_position_and_airborne():
-    from missions.loader import load_mission
+    from missions.format.loader import load_mission
 
     mission = load_mission(MISSION)
     expect = mission.drones.start_positions_m()[2]  # drone 3 (sysid 3), ENU

@@ -53,7 +53,7 @@ def run_show(name: str) -> int:
     Raises:
         MissionError: no such bundled mission or file (the nearest names suggested).
     """
-    from missions.loader import read_mission_text
+    from missions.format.loader import read_mission_text
 
     text = read_mission_text(name)
     sys.stdout.write(text if text.endswith("\n") or not text else text + "\n")
@@ -68,7 +68,7 @@ def run_list() -> int:
 
 def missions_table() -> str:
     """The bundled missions as a text table, one line each, then how to use a name."""
-    from missions.loader import MissionError, bundled_missions, load_mission
+    from missions.format.loader import MissionError, bundled_missions, load_mission
 
     rows: list[tuple[str, str, str, str, str, str]] = []
     for name, path in bundled_missions().items():

@@ -45,6 +45,7 @@ import multiprocessing
 import multiprocessing.forkserver
 import multiprocessing.resource_tracker
 import os
+import runpy
 import signal
 import stat
 import subprocess
@@ -62,8 +63,8 @@ PRELOAD: tuple[str, ...] = (
     "numpy",
     "zenoh",
     "pymavlink.mavutil",
-    "missions.loader",
-    "missions.cmd_plan",
+    "missions.format.loader",
+    "missions.cli.plan",
     "comms.mavlink_client",
     "comms.session",
     "planner.node",
@@ -210,9 +211,10 @@ def _run_cli(argv: list[str], log_path: str, title: str, launcher_fd: int | None
     import setproctitle
 
     setproctitle.setproctitle(title)
-    from missions.cli import main
-
-    sys.exit(main(argv))
+    # The fimnav program by its name, as a spawned child runs it (``python -m missions``): the
+    # launch layer starts commands, it does not import the command line.
+    sys.argv = ["fimnav", *argv]
+    runpy.run_module("missions", run_name="__main__", alter_sys=True)
 
 
 class ForkedProcess:

@@ -11,13 +11,13 @@ for its planner's MAVLink on its own free UDP port on 127.0.0.1.
 
 :class:`Launcher` composes the run's parts, each in its own module:
 
-* :mod:`missions.rundir`: the results directory (a previous run is refused or overwritten);
-* :mod:`missions.supervisor`: the child processes (started, watched, failures dealt with,
+* :mod:`missions.study.rundir`: the results directory (a previous run is refused or overwritten);
+* :mod:`missions.launch.supervisor`: the child processes (started, watched, failures dealt with,
   stopped: no orphan process, no port left bound, also when the launcher dies);
-* :mod:`missions.launch_signals`: Ctrl-C, SIGTERM and SIGHUP;
-* :mod:`missions.launch_collect`: what is heard over Zenoh (records, statuses, readiness);
-* :mod:`missions.launch_accounting`: the results, from the planners' step logs;
-* :mod:`missions.launch_view`: the live view (``--view``).
+* :mod:`missions.launch.signals`: Ctrl-C, SIGTERM and SIGHUP;
+* :mod:`missions.launch.collect`: what is heard over Zenoh (records, statuses, readiness);
+* :mod:`missions.launch.accounting`: the results, from the planners' step logs;
+* :mod:`missions.launch.view`: the live view (``--view``).
 """
 
 from __future__ import annotations
@@ -41,18 +41,14 @@ import numpy as np
 from comms import keys
 from comms.errors import UsageError
 from comms.session import SessionSettings, open_session
-from missions.clock import ClockError, LockstepClock
-from missions.launch_accounting import launch_result, step_logs, taken_over
-from missions.launch_collect import Collected, SwarmListener
-from missions.launch_commands import payload_command, planner_command, vehicle_command
-from missions.launch_signals import STOP_SIGNALS, Interrupted, stop_on_signals
-from missions.launch_view import LaunchView
-from missions.loader import mission_to_yaml
-from missions.results import write_results
-from missions.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
-from missions.schema import Mission
-from missions.simulator import SimulationResult
-from missions.supervisor import (
+from missions.format.loader import mission_to_yaml
+from missions.format.schema import Mission
+from missions.launch.accounting import launch_result, step_logs, taken_over
+from missions.launch.clock import ClockError, LockstepClock
+from missions.launch.collect import Collected, SwarmListener
+from missions.launch.commands import payload_command, planner_command, vehicle_command
+from missions.launch.signals import STOP_SIGNALS, Interrupted, stop_on_signals
+from missions.launch.supervisor import (
     MAX_RESTARTS,
     ON_FAILURE,
     STOP_GRACE_S,
@@ -63,6 +59,10 @@ from missions.supervisor import (
     free_port,
     vehicle_groups,
 )
+from missions.launch.view import LaunchView
+from missions.study.results import write_results
+from missions.study.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
+from missions.study.simulator import SimulationResult
 
 __all__ = [
     "MAX_RESTARTS",
@@ -150,7 +150,7 @@ class Launcher:
         start_delay_s: real time: wall seconds from the launch to step 0 (None: 30 s plus 1 s
             per drone, the start-up, take-off and flight to the start of simulated vehicles).
         fork_server: start the planners from a fork server that has imported them once
-            (:mod:`missions.forkspawn`; each is still its own process and process group);
+            (:mod:`missions.launch.forkspawn`; each is still its own process and process group);
             False: ``python -m missions plan`` with ``subprocess`` (about 0.45 s of CPU each
             to import).
         overwrite: a results directory holding a previous run: remove that run's files
@@ -159,8 +159,8 @@ class Launcher:
             the start delay); default: logged.
         gcs: real time: a MAVLink endpoint (``udpout:127.0.0.1:14550``) that every simulated
             vehicle's MAVLink is forwarded to, its frames routed back by target system
-            (:class:`missions.gcs.GcsRouter`); None: none.
-        view: show the run live in a browser (:mod:`missions.liveview`): rerun's web viewer on
+            (:class:`missions.launch.gcs.GcsRouter`); None: none.
+        view: show the run live in a browser (:mod:`missions.launch.liveview`): rerun's web viewer on
             127.0.0.1 (``view_port``, default a free port), the recording in ``out/view.rrd``.
     """
 
@@ -380,7 +380,7 @@ class Launcher:
 
     def _start_gcs(self, endpoint: str, ports: dict[int, int]) -> None:
         """Real time: forward every simulated vehicle's MAVLink to the ground station."""
-        from missions.gcs import GcsRouter
+        from missions.launch.gcs import GcsRouter
 
         try:
             self._gcs = GcsRouter(endpoint, ports)
@@ -525,7 +525,7 @@ class Launcher:
     def _result(self, runtime_s: float) -> SimulationResult:
         """The run as a one-trial :class:`SimulationResult` (same accounting as the simulator),
         from the planners' step logs, completed by what was heard over Zenoh
-        (:func:`missions.launch_accounting.launch_result`)."""
+        (:func:`missions.launch.accounting.launch_result`)."""
         logs = step_logs(self.out, self.mission.drones.count)
         return launch_result(self.mission, self._planner_config, self.collected, logs, self.realtime, runtime_s)
 

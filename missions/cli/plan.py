@@ -93,14 +93,14 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Load the mission and fly the node; print a JSON summary on stdout."""
     from comms.mavlink_client import read_signing_key
-    from missions.forkspawn import watch_launcher
-    from missions.loader import load_mission, parse_overrides
-    from missions.process_args import setup_logging, zenoh_settings
+    from missions.cli.process_args import setup_logging, zenoh_settings
+    from missions.format.loader import load_mission, parse_overrides
+    from missions.launch.forkspawn import watch_launcher
     from planner.node import NodeOptions, PlannerNode
 
     setup_logging(args.log_level, f"plan[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
-    logging.getLogger("fimnav.plan").info("pid %d, fimnav code from %s", os.getpid(), Path(__file__).resolve().parent)
+    logging.getLogger("fimnav.plan").info("pid %d, fimnav code from %s", os.getpid(), Path(__file__).resolve().parents[1])
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     if args.steps is not None and args.steps < 1:
         raise UsageError(f"--steps: expected a positive integer, found {args.steps}")

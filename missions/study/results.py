@@ -4,7 +4,7 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
 
     OUT/
       summary.json              every run's summary (list), plus the command and versions
-      figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.figures)
+      figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.study.figures)
       figures/estimate_error.png   median source estimate error vs step, every run, log scale
       figures/trajectories_<run>.png   trial 0: 3-D and top view, obstacles, source, start/end (Fig. 2)
       runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
@@ -17,7 +17,7 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
                                 "final_peb_over_optimum")
       runs/<run>/penalty_reference.npz   a run without faults: what the PEB penalty of the same
                                 run with faults needs from it (``fimnav montecarlo --baselines
-                                OUT``; missions.simulator.PenaltyReference)
+                                OUT``; missions.study.simulator.PenaltyReference)
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
 was used).
@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from missions.loader import mission_to_yaml
-from missions.simulator import SAFETY_FAMILIES, PenaltyReference, RunSpec, SimulationResult, fault_penalty
+from missions.format.loader import mission_to_yaml
+from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, RunSpec, SimulationResult, fault_penalty
 
 #: File name of a fault-free run's :class:`PenaltyReference` in its ``runs/<run>/`` directory.
 PENALTY_REFERENCE = "penalty_reference.npz"
@@ -56,7 +56,7 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
     """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time.
 
     A run with injected comms faults (``comms.faults``) also gets ``"faults"``: the PEB penalty
-    against the same mission without faults (:func:`missions.simulator.fault_penalty`), given
+    against the same mission without faults (:func:`missions.study.simulator.fault_penalty`), given
     as ``penalty`` or else computed here (a fault-free simulation of the same trials and steps).
     """
     spec = result.spec
@@ -176,7 +176,7 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
             for i in range(pos.shape[1]):
                 e = est[min(k, K - 1), i]
                 w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
-    from missions.exports import write_exports
+    from missions.study.exports import write_exports
 
     write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
     if not result.spec.mission.comms.faults.enabled:
@@ -215,7 +215,7 @@ def write_results(
     }
     (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
     if figures:
-        from missions.figures import write_figures  # matplotlib only when figures are wanted
+        from missions.study.figures import write_figures  # matplotlib only when figures are wanted
 
         write_figures(results, out / "figures")
     return summaries

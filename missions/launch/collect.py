@@ -12,8 +12,8 @@ import numpy as np
 
 from comms import keys
 from comms.messages import Done, MessageError, Observation, Status, decode
-from missions.schema import Mission
-from missions.view_peb import peb_of_view
+from missions.format.schema import Mission
+from missions.launch.view_peb import peb_of_view
 from planner.config import PlannerConfig
 
 #: What was heard of step k: each drone's record and status (None: not heard), and the records

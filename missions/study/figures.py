@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from missions.simulator import SimulationResult
+from missions.study.simulator import SimulationResult
 
 CRITERION_NAMES = {"A": "A-optimality", "D": "D-optimality"}
 RULE_NAMES = {"safe": "safe rule", "paper": "paper's literal rule"}
@@ -59,7 +59,7 @@ def _pyplot() -> ModuleType:
 
 def run_name(result: SimulationResult) -> str:
     """Directory and file name of a run: ``<mission id>_<criterion>[_paper]`` (as in results)."""
-    from missions.results import run_name as name
+    from missions.study.results import run_name as name
 
     return name(result)
 

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from comms import keys
     from comms.pubsub import declare_publisher
     from comms.session import SessionSettings, open_session
-    from missions.loader import load_mission, parse_overrides
+    from missions.format.loader import load_mission, parse_overrides
 
     mission = load_mission(args.mission, parse_overrides(args.overrides))
     if not 1 <= args.uav <= mission.drones.count:

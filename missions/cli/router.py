@@ -111,7 +111,7 @@ def router_settings(args: argparse.Namespace) -> SessionSettings:
     connect = tuple(check_endpoint(e, "--connect") for e in args.connect)
     settings = SessionSettings(mode="router", listen=listen, connect=connect)
     if args.mission is not None:
-        from missions.loader import load_mission
+        from missions.format.loader import load_mission
 
         mission = load_mission(args.mission)
         settings = dataclasses.replace(SessionSettings.from_mission(mission.zenoh, listen=listen), mode="router", connect=connect)
@@ -151,7 +151,7 @@ def listening_endpoints(session: Any, timeout_s: float = LOCATOR_QUERY_TIMEOUT_S
 
 def run_router(args: argparse.Namespace) -> int:
     """Run the router until SIGINT/SIGTERM or ``--duration``; exit status 0."""
-    from missions.process_args import setup_logging
+    from missions.cli.process_args import setup_logging
 
     setup_logging(args.log_level, "router")
     log = logging.getLogger("fimnav.router")
@@ -195,8 +195,8 @@ def run_router(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cmd_router`` entry (same as ``fimnav router``)."""
-    from missions.cli import main as cli_main
+    """``python -m missions.cli.router`` entry (same as ``fimnav router``)."""
+    from missions.cli.main import main as cli_main
 
     return cli_main(["router", *(sys.argv[1:] if argv is None else argv)])
 

@@ -1,4 +1,4 @@
-"""Load a mission YAML file into one frozen :class:`missions.schema.Mission`, or fail with one
+"""Load a mission YAML file into one frozen :class:`missions.format.schema.Mission`, or fail with one
 clear message.
 
 Every failure (missing file, YAML syntax, a non-mapping document, a wrong type, an unknown
@@ -27,7 +27,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from comms.errors import UsageError
-from missions.schema import Mission
+from missions.format.schema import Mission
 
 #: Mission files larger than this are refused (a mission is a few kilobytes).
 MAX_FILE_BYTES: int = 1 << 20

@@ -45,7 +45,7 @@ def recordings(path: Path) -> list[Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Serve the recordings until interrupted."""
-    from missions.liveview import ViewServer, require_rerun
+    from missions.launch.liveview import ViewServer, require_rerun
 
     files = recordings(args.results)
     require_rerun()

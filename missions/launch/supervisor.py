@@ -4,7 +4,7 @@ as child processes, watching them, dealing with the ones that fail, and stopping
 Every child runs in its own process group; :meth:`ChildSupervisor.stop_children` stops them all
 (SIGTERM, then SIGKILL after a grace period): no orphan process, no port left bound. A launcher
 that dies without stopping them (SIGKILL, a crash) is noticed by every child through the
-watchdog pipe it inherits (:mod:`missions.forkspawn`), and each child then stops by itself.
+watchdog pipe it inherits (:mod:`missions.launch.forkspawn`), and each child then stops by itself.
 
 Children run the launcher's own code: they (and the planners' fork server) get its ``sys.path``
 (``PYTHONPATH``, with ``PYTHONSAFEPATH`` on Python 3.11+ so that ``-m`` and ``-c`` put no
@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any
 
 from comms.errors import FimnavError
-from missions.clock import ClockError
-from missions.forkspawn import LAUNCHER_FD_ENV, ForkedProcess, ForkServer, same_code_environment
-from missions.launch_accounting import step_logs_of
+from missions.launch.accounting import step_logs_of
+from missions.launch.clock import ClockError
+from missions.launch.forkspawn import LAUNCHER_FD_ENV, ForkedProcess, ForkServer, same_code_environment
 
 log = logging.getLogger("fimnav.launch")
 
@@ -55,7 +55,7 @@ class LaunchError(FimnavError):
 def child_environment(base: dict[str, str] | None = None, same_interpreter: bool = True) -> dict[str, str]:
     """The environment of a ``python -m missions`` child (from ``base``, default this
     process's): unbuffered output, and this process's ``sys.path`` with no working directory in
-    front of it (:func:`missions.forkspawn.same_code_environment`), so that the child imports the
+    front of it (:func:`missions.launch.forkspawn.same_code_environment`), so that the child imports the
     very code the launcher imported (on Python 3.10 ``-m`` still puts the working directory
     first: the launcher runs its children in the run's ``logs`` directory, which holds no
     module). ``same_interpreter`` False (another Python): only no working directory in front."""
@@ -125,7 +125,7 @@ class ChildSupervisor:
         out: the results directory (children log to ``out/logs/<name>.log``).
         python: the interpreter for the children.
         on_failure: one of :data:`ON_FAILURE` (checked by the launcher).
-        fork_server: start the planners from a :class:`missions.forkspawn.ForkServer` (only
+        fork_server: start the planners from a :class:`missions.launch.forkspawn.ForkServer` (only
             with this very interpreter).
         stop: set when the run is asked to stop (a signal); waits end early on it.
         taken_over: whether drone i's last record heard was flagged taken over (a pilot flies
@@ -161,7 +161,7 @@ class ChildSupervisor:
         self.flying = False  # the mission has started (failures are survivable from then on)
         self._spawned: set[str] = set()  # names started once (a restart appends to the log)
         self._watchdog: tuple[int, int] | None = None  # (read, write) ends of the watchdog pipe
-        # Planners are forked from a fork server that imported them once (missions.forkspawn),
+        # Planners are forked from a fork server that imported them once (missions.launch.forkspawn),
         # unless another interpreter is asked for.
         self.forks = ForkServer(python) if fork_server and python == sys.executable else None
 

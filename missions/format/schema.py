@@ -3,7 +3,7 @@
 Every section is a frozen pydantic v2 model that forbids unknown keys. YAML carries degrees,
 metres, seconds and metres per second (units are in the key names); the conversion methods
 return SI and radians for the math core (:mod:`planner.params`). Nothing downstream of
-:func:`missions.loader.load_mission` reads raw dicts.
+:func:`missions.format.loader.load_mission` reads raw dicts.
 
 Frames: positions are in the mission frame, ENU (x east, y north, z up), metres, relative to
 :attr:`Mission.origin`. Drones are numbered 1..N in user-facing text (the paper's numbering);
@@ -12,7 +12,7 @@ arrays are indexed 0..N-1 in the same order.
 Cross-field checks (a mission that would start in violation of its own constraints is refused)
 raise :class:`pydantic_core.PydanticCustomError` of type ``"mission_invalid"`` whose context
 holds ``path`` (key path relative to the model that raised it), ``expected`` and ``found``;
-:mod:`missions.loader` turns those into one message naming the file and the key path.
+:mod:`missions.format.loader` turns those into one message naming the file and the key path.
 
 See ``docs/mission-format.md`` for every key, its unit, default and paper symbol.
 """
@@ -51,7 +51,7 @@ from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 if TYPE_CHECKING:  # pragma: no cover - types only
     from vehicle_sim.config import VehicleConfig
 
-#: Version of the mission format written by :func:`missions.loader.mission_to_yaml`.
+#: Version of the mission format written by :func:`missions.format.loader.mission_to_yaml`.
 SCHEMA_VERSION: int = 1
 
 #: Largest swarm the format accepts (MAVLink system ids are 1..255; 250 leaves room for GCSs).

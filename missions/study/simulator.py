@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comms.faults import FaultBuffer
-from missions.schema import Faults, Mission
+from missions.format.schema import Faults, Mission
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, own_ranges, plan
 from planner.control import StepResult

@@ -72,7 +72,7 @@ def mission_optimum(
     oracle_estimate: bool = False,
     time_s: float | None = None,
 ) -> Any:
-    """:func:`planner.placement.optimal_placement` for a :class:`missions.schema.Mission`: its
+    """:func:`planner.placement.optimal_placement` for a :class:`missions.format.schema.Mission`: its
     roles, channel, buildings and limits, the source at ``time_s`` (default K·Δt, the end of the
     run: where a moving source is when the final PEB is taken). Returns the
     :class:`planner.placement.Placement`."""
@@ -117,7 +117,7 @@ def placement_summary(placement: Any) -> dict[str, Any]:
 
 def run_optimum_summary(result: Any, starts: int | None = None, seed: int = 0) -> dict[str, Any]:
     """``{"optimum": ..., "final_peb_over_optimum": ...}`` for a
-    :class:`missions.simulator.SimulationResult` (``fimnav montecarlo --optimum``): the optimum
+    :class:`missions.study.simulator.SimulationResult` (``fimnav montecarlo --optimum``): the optimum
     of its mission and criterion at the source's position after the run's last step, with the
     default rule's distances ("filter"; about the true source for an ``--oracle-estimate`` run),
     and the run's final mean PEB over it (None when that PEB is undefined). ``starts``: default
@@ -134,7 +134,7 @@ def run_optimum_summary(result: Any, starts: int | None = None, seed: int = 0) -
 
 def run(args: argparse.Namespace) -> int:
     """Load the mission, compute its optimum, print it. Exit status 0."""
-    from missions.loader import load_mission, parse_overrides
+    from missions.format.loader import load_mission, parse_overrides
 
     if args.starts < 1:
         raise UsageError(f"--starts: expected a positive integer, found {args.starts}")

@@ -12,7 +12,7 @@ Once every socket is open the command prints one JSON line
 ``{"event": "ready", "pid": PID, "code": DIR, "vehicles": [{"sysid": 1, "mavlink": "udpin:127.0.0.1:PORT"}], ...}``
 to stdout (the actual ports when PORT 0 was asked; ``code``: the directory of the ``missions``
 package it runs), then runs until SIGINT/SIGTERM (exit 0), ``--duration``, or, started by
-``fimnav launch``, the launcher's death (:func:`missions.forkspawn.watch_launcher`).
+``fimnav launch``, the launcher's death (:func:`missions.launch.forkspawn.watch_launcher`).
 """
 
 from __future__ import annotations
@@ -267,11 +267,11 @@ def build_configs(args: argparse.Namespace, mission: Any | None) -> list[tuple[A
     """(VehicleConfig, Payload | None) of every hosted vehicle from the options (and mission).
 
     Drone ``i`` (0-based) of the mission has system id ``i + 1``; its vehicle is the mission's
-    (:meth:`missions.schema.Mission.vehicle_config`) with the options' settings, its payload
+    (:meth:`missions.format.schema.Mission.vehicle_config`) with the options' settings, its payload
     the mission's simulated payload.
     """
-    from missions.cmd_payload import build_payload
-    from missions.process_args import payload_world
+    from missions.cli.payload import build_payload
+    from missions.cli.process_args import payload_world
     from vehicle_sim.config import VehicleConfig
 
     _check_options(args)
@@ -409,14 +409,14 @@ def _serve(host: Any, duration_s: float | None) -> None:
 
 def run_vehicle(args: argparse.Namespace) -> int:
     """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
-    from missions.forkspawn import watch_launcher
-    from missions.process_args import setup_logging
+    from missions.cli.process_args import setup_logging
+    from missions.launch.forkspawn import watch_launcher
 
     setup_logging(args.log_level, "%(name)s")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
     mission = None
     if args.mission:
-        from missions.loader import load_mission
+        from missions.format.loader import load_mission
 
         mission = load_mission(args.mission)
     configs = build_configs(args, mission)
@@ -444,7 +444,7 @@ def run_vehicle(args: argparse.Namespace) -> int:
         ready = {
             "event": "ready",
             "pid": os.getpid(),
-            "code": str(Path(__file__).resolve().parent),
+            "code": str(Path(__file__).resolve().parents[1]),
             "vehicles": [{"sysid": v.sysid, "mavlink": v.link.transport.address} for v in vehicles],
             "clock": "lockstep" if args.lockstep else f"realtime x{args.speedup:g}",
             **zenoh_info,
@@ -474,8 +474,8 @@ def _bridge_settings(args: argparse.Namespace, mission: Any, listen: Sequence[st
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cmd_vehicle`` entry (same as ``fimnav vehicle``)."""
-    from missions.cli import main as cli_main
+    """``python -m missions.cli.vehicle`` entry (same as ``fimnav vehicle``)."""
+    from missions.cli.main import main as cli_main
 
     return cli_main(["vehicle", *(sys.argv[1:] if argv is None else argv)])
 

@@ -32,7 +32,7 @@ STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signa
 
 
 class Stoppable(Protocol):
-    """What a signal handler asks to stop (:class:`missions.launcher.Launcher`)."""
+    """What a signal handler asks to stop (:class:`missions.launch.launcher.Launcher`)."""
 
     def request_stop(self, signum: int | None = None) -> None:
         """Ask the run to stop; ``signum``: the signal that asked."""

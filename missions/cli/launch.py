@@ -151,7 +151,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     Raises:
         UsageError: a malformed ``--set``, or ``--steps``/``--seed`` out of range.
     """
-    from missions.loader import parse_overrides
+    from missions.format.loader import parse_overrides
 
     overrides = parse_overrides(args.overrides)
     for name in ("steps", "seed"):
@@ -182,13 +182,13 @@ def _check_options(args: argparse.Namespace) -> None:
     if args.gcs is not None:
         if not args.realtime:
             raise UsageError("--gcs: only with --realtime (a ground station runs on the wall clock)")
-        from missions.gcs import check_endpoint
+        from missions.launch.gcs import check_endpoint
 
         check_endpoint(args.gcs)
     if args.vehicles_per_process < 1:
         raise UsageError(f"--vehicles-per-process: expected a positive integer, found {args.vehicles_per_process}")
     if args.view:
-        from missions.liveview import require_rerun
+        from missions.launch.liveview import require_rerun
 
         require_rerun()
     elif args.view_port is not None:
@@ -198,7 +198,7 @@ def _check_options(args: argparse.Namespace) -> None:
 def _results_dir(args: argparse.Namespace, mission_id: str) -> Path:
     """``--out`` (checked: no previous run unless ``--overwrite``), or a new
     ``results/<mission id>-<date>-<time>``."""
-    from missions.rundir import check_results_dir, unique_results_dir
+    from missions.study.rundir import check_results_dir, unique_results_dir
 
     if args.out is None:
         return unique_results_dir(Path("results"), f"{mission_id}-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -224,8 +224,8 @@ def run(args: argparse.Namespace) -> int:
     """Validate, launch, report."""
     from tqdm import tqdm
 
-    from missions.launcher import launch
-    from missions.loader import load_mission
+    from missions.format.loader import load_mission
+    from missions.launch.launcher import launch
 
     overrides = _overrides(args)
     _check_options(args)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from comms.errors import UsageError
 
 if TYPE_CHECKING:
-    from missions.simulator import PenaltyReference, RunSpec
+    from missions.study.simulator import PenaltyReference, RunSpec
     from planner.params import Criterion
 
 
@@ -85,9 +85,9 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from missions.loader import load_mission, parse_overrides
-    from missions.results import write_results
-    from missions.simulator import RunSpec, fault_penalty, without_faults
+    from missions.format.loader import load_mission, parse_overrides
+    from missions.study.results import write_results
+    from missions.study.simulator import RunSpec, fault_penalty, without_faults
 
     _positive("trials", args.trials)
     _positive("steps", args.steps)
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack, tqdm(total=total, unit="step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
         view = None
         if args.view:
-            from missions.liveview import ViewServer, require_rerun
+            from missions.launch.liveview import ViewServer, require_rerun
 
             require_rerun()
             server = stack.enter_context(ViewServer(web_port=args.view_port))
@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     ]
     extras = None
     if args.optimum:
-        from missions.cmd_optimum import run_optimum_summary
+        from missions.cli.optimum import run_optimum_summary
 
         extras = [run_optimum_summary(r) for r in results]
     summaries = write_results(
@@ -225,13 +225,13 @@ def _worker_signals() -> None:
 
 
 def _known_baseline(directory: Path | None, spec: RunSpec, oracle: bool) -> PenaltyReference | None:
-    """The :class:`missions.simulator.PenaltyReference` of ``spec`` (a run with faults) in the
+    """The :class:`missions.study.simulator.PenaltyReference` of ``spec`` (a run with faults) in the
     results ``directory`` (``--baselines``), or None when there is none to use there: then
     the baseline is simulated, and a line on stderr says why."""
     if directory is None:
         return None
-    from missions.results import PENALTY_REFERENCE, spec_name
-    from missions.simulator import PenaltyReference
+    from missions.study.results import PENALTY_REFERENCE, spec_name
+    from missions.study.simulator import PenaltyReference
 
     path = directory / "runs" / spec_name(spec) / PENALTY_REFERENCE
     if not path.is_file():
@@ -262,12 +262,12 @@ def _simulate_job(job: tuple[Any, bool], oracle: bool, view: tuple[str, str] | N
 
 def _simulate(spec: Any, oracle: bool, progress: Any, view: tuple[str, str] | None = None) -> Any:
     """One run; ``view``: (the rerun server's stream, the directory of the recordings), to log
-    trial 1 of the run live (:mod:`missions.liveview`)."""
-    from missions.simulator import simulate
+    trial 1 of the run live (:mod:`missions.launch.liveview`)."""
+    from missions.study.simulator import simulate
 
     if view is None:
         return simulate(spec, progress=progress, oracle_estimate=oracle)
-    from missions.liveview import SwarmView, swarm_frame
+    from missions.launch.liveview import SwarmView, swarm_frame
 
     mission = spec.mission
     slug = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{mission.id}_{spec.criterion}")

@@ -1,6 +1,6 @@
 """The live view of a ``fimnav launch`` run (``--view``): rerun's web viewer on 127.0.0.1 and the
 run's recording (``OUT/view.rrd``), fed each step from what the launcher heard
-(:mod:`missions.liveview`)."""
+(:mod:`missions.launch.liveview`)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from missions.launch_collect import Heard
-from missions.schema import Mission
+from missions.format.schema import Mission
+from missions.launch.collect import Heard
 
 log = logging.getLogger("fimnav.launch")
 
@@ -46,7 +46,7 @@ class LaunchView:
 
     def start(self) -> None:
         """Start rerun's web viewer (a child bound to 127.0.0.1) and the run's recording."""
-        from missions.liveview import SwarmView, ViewServer
+        from missions.launch.liveview import SwarmView, ViewServer
 
         server = ViewServer(web_port=self.view_port, log_path=self.out / "logs" / "viewer.log")
         self._server = server.start()
@@ -68,7 +68,7 @@ class LaunchView:
     def step(self, k: int, heard: Heard) -> None:
         """Log step k from what the launcher heard of it (:meth:`SwarmListener.heard_at`):
         each drone's record (its position and state), its status (estimate and view)."""
-        from missions.liveview import swarm_frame
+        from missions.launch.liveview import swarm_frame
 
         n = self.mission.drones.count
         own, stat, recs = heard

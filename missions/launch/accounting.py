@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 
 from comms.messages import Observation, Status
-from missions.launch_collect import Collected
-from missions.schema import Mission
-from missions.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
-from missions.view_peb import peb_of_view
+from missions.format.schema import Mission
+from missions.launch.collect import Collected
+from missions.launch.view_peb import peb_of_view
+from missions.study.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
 from planner.config import PlannerConfig
 
 #: Step logs by (step, drone id): each a planner's JSON step log entry.

@@ -14,7 +14,7 @@ from comms.errors import UsageError
 
 if TYPE_CHECKING:  # pragma: no cover - types only
     from comms.session import SessionSettings
-    from missions.schema import Mission
+    from missions.format.schema import Mission
     from vehicle_sim.payload import PayloadWorld
 
 

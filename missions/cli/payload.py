@@ -97,7 +97,7 @@ def build_payload(mission: Any, uav: int, world: Any = None) -> Any:
     mission unless given), its role's components (range, bearing and any other registered in
     :data:`planner.sensing.SENSING`) and its noise stream; ``fimnav vehicle --mission`` and
     ``fimnav payload`` build it here."""
-    from missions.process_args import payload_world
+    from missions.cli.process_args import payload_world
     from vehicle_sim.payload import Payload, role_extra_components, roles_to_flags
 
     role = mission.drones.roles[uav - 1]
@@ -207,9 +207,9 @@ def _follow(link: Any, args: argparse.Namespace, mission: Any, conn: str, sysid:
 def run(args: argparse.Namespace) -> int:
     """Follow the autopilot and publish the measurements until SIGINT/SIGTERM or --duration."""
     from comms.mavlink_client import read_signing_key
-    from missions.forkspawn import watch_launcher
-    from missions.loader import load_mission, parse_overrides
-    from missions.process_args import setup_logging, zenoh_settings
+    from missions.cli.process_args import setup_logging, zenoh_settings
+    from missions.format.loader import load_mission, parse_overrides
+    from missions.launch.forkspawn import watch_launcher
     from vehicle_sim.bridge import ZenohBridge
 
     setup_logging(args.log_level, f"payload[{args.uav}]")
@@ -255,8 +255,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m missions.cmd_payload`` entry (same as ``fimnav payload``)."""
-    from missions.cli import main as cli_main
+    """``python -m missions.cli.payload`` entry (same as ``fimnav payload``)."""
+    from missions.cli.main import main as cli_main
 
     return cli_main(["payload", *(sys.argv[1:] if argv is None else argv)])
 

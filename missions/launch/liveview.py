@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comms.errors import FimnavError
-from missions.schema import Mission
+from missions.format.schema import Mission
 
 FloatArray = NDArray[np.float64]
 
@@ -152,7 +152,7 @@ class ViewServer:
     (Linux); :meth:`close` stops it. Its output goes to ``log_path`` (default: discarded)."""
 
     def __init__(self, web_port: int | None = None, grpc_port: int | None = None, rrds: Sequence[Path] = (), log_path: Path | None = None) -> None:
-        from missions.supervisor import free_port
+        from missions.launch.supervisor import free_port
 
         self.web_port = web_port or free_port()
         self.grpc_port = grpc_port or free_port()
@@ -172,7 +172,7 @@ class ViewServer:
 
     def start(self) -> ViewServer:
         """Start the server and wait (up to :data:`SERVER_START_TIMEOUT_S`) until both ports listen."""
-        from missions.forkspawn import set_parent_death_signal
+        from missions.launch.forkspawn import set_parent_death_signal
 
         args = [
             *rerun_binary(),

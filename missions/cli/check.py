@@ -55,8 +55,8 @@ def add_override_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    """The overrides mapping for :func:`missions.loader.load_mission` from ``--set``/``--criterion``."""
-    from missions.loader import parse_overrides
+    """The overrides mapping for :func:`missions.format.loader.load_mission` from ``--set``/``--criterion``."""
+    from missions.format.loader import parse_overrides
 
     overrides = parse_overrides(getattr(args, "overrides", None) or [])
     if getattr(args, "criterion", None):
@@ -66,7 +66,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 def run_check(args: argparse.Namespace) -> int:
     """Validate ``args.mission``; print the summary (or the YAML as run). Exit status 0."""
-    from missions.loader import load_mission, mission_to_yaml
+    from missions.format.loader import load_mission, mission_to_yaml
 
     mission = load_mission(args.mission, overrides_from_args(args))
     text = mission_to_yaml(mission) if args.yaml else summary(mission, str(args.mission))
@@ -76,7 +76,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 def run_schema(args: argparse.Namespace) -> int:
     """Print the mission JSON Schema. Exit status 0."""
-    from missions.schema import mission_json_schema
+    from missions.format.schema import mission_json_schema
 
     sys.stdout.write(json.dumps(mission_json_schema(), indent=args.indent, ensure_ascii=False) + "\n")
     return 0
@@ -87,7 +87,7 @@ def _v(values: Any) -> str:
 
 
 def summary(mission: Any, file: str) -> str:
-    """A one-screen text summary of a valid :class:`missions.schema.Mission`."""
+    """A one-screen text summary of a valid :class:`missions.format.schema.Mission`."""
     m = mission
     d = m.drones
     lines = [f"{file}: OK", f"mission    {m.id}" + (f" - {m.description}" if m.description else "")]

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover - types only
-    from missions.simulator import SimulationResult
+    from missions.study.simulator import SimulationResult
 
 
 class Feature(TypedDict):

@@ -23,17 +23,17 @@ from comms.errors import FimnavError
 
 #: Subcommand modules, in the order ``fimnav --help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
-    "missions.cmd_vehicle",
-    "missions.cmd_check",
-    "missions.cmd_montecarlo",
-    "missions.cmd_optimum",
-    "missions.cmd_plan",
-    "missions.cmd_payload",
-    "missions.cmd_launch",
-    "missions.cmd_router",
-    "missions.cmd_handback",
-    "missions.cmd_view",
-    "missions.cmd_missions",
+    "missions.cli.vehicle",
+    "missions.cli.check",
+    "missions.cli.montecarlo",
+    "missions.cli.optimum",
+    "missions.cli.plan",
+    "missions.cli.payload",
+    "missions.cli.launch",
+    "missions.cli.router",
+    "missions.cli.handback",
+    "missions.cli.view",
+    "missions.cli.missions",
 )
 
 

@@ -1,0 +1,3 @@
+"""A swarm flown as processes on this machine (``fimnav launch``): the launcher and what it
+composes (``supervisor``, ``forkspawn``, ``clock``, ``signals``, ``collect``, ``accounting``,
+``commands``, ``view``, ``view_peb``, ``gcs``), and the live view's server (``liveview``)."""
