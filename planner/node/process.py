@@ -27,7 +27,7 @@ class PlannerNode:
     """One drone's planner: MAVLink to its vehicle, Zenoh to the swarm.
 
     Args:
-        mission: the mission (``missions.schema.Mission``; duck-typed here), read once into
+        mission: the mission (``missions.format.schema.Mission``; duck-typed here), read once into
             the node's :class:`NodeConfig` (:attr:`config`).
         options: how to run.
         link_factory: builds the :class:`VehicleLink` (in-memory fakes in tests).
