@@ -222,7 +222,12 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
 
 @pytest.mark.parametrize(
     ("flavour", "signame", "on_stop"),
-    [("ardupilot", "SIGINT", "hold"), ("px4", "SIGTERM", "hold"), ("ardupilot", "SIGTERM", "land"), ("px4", "SIGINT", "rtl")],
+    [
+        ("ardupilot", "SIGINT", "hold"),
+        ("px4", "SIGTERM", "hold"),
+        pytest.param("ardupilot", "SIGTERM", "land", marks=pytest.mark.slow),
+        pytest.param("px4", "SIGINT", "rtl", marks=pytest.mark.slow),
+    ],
 )
 def test_fimnav_plan_stopped_by_a_signal_leaves_the_vehicle_in_on_stop(
     tmp_path: Path, procs: list[Proc], flavour: str, signame: str, on_stop: str
