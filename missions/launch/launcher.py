@@ -109,8 +109,6 @@ def _check_options(mission: Mission, vehicles_per_process: int, on_failure: str,
         raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
     if on_failure not in ON_FAILURE:
         raise LaunchError(f"on failure: expected one of {', '.join(ON_FAILURE)}, found {on_failure!r}")
-    if realtime and on_failure == "restart":
-        raise LaunchError("on failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     if not (np.isfinite(speedup) and speedup > 0):
         raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
     if mission.comms.faults.partition is not None:

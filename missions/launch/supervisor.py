@@ -41,7 +41,8 @@ STOP_GRACE_S: float = 5.0
 
 #: What the launcher does when a vehicle or a planner fails mid-mission (``--on-failure``):
 #: ``abort`` stops the run (exit 1); ``continue`` flies on without that drone; ``restart`` also
-#: restarts a failed planner (whose vehicle is alive) with ``fimnav plan --rejoin``.
+#: restarts a failed planner (whose vehicle is alive, or flown by an external autopilot) with
+#: ``fimnav plan --rejoin`` (lockstep: at the clock's next step; real time: on the step grid).
 ON_FAILURE = ("continue", "abort", "restart")
 
 #: Restarts of one drone's planner before it is given up.
@@ -294,7 +295,8 @@ class ChildSupervisor:
             if i in self.external:
                 entry["connection"] = self.external[i]
             vehicle = self.vehicle_child.get(i)
-            vehicle_alive = vehicle is not None and vehicle.proc.poll() is None
+            # (an external autopilot has no process here: its replacement finds out)
+            vehicle_alive = vehicle is None or vehicle.proc.poll() is None
             if self.on_failure == "restart" and vehicle_alive and self._restarts.get(i, 0) < MAX_RESTARTS:
                 self._restarts[i] = self._restarts.get(i, 0) + 1
                 # A pilot flies the drone: the replacement keeps the take-over in force.

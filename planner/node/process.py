@@ -91,7 +91,7 @@ class PlannerNode:
             self.swarm.drain(0.0)
             if self.config.lockstep:
                 return LockstepDriver(self.config, self.io, self.core, self.takeover, self.predecessor_rows).run()
-            return RealtimeDriver(self.config, self.io, self.core, self.takeover, self.grid).run()
+            return RealtimeDriver(self.config, self.io, self.core, self.takeover, self.grid, self.predecessor_rows).run()
         except BaseException as exc:
             self.stopped = command_on_stop(self.io, self.takeover, self.on_stop, stop_reason(exc))
             raise

@@ -81,15 +81,26 @@ class RealtimeDriver:
     Args:
         config: the node's configuration. io: its link, swarm and clock. core: the step.
         takeover: the pilot take-over watch. grid: the peers' records on the step grid.
+        predecessor_rows: a rejoining planner's step logs, drone index → rows (its
+            predecessor's and its peers').
     """
 
-    def __init__(self, config: NodeConfig, io: NodeIO, core: StepCore, takeover: TakeoverWatch, grid: PeerRecordGrid) -> None:
+    def __init__(
+        self,
+        config: NodeConfig,
+        io: NodeIO,
+        core: StepCore,
+        takeover: TakeoverWatch,
+        grid: PeerRecordGrid,
+        predecessor_rows: dict[int, list[dict[str, Any]]] | None = None,
+    ) -> None:
         self.config = config
         self.io = io
         self.swarm = io.swarm
         self.core = core
         self.takeover = takeover
         self.grid = grid
+        self.predecessor_rows = predecessor_rows or {}
         self.uav = config.uav
         self.dt_wall_s = config.dt_wall_s
         self.preflight = RealtimePreflight(config, io, lambda: self.link_down_since is not None, takeover)
@@ -103,14 +114,19 @@ class RealtimeDriver:
         io.on_served = self._check_link
 
     def run(self) -> dict[str, Any]:
-        """Pre-flight, the steps on the grid, the end of mission; return the summary."""
+        """Pre-flight (or rejoin), the steps on the grid, the end of mission; return the summary."""
         link = self.io.require_link()
         try:
-            self.preflight.run()
+            if self.config.rejoin:
+                self.preflight.rejoin()
+            else:
+                self.preflight.run()
         except LinkError as exc:
-            raise NodeError(f"uav {self.uav}: pre-flight failed: {exc}") from None
+            raise NodeError(f"uav {self.uav}: {'rejoin' if self.config.rejoin else 'pre-flight'} failed: {exc}") from None
         self.swarm.publish_done(-1)
         k = self._start_grid()
+        if self.config.rejoin:
+            self._rebuild(k)
         done_steps = 0
         while k < self.config.steps:
             advance, planned = self._step(k)
@@ -135,6 +151,21 @@ class RealtimeDriver:
             "vehicle_clock_rate": None if rate is None else round(rate, 3),
         }
 
+    def _rebuild(self, first: int) -> None:
+        """A rejoining planner's estimator, own-range window and own track, from its
+        predecessor's step log and its peers' logs next to it (:meth:`StepCore.rebuild`)."""
+        done = self.core.rebuild(first, self.predecessor_rows)
+        index = self.config.drone_index
+        peers = sum(len(v) for j, v in done.items() if j != index)
+        log.warning(
+            "uav %d rejoined at step %d (%s); estimator rebuilt from %d steps of its predecessor's log and %d records of peers' logs",
+            self.uav,
+            first,
+            "taken over" if self.takeover.active else "flying",
+            len(done.get(index, [])),
+            peers,
+        )
+
     def _start_grid(self) -> int:
         """Fix the UNIX time of step 0 (``--start-at``, else the next multiple of dt/speedup a
         quarter step from now); return the first step to fly."""
@@ -143,7 +174,10 @@ class RealtimeDriver:
         start_at = self.config.start_at_unix
         t0 = start_at if start_at is not None else math.ceil((now + 0.25 * dtw) / dtw) * dtw
         self.grid.t0_unix = t0
-        log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
+        if self.config.rejoin:
+            log.info("uav %d rejoining the step grid: step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
+        else:
+            log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
         return max(0, math.ceil((now - t0) / dtw - 1e-9)) if start_at is not None else 0
 
     # -- one step ---------------------------------------------------------------------------

@@ -107,6 +107,31 @@ class RealtimePreflight:
         except _PilotTookOver:
             link.set_stream(None)
 
+    def rejoin(self) -> None:
+        """Take over a vehicle in flight from a planner that died (``--rejoin``): heartbeat,
+        streams, the clock check and a position; no take-off, no flight to the start. A vehicle
+        armed in another mode than the guided one (or whose take-over the launch says is in
+        force) is a pilot's and is left alone; one armed in the guided mode holds where it is
+        until the first step; a disarmed one is refused."""
+        link = self.io.require_link()
+        t = self.config.preflight_timeout_s
+        link.wait_heartbeat(t)
+        link.check_signing()
+        link.stream_period_s = 1.0 / (self.config.stream_hz * self.config.speedup)
+        self.request_streams()
+        if not link.telemetry.armed and not self.takeover.in_force:
+            raise NodeError(f"uav {self.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
+        if self.takeover.found_at_start("rejoin"):
+            return
+        self._check_clock()
+        self.io.wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
+        pos = link.telemetry.position_enu_m
+        if pos is None:
+            raise NodeError(f"uav {self.uav}: no position telemetry after waiting for it")
+        hold = pos.astype(float)
+        link.set_stream(lambda _t: (hold, None))
+        log.info("uav %d: rejoining in %s, holding at %s until the next step", self.uav, link.mode_name(), tuple(round(float(v), 1) for v in hold))
+
     def request_streams(self) -> None:
         """The telemetry the real-time planner reads, at rates in the autopilot's time (Hz)."""
         link = self.io.require_link()

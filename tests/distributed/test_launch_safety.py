@@ -197,3 +197,64 @@ def planner_pid(out: Path, uav: int) -> int:
         if " plan " in cmd and f"--uav {uav} " in cmd:
             return pid
     pytest.fail(f"no planner of drone {uav}")
+
+
+@pytest.mark.slow  # ~80 s of real time
+def test_realtime_restart_rejoins_the_grid_and_keeps_a_take_over(tmp_path: Path, launches: list[Launch]) -> None:
+    """``fimnav launch --realtime --on-failure restart``: planner 2 is killed while it flies:
+    restarted, it rejoins the step grid where the mission is (no take-off, no flight to its
+    start) and flies to the end; planner 1 is killed while a ground station holds its drone in
+    LOITER: restarted, it comes up taken over and commands nothing until ``fimnav handback``."""
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    from tests.external.helpers import handback
+    from tests.external.test_pilot_rule import MAV_CMD_DO_SET_MODE
+
+    steps = 300
+    mission = write(tmp_path / "m.yaml", mission_of("rt-restart", 2, steps))
+    out = tmp_path / "run"
+    run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "12", "--on-failure", "restart",
+                 "--vehicles-per-process", "1")
+    launches.append(run)
+    wait_for(lambda: min(steps_logged(out, 1), steps_logged(out, 2)) >= 5, 90.0, "five steps of each drone")
+    os.kill(planner_pid(out, 2), signal.SIGKILL)
+    log2 = out / "logs" / "planner_2.log"
+    wait_for(lambda: "rejoined at step" in log2.read_text(), 60.0, "planner 2 to rejoin")
+    killed_at = steps_logged(out, 2)
+    ready = json.loads(next(x for x in (out / "logs" / "vehicle_1.log").read_text().splitlines() if '"ready"' in x))
+    port = int(ready["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+    log1 = out / "logs" / "planner_1.log"
+    try:
+        gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
+        gcs.mav.command_long_send(1, 1, MAV_CMD_DO_SET_MODE, 0, 1, 5, 0, 0, 0, 0, 0)
+        wait_for(lambda: "taken over at step" in log1.read_text(), 30.0, "the take-over")
+        os.kill(planner_pid(out, 1), signal.SIGKILL)
+        wait_for(lambda: "taken over at rejoin" in log1.read_text(), 60.0, "planner 1 to come up taken over")
+        handback_unix = time.time()
+        r = handback(mission, 1, "--results", str(out))
+        assert r.returncode == 0, r.stdout + r.stderr
+        wait_for(lambda: "handed back at step" in log1.read_text().split("taken over at rejoin")[-1], 30.0, "the hand-back")
+    finally:
+        gcs.close()
+    code, _, stderr = run.wait(240.0)
+    assert code == 3, stderr[-3000:]
+    assert "Traceback" not in stderr
+    summary = json.loads((out / "summary.json").read_text())["runs"][0]
+    actions = {f["process"]: f["action"] for f in summary["failures"]}
+    assert actions["planner_2"].startswith("restarted") and actions["planner_1"].startswith("restarted"), actions
+    text2 = log2.read_text()
+    assert "rejoined at step" in text2 and "(flying)" in text2 and text2.count("airborne in") == 1, text2[-2000:]
+    flown2 = [json.loads(x)["step"] for x in (out / "logs" / "planner_2.jsonl").read_text().splitlines()]
+    assert flown2 == sorted(flown2) and flown2[-1] >= steps - 3 and len(flown2) > killed_at
+    (take,) = summary["taken_over"]["1"]
+    assert take["at_start"] == "rejoin" and take["mode"] == "LOITER" and take["handed_back_step"] > take["step"], take
+    # Vehicle 1's .tlog: from its first heartbeat in LOITER (what tells a planner; 0.1 s for one
+    # in flight on loopback) until fimnav handback ran, no setpoint and no mode change from a
+    # planner, through the kill and the restart.
+    events = tlog_events(out / "tlogs" / "vehicle_1.tlog")
+    t_gcs = next(t for t, kind, v in events if kind == "set_mode" and v == 255)
+    t_held = next(t for t, kind, v in events if kind == "mode" and t > t_gcs and v[0] == 5)
+    sent = [kind for t, kind, v in events if t_held + 0.1 < t < handback_unix and (kind == "setpoint" or (kind == "set_mode" and v != 255))]
+    assert not sent, sent
