@@ -14,13 +14,16 @@ Needs FIMNAV_SITL_ARDUCOPTER and FIMNAV_SITL_ARDUCOPTER_DEFAULTS (tests/sitl/sit
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import signal
 import socket
 import struct
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -88,14 +91,31 @@ def test_a_ground_station_takes_sitl_over_and_fimnav_handback_returns_it(tmp_pat
 COPTER_LOITER = 5
 
 
-def rc_sticks_centred(sitl: Any) -> None:
-    """A pilot's transmitter at rest: SITL's RC input (its ``--rc-in-port``, 8 PWM values) with
-    roll, pitch, throttle and yaw centred (1500 µs) and the mode switch where SITL starts it
-    (1000 µs). Without it SITL's throttle input is at its bottom (1000 µs), and LOITER, which
-    follows the pilot's climb rate, would descend."""
+@contextlib.contextmanager
+def rc_sticks_centred(sitl: Any) -> Iterator[None]:
+    """A pilot's transmitter at rest, sent 10 times a second while the block runs (as a receiver
+    does) to SITL's RC input (its ``--rc-in-port``, 8 PWM values): SITL's own start values
+    (AP_RCProtocol_UDP: the mode switch, channel 5, at 1800 µs; 6, 7 at 1000; 8 at 1800) with
+    the throttle centred (1500 µs instead of 1000). Without it LOITER, which follows the pilot's
+    climb-rate stick, descends at full rate."""
     port = int(sitl.argv[sitl.argv.index("--rc-in-port") + 1])
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.sendto(struct.pack("<8H", 1500, 1500, 1500, 1500, 1000, 1000, 1000, 1000), ("127.0.0.1", port))
+    packet = struct.pack("<8H", 1500, 1500, 1500, 1500, 1800, 1000, 1000, 1800)
+    stop = threading.Event()
+
+    def send() -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            while True:
+                s.sendto(packet, ("127.0.0.1", port))
+                if stop.wait(0.1):
+                    return
+
+    thread = threading.Thread(target=send, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(2.0)
 
 
 def heartbeats(gcs: Any, seconds: float) -> list[tuple[int, bool]]:
@@ -168,7 +188,6 @@ def test_ctrl_c_of_a_realtime_launch_leaves_the_copter_in_loiter(tmp_path: Path,
     steps = 200
     mission = write_mission(tmp_path / "m.yaml", steps=steps)
     with sitl_with_serial1(tmp_path / "sitl", SPEEDUP, home_below(mission, START), 1) as (sitl, serial1):
-        rc_sticks_centred(sitl)
         spec = yaml.safe_load(mission.read_text())
         spec["vehicles"] = {"overrides": [{"connection": sitl.address, "payload_connection": serial1}]}
         mission.write_text(yaml.safe_dump(spec))
@@ -178,22 +197,24 @@ def test_ctrl_c_of_a_realtime_launch_leaves_the_copter_in_loiter(tmp_path: Path,
         launches.append(run)
         steps_log = out / "logs" / "planner_1.jsonl"
         wait_for(lambda: steps_log.exists() and len(steps_log.read_text().splitlines()) >= 8, 240.0, "eight steps")
-        os.killpg(run.proc.pid, signal.SIGINT)
-        code, _, stderr = run.wait(60.0)
-        assert code == 130, stderr[-3000:]
-        text = (out / "logs" / "planner_1.log").read_text()
-        line = next(x for x in text.splitlines() if "stopping (SIGTERM)" in x)
-        assert "the vehicle is in LOITER (on_stop hold), confirmed" in line, line
-        rc_sticks_centred(sitl)
-        gcs = mavutil.mavlink_connection(serial1, source_system=255, source_component=190)
-        try:
-            assert gcs.wait_heartbeat(timeout=20) is not None
-            pos0 = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=10)
-            held = heartbeats(gcs, 10.0)
-            pos1 = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=10)
-        finally:
-            gcs.close()
+        # In the air the pilot's throttle stick rests centred (it was low for the arming).
+        with rc_sticks_centred(sitl):
+            os.killpg(run.proc.pid, signal.SIGINT)
+            code, _, stderr = run.wait(60.0)
+            assert code == 130, stderr[-3000:]
+            text = (out / "logs" / "planner_1.log").read_text()
+            line = next(x for x in text.splitlines() if "stopping (SIGTERM)" in x)
+            assert "the vehicle is in LOITER (on_stop hold), confirmed" in line, line
+            gcs = mavutil.mavlink_connection(serial1, source_system=255, source_component=190)
+            try:
+                assert gcs.wait_heartbeat(timeout=20) is not None
+                pos0 = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=10)
+                held = heartbeats(gcs, 10.0)
+                pos1 = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=10)
+            finally:
+                gcs.close()
     assert held and set(held) == {(COPTER_LOITER, True)}, held
-    assert pos0 is not None and pos1 is not None and abs(pos1.relative_alt - pos0.relative_alt) < 1000, (pos0, pos1)  # mm
+    # Still in the air where it stopped (the mission's start height, 8 m), not descending (mm).
+    assert pos0 is not None and pos1 is not None and pos0.relative_alt > 5000 and abs(pos1.relative_alt - pos0.relative_alt) < 1000, (pos0, pos1)
     print(f"\nSITL Ctrl-C: {line.split('stopping ')[1]}; then LOITER, armed, for {len(held)} heartbeats over 10 s; "
-          f"height {pos0.relative_alt / 1000:.1f} -> {pos1.relative_alt / 1000:.1f} m")
+          f"height above home {pos0.relative_alt / 1000:.1f} -> {pos1.relative_alt / 1000:.1f} m")
