@@ -122,7 +122,7 @@ def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Pat
     tlog = tmp_path / "v.tlog"
     vehicle, port = start_vehicle(procs, mission, tlog, "--speedup", str(SPEEDUP), "--flavour", flavour, "--airborne")
     ground_station_sets(port, flavour)
-    peer = SwarmPeer("pilotheld", 1, {1: 75.0})
+    peer = SwarmPeer("pilotheld", 1, {1: 75.0}, mode="router")
     try:
         plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
                            "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")))

@@ -139,7 +139,7 @@ def test_a_restarted_planner_leaves_a_braking_copter_alone(tmp_path: Path, procs
     steps = 40
     mission = write_mission(tmp_path / "m.yaml", steps=steps)
     log = tmp_path / "p.jsonl"
-    peer = SwarmPeer("sitl_one", 1, {1: 75.0})
+    peer = SwarmPeer("sitl_one", 1, {1: 75.0}, mode="router")
     with sitl_with_serial1(tmp_path / "sitl", SPEEDUP, home_below(mission, START), 1) as (sitl, serial1):
         argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", sitl.address, "--speedup", f"{SPEEDUP:g}",
                       "--log", str(log), "--preflight-timeout", "180", "--zenoh-connect", peer.endpoint)
