@@ -22,7 +22,6 @@ import dataclasses
 import json
 import math
 import os
-import signal
 import sys
 import threading
 from collections.abc import Sequence
@@ -386,15 +385,16 @@ def _realtime_bridge(args: argparse.Namespace, mission: Any, vehicles: list[Any]
 
 
 def _serve(host: Any, duration_s: float | None) -> None:
-    """Run the host until SIGINT/SIGTERM or ``duration_s`` wall seconds."""
+    """Run the host until a stop signal or ``duration_s`` wall seconds; the vehicles stop
+    cleanly either way (links closed, tlogs flushed).
 
-    def _term(_sig: int, _frame: Any) -> None:
-        host.stop()
+    Raises:
+        Interrupted: a signal stopped them (exit 128 + signal, :mod:`missions.runtime.signals`).
+    """
+    from missions.runtime.signals import StopRequest, stop_on_signals
 
-    # SIGINT and SIGTERM both stop the vehicles cleanly (links closed, tlogs flushed), set
-    # explicitly: a process started from a script's background job inherits SIGINT ignored.
-    old = {sig: signal.signal(sig, _term) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    stop = StopRequest(host.stop)
+    with stop_on_signals(stop):
         timer = threading.Timer(duration_s, host.stop) if duration_s is not None else None
         if timer is not None:
             timer.daemon = True
@@ -402,13 +402,11 @@ def _serve(host: Any, duration_s: float | None) -> None:
         host.run()
         if timer is not None:
             timer.cancel()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+    stop.raise_if_stopped()
 
 
 def run_vehicle(args: argparse.Namespace) -> int:
-    """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
+    """Run the vehicles until a stop signal (exit 128 + signal) or ``--duration`` (exit 0)."""
     from missions.cli.process_args import setup_logging
     from missions.launch.forkspawn import watch_launcher
 

@@ -474,6 +474,7 @@ def _extra(oracle_estimate: bool, float32_positions: bool, faults: FaultBuffer |
     extra = {"oracle_estimate": float(oracle_estimate), "float32_positions": float(float32_positions)}
     if faults is not None:
         extra["fault_lost_fraction"] = faults.lost / max(faults.decided, 1)
+        extra["fault_lost"], extra["fault_decided"] = float(faults.lost), float(faults.decided)  # chunks of a run add up
     return extra
 
 
