@@ -23,7 +23,6 @@ import json
 import logging
 import math
 import os
-import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -260,14 +259,3 @@ def _serve(args: argparse.Namespace, mission: Any, conn: str, key: bytes | None,
     finally:
         bridge.close()
         link.close()
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m missions.cli.payload`` entry (same as ``fimnav payload``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["payload", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

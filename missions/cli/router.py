@@ -30,9 +30,7 @@ import dataclasses
 import json
 import logging
 import math
-import sys
 import threading
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -186,14 +184,3 @@ def run_router(args: argparse.Namespace) -> int:
             session.close()
     request.raise_if_stopped()
     return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cli.router`` entry (same as ``fimnav router``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["router", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -22,7 +22,6 @@ import dataclasses
 import json
 import math
 import os
-import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -469,14 +468,3 @@ def _bridge_settings(args: argparse.Namespace, mission: Any, listen: Sequence[st
     if args.zenoh_mode:
         return dataclasses.replace(settings, mode=args.zenoh_mode)
     return settings
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cli.vehicle`` entry (same as ``fimnav vehicle``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["vehicle", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

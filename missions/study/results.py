@@ -36,21 +36,11 @@ import numpy as np
 
 from missions.format.loader import mission_to_yaml
 from missions.runtime.rundir import make_results_dir, writing
-from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, RunSpec, SimulationResult, fault_penalty
+from missions.study.layout import PENALTY_REFERENCE, run_name, spec_name
+from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, SimulationResult, fault_penalty
 
-#: File name of a fault-free run's :class:`PenaltyReference` in its ``runs/<run>/`` directory.
-PENALTY_REFERENCE = "penalty_reference.npz"
+__all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
 
-
-def run_name(result: SimulationResult) -> str:
-    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
-    return spec_name(result.spec)
-
-
-def spec_name(spec: RunSpec) -> str:
-    """:func:`run_name` of the run of ``spec``."""
-    suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
-    return f"{spec.mission.id}_{spec.criterion}{suffix}"
 
 
 def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
