@@ -42,7 +42,6 @@ from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, Simulati
 __all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
 
 
-
 def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
     """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time.
 
