@@ -343,7 +343,9 @@ def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: li
     Raises:
         UsageError: no mission id, or the Zenoh session cannot be opened.
     """
-    from vehicle_sim.clock import TickQueue, ZenohTickSource, tick_key
+    from comms import keys
+    from comms.session import SessionSettings
+    from vehicle_sim.clock import TickQueue, ZenohTickSource
 
     mission_id = args.mission_id or (mission.id if mission is not None else None)
     if not mission_id:
@@ -359,10 +361,12 @@ def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: li
             source: Any = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, _bridge_settings(args, mission, listen))
             on_tick = source.on_tick
         else:
-            source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
+            source = ZenohTickSource(mission_id, clock, SessionSettings(listen=tuple(listen), connect=tuple(args.zenoh_connect or ())))
+    except ValueError as exc:  # a mission id a key expression cannot hold
+        raise UsageError(f"--mission-id: {exc}") from None
     except Exception as exc:  # zenoh raises its own error type for bad endpoints
         raise UsageError(f"zenoh: cannot open the session ({exc})") from None
-    return clock, source, on_tick, {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
+    return clock, source, on_tick, {"tick_key": keys.tick(mission_id), "listen": listen, "connect": args.zenoh_connect}
 
 
 def _realtime_bridge(args: argparse.Namespace, mission: Any, vehicles: list[Any]) -> tuple[Any, dict[str, Any]]:
