@@ -3,7 +3,7 @@
 The launcher validates the mission, starts one simulated vehicle (``fimnav vehicle``) and one
 planner (``fimnav plan``) per drone as operating-system processes, runs the lockstep clock,
 shows progress, and writes the results directory. It only starts, watches and records: every
-decision is taken by the planners (DESIGN.md).
+decision is taken by the planners (docs/distributed.md, "The launcher").
 
 Networking is loopback only: the launcher's Zenoh session listens on 127.0.0.1 at a free port
 and every child connects to it (peers then find each other by gossip); each vehicle listens
