@@ -48,6 +48,17 @@ def exit_status(signum: int) -> int:
     return 128 + int(signum)
 
 
+@contextlib.contextmanager
+def _handlers(new: dict[signal.Signals, Any]) -> Iterator[None]:
+    """Inside: each signal of ``new`` has its handler; on leaving, the previous ones are back."""
+    previous = {s: signal.signal(s, h) for s, h in new.items()}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
 def _handled(signum: int) -> bool:
     """Whether a command takes over ``signum`` now: not a SIGHUP inherited ignored (``nohup``)."""
     return not (signum == signal.SIGHUP and signal.getsignal(signum) == signal.SIG_IGN)
@@ -93,15 +104,14 @@ def raise_on_signals(command: str) -> Iterator[None]:
         yield
         return
     owner = os.getpid()
-    # (what signal.signal returns: a handler, SIG_DFL/SIG_IGN, or None if not set from Python)
-    previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int | None] = {}
+    handlers: dict[signal.Signals, Any] = {}
 
     def terminate(signum: int, frame: FrameType | None) -> None:
         if os.getpid() != owner:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
-        for s in previous:
+        for s in handlers:
             if s != signal.SIGINT:
                 signal.signal(s, signal.SIG_DFL if s == signum else signal.SIG_IGN)
         deadline = threading.Timer(CLEANUP_GRACE_S, _exit_now, args=(command, signum))
@@ -113,14 +123,11 @@ def raise_on_signals(command: str) -> Iterator[None]:
         current = signal.getsignal(s)
         if s == signal.SIGINT:
             if current in (signal.SIG_IGN, signal.SIG_DFL):  # else: Python's KeyboardInterrupt already, or a caller's
-                previous[s] = signal.signal(s, signal.default_int_handler)
+                handlers[s] = signal.default_int_handler
         elif current == signal.SIG_DFL or (current == signal.SIG_IGN and _handled(s)):
-            previous[s] = signal.signal(s, terminate)
-    try:
+            handlers[s] = terminate
+    with _handlers(handlers):
         yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
 
 
 class Stoppable(Protocol):
@@ -159,18 +166,12 @@ def stop_on_signals(target: Stoppable) -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {s: signal.getsignal(s) for s in STOP_SIGNALS if _handled(s)}
 
     def handler(signum: int, frame: Any) -> None:
         target.request_stop(signum)
 
-    for s in previous:
-        signal.signal(s, handler)
-    try:
+    with _handlers({s: handler for s in STOP_SIGNALS if _handled(s)}):
         yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
 
 
 @contextlib.contextmanager
@@ -192,16 +193,11 @@ def signals_deferred() -> Iterator[None]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
 
-    previous = {}
-    for signum in STOP_SIGNALS:
-        handler = signal.getsignal(signum)
-        if handler is not None and handler != signal.SIG_IGN:
-            previous[signum] = signal.signal(signum, record)
+    held_back = [s for s in STOP_SIGNALS if signal.getsignal(s) not in (None, signal.SIG_IGN)]
     try:
-        yield
+        with _handlers(dict.fromkeys(held_back, record)):
+            yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
         for held in dict.fromkeys(got):
             signal.raise_signal(held)
 

@@ -6,11 +6,14 @@ is still writable: these cases fail for root too."""
 
 from __future__ import annotations
 
+import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from comms.errors import UsageError
@@ -18,6 +21,7 @@ from missions.runtime.rundir import make_results_dir, writing
 from missions.study.results import write_results
 from missions.study.simulator import RunSpec, simulate
 from tests.simulator.conftest import paper_mission
+from tests.support.launch import PAPER, Launch
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -85,3 +89,21 @@ def test_make_results_dir_makes_parents_and_checks_writing(tmp_path: Path) -> No
     with pytest.raises(UsageError, match=r"cannot write \(.*x\): Read-only file system"):
         with writing(tmp_path):
             raise OSError(30, "Read-only file system", str(tmp_path / "x"))
+
+
+@pytest.mark.integration
+def test_a_launch_has_one_summary_writer(tmp_path: Path, launches: list[Launch]) -> None:
+    """``fimnav launch`` writes its summary through the results writer, once: the top-level
+    summary.json has the version fields of every results directory, and its run is the run's
+    own summary.json, launch fields included."""
+    out = tmp_path / "run"
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "2", "--set", "drones.count=2")
+    launches.append(run)
+    code, _, stderr = run.wait(120.0)
+    assert code == 0, stderr[-3000:]
+    doc = json.loads((out / "summary.json").read_text())
+    assert doc["python"] == platform.python_version() and doc["numpy"] == np.__version__
+    assert doc["command"][:2] == ["fimnav", "launch"]
+    (summary,) = doc["runs"]
+    assert json.loads((out / "runs" / summary["run"] / "summary.json").read_text()) == summary
+    assert summary["distributed"] is True and summary["clock"] == "lockstep" and summary["failures"] == []
