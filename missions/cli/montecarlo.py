@@ -42,7 +42,7 @@ def register(subparsers: Any) -> None:
         "--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate"
     )
     p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes, sharing every run's trials (default 1)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes sharing the runs' trials (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument(
         "--optimum",
