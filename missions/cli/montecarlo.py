@@ -141,7 +141,7 @@ def _f(x: float | None) -> str:
 
 
 @contextlib.contextmanager
-def _watch_run(grpc_url: str, directory: str, spec: RunSpec) -> Iterator[Callable[[SimStep], None]]:
+def _watch_run(grpc_url: str | None, directory: str, spec: RunSpec) -> Iterator[Callable[[SimStep], None]]:
     """The live view of a run's first trial (``--view``; :mod:`missions.launch.liveview`): a
     rerun recording ``<directory>/<mission id>_<criterion>.rrd`` streamed to ``grpc_url``.
     Runs in the process that simulates that trial (a pool worker with ``--jobs``)."""

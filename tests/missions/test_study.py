@@ -139,3 +139,22 @@ def test_montecarlo_jobs_do_not_change_the_summary(tmp_path: Path) -> None:
     one, two = (json.loads((tmp_path / f"jobs{j}" / "summary.json").read_text())["runs"] for j in (1, 2))
     assert [_untimed(s) for s in one] == [_untimed(s) for s in two]
     assert one[0]["faults"]["lost_fraction"] > 0.0
+
+
+def test_the_live_view_watches_each_runs_first_trial_in_the_worker(tmp_path: Path) -> None:
+    """``fimnav montecarlo --view``'s watch (the recording only, no server here) on two workers:
+    one recording per run, of its first trial, step by step the simulator's positions; the
+    fault-free baseline of a run with faults is not watched."""
+    import functools
+
+    from missions.cli.montecarlo import _watch_run
+    from tests.missions.test_liveview import read_entity
+
+    specs = [RunSpec(paper_mission("heterogeneous"), "A", 3, 6), expand_runs(["paper/joint"], LOSS, trials=2, steps=4)[0]]
+    study = run_study(specs, executor=LocalPool(2), watch=functools.partial(_watch_run, None, str(tmp_path)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper_heterogeneous_A.rrd", "paper_joint_A.rrd"]
+    for spec, result in zip(specs, study.results):
+        drones = read_entity(tmp_path / f"{spec.mission.id}_{spec.criterion}.rrd", "/world/drones", "Points3D:positions")
+        assert sorted(drones) == list(range(spec.steps))
+        for k in range(spec.steps):
+            np.testing.assert_allclose(np.asarray(drones[k]), result.positions_m[k, 0], atol=1e-4)
