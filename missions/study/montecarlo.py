@@ -27,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 
 from missions.format.loader import load_mission
-from missions.study.executors import Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
+from missions.study.executors import MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
 from missions.study.results import PENALTY_REFERENCE, spec_name
 from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
 from planner.params import Criterion
@@ -107,6 +107,7 @@ def run_study(
     optimum: bool = False,
     workers: int = 1,
     executor: ChunkExecutor | None = None,
+    chunk_trials: int = MIN_CHUNK_TRIALS,
     progress: Callable[[int], object] | None = None,
     watch: Watch | None = None,
     warn: Callable[[str], None] | None = None,
@@ -124,6 +125,8 @@ def run_study(
         workers: processes on this machine (:func:`missions.study.executors.local_executor`)
             when no ``executor`` is given.
         executor: where the chunks run (:class:`missions.study.executors.ChunkExecutor`).
+        chunk_trials: the fewest trials in a chunk (:func:`missions.study.executors.chunk_bounds`);
+            with injected faults it sets the batches, and so the rounding, of a run's trials.
         progress: called with the number of trial-steps just done (all runs and baselines:
             ``sum(trials × steps)`` in all, see :func:`study_size`).
         watch: the live view of each run's first trial (not of the baselines).
@@ -138,7 +141,7 @@ def run_study(
     chunks: list[Chunk] = []
     owner: list[int] = []
     for r, spec in enumerate(runs):
-        for first, count in chunk_bounds(spec.trials):
+        for first, count in chunk_bounds(spec.trials, chunk_trials):
             part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
             chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and r < len(specs) else None))
             owner.append(r)

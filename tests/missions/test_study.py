@@ -48,21 +48,23 @@ def _assert_same(a: SimulationResult, b: SimulationResult) -> None:
     assert {k: v for k, v in a.extra.items()} == {k: v for k, v in b.extra.items()}
 
 
-@pytest.mark.parametrize(("trials", "chunks"), [(100, 4), (20, 4), (3, 4), (1, 4), (7, 3), (9, 1)])
-def test_chunk_bounds_cover_the_trials_in_order(trials: int, chunks: int) -> None:
-    bounds = chunk_bounds(trials, chunks)
-    assert len(bounds) == min(trials, chunks)
+@pytest.mark.parametrize(("trials", "least", "most", "chunks"), [(100, 50, 4, 2), (99, 50, 4, 1), (1000, 50, 4, 4), (20, 2, 4, 4), (7, 2, 4, 3), (1, 2, 4, 1), (9, 1, 1, 1)])
+def test_chunk_bounds_cover_the_trials_in_order(trials: int, least: int, most: int, chunks: int) -> None:
+    bounds = chunk_bounds(trials, least, most)
+    assert len(bounds) == chunks
     assert [f for f, _ in bounds] == list(np.cumsum([0] + [c for _, c in bounds[:-1]]))
     assert sum(c for _, c in bounds) == trials
     sizes = [c for _, c in bounds]
     assert max(sizes) - min(sizes) <= 1 and sizes == sorted(sizes, reverse=True)
+    assert chunks == 1 or min(sizes) >= least
 
 
 def test_without_faults_the_chunks_merge_to_the_whole_run() -> None:
     """Reference: simulate() over all the trials at once."""
     spec = RunSpec(paper_mission("joint"), "A", 7, 12)
     whole = simulate(spec)
-    study = run_study([spec])  # 7 trials: chunks of 2, 2, 2, 1
+    study = run_study([spec], chunk_trials=2)  # 7 trials: chunks of 2, 2, 3
+    assert chunk_bounds(7, 2) == [(0, 3), (3, 2), (5, 2)]
     _assert_same(study.results[0], whole)
     assert study.penalties == [None] and study.extras == [None]
 
@@ -72,7 +74,8 @@ def test_a_study_is_the_same_on_any_number_of_workers() -> None:
     process, on two and on three workers: every array and every summary the same bit for bit."""
     specs = [RunSpec(paper_mission("heterogeneous"), "D", 5, 10), dataclasses.replace(expand_runs(["paper/joint"], LOSS, trials=6, steps=10)[0])]
     assert specs[1].mission.comms.faults.enabled
-    done = {name: run_study(specs, executor=ex) for name, ex in (("in-process", InProcess()), ("2 workers", LocalPool(2)), ("3 workers", LocalPool(3)))}
+    runs = (("in-process", InProcess()), ("2 workers", LocalPool(2)), ("3 workers", LocalPool(3)))
+    done = {name: run_study(specs, executor=ex, chunk_trials=2) for name, ex in runs}
     ref = done["in-process"]
     for name, study in done.items():
         for a, b in zip(study.results, ref.results, strict=True):
@@ -87,7 +90,7 @@ def test_a_study_is_the_same_on_any_number_of_workers() -> None:
 
 def test_the_merged_loss_fraction_is_made_of_the_summed_counts() -> None:
     spec = expand_runs(["paper/joint"], LOSS, trials=5, steps=8)[0]
-    parts = [simulate_chunk(Chunk(dataclasses.replace(spec, first_trial=f, trials=c))) for f, c in chunk_bounds(5, 2)]
+    parts = [simulate_chunk(Chunk(dataclasses.replace(spec, first_trial=f, trials=c))) for f, c in chunk_bounds(5, 2, 2)]
     merged = merge_chunks(spec, parts)
     lost = sum(int(p.extra["fault_lost"]) for p in parts)
     decided = sum(int(p.extra["fault_decided"]) for p in parts)
@@ -127,13 +130,15 @@ def test_study_size_counts_the_baselines_it_will_simulate() -> None:
     specs = [RunSpec(paper_mission("joint"), "A", 3, 4), expand_runs(["paper/joint"], LOSS, trials=2, steps=5)[0]]
     assert study_size(specs) == 3 * 4 + 2 * 5 * 2
     seen: list[int] = []
-    run_study(specs, progress=seen.append)
+    run_study(specs, progress=seen.append, chunk_trials=1)
     assert sum(seen) == study_size(specs)
 
 
 def test_montecarlo_jobs_do_not_change_the_summary(tmp_path: Path) -> None:
-    """``fimnav montecarlo --jobs 1`` and ``--jobs 2``: the same summary.json (but wall times)."""
-    args = ["montecarlo", "paper/joint", "--trials", "5", "--steps", "8", "--no-figures", "--set", "comms.faults.loss=0.3"]
+    """``fimnav montecarlo --jobs 1`` and ``--jobs 2`` on a run of 100 trials (two chunks, and
+    two of its baseline): the same summary.json (but wall times)."""
+    assert len(chunk_bounds(100)) == 2
+    args = ["montecarlo", "paper/joint", "--trials", "100", "--steps", "3", "--no-figures", "--set", "comms.faults.loss=0.3"]
     for jobs in (1, 2):
         assert main([*args, "--jobs", str(jobs), "--out", str(tmp_path / f"jobs{jobs}")]) == 0
     one, two = (json.loads((tmp_path / f"jobs{j}" / "summary.json").read_text())["runs"] for j in (1, 2))
@@ -151,7 +156,7 @@ def test_the_live_view_watches_each_runs_first_trial_in_the_worker(tmp_path: Pat
     from tests.missions.test_liveview import read_entity
 
     specs = [RunSpec(paper_mission("heterogeneous"), "A", 3, 6), expand_runs(["paper/joint"], LOSS, trials=2, steps=4)[0]]
-    study = run_study(specs, executor=LocalPool(2), watch=functools.partial(_watch_run, None, str(tmp_path)))
+    study = run_study(specs, executor=LocalPool(2), chunk_trials=1, watch=functools.partial(_watch_run, None, str(tmp_path)))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["paper_heterogeneous_A.rrd", "paper_joint_A.rrd"]
     for spec, result in zip(specs, study.results):
         drones = read_entity(tmp_path / f"{spec.mission.id}_{spec.criterion}.rrd", "/world/drones", "Points3D:positions")
