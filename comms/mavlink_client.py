@@ -6,7 +6,7 @@ REQUEST_DATA_STREAM where that is refused), report what the vehicle still lacks 
 fix, EKF, home, EKF origin), switch modes, arm, take off, stream setpoints and read the
 vehicle's position with its timestamp.
 
-Frames (DESIGN.md): the mission frame is ENU about the mission origin.
+Frames (docs/architecture.md, "Frames, units, time"): the mission frame is ENU about the mission origin.
 
 * ``frame="local_ned"``: SET_POSITION_TARGET_LOCAL_NED and LOCAL_POSITION_NED, NED about the
   vehicle's EKF origin; only right where that origin *is* the mission origin (fimnav's own

@@ -11,21 +11,21 @@ from typing import Any
 import numpy as np
 
 from comms import keys
-from comms.messages import Done, MessageError, Observation, Status, decode
+from comms.messages import Done, MessageError, Record, Status, decode
 from missions.format.schema import Mission
 from missions.launch.view_peb import peb_of_view
 from planner.config import PlannerConfig
 
 #: What was heard of step k: each drone's record and status (None: not heard), and the records
 #: the statuses' views name, by (step, drone id).
-Heard = tuple[dict[int, Observation | None], dict[int, Status | None], dict[tuple[int, int], Observation]]
+Heard = tuple[dict[int, Record | None], dict[int, Status | None], dict[tuple[int, int], Record]]
 
 
 @dataclass
 class Collected:
     """What the launcher heard of the run (records and statuses by step)."""
 
-    records: dict[tuple[int, int], Observation] = field(default_factory=dict)
+    records: dict[tuple[int, int], Record] = field(default_factory=dict)
     status: dict[tuple[int, int], Status] = field(default_factory=dict)
     dropped: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -86,7 +86,7 @@ class SwarmListener:
                 c.dropped += 1
             return
         with c.lock:
-            if kind == "record" and isinstance(msg, Observation):
+            if kind == "record" and isinstance(msg, Record):
                 c.records.setdefault((msg.step, msg.sender), msg)
                 newest = self._newest.get(msg.sender)
                 if newest is None or msg.step >= newest[0]:

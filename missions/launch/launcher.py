@@ -3,7 +3,7 @@
 The launcher validates the mission, starts one simulated vehicle (``fimnav vehicle``) and one
 planner (``fimnav plan``) per drone as operating-system processes, runs the lockstep clock,
 shows progress, and writes the results directory. It only starts, watches and records: every
-decision is taken by the planners (DESIGN.md).
+decision is taken by the planners (docs/distributed.md, "The launcher").
 
 Networking is loopback only: the launcher's Zenoh session listens on 127.0.0.1 at a free port
 and every child connects to it (peers then find each other by gossip); each vehicle listens
@@ -11,10 +11,10 @@ for its planner's MAVLink on its own free UDP port on 127.0.0.1.
 
 :class:`Launcher` composes the run's parts, each in its own module:
 
-* :mod:`missions.study.rundir`: the results directory (a previous run is refused or overwritten);
+* :mod:`missions.runtime.rundir`: the results directory (a previous run is refused or overwritten);
 * :mod:`missions.launch.supervisor`: the child processes (started, watched, failures dealt with,
   stopped: no orphan process, no port left bound, also when the launcher dies);
-* :mod:`missions.launch.signals`: Ctrl-C, SIGTERM and SIGHUP;
+* :mod:`missions.runtime.signals`: Ctrl-C, SIGTERM and SIGHUP;
 * :mod:`missions.launch.collect`: what is heard over Zenoh (records, statuses, readiness);
 * :mod:`missions.launch.accounting`: the results, from the planners' step logs;
 * :mod:`missions.launch.view`: the live view (``--view``).
@@ -47,7 +47,6 @@ from missions.launch.accounting import launch_result, step_logs, taken_over
 from missions.launch.clock import ClockError, LockstepClock
 from missions.launch.collect import Collected, SwarmListener
 from missions.launch.commands import payload_command, planner_command, vehicle_command
-from missions.launch.signals import STOP_SIGNALS, Interrupted, stop_on_signals
 from missions.launch.supervisor import (
     MAX_RESTARTS,
     ON_FAILURE,
@@ -60,8 +59,9 @@ from missions.launch.supervisor import (
     vehicle_groups,
 )
 from missions.launch.view import LaunchView
+from missions.runtime.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
+from missions.runtime.signals import STOP_SIGNALS, Interrupted, stop_on_signals
 from missions.study.results import write_results
-from missions.study.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
 from missions.study.simulator import SimulationResult
 
 __all__ = [
@@ -545,15 +545,12 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
             raise launcher.interrupted() from None
         if launcher.stop_requested:
             raise launcher.interrupted()  # a signal while the last records were gathered
-    summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
-    summary = summaries[0]
-    summary.update(
-        distributed=True,
-        dropped_messages=int(result.extra["dropped_messages"]),
-        missing_drone_steps=int(result.extra["missing_drone_steps"]),
-        failures=launcher.failures,
-        clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
-        taken_over=taken_over(out, mission.drones.count),
-    )
-    (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
-    return summary
+    launched = {
+        "distributed": True,
+        "dropped_messages": int(result.extra["dropped_messages"]),
+        "missing_drone_steps": int(result.extra["missing_drone_steps"]),
+        "failures": launcher.failures,
+        "clock": f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
+        "taken_over": taken_over(out, mission.drones.count),
+    }
+    return write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]], extras=[launched])[0]

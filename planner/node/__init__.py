@@ -2,7 +2,7 @@
 
 It flies one drone of a mission. Zenoh carries the swarm's records, the payload's measurements
 and, in lockstep simulation, the clock; MAVLink carries the setpoints to its own autopilot.
-Each step, in order (DESIGN.md): read own position (MAVLink) → take own measurement (payload)
+Each step, in order (docs/distributed.md, "The planner node"): read own position (MAVLink) → take own measurement (payload)
 → publish own record → collect the peers' records for the step → delayed view → estimate the
 source → control step under constraints → send the setpoint (position with velocity
 feed-forward). The maths is :func:`planner.agent.plan`, the same function the in-process

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from comms.mavlink_client import LinkError
-from comms.messages import Observation
+from comms.messages import Record
 from planner.node.config import NodeConfig, NodeError
 from planner.node.core import OwnMeasurement, StepCore
 from planner.node.io import NodeIO
@@ -177,7 +177,7 @@ class LockstepDriver:
 
         return check
 
-    def _measurement(self, k: int) -> Observation:
+    def _measurement(self, k: int) -> Record:
         """The payload's measurement of step ``k`` (older ones are dropped)."""
         what = f"payload measurement of step {k}"
         measurements = self.swarm.measurements

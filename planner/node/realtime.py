@@ -22,7 +22,7 @@ import numpy as np
 
 from comms.latency import DelayedView
 from comms.mavlink_client import MAV_LANDED_STATE_NAMES, LinkError
-from comms.messages import Observation
+from comms.messages import Record
 from planner.node.config import NodeConfig, NodeError
 from planner.node.core import OwnMeasurement, StepCore
 from planner.node.io import NodeIO
@@ -56,7 +56,7 @@ class PeerRecordGrid:
         #: Drone id → the last step it said "stale" (its link is down: it answered, nothing new).
         self.stale_peers: dict[int, int] = {}
 
-    def add(self, rec: Observation) -> None:
+    def add(self, rec: Record) -> None:
         """A peer's record (any step numbering), re-indexed by its time stamp (UNIX s); before
         step 0 a record cannot enter any view. A stale record answers for its step without
         refreshing the peer's data (its saved record keeps ageing, widening the margin)."""

@@ -121,13 +121,13 @@ class SwarmPeer:
             return list(self.records)
 
     def _run(self) -> None:
-        from comms.messages import MessageKind, Observation, encode
+        from comms.messages import MessageKind, Record, encode
 
         seq = 0
         while not self._stop.wait(self.period_s):
             for uav, rng in self.ranges_m.items():
                 seq += 1
-                obs = Observation(uav, seq, time.time(), (0.0, 0.0, 0.0), True, False, True, rng, float("nan"), float("nan"))
+                obs = Record(uav, seq, time.time(), (0.0, 0.0, 0.0), True, False, True, rng, float("nan"), float("nan"))
                 self._pubs[uav].put(encode(obs, self.mission_id, seq, MessageKind.MEASUREMENT))
 
     def close(self) -> None:
