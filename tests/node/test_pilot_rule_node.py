@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 import pytest
 
-from comms.messages import Message, Observation
+from comms.messages import Message, Record
 from planner.node import NodeError
 from tests.node.test_lockstep_node import STEPS, make_node
 
@@ -30,7 +30,7 @@ def test_a_mode_change_in_the_middle_of_a_step_stops_its_setpoint(tmp_path: Path
     base = swarm.on_publish
 
     def on_publish(key: str, msg: Message) -> None:
-        if isinstance(msg, Observation) and msg.sender == 1 and not msg.taken_over:
+        if isinstance(msg, Record) and msg.sender == 1 and not msg.taken_over:
             sent_by_step[msg.step] = len(link.setpoints)
             if msg.step == 1:
                 link.heartbeat_in(PILOT[flavour])  # the pilot, between the record and the setpoint
@@ -42,7 +42,7 @@ def test_a_mode_change_in_the_middle_of_a_step_stops_its_setpoint(tmp_path: Path
     # No setpoint after the record of step 1 (the step whose setpoint the mode change beat).
     assert len(link.setpoints) == sent_by_step[1], (len(link.setpoints), sent_by_step)
     assert link.modes_set == [] and summary["end"]["confirmed"] is False
-    records = swarm.session.of_kind(Observation)
+    records = swarm.session.of_kind(Record)
     assert [r.step for r in records if r.sender == 1 and r.taken_over] == list(range(2, STEPS))
 
 
@@ -54,8 +54,8 @@ def test_a_node_started_beside_a_pilot_held_vehicle_commands_nothing(tmp_path: P
     assert swarm.link.modes_set == [] and swarm.link.setpoints == [] and not any(swarm.link.streams)
     (take,) = summary["taken_over"]
     assert take == {"step": 0, "mode": PILOT[flavour], "at_start": "start"} and summary["steps"] == 0
-    flagged = [r.step for r in swarm.session.of_kind(Observation) if r.sender == 1]
-    assert flagged == list(range(STEPS)) and all(r.taken_over for r in swarm.session.of_kind(Observation) if r.sender == 1)
+    flagged = [r.step for r in swarm.session.of_kind(Record) if r.sender == 1]
+    assert flagged == list(range(STEPS)) and all(r.taken_over for r in swarm.session.of_kind(Record) if r.sender == 1)
 
 
 @pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
