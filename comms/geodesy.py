@@ -1,6 +1,6 @@
 """The mission frame and WGS-84, at the MAVLink edge, through pyproj (never by hand).
 
-Frames and conventions (DESIGN.md):
+Frames and conventions (docs/architecture.md, "Frames, units, time"):
 
 * Mission frame: ENU, metres, x east, y north, z up, about the mission ``origin`` (latitude,
   longitude in degrees WGS-84, altitude in metres AMSL).
@@ -58,7 +58,7 @@ class Origin:
     """Geodetic origin of a mission ENU frame (or of a vehicle's EKF frame).
 
     The one plain origin type: the mission schema's ``origin`` section converts to it
-    (``missions.format.schema.Origin.to_origin()``), the simulated vehicle's configuration holds it.
+    (``missions.format.schema.OriginSpec.to_origin()``), the simulated vehicle's configuration holds it.
 
     Attributes:
         lat_deg, lon_deg: WGS84 latitude and longitude (degrees).
@@ -104,7 +104,7 @@ class GeoPoint:
 
 
 class OriginSection(Protocol):
-    """The schema's ``origin`` section (``missions.format.schema.Origin``; duck-typed: comms does not
+    """The schema's ``origin`` section (``missions.format.schema.OriginSpec``; duck-typed: comms does not
     import missions): it converts to an :class:`Origin`."""
 
     def to_origin(self) -> Origin: ...

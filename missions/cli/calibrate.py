@@ -197,6 +197,9 @@ def run(args: argparse.Namespace) -> int:
         text = interval_comments(fit) + mission_to_yaml(mission.model_copy(update={"channel": channel}))
     else:
         text = section_yaml(channel, fit, args.log)
-    args.out.write_text(text)
+    try:
+        args.out.write_text(text)
+    except OSError as exc:
+        raise UsageError(f"{args.out}: cannot write the channel: {exc.strerror or exc}") from None
     print(f"wrote {args.out}")
     return 0

@@ -256,8 +256,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"{args.log}: {exc}") from None
     report = build_report(args.log, flight, options, thin, result, [*flight.notes, *notes])
-    out.mkdir(parents=True, exist_ok=True)
-    write_outputs(out, report, result, flight, thin)
+    from missions.runtime.rundir import make_results_dir, writing
+
+    make_results_dir(out)
+    with writing(out):
+        write_outputs(out, report, result, flight, thin)
     print_report(report, out)
     return 0
 

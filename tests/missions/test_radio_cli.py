@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from comms.geodesy import MissionFrame
-from comms.messages import Observation
+from comms.messages import Record
 from missions.cli.main import main
 from missions.format.loader import load_mission, mission_to_yaml
 from planner.node.steplog import StepLog
@@ -157,7 +157,7 @@ def _launch_results(tmp: Path) -> tuple[Path, int]:
             d = float(np.linalg.norm(src - p))
             z = d + ch.sigma_r0_los * d ** (ch.gamma / 2) * rng.standard_normal()
             positive += z > 0.0
-            rec = Observation(i + 1, k, float(k), tuple(p), True, False, True, z, math.nan, math.nan)
+            rec = Record(i + 1, k, float(k), tuple(p), True, False, True, z, math.nan, math.nan)
             step = SimpleNamespace(next_position=p, active=np.zeros(4, bool), singular=False, filtered=False)
             result = SimpleNamespace(step=step, cost=SimpleNamespace(value=1.0), loiter=False)
             view = SimpleNamespace(saved_steps=[k] * n, hops=[1] * n)
@@ -273,3 +273,17 @@ def test_the_pattern_choices_are_the_cores() -> None:
     from planner.radio.pathloss import PATTERNS
 
     assert PATTERN_NAMES == PATTERNS
+
+
+def test_an_unwritable_output_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "flight.csv"
+    write_log(log, survey(legs=3, per=30))
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["localize", str(log), "--out", str(blocker / "sub"), "--grid", "12"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a file, not a directory" in err
+    lat, lon = source_latlon()
+    assert main(["calibrate", str(log), "--source", f"{lat},{lon},1.5", "--out", str(blocker / "channel.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write the channel" in err
