@@ -41,7 +41,12 @@ def register(subparsers: Any) -> None:
         "a known position; write the mission's channel section.",
     )
     p.add_argument("log", type=Path, metavar="LOG", help="a CSV log (or a fimnav launch results directory)")
-    p.add_argument("--source", required=True, metavar="LAT,LON,ALT", help="the emitter's position: degrees, degrees, metres (the log's altitude)")
+    p.add_argument(
+        "--source",
+        required=True,
+        metavar="LAT,LON,ALT",
+        help="the emitter's position: degrees, degrees, metres (the log's altitude); a negative latitude as --source=-35.36,149.17,584",
+    )
     add_log_arguments(p)
     p.add_argument("--out", type=Path, help="write the mission (with --mission) or its channel section here (default: print the section)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
