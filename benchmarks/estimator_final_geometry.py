@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))
 
-from missions.cli.optimum import mission_optimum  # noqa: E402
+from missions.study.optimum import mission_optimum  # noqa: E402
 from missions.format.loader import load_mission  # noqa: E402
 from missions.format.schema import Mission  # noqa: E402
 from missions.study.simulator import RunSpec, simulate  # noqa: E402

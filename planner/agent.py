@@ -1,6 +1,6 @@
 """One drone's planning step from its view: the chain shared by the in-process simulator and
-the planner node, so both compute the same thing (DESIGN.md: "build the delayed view →
-estimate the source → compute the control step under constraints").
+the planner node, so both compute the same thing (docs/distributed.md, "Distributed =
+in-process": build the delayed view → estimate the source → compute the control step).
 
 Given drone i's step inputs (:class:`planner.step.StepScene`: its view, the records it holds of
 every drone, itself included, its estimate and its own measurement) and what it carries from
@@ -51,7 +51,7 @@ from numpy.typing import ArrayLike, NDArray
 from planner import estimator as est
 from planner import kernels as K
 from planner.config import PlannerConfig
-from planner.control import StepResult
+from planner.control import StepResult, kernel_limits
 from planner.fim import CostGradient, cost_gradient, fisher_information
 from planner.geometry import as_boxes
 from planner.params import Channel, Criterion, Limits
@@ -162,7 +162,7 @@ def _policy(
         K.as_batch(x, batch, t, 0)
         for x, t in ((sigma, float), (observable, bool), (distance_m, float), (own.mean_m, float), (own.weight, float), (was, bool))
     ]
-    return K.policy_batch(*args, float(own.gamma), limits.kernel_array).reshape((3,) + batch)
+    return K.policy_batch(*args, float(own.gamma), kernel_limits(limits)).reshape((3,) + batch)
 
 
 def source_keepout_m(limits: Limits, sigma_m: ArrayLike) -> FloatArray:
@@ -220,7 +220,7 @@ def followable_keepout_m(
     )
     vectors = [K.as_batch(v, batch + (3,), float, 1) for v in (x, centre_m, last_centre_m)]
     scalars = [K.as_batch(v, batch, float, 0) for v in (r, sigma_m, last_radius_m)]
-    return K.followable_batch(vectors[0], vectors[1], scalars[0], scalars[1], vectors[2], scalars[2], limits.kernel_array).reshape(batch)
+    return K.followable_batch(vectors[0], vectors[1], scalars[0], scalars[1], vectors[2], scalars[2], kernel_limits(limits)).reshape(batch)
 
 
 @dataclass(frozen=True, eq=False)
@@ -603,7 +603,7 @@ def _kernel_config(config: PlannerConfig, step_index: int, oracle: bool, source_
         bool(source_exact),
         bmin,
         bmax,
-        config.limits.kernel_array,
+        kernel_limits(config.limits),
         config.channel.kernel_array,
         math.nan if config.xi is None else float(config.xi),
         float(config.perturbation_rad),

@@ -123,7 +123,7 @@ def loiter_path(end: FloatArray, psi: FloatArray, theta: FloatArray, limits: Lim
     psi_b, theta_b = np.broadcast_to(np.asarray(psi, dtype=float), shape), np.broadcast_to(np.asarray(theta, dtype=float), shape)
     heading = np.stack((np.cos(theta_b) * np.cos(psi_b), np.cos(theta_b) * np.sin(psi_b), np.sin(theta_b)), -1)  # the step's direction
     args = (K.as_batch(e, shape + (3,), float, 1), K.as_batch(heading, shape + (3,), float, 1))
-    return K.loiter_batch(*args, limits.kernel_array).reshape(shape + (2, loiter_steps(limits), 3))
+    return K.loiter_batch(*args, kernel_limits(limits)).reshape(shape + (2, loiter_steps(limits), 3))
 
 
 def loiter_steps(limits: Limits) -> int:
@@ -154,7 +154,7 @@ def loiter_radius_m(limits: Limits) -> float:
 def limits_array(limits: Limits) -> FloatArray:
     """The limits array of the compiled control step (:func:`planner.kernels.limits_array`): the
     values of ``limits``, its activation rule and the values derived from them here (turn buffer,
-    loiter path, activation margins). Cached on the limits (:attr:`planner.params.Limits.kernel_array`)."""
+    loiter path, activation margins). :func:`kernel_limits` computes it once per limits value."""
     distances = (limits.d_uav_m, limits.d_source_m, limits.d_obstacle_m, limits.step_min_m, limits.step_max_m)
     values = distances + (limits.heading_change_max_rad, limits.tilt_change_max_rad, limits.z_min_m, limits.z_max_m)
     derived = (
@@ -169,6 +169,17 @@ def limits_array(limits: Limits) -> FloatArray:
     steps = np.arange(1.0, loiter_steps(limits) + 1.0) * limits.heading_change_max_rad
     table = tuple(np.stack((np.cos(steps), np.sin(steps)), -1).ravel())  # the loiter path's turns
     return K.limits_array(values, limits.activation == "safe", derived + table)
+
+
+def kernel_limits(limits: Limits) -> FloatArray:
+    """:func:`limits_array` of ``limits``, computed once per :class:`~planner.params.Limits` value
+    and kept on it (a frozen value: the array never goes stale; the planning step reads it at
+    every step)."""
+    cached = limits.__dict__.get("_kernel_array")
+    if cached is None:
+        cached = limits_array(limits)
+        object.__setattr__(limits, "_kernel_array", cached)
+    return cached
 
 
 def lost_contact_planes(own_then_m: ArrayLike, peer_then_m: ArrayLike, lost: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -295,7 +306,7 @@ def control_step(
     K.control_batch(
         *args,
         *as_boxes(boxes_min, boxes_max),
-        limits.kernel_array,
+        kernel_limits(limits),
         xi_value,
         float(perturbation_rad),
         bool(source_exact),
@@ -338,4 +349,4 @@ def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) 
     """The kinematic envelope's candidate steps (n, C, 3), m, and their tilts (n, C), rad, from the
     previous steps ``prev`` (n, 3) (:func:`planner.kernels.envelope_candidates`)."""
     prev_f = np.ascontiguousarray(np.asarray(prev, dtype=float).reshape(-1, 3))
-    return K.candidates_batch(prev_f, np.ascontiguousarray(np.asarray(has_prev, dtype=bool).reshape(-1)), limits.kernel_array)
+    return K.candidates_batch(prev_f, np.ascontiguousarray(np.asarray(has_prev, dtype=bool).reshape(-1)), kernel_limits(limits))

@@ -123,11 +123,3 @@ class Limits:
             total += math.cos(k * alpha)
             k += 1
         return self.step_max_m * total
-
-    @cached_property
-    def kernel_array(self) -> NDArray[np.float64]:
-        """The limits as the compiled kernels take them, with the values derived from them
-        (turn buffer, loiter path, activation margins): :func:`planner.control.limits_array`."""
-        from planner.control import limits_array  # imported here: planner.control imports this module
-
-        return limits_array(self)

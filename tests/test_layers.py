@@ -6,6 +6,7 @@ own layer or below, so no arrow runs back up.
     missions.launch     a swarm flown as processes: launcher, supervisor, clock, live view
     missions.study      the in-process simulator, results directories, figures, exports
     missions.format     the mission file: schema and loader
+    missions.runtime    what every command's process shares: stop signals, results directory
     vehicle_sim         the simulated vehicle        planner.node   the planner process
     comms               Zenoh, MAVLink, wire format, geodesy, autopilot profiles
     planner (core)      numpy, scipy and numba only (tests/test_import_graph.py)
@@ -25,13 +26,14 @@ FORBIDDEN: dict[str, tuple[str, ...]] = {
     "comms": ("vehicle_sim", "missions", "planner.node"),
     "vehicle_sim": ("missions", "planner.node"),
     "planner/node": ("vehicle_sim", "missions"),
+    "missions/runtime": ("missions.format", "missions.study", "missions.launch", "missions.cli"),
     "missions/format": ("missions.study", "missions.launch", "missions.cli"),
     "missions/study": ("missions.launch", "missions.cli"),
     "missions/launch": ("missions.cli",),
 }
 
 #: The subpackages of ``missions``, top-down.
-MISSIONS_SUBPACKAGES: tuple[str, ...] = ("cli", "launch", "study", "format")
+MISSIONS_SUBPACKAGES: tuple[str, ...] = ("cli", "launch", "study", "format", "runtime")
 
 
 def imported_modules(source: str) -> set[str]:

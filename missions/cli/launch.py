@@ -171,8 +171,6 @@ def _check_options(args: argparse.Namespace) -> None:
     Raises:
         UsageError: naming the option and why.
     """
-    if args.realtime and args.on_failure == "restart":
-        raise UsageError("--on-failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     for name in ("speedup", "start_delay"):
         v = getattr(args, name)
         if v is not None and not (math.isfinite(v) and v > 0):
@@ -198,11 +196,11 @@ def _check_options(args: argparse.Namespace) -> None:
 def _results_dir(args: argparse.Namespace, mission_id: str) -> Path:
     """``--out`` (checked: no previous run unless ``--overwrite``), or a new
     ``results/<mission id>-<date>-<time>``."""
-    from missions.study.rundir import check_results_dir, unique_results_dir
+    from missions.runtime.rundir import check_results_dir, unique_results_dir
 
     if args.out is None:
         return unique_results_dir(Path("results"), f"{mission_id}-{time.strftime('%Y%m%d-%H%M%S')}")
-    check_results_dir(args.out, args.overwrite)  # before anything shows; the launcher claims it
+    check_results_dir(args.out, args.overwrite)  # before anything shows; the launcher claims (makes) it
     return Path(args.out)
 
 

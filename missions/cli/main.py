@@ -9,17 +9,13 @@ stays fast.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
-import os
 import signal
 import sys
-import threading
-from collections.abc import Callable, Iterator, Sequence
-from types import FrameType
-from typing import Any
+from collections.abc import Sequence
 
 from comms.errors import FimnavError
+from missions.runtime.signals import Stopped, exit_status, raise_on_signals
 
 #: Subcommand modules, in the order ``fimnav --help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -34,6 +30,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cli.handback",
     "missions.cli.view",
     "missions.cli.missions",
+    "missions.cli.calibrate",
+    "missions.cli.localize",
 )
 
 
@@ -71,77 +69,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class Terminated(BaseException):
-    """SIGTERM or SIGHUP ended the command: raised in the main thread like KeyboardInterrupt for
-    Ctrl-C (``finally`` blocks run; ``except Exception`` does not catch it); exit 128 + signal."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = int(signum)
-
-
-#: Signals that end any ``fimnav`` command with status 128 + their number, after its clean-up
-#: (SIGINT: KeyboardInterrupt, 130). A command may handle them itself (``fimnav launch`` stops
-#: its children first; ``fimnav vehicle`` and ``fimnav router`` stop cleanly with status 0).
-TERMINATING_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTERM, signal.SIGHUP)
-
-#: Seconds a command ended by SIGTERM or SIGHUP has for its clean-up (``finally`` blocks, e.g.
-#: a process pool finishing its queue) before it exits with 128 + signal regardless.
-CLEANUP_GRACE_S: float = 5.0
-
-
-def _exit_now(command: str, signum: int) -> None:
-    """The clean-up after ``signum`` took too long: say so and exit 128 + signal at once."""
-    name = signal.Signals(signum).name
-    sys.stderr.write(f"fimnav {command}: stopped by {name} (clean-up cut short after {CLEANUP_GRACE_S:g} s)\n")
-    sys.stderr.flush()
-    os._exit(128 + signum)
-
-
-@contextlib.contextmanager
-def _terminate_on_signals(command: str) -> Iterator[None]:
-    """While the command runs, :data:`TERMINATING_SIGNALS` raise :class:`Terminated` in the
-    main thread, with :data:`CLEANUP_GRACE_S` for the clean-up. A second such signal ends the
-    process at once (the default action); so does one in a process forked from this one (a
-    ``multiprocessing`` worker: as before). A signal inherited ignored stays ignored
-    (``nohup``); off the main thread nothing is changed."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    owner = os.getpid()
-    # (what signal.signal returns: a handler, SIG_DFL/SIG_IGN, or None if not set from Python)
-    previous: dict[signal.Signals, Callable[[int, FrameType | None], Any] | int | None] = {}
-
-    def terminate(signum: int, frame: FrameType | None) -> None:
-        if os.getpid() != owner:
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-            return
-        for s in previous:
-            signal.signal(s, signal.SIG_DFL if s == signum else signal.SIG_IGN)
-        deadline = threading.Timer(CLEANUP_GRACE_S, _exit_now, args=(command, signum))
-        deadline.daemon = True
-        deadline.start()
-        raise Terminated(signum)
-
-    for s in TERMINATING_SIGNALS:
-        if signal.getsignal(s) == signal.SIG_DFL:
-            previous[s] = signal.signal(s, terminate)
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``fimnav`` with ``argv`` (default ``sys.argv[1:]``); return the exit status: 0, the
     command's error status (1, 2, 3), or 128 + the signal that ended it (SIGINT 130, SIGTERM
-    143, SIGHUP 129)."""
+    143, SIGHUP 129; :mod:`missions.runtime.signals`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with _terminate_on_signals(args.command):
+        with raise_on_signals(args.command):
             return int(args.func(args) or 0)
     except FimnavError as exc:
         # An interruption (exit status 128 + signal, e.g. fimnav launch's) is not an error.
@@ -150,10 +85,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exc.exit_code
     except KeyboardInterrupt:
         print(f"fimnav {args.command}: interrupted by SIGINT", file=sys.stderr)
-        return 128 + signal.SIGINT
-    except Terminated as exc:
+        return exit_status(signal.SIGINT)
+    except Stopped as exc:
         print(f"fimnav {args.command}: stopped by {exc}", file=sys.stderr)
-        return 128 + exc.signum
+        return exit_status(exc.signum)
 
 
 if __name__ == "__main__":  # pragma: no cover

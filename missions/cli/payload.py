@@ -23,8 +23,6 @@ import json
 import logging
 import math
 import os
-import signal
-import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -210,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
     from missions.cli.process_args import setup_logging, zenoh_settings
     from missions.format.loader import load_mission, parse_overrides
     from missions.launch.forkspawn import watch_launcher
-    from vehicle_sim.bridge import ZenohBridge
+    from missions.runtime.signals import StopRequest, stop_on_signals
 
     setup_logging(args.log_level, f"payload[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
@@ -225,7 +223,18 @@ def run(args: argparse.Namespace) -> int:
     settings = zenoh_settings(mission, args.zenoh_config, args.zenoh_connect)
 
     stop = threading.Event()
-    old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    request = StopRequest(stop.set)
+    with stop_on_signals(request):
+        status = _serve(args, mission, conn, key, settings, stop)
+    request.raise_if_stopped()
+    return status
+
+
+def _serve(args: argparse.Namespace, mission: Any, conn: str, key: bytes | None, settings: Any, stop: threading.Event) -> int:
+    """Open the link and the Zenoh bridge, follow the autopilot until ``stop`` is set (or
+    ``--duration`` ends), then close both."""
+    from vehicle_sim.bridge import ZenohBridge
+
     if args.duration is not None:
         timer = threading.Timer(args.duration, stop.set)
         timer.daemon = True
@@ -250,16 +259,3 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bridge.close()
         link.close()
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m missions.cli.payload`` entry (same as ``fimnav payload``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["payload", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -30,10 +30,7 @@ import dataclasses
 import json
 import logging
 import math
-import signal
-import sys
 import threading
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -150,7 +147,7 @@ def listening_endpoints(session: Any, timeout_s: float = LOCATOR_QUERY_TIMEOUT_S
 
 
 def run_router(args: argparse.Namespace) -> int:
-    """Run the router until SIGINT/SIGTERM or ``--duration``; exit status 0."""
+    """Run the router until a stop signal (exit 128 + signal) or ``--duration`` (exit 0)."""
     from missions.cli.process_args import setup_logging
 
     setup_logging(args.log_level, "router")
@@ -160,14 +157,11 @@ def run_router(args: argparse.Namespace) -> int:
     settings = router_settings(args)
 
     from comms.session import open_session
+    from missions.runtime.signals import StopRequest, stop_on_signals
 
     stop = threading.Event()
-
-    def _stop(_sig: int, _frame: Any) -> None:
-        stop.set()
-
-    old = {sig: signal.signal(sig, _stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    request = StopRequest(stop.set)
+    with stop_on_signals(request):
         try:
             session = open_session(settings)
         except UsageError:
@@ -188,18 +182,5 @@ def run_router(args: argparse.Namespace) -> int:
             log.info("stopping")
         finally:
             session.close()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+    request.raise_if_stopped()
     return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cli.router`` entry (same as ``fimnav router``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["router", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -22,8 +22,6 @@ import dataclasses
 import json
 import math
 import os
-import signal
-import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -345,7 +343,9 @@ def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: li
     Raises:
         UsageError: no mission id, or the Zenoh session cannot be opened.
     """
-    from vehicle_sim.clock import TickQueue, ZenohTickSource, tick_key
+    from comms import keys
+    from comms.session import SessionSettings
+    from vehicle_sim.clock import TickQueue, ZenohTickSource
 
     mission_id = args.mission_id or (mission.id if mission is not None else None)
     if not mission_id:
@@ -361,10 +361,12 @@ def _lockstep_source(args: argparse.Namespace, mission: Any | None, vehicles: li
             source: Any = ZenohBridge(mission.id, mission.drones.count, mission.dt_s, clock, vehicles, _bridge_settings(args, mission, listen))
             on_tick = source.on_tick
         else:
-            source = ZenohTickSource(mission_id, clock, listen=listen, connect=args.zenoh_connect)
+            source = ZenohTickSource(mission_id, clock, SessionSettings(listen=tuple(listen), connect=tuple(args.zenoh_connect or ())))
+    except ValueError as exc:  # a mission id a key expression cannot hold
+        raise UsageError(f"--mission-id: {exc}") from None
     except Exception as exc:  # zenoh raises its own error type for bad endpoints
         raise UsageError(f"zenoh: cannot open the session ({exc})") from None
-    return clock, source, on_tick, {"tick_key": tick_key(mission_id), "listen": listen, "connect": args.zenoh_connect}
+    return clock, source, on_tick, {"tick_key": keys.tick(mission_id), "listen": listen, "connect": args.zenoh_connect}
 
 
 def _realtime_bridge(args: argparse.Namespace, mission: Any, vehicles: list[Any]) -> tuple[Any, dict[str, Any]]:
@@ -386,15 +388,16 @@ def _realtime_bridge(args: argparse.Namespace, mission: Any, vehicles: list[Any]
 
 
 def _serve(host: Any, duration_s: float | None) -> None:
-    """Run the host until SIGINT/SIGTERM or ``duration_s`` wall seconds."""
+    """Run the host until a stop signal or ``duration_s`` wall seconds; the vehicles stop
+    cleanly either way (links closed, tlogs flushed).
 
-    def _term(_sig: int, _frame: Any) -> None:
-        host.stop()
+    Raises:
+        Interrupted: a signal stopped them (exit 128 + signal, :mod:`missions.runtime.signals`).
+    """
+    from missions.runtime.signals import StopRequest, stop_on_signals
 
-    # SIGINT and SIGTERM both stop the vehicles cleanly (links closed, tlogs flushed), set
-    # explicitly: a process started from a script's background job inherits SIGINT ignored.
-    old = {sig: signal.signal(sig, _term) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    stop = StopRequest(host.stop)
+    with stop_on_signals(stop):
         timer = threading.Timer(duration_s, host.stop) if duration_s is not None else None
         if timer is not None:
             timer.daemon = True
@@ -402,13 +405,11 @@ def _serve(host: Any, duration_s: float | None) -> None:
         host.run()
         if timer is not None:
             timer.cancel()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+    stop.raise_if_stopped()
 
 
 def run_vehicle(args: argparse.Namespace) -> int:
-    """Run the vehicles until SIGINT/SIGTERM or ``--duration``; exit status 0."""
+    """Run the vehicles until a stop signal (exit 128 + signal) or ``--duration`` (exit 0)."""
     from missions.cli.process_args import setup_logging
     from missions.launch.forkspawn import watch_launcher
 
@@ -471,14 +472,3 @@ def _bridge_settings(args: argparse.Namespace, mission: Any, listen: Sequence[st
     if args.zenoh_mode:
         return dataclasses.replace(settings, mode=args.zenoh_mode)
     return settings
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m missions.cli.vehicle`` entry (same as ``fimnav vehicle``)."""
-    from missions.cli.main import main as cli_main
-
-    return cli_main(["vehicle", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

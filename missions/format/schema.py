@@ -19,6 +19,7 @@ See ``docs/mission-format.md`` for every key, its unit, default and paper symbol
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from pathlib import Path
@@ -41,8 +42,7 @@ from pydantic_core import PydanticCustomError
 
 from comms.autopilot import FlavourName, FlavourSetting, flavour_names
 from comms.faults import FaultModel
-from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_ORIGIN_LON_DEG
-from comms.geodesy import Origin as GeodeticOrigin
+from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_ORIGIN_LON_DEG, Origin
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
@@ -147,19 +147,22 @@ class _Section(BaseModel):
 # --- sections ----------------------------------------------------------------------------
 
 
-class Origin(_Section):
+class OriginSpec(_Section):
     """Origin of the ENU mission frame (WGS-84).
 
     Default: ArduPilot SITL's home, CMAC, Canberra (-35.363261°, 149.165230°, 584 m AMSL).
     """
 
+    # The mission file's section; the origin itself is comms.geodesy.Origin (to_origin).
+    model_config = ConfigDict(title="Origin")
+
     lat_deg: Float = Field(DEFAULT_ORIGIN_LAT_DEG, ge=-90.0, le=90.0, description="Latitude (deg, WGS-84).")
     lon_deg: Float = Field(DEFAULT_ORIGIN_LON_DEG, ge=-180.0, le=180.0, description="Longitude (deg, WGS-84).")
     alt_m: Float = Field(DEFAULT_ORIGIN_ALT_M, description="Altitude of the frame origin, metres AMSL.")
 
-    def to_origin(self) -> GeodeticOrigin:
+    def to_origin(self) -> Origin:
         """The plain origin (:class:`comms.geodesy.Origin`) the frames and the vehicle use."""
-        return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
+        return Origin(self.lat_deg, self.lon_deg, self.alt_m)
 
     @property
     def lat_rad(self) -> float:
@@ -355,6 +358,13 @@ class ChannelSpec(_Section):
     sigma_ratio_los: Float = Field(1.7, gt=0.0, description="σ_sh/γ in LOS (paper 1.7).")
     sigma_ratio_nlos: Float = Field(3.2, gt=0.0, description="σ_sh/γ in NLOS (paper 3.2).")
     sigma_bearing_deg: Float = Field(10.0, gt=0.0, le=180.0, description="Bearing std σ_b,0 (deg, paper 10).")
+    reference_power_db: Float | None = Field(
+        None,
+        ge=-300.0,
+        le=300.0,
+        description="Received power 1 m from the source, in the receiver's dB (fitted by fimnav calibrate); "
+        "absent: unknown. fimnav localize --power known uses it.",
+    )
 
     @property
     def sigma_bearing_rad(self) -> float:
@@ -655,13 +665,28 @@ def _segment_hits_box(a: NDArray[np.float64], b: NDArray[np.float64], lo: NDArra
 
 def mission_json_schema() -> dict[str, Any]:
     """The JSON Schema (draft 2020-12) of the mission format, for editors and validators."""
-    schema = Mission.model_json_schema(mode="validation")
+    schema = _defs_named_by_title(Mission.model_json_schema(mode="validation"))
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://fimnav.invalid/schema/mission-v1.json",
         **schema,
         "title": "fimnav mission",
     }
+
+
+def _defs_named_by_title(schema: dict[str, Any]) -> dict[str, Any]:
+    """``schema`` with each definition keyed by its title where a section's class name differs
+    from the name the format gives it (:class:`OriginSpec` is the format's ``Origin``)."""
+    defs = schema.get("$defs", {})
+    names = {key: d["title"] for key, d in defs.items() if d.get("title", key) != key and d["title"] not in defs}
+    if not names:
+        return schema
+    text = json.dumps(schema)
+    for key, title in names.items():
+        text = text.replace(f'"#/$defs/{key}"', f'"#/$defs/{title}"')
+    out = json.loads(text)
+    out["$defs"] = {names.get(key, key): d for key, d in out["$defs"].items()}
+    return dict(out)
 
 
 def _fmt(v: NDArray[np.float64]) -> str:
@@ -691,7 +716,7 @@ class Mission(_Section):
     steps: Int = Field(550, ge=1, le=10_000_000, description="Number of steps K.")
     trials: Int = Field(100, ge=1, le=1_000_000, description="Monte Carlo trials M.")
     criterion: Literal["A", "D"] = Field("A", description="Design criterion of eq. (6).")
-    origin: Origin = Origin()
+    origin: OriginSpec = OriginSpec()
     drones: Drones
     source: Source
     obstacles: tuple[Box, ...] = Field((), description="Axis-aligned boxes (the set O).")
@@ -704,6 +729,11 @@ class Mission(_Section):
     zenoh: ZenohSpec = ZenohSpec()
     vehicles: Vehicles = Vehicles()
     end_action: Literal["hold", "land", "rtl"] = Field("hold", description="What vehicles do after the last step.")
+    on_stop: Literal["hold", "land", "rtl"] = Field(
+        "hold",
+        description="What each vehicle is told when its planner stops early (Ctrl-C, SIGTERM, SIGHUP, a fatal error, the launch "
+        "stopping it): hold (LOITER / AUTO.LOITER), land or rtl; a drone a pilot flies is left alone.",
+    )
     altitude_reference: Literal["amsl", "relative"] = Field(
         "relative", description="How z maps to autopilot altitude: above the origin ('relative') or AMSL."
     )
@@ -785,7 +815,7 @@ class Mission(_Section):
             ValueError: the vehicle config refuses a value.
         """
         from planner.geometry import vec3
-        from vehicle_sim.config import Geofence, Origin, VehicleConfig
+        from vehicle_sim.config import Geofence, VehicleConfig
 
         resolved = self.vehicles.for_drone(drone)
         fields: dict[str, Any] = {
@@ -797,7 +827,7 @@ class Mission(_Section):
             "seed": int(self.seed),
         }
         if "origin" not in overrides:
-            fields["origin"] = Origin(self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m)
+            fields["origin"] = self.origin.to_origin()
         if "geofence" not in overrides:
             c, f = self.constraints, self.fence
             fields["geofence"] = Geofence(

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from comms.messages import Observation, Status
+from comms.messages import Record, Status
 from missions.format.schema import Mission
 from missions.launch.collect import Collected
 from missions.launch.view_peb import peb_of_view
@@ -72,14 +72,14 @@ def taken_over(out: Path, n: int) -> dict[str, list[dict[str, Any]]]:
     return found
 
 
-def _records(mission: Mission, heard: dict[tuple[int, int], Observation], logs: StepLogs) -> dict[tuple[int, int], Observation]:
+def _records(mission: Mission, heard: dict[tuple[int, int], Record], logs: StepLogs) -> dict[tuple[int, int], Record]:
     """Records (position where measured, LOS) of every drone and step: those heard, replaced by
     the step logs' where a planner logged the step."""
-    recs: dict[tuple[int, int], Observation] = dict(heard)
+    recs: dict[tuple[int, int], Record] = dict(heard)
     nan = float("nan")
     ranging, bearing = mission.drones.ranging_mask(), mission.drones.bearing_mask()
     for (k, j), e in logs.items():
-        recs[(k, j)] = Observation(
+        recs[(k, j)] = Record(
             j,
             k,
             float(e.get("t_s", nan)),
@@ -94,7 +94,7 @@ def _records(mission: Mission, heard: dict[tuple[int, int], Observation], logs: 
     return recs
 
 
-def _positions(recs: dict[tuple[int, int], Observation], logs: StepLogs, n: int, K: int) -> np.ndarray:
+def _positions(recs: dict[tuple[int, int], Record], logs: StepLogs, n: int, K: int) -> np.ndarray:
     """Positions, shape (K + 1, 1, n, 3), m ENU: each step's record, and after the last step
     the position each planner commanded (nan: not known)."""
     positions = np.full((K + 1, 1, n, 3), np.nan)
@@ -142,7 +142,7 @@ class _StepArrays:
         self.peb = np.full((K, 1, n), np.inf)
         self.active = np.zeros((K, 4), dtype=np.int64)
 
-    def fill(self, steps: PlannerSteps, recs: dict[tuple[int, int], Observation], sources: np.ndarray, config: PlannerConfig) -> None:
+    def fill(self, steps: PlannerSteps, recs: dict[tuple[int, int], Record], sources: np.ndarray, config: PlannerConfig) -> None:
         """Enter every planner step within 0..K−1 (its view's PEB at that step's source)."""
         K = self.peb.shape[0]
         for (k, j), (est_m, obs, sing, filt, saved, act, loiter) in steps.items():
@@ -171,7 +171,7 @@ class _StepArrays:
                 )
 
 
-def _taken_over_steps(heard: dict[tuple[int, int], Observation], logs: StepLogs, n: int, K: int) -> np.ndarray:
+def _taken_over_steps(heard: dict[tuple[int, int], Record], logs: StepLogs, n: int, K: int) -> np.ndarray:
     """Shape (K + 1, 1, n): the drone was taken over at that step (a record says so and its
     planner logged no step)."""
     taken = np.zeros((K + 1, 1, n), dtype=bool)
@@ -237,10 +237,19 @@ def launch_result(
         # Steps a drone did not fly (it died): hold its last known position for the record.
         for k in range(1, K + 1):
             positions[k] = np.where(np.isnan(positions[k]), positions[k - 1], positions[k])
+    # Steps before a drone was first heard (its planner never got it flying, e.g. an external
+    # autopilot nobody answered at): no position to judge; it is placed at its start, on the
+    # ground there as far as the run knows, and its own margins are not counted.
+    unknown = np.isnan(positions).any(-1)
+    if unknown.any():
+        starts = np.asarray(m.drones.start_positions_m(), dtype=float)
+        positions = np.where(unknown[..., None], starts[None, None, :, :], positions)
     # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
     # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
     not_flown = missing[:K] | missing[1:] | taken[:K] | taken[1:]
     margins = _margins(m, positions, sources, logs, not_flown, realtime)
+    for family in margins:
+        margins[family][unknown[1:]] = np.inf
     err = np.linalg.norm(arrays.estimates - sources[:K, None, None, :], axis=-1)
     return SimulationResult(
         spec=RunSpec(m, m.criterion, 1, K),

@@ -1,5 +1,5 @@
-"""The lockstep clock of a simulated distributed run (DESIGN.md: "clock: steps everyone
-together, deterministically").
+"""The lockstep clock of a simulated distributed run (docs/distributed.md, "The lockstep
+clock"): it steps everyone together, deterministically.
 
 Protocol on Zenoh (:mod:`comms.keys`, :mod:`comms.messages`):
 

@@ -11,21 +11,21 @@ from typing import Any
 import numpy as np
 
 from comms import keys
-from comms.messages import Done, MessageError, Observation, Status, decode
+from comms.messages import Done, MessageError, Record, Status, decode
 from missions.format.schema import Mission
 from missions.launch.view_peb import peb_of_view
 from planner.config import PlannerConfig
 
 #: What was heard of step k: each drone's record and status (None: not heard), and the records
 #: the statuses' views name, by (step, drone id).
-Heard = tuple[dict[int, Observation | None], dict[int, Status | None], dict[tuple[int, int], Observation]]
+Heard = tuple[dict[int, Record | None], dict[int, Status | None], dict[tuple[int, int], Record]]
 
 
 @dataclass
 class Collected:
     """What the launcher heard of the run (records and statuses by step)."""
 
-    records: dict[tuple[int, int], Observation] = field(default_factory=dict)
+    records: dict[tuple[int, int], Record] = field(default_factory=dict)
     status: dict[tuple[int, int], Status] = field(default_factory=dict)
     dropped: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -40,6 +40,8 @@ class SwarmListener:
         self._planner_config = planner_config
         self.collected = Collected()
         self.ready: set[int] = set()  # real time: drones that reported ready at their start
+        #: Drone id → (step, taken over) of its newest record heard.
+        self._newest: dict[int, tuple[int, bool]] = {}
 
     def on_record(self, sample: Any) -> None:
         """Subscriber of the records."""
@@ -58,6 +60,12 @@ class SwarmListener:
         if isinstance(msg, Done) and msg.step == -1 and msg.sender == keys.uav_of(str(sample.key_expr)):
             with self.collected.lock:
                 self.ready.add(msg.sender)
+
+    def taken_over_now(self, uav: int) -> bool:
+        """Whether drone ``uav``'s newest record heard is flagged taken over (a pilot flies it)."""
+        with self.collected.lock:
+            newest = self._newest.get(uav)
+        return newest is not None and newest[1]
 
     def ready_count(self) -> int:
         """Real time: how many drones reported being at their starts."""
@@ -78,8 +86,11 @@ class SwarmListener:
                 c.dropped += 1
             return
         with c.lock:
-            if kind == "record" and isinstance(msg, Observation):
+            if kind == "record" and isinstance(msg, Record):
                 c.records.setdefault((msg.step, msg.sender), msg)
+                newest = self._newest.get(msg.sender)
+                if newest is None or msg.step >= newest[0]:
+                    self._newest[msg.sender] = (msg.step, bool(msg.taken_over))
             elif kind == "status" and isinstance(msg, Status):
                 c.status[(msg.step, msg.sender)] = msg
 

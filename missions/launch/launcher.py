@@ -3,7 +3,7 @@
 The launcher validates the mission, starts one simulated vehicle (``fimnav vehicle``) and one
 planner (``fimnav plan``) per drone as operating-system processes, runs the lockstep clock,
 shows progress, and writes the results directory. It only starts, watches and records: every
-decision is taken by the planners (DESIGN.md).
+decision is taken by the planners (docs/distributed.md, "The launcher").
 
 Networking is loopback only: the launcher's Zenoh session listens on 127.0.0.1 at a free port
 and every child connects to it (peers then find each other by gossip); each vehicle listens
@@ -11,10 +11,10 @@ for its planner's MAVLink on its own free UDP port on 127.0.0.1.
 
 :class:`Launcher` composes the run's parts, each in its own module:
 
-* :mod:`missions.study.rundir`: the results directory (a previous run is refused or overwritten);
+* :mod:`missions.runtime.rundir`: the results directory (a previous run is refused or overwritten);
 * :mod:`missions.launch.supervisor`: the child processes (started, watched, failures dealt with,
   stopped: no orphan process, no port left bound, also when the launcher dies);
-* :mod:`missions.launch.signals`: Ctrl-C, SIGTERM and SIGHUP;
+* :mod:`missions.runtime.signals`: Ctrl-C, SIGTERM and SIGHUP;
 * :mod:`missions.launch.collect`: what is heard over Zenoh (records, statuses, readiness);
 * :mod:`missions.launch.accounting`: the results, from the planners' step logs;
 * :mod:`missions.launch.view`: the live view (``--view``).
@@ -47,7 +47,6 @@ from missions.launch.accounting import launch_result, step_logs, taken_over
 from missions.launch.clock import ClockError, LockstepClock
 from missions.launch.collect import Collected, SwarmListener
 from missions.launch.commands import payload_command, planner_command, vehicle_command
-from missions.launch.signals import STOP_SIGNALS, Interrupted, stop_on_signals
 from missions.launch.supervisor import (
     MAX_RESTARTS,
     ON_FAILURE,
@@ -60,8 +59,9 @@ from missions.launch.supervisor import (
     vehicle_groups,
 )
 from missions.launch.view import LaunchView
+from missions.runtime.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
+from missions.runtime.signals import STOP_SIGNALS, Interrupted, stop_on_signals
 from missions.study.results import write_results
-from missions.study.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
 from missions.study.simulator import SimulationResult
 
 __all__ = [
@@ -109,8 +109,6 @@ def _check_options(mission: Mission, vehicles_per_process: int, on_failure: str,
         raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
     if on_failure not in ON_FAILURE:
         raise LaunchError(f"on failure: expected one of {', '.join(ON_FAILURE)}, found {on_failure!r}")
-    if realtime and on_failure == "restart":
-        raise LaunchError("on failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     if not (np.isfinite(speedup) and speedup > 0):
         raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
     if mission.comms.faults.partition is not None:
@@ -214,7 +212,7 @@ class Launcher:
         self._stop = threading.Event()
         self._signal: int | None = None  # the signal that asked the run to stop
         self.listener = SwarmListener(mission, self._planner_config)
-        self.processes = ChildSupervisor(out, python, on_failure, fork_server, self._stop)
+        self.processes = ChildSupervisor(out, python, on_failure, fork_server, self._stop, taken_over=self.listener.taken_over_now)
 
     @property
     def collected(self) -> Collected:
@@ -342,6 +340,7 @@ class Launcher:
         timing = ["--speedup", f"{self.speedup:g}"] if self.realtime else ["--lockstep"]
         # Drones flown on an external autopilot (a mixed fleet, real time) get no vehicle.
         external = {i for i in range(1, n + 1) if m.vehicles.for_drone(i - 1).connection is not None} if self.realtime else set()
+        self.processes.external = {i: str(m.vehicles.for_drone(i - 1).connection) for i in sorted(external)}
         # Vehicles bind port 0 and report the port the OS gave them (no race with the
         # ephemeral ports of a hundred other sockets); planners start once they are known.
         vehicle_children = self._spawn_vehicles(mission_file, hub, timing, external)
@@ -548,15 +547,12 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
             raise launcher.interrupted() from None
         if launcher.stop_requested:
             raise launcher.interrupted()  # a signal while the last records were gathered
-    summaries = write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]])
-    summary = summaries[0]
-    summary.update(
-        distributed=True,
-        dropped_messages=int(result.extra["dropped_messages"]),
-        missing_drone_steps=int(result.extra["missing_drone_steps"]),
-        failures=launcher.failures,
-        clock=f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
-        taken_over=taken_over(out, mission.drones.count),
-    )
-    (out / "summary.json").write_text(json.dumps({"command": ["fimnav", "launch", *sys.argv[2:]], "runs": [summary]}, indent=2) + "\n")
-    return summary
+    launched = {
+        "distributed": True,
+        "dropped_messages": int(result.extra["dropped_messages"]),
+        "missing_drone_steps": int(result.extra["missing_drone_steps"]),
+        "failures": launcher.failures,
+        "clock": f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
+        "taken_over": taken_over(out, mission.drones.count),
+    }
+    return write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]], extras=[launched])[0]

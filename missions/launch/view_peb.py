@@ -7,13 +7,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comms.messages import Observation
+from comms.messages import Record
 from planner.agent import records_as_arrays
 from planner.config import PlannerConfig
 from planner.fim import fisher_information, position_error_bound
 
 
-def peb_of_view(config: PlannerConfig, saved: Sequence[int], recs: dict[tuple[int, int], Observation], src: np.ndarray) -> float:
+def peb_of_view(config: PlannerConfig, saved: Sequence[int], recs: dict[tuple[int, int], Record], src: np.ndarray) -> float:
     """The PEB (m) of a view.
 
     Args:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from missions.study.layout import run_name
 from missions.study.simulator import SimulationResult
 
 CRITERION_NAMES = {"A": "A-optimality", "D": "D-optimality"}
@@ -55,13 +56,6 @@ def _pyplot() -> ModuleType:
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def run_name(result: SimulationResult) -> str:
-    """Directory and file name of a run: ``<mission id>_<criterion>[_paper]`` (as in results)."""
-    from missions.study.results import run_name as name
-
-    return name(result)
 
 
 def write_figures(results: Sequence[SimulationResult], figures_dir: Path) -> list[Path]:

@@ -35,21 +35,11 @@ from typing import Any
 import numpy as np
 
 from missions.format.loader import mission_to_yaml
-from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, RunSpec, SimulationResult, fault_penalty
+from missions.runtime.rundir import make_results_dir, writing
+from missions.study.layout import PENALTY_REFERENCE, run_name, spec_name
+from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, SimulationResult, fault_penalty
 
-#: File name of a fault-free run's :class:`PenaltyReference` in its ``runs/<run>/`` directory.
-PENALTY_REFERENCE = "penalty_reference.npz"
-
-
-def run_name(result: SimulationResult) -> str:
-    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
-    return spec_name(result.spec)
-
-
-def spec_name(spec: RunSpec) -> str:
-    """:func:`run_name` of the run of ``spec``."""
-    suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
-    return f"{spec.mission.id}_{spec.criterion}{suffix}"
+__all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
 
 
 def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -202,20 +192,25 @@ def write_results(
 
     ``penalties``: per run, its fault penalty if already computed (see :func:`summarize`).
     ``extras``: per run, entries added to its summary (see :func:`write_run`).
+    The only writer of ``summary.json`` (and of ``runs/<run>/summary.json``).
+
+    Raises:
+        UsageError: ``out`` cannot be made or written (:mod:`missions.runtime.rundir`).
     """
-    out.mkdir(parents=True, exist_ok=True)
+    make_results_dir(out)
     pens = list(penalties) if penalties is not None else [None] * len(results)
     exs = list(extras) if extras is not None else [None] * len(results)
-    summaries = [write_run(r, out, p, e) for r, p, e in zip(results, pens, exs, strict=True)]
-    doc = {
-        "command": list(command),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "runs": summaries,
-    }
-    (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
-    if figures:
-        from missions.study.figures import write_figures  # matplotlib only when figures are wanted
+    with writing(out):
+        summaries = [write_run(r, out, p, e) for r, p, e in zip(results, pens, exs, strict=True)]
+        doc = {
+            "command": list(command),
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "runs": summaries,
+        }
+        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+        if figures:
+            from missions.study.figures import write_figures  # matplotlib only when figures are wanted
 
-        write_figures(results, out / "figures")
+            write_figures(results, out / "figures")
     return summaries

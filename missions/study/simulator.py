@@ -1,7 +1,7 @@
 """In-process Monte Carlo simulator: M trials × K steps of an N-drone mission, vectorised.
 
-Every drone of every trial runs the same chain as a planner process (DESIGN.md, "one step of
-one planner"): its own measurement (eq. 3, noise from its own seeded stream), its delayed view
+Every drone of every trial runs the same chain as a planner process (docs/distributed.md, "The
+planner node"): its own measurement (eq. 3, noise from its own seeded stream), its delayed view
 of the peers (hop latency and memory buffer, :mod:`planner.network`), its own source estimate
 (:mod:`planner.estimator`), its own control step (:func:`planner.control.control_step`). The
 arrays carry the trial and drone axes together, so one numpy call serves all M·N drones.
@@ -464,6 +464,7 @@ def _extra(oracle_estimate: bool, float32_positions: bool, faults: FaultBuffer |
     extra = {"oracle_estimate": float(oracle_estimate), "float32_positions": float(float32_positions)}
     if faults is not None:
         extra["fault_lost_fraction"] = faults.lost / max(faults.decided, 1)
+        extra["fault_lost"], extra["fault_decided"] = float(faults.lost), float(faults.decided)  # chunks of a run add up
     return extra
 
 

@@ -1,4 +1,4 @@
-"""One step of one planner, the same for both clocks (DESIGN.md): own record (position and
+"""One step of one planner, the same for both clocks (docs/distributed.md, "The planner node"): own record (position and
 measurement) → publish it → collect the peers' records → delayed view → source estimate →
 control step (:func:`planner.agent.plan`, the function the in-process simulator runs) →
 setpoint → status and ``Done``. The drivers (:mod:`planner.node.lockstep`,
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from comms.latency import DelayedView
-from comms.messages import Observation, Status
+from comms.messages import Record, Status
 from planner import estimator as est
 from planner.agent import measurements_from_records, plan, records_as_arrays
 from planner.geometry import vec3
@@ -64,7 +64,7 @@ class StepOutcome:
             published, after the peers' records were collected, after the setpoint was sent.
     """
 
-    record: Observation
+    record: Record
     view: Any
     rows: int
     result: Any
@@ -101,7 +101,7 @@ class StepCore:
         #: same value the in-process simulator carries for each of its drones.
         self.drone = DroneState.initial((), self.count)
         #: This drone's last own record.
-        self.last_record: Observation | None = None
+        self.last_record: Record | None = None
         #: The value names of this drone's components beyond range and bearing (its record's
         #: extension, comms.messages).
         self.own_extra_value_names = tuple(
@@ -165,10 +165,10 @@ class StepCore:
             raise ValueError("prev_step_m: only a step without a command (zeros) is set from outside the planning step")
         self.drone = self.drone.without_step()
 
-    def own_record(self, k: int, t_s: float, own_m: np.ndarray, measurement: OwnMeasurement) -> Observation:
+    def own_record(self, k: int, t_s: float, own_m: np.ndarray, measurement: OwnMeasurement) -> Record:
         """This drone's record of step ``k``, entered in its own view (the planning step enters it
         in the drone's range window and track)."""
-        record = Observation(
+        record = Record(
             self.config.uav,
             k,
             t_s,
@@ -185,12 +185,12 @@ class StepCore:
         self.view.add(record)
         return record
 
-    def taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Observation:
+    def taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Record:
         """The record of step k while a pilot flies the drone: its position (m, ENU) at time
         ``t_s``, flagged taken over, without a measurement (the pilot's flight is no planned
         sensing)."""
         nan = float("nan")
-        return Observation(
+        return Record(
             self.config.uav,
             k,
             t_s,

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import pytest
 
 from comms.errors import UsageError
-from missions.study.rundir import claim_results_dir, previous_run, unique_results_dir
+from missions.runtime.rundir import claim_results_dir, previous_run, unique_results_dir
 from missions.launch.supervisor import ready_line
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
@@ -157,7 +157,7 @@ def test_a_finished_launch_has_stopped_its_fork_server_when_it_returns(tmp_path:
 
 
 def test_a_launch_started_with_hangups_ignored_flies_on_through_a_hangup(tmp_path: Path, launches: list[Launch]) -> None:
-    """``nohup fimnav launch``: a SIGHUP inherited ignored stays ignored (missions.launch.signals),
+    """``nohup fimnav launch``: a SIGHUP inherited ignored stays ignored (missions.runtime.signals),
     so the run outlives its terminal. SIGHUP to the launcher's group (the terminal closing) while
     the mission flies: the launch ends the mission normally (exit 0, its results line, a summary)
     and leaves no process behind."""

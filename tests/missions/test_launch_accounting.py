@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.messages import Observation
+from comms.messages import Record
 from missions.launch.launcher import Launcher
 from missions.format.loader import load_mission
 from missions.study.simulator import RunSpec, simulate
@@ -32,7 +32,7 @@ def test_taken_over_steps_are_no_planner_commands_and_keep_the_last_estimate(tmp
         lines = []
         for k in range(K):
             if j == PILOT and k >= TAKEN_FROM:
-                launcher.collected.records[(k, j)] = Observation(j, k, k * mission.dt_s, tuple(pilot[k]), True, False, True,
+                launcher.collected.records[(k, j)] = Record(j, k, k * mission.dt_s, tuple(pilot[k]), True, False, True,
                                                                  math.nan, math.nan, math.nan, taken_over=True)
                 continue
             ages = sim.record_ages[k, 0, j - 1]

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from comms.messages import Observation, encode
+from comms.messages import Record, encode
 from comms.session import SessionSettings, open_session, zenoh_config
 from missions.format.schema import ZenohAuth, ZenohSpec, ZenohTls
 from comms.errors import UsageError
@@ -38,7 +38,7 @@ KEY = f"fimnav/{MISSION}/record"
 
 
 def record(sender: int, x: float) -> bytes:
-    return encode(Observation(sender, 1, 0.1, (x, 0.0, 10.0), True, False, True, 5.0, math.nan, math.nan), MISSION, 1)
+    return encode(Record(sender, 1, 0.1, (x, 0.0, 10.0), True, False, True, 5.0, math.nan, math.nan), MISSION, 1)
 
 
 def secret(path: Path, text: str) -> Path:
