@@ -9,6 +9,13 @@ One planning step of drone i (the hot path of every planner process and of the s
 3. ``control_step``: activation, projection (eq. 14), speed / turn-rate limits, altitude box
    and the safety filter (default ``activation="safe"``).
 
+The compiled step is timed in four forms: the three public functions above; the same three
+kernels called on arrays prepared once (the public functions' Python argument handling left
+out); ``planner.agent.plan``, the whole step as the simulator and the planner node run it (own
+link's predicted LOS, FIM, gradient, keep-out, peers by hop count, control step, carried state:
+one kernel call); and ``plan`` of BATCH/N copies of drone 0's step in one call, per drone (the
+simulator's batch of trials × drones).
+
 Baselines, in the same run and the same process:
 
 * the numpy planner of commit 48f7e03 (the last before the compiled core): its ``planner``
@@ -39,6 +46,7 @@ The machine is shared (2 cores) and noisy: the script reports medians over many 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import importlib
 import io
@@ -59,10 +67,18 @@ from scipy.optimize import minimize
 
 from missions.format.loader import load_mission
 from planner import Channel, FimStatus, Limits, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
-from planner.control import ControlScene, control_step
+from planner import kernels as K
+from planner.agent import plan
+from planner.config import PlannerConfig
+from planner.control import ControlScene, control_step, kernel_limits
+from planner.estimator import EstimatorConfig
 from planner.geometry import distance_to_boxes_with_gradient
+from planner.step import DroneState, StepScene
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Drone steps planned in one call (the simulator's batch of trials × drones): BATCH // N copies
+#: of drone 0's step (200 at N = 10, as 20 trials of the paper's ten drones).
+BATCH = 2000
 #: The last commit of the numpy planner (the baseline).
 NUMPY_COMMIT = "48f7e03"
 MISSION_FILE = ROOT / "missions" / "paper" / "heterogeneous.yaml"
@@ -120,6 +136,51 @@ def planning_step(scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarr
     cg = cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A")
     step = ControlScene(scene.positions[0], scene.prev, cg.gradient, cg.status, scene.positions, mask, age, src, LIMITS.d_source_m, uni)
     return control_step(step, LIMITS, BOXES_MIN, BOXES_MAX)
+
+
+def kernel_calls(scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarray, uni: np.ndarray) -> Callable[[], object]:
+    """The same three steps as :func:`planning_step`, calling the compiled kernels directly on
+    arrays prepared once (what the public functions cost without their Python argument handling)."""
+    n = len(scene.positions)
+    one = (src[None], scene.positions[None], scene.ranging[None], scene.bearing[None], scene.los.astype(float)[None])
+    J, out, u, flags = np.zeros((1, 3, 3)), np.empty((1, 14)), np.empty((1, 3)), np.empty((1, 7), dtype=bool)
+    own = (scene.positions[0][None], scene.ranging[:1].copy(), scene.bearing[:1].copy(), scene.los[:1].astype(float), np.zeros((1, 3)))
+    lim, chan = kernel_limits(LIMITS), CHANNEL.kernel_array
+    peers = (scene.positions[None], mask[None], age[None], np.zeros((1, n, 3)), np.full((1, n, 3), np.nan))
+    tail = (src[None], np.full(1, LIMITS.d_source_m), uni[None], BOXES_MIN, BOXES_MAX, lim, np.nan, math.radians(20.0), False, u, flags)
+
+    def run() -> None:
+        K.fim_batch(*one, chan, J)
+        K.cost_gradient_batch(J, src[None], own[0], *own[1:], False, chan, False, out)
+        status = out[:, 4].astype(np.int8)
+        K.control_batch(own[0], scene.prev[None], out[:, 1:4].copy(), status, *peers, *tail)
+
+    return run
+
+
+def plan_inputs(scene: Scene, src: np.ndarray, copies: int = 0) -> tuple[PlannerConfig, StepScene, DroneState]:
+    """Drone 0's whole planning step as the simulator and the planner node run it
+    (:func:`planner.agent.plan`: own link's predicted LOS, FIM, cost gradient, keep-out, peers by
+    hop count, control step, carried state), its view the scene's positions of this step, all
+    heard directly; ``copies`` > 0: that many copies of it in one call (the simulator's batch)."""
+    n = len(scene.positions)
+    config = PlannerConfig(
+        channel=CHANNEL, limits=LIMITS, criterion="A", component_masks={"range": scene.ranging, "bearing": scene.bearing},
+        boxes_min_m=BOXES_MIN, boxes_max_m=BOXES_MAX, d_hop_m=_MISSION.comms.d_hop_m, start_positions_m=None, estimator=EstimatorConfig(),
+    )  # fmt: skip
+    b = (copies,) if copies else ()
+    rep = (lambda a: np.broadcast_to(a, b + np.shape(a)).copy()) if copies else (lambda a: np.asarray(a))
+    J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
+    step = StepScene(
+        step_index=5, own_index=rep(np.array(0)), own_position_m=rep(scene.positions[0]),
+        own_range_m=rep(np.array(np.linalg.norm(scene.positions[0] - SOURCE))), own_los=rep(np.array(bool(scene.los[0]))),
+        view_positions_m=rep(scene.positions), view_valid=rep(np.ones(n, bool)), view_los=rep(scene.los),
+        saved_steps=rep(np.full(n, 5, dtype=np.int64)), hops=rep(np.ones(n, dtype=np.int64)), estimate_m=rep(src), information=rep(J),
+        observable=rep(np.array(True)), perturbation_uniforms=rep(np.array([0.3, 0.7])), lost_contact=rep(np.zeros(n, bool)),
+    )  # fmt: skip
+    state = DroneState.initial(b, n)
+    state = plan(config, step, dataclasses.replace(state, previous_step_m=rep(scene.prev))).state  # a carried state
+    return config, step, state
 
 
 def numpy_planner(commit: str = NUMPY_COMMIT) -> ModuleType:
@@ -273,12 +334,18 @@ def measure(n: int, near_building: bool, repeats: int, npl: Any) -> dict[str, An
     J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
     t_grad = timeit(lambda: cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A"), repeats)
     t_los = timeit(lambda: line_of_sight(scene.positions, src, BOXES_MIN, BOXES_MAX), repeats)
+    t_kernels = timeit(kernel_calls(scene, src, mask, age, uni), repeats)
+    config, step, state = plan_inputs(scene, src)
+    t_plan = timeit(lambda: plan(config, step, state), repeats)
+    copies = max(1, BATCH // n)
+    config, step, state = plan_inputs(scene, src, copies=copies)
+    t_batch = timeit(lambda: plan(config, step, state), max(30, repeats // copies), warmup=3)
     u_slsqp, ok, nit = slsqp_step(scene, src)
     t_slsqp = timeit(lambda: slsqp_step(scene, src), max(30, repeats // 20), warmup=3)
     u_fd, ok_fd, nit_fd = slsqp_step(scene, src, analytic=False)
     t_fd = timeit(lambda: slsqp_step(scene, src, analytic=False), max(30, repeats // 20), warmup=3)
     return dict(
-        n=n, ours=t_ours, numpy=t_numpy, fim=t_fim, grad=t_grad, los=t_los, slsqp=t_slsqp, ok=ok, nit=nit, fd=t_fd, ok_fd=ok_fd, nit_fd=nit_fd,
+        n=n, ours=t_ours, kernels=t_kernels, plan=t_plan, batch=tuple(t / copies for t in t_batch), numpy=t_numpy, fim=t_fim, grad=t_grad, los=t_los, slsqp=t_slsqp, ok=ok, nit=nit, fd=t_fd, ok_fd=ok_fd, nit_fd=nit_fd,
         agree=float(np.abs(np.asarray(ours.displacement) - np.asarray(theirs.displacement)).max()),
         c0=a_cost_after(scene, src, np.zeros(3)), c_ours=a_cost_after(scene, src, ours.displacement), c_slsqp=a_cost_after(scene, src, u_slsqp),
         c_fd=a_cost_after(scene, src, u_fd), v_ours=plain_violation(scene, src, ours.displacement), v_slsqp=plain_violation(scene, src, u_slsqp),
@@ -287,14 +354,15 @@ def measure(n: int, near_building: bool, repeats: int, npl: Any) -> dict[str, An
 
 
 def print_times(rows: list[dict[str, Any]], near_building: bool) -> None:
-    """The timing table: medians [interquartile range], µs, and the ratios."""
+    """The timing tables: medians [interquartile range], µs, and the ratios."""
     us = 1e6
     where = "drone 0 next to a building and a peer (constraints active)" if near_building else "drone 0 in open space"
     print(f"One drone's planning step (A-optimality), {where}; medians [interquartile range]; shared 2-core machine.")
     print(f"numpy: the planner of commit {NUMPY_COMMIT}; SLSQP: analytic gradient + constraint Jacobians; SLSQP-fd: finite differences.")
-    print("Ratios: the baseline's time / the compiled step's. |Δu|: largest difference of the compiled and numpy steps, m.")
+    print("compiled: fisher_information + cost_gradient + control_step (the public functions). Ratios: the baseline's time /")
+    print("the compiled step's. |Δu|: largest difference of the compiled and numpy steps, m.")
     print(
-        f"{'N':>5} | {'compiled µs':>20} | {'(FIM µs':>7} {'grad µs':>7} {'LOS µs)':>8} | {'numpy µs':>18} | {'ratio':>6} | "
+        f"{'N':>5} | {'compiled µs':>20} | {'numpy µs':>18} | {'ratio':>6} | "
         f"{'SLSQP µs':>18} | {'ratio':>6} | {'it':>3} | {'SLSQP-fd µs':>19} | {'ratio':>6} | {'|Δu| m':>8}"
     )
     for r in rows:
@@ -303,10 +371,25 @@ def print_times(rows: list[dict[str, Any]], near_building: bool) -> None:
         sm, sa, sb = (x * us for x in r["slsqp"])
         fm, fa, fb = (x * us for x in r["fd"])
         print(
-            f"{r['n']:>5} | {m:8.1f} [{a:5.1f}-{b:5.1f}] | {r['fim'][0] * us:7.1f} {r['grad'][0] * us:7.1f} {r['los'][0] * us:8.1f} | "
+            f"{r['n']:>5} | {m:8.1f} [{a:5.1f}-{b:5.1f}] | "
             f"{nm:7.0f} [{na:4.0f}-{nb:4.0f}] | {nm / m:5.0f}× | {sm:7.0f} [{sa:4.0f}-{sb:4.0f}] | {sm / m:5.0f}× | "
             f"{r['nit']:>3}{'' if r['ok'] else '!'} | {fm:7.0f} [{fa:5.0f}-{fb:5.0f}] | {fm / m:5.0f}× | {r['agree']:8.1e}"
         )
+    print()
+    print("The compiled step's forms, µs (medians [IQR]): the public functions; the same three kernels called on arrays")
+    print(f"prepared once; planner.agent.plan (the whole step as simulator and node run it: one kernel call); plan of {BATCH}/N")
+    print("copies in one call, per drone (the simulator's batch). (FIM, grad: the public functions; LOS: line_of_sight, numpy,")
+    print("not part of the step.) ×SLSQP: SLSQP's median / this form's.")
+    print(
+        f"{'N':>5} | {'public':>20} | {'kernels':>20} | {'plan':>20} | {'plan, batch/drone':>20} | {'FIM':>6} {'grad':>6} {'LOS':>6} | "
+        f"{'×SLSQP: public':>14} {'kernels':>8} {'plan':>6} {'batch':>6}"
+    )
+    for r in rows:
+        forms = [tuple(x * us for x in r[k]) for k in ("ours", "kernels", "plan", "batch")]
+        cells = " | ".join(f"{m:8.1f} [{a:5.1f}-{b:5.1f}]" for m, a, b in forms)
+        sm = r["slsqp"][0] * us
+        ratios = " ".join(f"{sm / f[0]:{w}.0f}×" for f, w in zip(forms, (13, 7, 5, 5)))
+        print(f"{r['n']:>5} | {cells} | {r['fim'][0] * us:6.1f} {r['grad'][0] * us:6.1f} {r['los'][0] * us:6.1f} | {ratios}")
 
 
 def print_costs(rows: list[dict[str, Any]]) -> None:

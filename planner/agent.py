@@ -524,7 +524,7 @@ def plan(
     kscene = _kernel_scene(scene, p_hat, batch, n)
     kconfig = _kernel_config(config, scene.step_index, oracle_source is not None, oracle_source is not None and oracle_slow, n)
     old = state.kernel_arrays()
-    new = tuple(np.empty_like(a) for a in old)
+    new = tuple(np.empty(a.shape, a.dtype) for a in old)
     u, flags, keepout = np.empty(batch + (3,)), np.empty(batch + (8,), dtype=bool), np.empty(batch + (1,))
     out = (u.reshape(-1, 3), flags.reshape(-1, 8), keepout.reshape(-1, 1))
     if config.criterion not in ("A", "D"):

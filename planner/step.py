@@ -144,17 +144,34 @@ class DroneState:
         return np.shape(self.loitering)
 
     def kernel_arrays(self) -> tuple[np.ndarray, ...]:
-        """The arrays in field order with the batch flattened to one axis (the kernels' form)."""
-        n = int(np.prod(self.batch, dtype=np.int64))
-        return tuple(
-            np.ascontiguousarray(getattr(self, f.name)).reshape((n,) + np.shape(getattr(self, f.name))[len(self.batch) :])
-            for f in dataclasses.fields(self)
-        )
+        """The arrays in field order with the batch flattened to one axis (the kernels' form); a
+        state the kernels made (:meth:`from_kernel_arrays`) hands back the arrays it was made of."""
+        flat: tuple[np.ndarray, ...] | None = self.__dict__.get("_flat")
+        if flat is not None:
+            return flat
+        batch = self.batch
+        n = int(np.prod(batch, dtype=np.int64))
+        values = (getattr(self, name) for name in _STATE_FIELDS)
+        return tuple(np.ascontiguousarray(a).reshape((n,) + np.shape(a)[len(batch) :]) for a in values)
 
     @classmethod
     def from_kernel_arrays(cls, arrays: Iterable[np.ndarray], batch: tuple[int, ...]) -> DroneState:
-        """The state of arrays in field order with a flat batch axis, reshaped to ``batch``."""
-        return cls(*(a.reshape(batch + a.shape[1:]) for a in arrays))
+        """The state of arrays in field order with a flat batch axis, reshaped to ``batch`` (views:
+        the arrays are the state's and must not change afterwards). Each field is reshaped when
+        first read (a planner reads few of them between two steps)."""
+        state = cls.__new__(cls)
+        state.__dict__.update(_flat=tuple(arrays), _batch=batch)  # a frozen value: no __init__
+        return state
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        """A field of a state made by :meth:`from_kernel_arrays`, reshaped from its flat array."""
+        flat = self.__dict__.get("_flat")
+        if flat is None or name not in _STATE_FIELDS:
+            raise AttributeError(name)
+        a = flat[_STATE_FIELDS.index(name)]
+        value: np.ndarray = a.reshape(self.__dict__["_batch"] + a.shape[1:])
+        self.__dict__[name] = value
+        return value
 
     def tracked(self, step: int, position_m: FloatArray) -> DroneState:
         """The state with the own position (..., 3), m, of ``step`` in the track (a step the drone
@@ -184,3 +201,7 @@ class DroneState:
             flags = np.concatenate((state.own_range_los[..., 1:], np.full(state.batch + (1,), bool(los))), -1)
             state = dataclasses.replace(state.tracked(step, np.asarray(position, dtype=float)), own_range_m=ranges, own_range_los=flags)
         return state
+
+
+#: DroneState's field names, in order (the kernels' order of its arrays).
+_STATE_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(DroneState))
