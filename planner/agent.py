@@ -529,7 +529,7 @@ def plan(
     out = (u.reshape(-1, 3), flags.reshape(-1, 8), keepout.reshape(-1, 1))
     if config.criterion not in ("A", "D"):
         raise ValueError(f"criterion: expected 'A' or 'D', found {config.criterion!r}")
-    roles = (np.ascontiguousarray(config.ranging, dtype=bool), np.ascontiguousarray(config.bearing, dtype=bool), config.criterion == "D")
+    roles = (K.contiguous(config.ranging, bool), K.contiguous(config.bearing, bool), config.criterion == "D")
     view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
     value, grad, status = np.empty(batch), np.empty(batch + (3,)), np.empty(batch, dtype=np.int8)
     given = bool(config.extra_masks)

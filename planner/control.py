@@ -349,4 +349,4 @@ def _envelope_candidates(prev: FloatArray, has_prev: BoolArray, limits: Limits) 
     """The kinematic envelope's candidate steps (n, C, 3), m, and their tilts (n, C), rad, from the
     previous steps ``prev`` (n, 3) (:func:`planner.kernels.envelope_candidates`)."""
     prev_f = np.ascontiguousarray(np.asarray(prev, dtype=float).reshape(-1, 3))
-    return K.candidates_batch(prev_f, np.ascontiguousarray(np.asarray(has_prev, dtype=bool).reshape(-1)), kernel_limits(limits))
+    return K.candidates_batch(prev_f, K.contiguous(np.asarray(has_prev, dtype=bool).reshape(-1), bool), kernel_limits(limits))

@@ -96,9 +96,23 @@ def as_boxes(boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, Fl
 
 
 def _box_array(corners: ArrayLike) -> FloatArray:
-    if isinstance(corners, np.ndarray) and corners.dtype == np.float64 and corners.ndim == 2 and corners.flags.c_contiguous:
+    if (
+        isinstance(corners, np.ndarray)
+        and corners.dtype == np.float64
+        and corners.ndim == 2
+        and corners.flags.c_contiguous
+        and corners.flags.writeable
+    ):
         return corners
-    return np.ascontiguousarray(np.asarray(corners, dtype=float).reshape(-1, 3))
+    return _kernel_points(corners)
+
+
+def _kernel_points(points: ArrayLike) -> FloatArray:
+    """Points (..., 3) as a C-contiguous, writeable (n, 3) float array: the one array type the
+    kernels are compiled for (:func:`planner.kernels.contiguous`; this module does not import
+    numba at its top)."""
+    arr = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+    return arr if arr.flags.writeable else arr.copy()
 
 
 def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> FloatArray:
@@ -118,7 +132,7 @@ def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayL
     from planner import kernels  # imported here: a vehicle process imports this module without numba
 
     p = np.asarray(points, dtype=float)
-    d, _ = kernels.distances_batch(np.ascontiguousarray(p.reshape(-1, 3)), *as_boxes(boxes_min, boxes_max), False)
+    d, _ = kernels.distances_batch(_kernel_points(p), *as_boxes(boxes_min, boxes_max), False)
     return d.reshape(p.shape[:-1])
 
 
@@ -141,7 +155,7 @@ def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, box
     from planner import kernels  # imported here: see distance_to_boxes
 
     p = np.asarray(points, dtype=float)
-    d, g = kernels.distances_batch(np.ascontiguousarray(p.reshape(-1, 3)), *as_boxes(boxes_min, boxes_max), True)
+    d, g = kernels.distances_batch(_kernel_points(p), *as_boxes(boxes_min, boxes_max), True)
     return d.reshape(p.shape[:-1]), g.reshape(p.shape)
 
 
@@ -201,7 +215,7 @@ def link_clearance_with_gradient(
     shape = np.broadcast_shapes(p.shape, s.shape)
     bmin, bmax = as_boxes(boxes_min, boxes_max)
     nb = bmin.shape[0]
-    pf = np.ascontiguousarray(np.broadcast_to(p, shape).reshape(-1, 3))
-    sf = np.ascontiguousarray(np.broadcast_to(s, shape).reshape(-1, 3))
+    pf = _kernel_points(np.broadcast_to(p, shape))
+    sf = _kernel_points(np.broadcast_to(s, shape))
     c, g = kernels.link_clearance_batch(pf, sf, bmin, bmax, samples, -1.0 if cutoff_m is None else float(cutoff_m))
     return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))

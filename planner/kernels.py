@@ -30,12 +30,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 
+def contiguous(a: ArrayLike, dtype: type = np.float64) -> NDArray[Any]:
+    """``a`` as a C-contiguous, writeable ``dtype`` array (a copy only where it is not one): the
+    one array type an entry kernel is compiled for. A read-only array (a broadcast view, say) is
+    another numba type, and would compile the entry a second time."""
+    arr: NDArray[Any] = np.ascontiguousarray(a, dtype=dtype)
+    return arr if arr.flags.writeable else arr.copy()
+
+
 def one_drone(a: ArrayLike, dtype: type = np.float64) -> NDArray[Any]:
-    """One drone's array as a batch of one (a view where ``a`` is already a C-contiguous array of
-    ``dtype``): the entry kernels' form without the broadcasting of :func:`as_batch`."""
-    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous:
+    """One drone's array as a batch of one (a view where ``a`` is already a C-contiguous,
+    writeable array of ``dtype``): the entry kernels' form without the broadcasting of :func:`as_batch`."""
+    if type(a) is np.ndarray and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
         return a[None]
-    return np.ascontiguousarray(a, dtype=dtype)[None]
+    return contiguous(a, dtype)[None]
 
 
 #: numba's decorator, typed loosely: the kernels' Python signatures are their docstrings'.
@@ -43,14 +51,15 @@ njit: Any = numba.njit
 
 
 def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> NDArray[Any]:
-    """``a`` broadcast to ``shape`` as a C-contiguous ``dtype`` array with the leading dimensions
-    (all but the last ``tail``) flattened into one batch axis: the form the entry kernels take."""
+    """``a`` broadcast to ``shape`` as a C-contiguous, writeable ``dtype`` array (:func:`contiguous`)
+    with the leading dimensions (all but the last ``tail``) flattened into one batch axis: the form
+    the entry kernels take."""
     arr: NDArray[Any] = np.asarray(a, dtype=dtype)
     cut = len(shape) - tail
     if arr.shape != shape:
         arr = np.broadcast_to(arr, shape)
-    if not arr.flags.c_contiguous:
-        arr = np.ascontiguousarray(arr)
+    if not (arr.flags.c_contiguous and arr.flags.writeable):
+        arr = contiguous(arr, dtype)
     if cut == 0:
         return arr[None]  # one drone: a batch of one
     return arr.reshape((math.prod(shape[:cut]),) + shape[cut:])

@@ -152,7 +152,7 @@ class DroneState:
         batch = self.batch
         n = int(np.prod(batch, dtype=np.int64))
         values = (getattr(self, name) for name in _STATE_FIELDS)
-        return tuple(np.ascontiguousarray(a).reshape((n,) + np.shape(a)[len(batch) :]) for a in values)
+        return tuple(_writeable(np.ascontiguousarray(a)).reshape((n,) + np.shape(a)[len(batch) :]) for a in values)
 
     @classmethod
     def from_kernel_arrays(cls, arrays: Iterable[np.ndarray], batch: tuple[int, ...]) -> DroneState:
@@ -205,3 +205,8 @@ class DroneState:
 
 #: DroneState's field names, in order (the kernels' order of its arrays).
 _STATE_FIELDS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(DroneState))
+
+
+def _writeable(a: np.ndarray) -> np.ndarray:
+    """``a``, copied if read-only (a read-only array is another numba type: a second compile)."""
+    return a if a.flags.writeable else a.copy()

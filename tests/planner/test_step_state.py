@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from planner import kernels as K
 from planner.agent import _scene_cost, plan
 from planner.control import ControlScene, control_step
 from planner.step import OWN_RANGE_WINDOW, OWN_TRACK_STEPS, DroneState, StepScene
@@ -73,6 +74,21 @@ def test_a_batch_is_its_drones_planned_one_by_one(rng: np.random.Generator) -> N
         assert bool(one.step.filtered) == bool(batch.step.filtered[i]) and bool(one.loiter) == bool(batch.loiter[i])
         for f in dataclasses.fields(DroneState):
             np.testing.assert_array_equal(getattr(one.state, f.name), getattr(batch.state, f.name)[i], err_msg=f.name)
+
+
+def test_read_only_inputs_reuse_the_one_compiled_step(rng: np.random.Generator) -> None:
+    """A one-trial run's inputs are read-only broadcast views that look C-contiguous (a (1, N)
+    broadcast of arange(N)); numba would compile the step again for them (another array type,
+    ~20 s): they are copied to the one type the kernel is compiled for, and plan the same."""
+    cfg = config()
+    scene, state = scenes(rng, 1)
+    ro = {f.name: np.broadcast_to(np.asarray(getattr(scene, f.name)), np.shape(getattr(scene, f.name))) for f in dataclasses.fields(scene)[1:-1]}
+    assert not ro["own_index"].flags.writeable and ro["own_index"].flags.c_contiguous
+    frozen = DroneState(*(np.broadcast_to(a, a.shape) for a in (getattr(state, f.name) for f in dataclasses.fields(state))))
+    a = plan(cfg, scene, state)  # type: ignore[arg-type]
+    b = plan(cfg, dataclasses.replace(scene, **ro), frozen)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(a.step.next_position, b.step.next_position)
+    assert len(K.plan_batch.signatures) == 1, K.plan_batch.signatures
 
 
 def test_the_control_step_is_control_step_of_the_planned_scene(rng: np.random.Generator) -> None:
