@@ -3,9 +3,9 @@ in AUTO.LOITER, the mission's on_stop hold (docs/in-the-field.md, "When fimnav s
 
 ``fimnav launch --realtime`` flies drone 1 on PX4 (its simulated payload on PX4's GCS link);
 SIGINT to the launch's process group after eight steps: exit 130, the planner's log says PX4
-confirmed AUTO.LOITER, and a ground station connected to PX4's GCS link afterwards sees it in
-AUTO.LOITER, armed, at the same height, for 10 s of wall time (50 s of PX4's time). PX4's
-AUTO.LOITER holds without sticks.
+confirmed AUTO.LOITER, and a ground station listening on PX4's offboard link afterwards (the
+planner's port) sees it in AUTO.LOITER, armed, at the same height, for 10 s of wall time (50 s
+of PX4's time). PX4's AUTO.LOITER holds without sticks.
 
 Needs FIMNAV_SITL_PX4 and FIMNAV_SITL_PX4_ETC (tests/sitl/px4.py); skipped with a one-line
 reason otherwise.
@@ -56,9 +56,10 @@ def test_ctrl_c_of_a_realtime_launch_leaves_px4_in_auto_loiter(tmp_path: Path, l
         line = next(x for x in text.splitlines() if "stopping (SIGTERM)" in x)
         assert "the vehicle is in AUTO.LOITER (on_stop hold), confirmed" in line, line
         assert "airborne in OFFBOARD" in text
-        gcs = mavutil.mavlink_connection(px4.gcs, source_system=255, source_component=190)
+        # PX4's GCS link keeps answering the first address it heard (the payload's, gone); its
+        # offboard/API link sends to a fixed port, the planner's, free again.
+        gcs = mavutil.mavlink_connection(px4.offboard, source_system=255, source_component=190)
         try:
-            gcs.mav.heartbeat_send(6, 8, 0, 0, 0)  # PX4's GCS link answers the address it hears from
             assert gcs.wait_heartbeat(timeout=20) is not None
             pos0 = gcs.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=10)
             held = heartbeats(gcs, 10.0)
