@@ -5,7 +5,8 @@ vehicles, docs/in-the-field.md).
 - A planner started beside an airborne vehicle a ground station holds (ArduPilot LOITER, PX4
   POSCTL), in real time: it changes no mode and sends no setpoint; it publishes the drone's
   position flagged taken over until ``fimnav handback``; then it flies the mission to its end.
-- A lockstep planner restarted (``--rejoin``) while its drone is taken over: the same.
+- A planner restarted (``--rejoin``) while its drone is taken over, in lockstep and in real time
+  (``--rejoin --start-at``, as ``fimnav launch --realtime --on-failure restart`` starts it): the same.
 - A real-time planner whose link returns (a UDP relay cut, then restored) after a ground station
   switched the vehicle to the pilot's hold meanwhile: the same, from the step the link returned.
 - ``fimnav plan`` stopped by SIGINT or SIGTERM mid-mission: it tells the vehicle the
@@ -113,12 +114,14 @@ def assert_untouched_until_handback(tlog: Path, flavour: str, handback_unix: flo
     assert any(kind == "setpoint" for t, kind, v in events if t > t_back), "no setpoint after the hand-back"
 
 
-@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
-def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+@pytest.mark.parametrize(("flavour", "path"), [("ardupilot", "start"), ("px4", "start"), ("ardupilot", "rejoin"), ("px4", "rejoin")])
+def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str, path: str) -> None:
     """Real time: the vehicle boots airborne, a ground station switches it to its pilot hold,
-    then ``fimnav plan`` starts on it. The planner says it is taken over at its start, changes
-    no mode, sends no setpoint, publishes the drone's position flagged taken over; after
-    ``fimnav handback`` it flies the mission to the end."""
+    then ``fimnav plan`` starts on it: as a new planner (``start``) or as a restarted one
+    rejoining the mission's step grid under way (``rejoin``: ``--rejoin --start-at``, as
+    ``fimnav launch --realtime --on-failure restart`` starts it). The planner says it is taken
+    over at its start, changes no mode, sends no setpoint, publishes the drone's position
+    flagged taken over; after ``fimnav handback`` it flies the mission to the end."""
     steps = 40  # 8 s at x5: the hand-back command starts up within it on a loaded machine (14 steps, 2.8 s, did not)
     mission = write_mission(tmp_path / "m.yaml", "pilotheld", [[10.0, 20.0, 8.0]], steps, "hold")
     tlog = tmp_path / "v.tlog"
@@ -126,11 +129,13 @@ def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Pat
     ground_station_sets(port, flavour)
     peer = SwarmPeer("pilotheld", 1, {1: 75.0}, mode="router")
     try:
+        # A rejoining planner joins a grid whose step 0 was 1 s (5 steps at x5) ago.
+        rejoin = ["--rejoin", "--start-at", f"{time.time() - 1.0:.3f}"] if path == "rejoin" else []
         plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
-                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")))
+                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl"), *rejoin))
         procs.append(plan)
         name = PILOT_MODE[flavour][2]
-        plan.expect(rf"taken over at start: the vehicle is armed in {name}", 30.0, stream="err")
+        plan.expect(rf"taken over at {path}: the vehicle is armed in {name}", 30.0, stream="err")
         wait_for(lambda: sum(1 for r in peer.snapshot() if r.sender == 1 and r.taken_over) >= 3, 30.0, "three taken-over records",
                  procs=[plan])
         handback_unix = time.time()
@@ -144,7 +149,8 @@ def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Pat
     assert "airborne in" not in plan.err and "Traceback" not in plan.err, plan.err[-2000:]
     summary = json.loads(plan.out.strip().splitlines()[-1])
     (take,) = summary["taken_over"]
-    assert take["mode"] == PILOT_MODE[flavour][2] and take["at_start"] == "start" and take["step"] == 0, take
+    assert take["mode"] == PILOT_MODE[flavour][2] and take["at_start"] == path, take
+    assert take["step"] == 0 if path == "start" else take["step"] >= 5, take
     assert take["handed_back_step"] >= 3 and summary["end"]["confirmed"], summary
     held = [r for r in records if r.sender == 1 and r.taken_over]
     assert held and all(math.isnan(r.range_m) for r in held)
