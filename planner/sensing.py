@@ -4,13 +4,15 @@ A drone's *role* (paper sec. II-B) says which measurement *components* it takes:
 (κ_j = 1) measures the distance d̂, ``bearing`` (β_j = 1) the azimuth φ̂ and elevation θ̂,
 ``joint`` both. Everything that depends on a role reads it from here:
 
-* :data:`ROLES`, the role table: the mission schema's role names (``missions/schema.py``),
+* :data:`ROLES`, the role table: the mission schema's role names (``missions/format/schema.py``),
   the payload's and the planner's (κ, β) flags (``vehicle_sim/payload.py``,
   :class:`planner.config.PlannerConfig`), the wire format's role bits (``comms/messages.py``).
 * :data:`RANGE` and :data:`BEARING`, the measurement components, each with its Fisher
-  information term and its gradient (eqs. 10-14, used by :mod:`planner.fim`), its measurement
-  simulation (eqs. 3-5, used by :mod:`planner.observation`) and its normalised residual
-  (the estimator's likelihood, used by :mod:`planner.estimator.robust`).
+  information term and its gradient (eqs. 10-14) in numpy (the reference the compiled kernels
+  of :mod:`planner.kernels` are tested against, and the terms :mod:`planner.radio.unknown_power`
+  extends), its measurement simulation (eqs. 3-5, used by :mod:`planner.observation`) and its
+  normalised residual (the estimator's likelihood, used by :mod:`planner.estimator.robust`).
+  The planning step itself uses the compiled terms.
 
 Notation (mission ENU frame, metres, radians): drone at p, source p0, r = p0 − p, d = ‖r‖,
 ρ = √(r_x² + r_y²), b = (−r_y, r_x, 0) = ∇φ·ρ², v = (−r_x r_z, −r_y r_z, ρ²) = ∇θ·d²ρ:
@@ -205,30 +207,6 @@ class SensingComponent:
         ``q`` (..., k) = uᵀMu and ``MV`` (..., k, 3) = M u of its rows u (M symmetric)."""
         raise NotImplementedError(f"{type(self).__name__}.cost_gradient_terms")
 
-    def cost_gradient_one_terms(
-        self,
-        r: tuple[float, float, float],
-        rho2: float,
-        d: float,
-        d2: float,
-        m: list[list[float]],
-        mask: bool,
-        los: float,
-        channel: Channel,
-        los_trace: bool,
-    ) -> tuple[float, float, float, float] | None:
-        """:meth:`cost_gradient_terms` for one drone in Python floats (the planner node's hot
-        path): (g_x, g_y, g_z, trace), or None where the component adds nothing. The default
-        evaluates the batched method on 0-d arrays."""
-        if not bool(mask):
-            return None
-        rv = np.array(r, dtype=float)
-        geom = LinkGeometry(rv, np.array(rho2), np.array(d2), np.array(d))
-        u = self.fim_vectors(geom)
-        MV = u @ np.array(m, dtype=float)
-        g, tr = self.cost_gradient_terms(geom, (u * MV).sum(-1), MV, True, np.array(los), channel, los_trace)
-        return float(g[0]), float(g[1]), float(g[2]), 0.0 if tr is None else float(tr)
-
     def estimator_terms(self, values: tuple[FloatArray, ...], geom: LinkGeometry, channel: Channel) -> tuple[FloatArray, FloatArray]:
         """The estimator's normalised residuals e = (z − h(p0))/σ of the measured ``values``
         (each (..., K)) at links ``geom`` of a source candidate p0, shape (..., K, n) with n =
@@ -280,23 +258,6 @@ class RangeModel(SensingComponent):
         tr = use_r[..., 0] * self.los_trace(geom.d, geom.d2, q[..., 0], channel) if los_trace else None
         return use_r * g_r, tr
 
-    def cost_gradient_one_terms(
-        self,
-        r: tuple[float, float, float],
-        rho2: float,
-        d: float,
-        d2: float,
-        m: list[list[float]],
-        mask: bool,
-        los: float,
-        channel: Channel,
-        los_trace: bool,
-    ) -> tuple[float, float, float, float] | None:
-        """:meth:`cost_gradient_one` where the drone ranges."""
-        if not bool(mask):
-            return None
-        return self.cost_gradient_one(r, d, d2, m, los, channel)
-
     def std_m(self, d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
         """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
         s0 = channel.sigma_r0(los)
@@ -326,23 +287,6 @@ class RangeModel(SensingComponent):
     def los_trace(self, d: FloatArray, d2: FloatArray, q_r: FloatArray, channel: Channel) -> FloatArray:
         """tr(M (J_r,LOS − J_r,NLOS)) = d^−γ (1/σ_r0,LOS² − 1/σ_r0,NLOS²)/d² · rᵀMr."""
         return d ** (-channel.gamma) * (1.0 / channel.sigma_r0_los**2 - 1.0 / channel.sigma_r0_nlos**2) / d2 * q_r
-
-    def cost_gradient_one(
-        self, r: tuple[float, float, float], d: float, d2: float, m: list[list[float]], los: float, channel: Channel
-    ) -> tuple[float, float, float, float]:
-        """:meth:`cost_gradient` and :meth:`los_trace` for one drone in Python floats (the
-        planner node's hot path): (g_x, g_y, g_z, trace); ``m`` = M as nested lists."""
-        rx, ry, rz = r
-        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
-        gamma = channel.gamma
-        inv_los, inv_nlos = 1.0 / channel.sigma_r0_los**2, 1.0 / channel.sigma_r0_nlos**2
-        inv_s0sq = los * inv_los + (1.0 - los) * inv_nlos
-        mrx, mry, mrz = m00 * rx + m01 * ry + m02 * rz, m10 * rx + m11 * ry + m12 * rz, m20 * rx + m21 * ry + m22 * rz
-        q_r = rx * mrx + ry * mry + rz * mrz
-        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
-        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
-        c = dh / d * q_r
-        return c * rx + 2.0 * h * mrx, c * ry + 2.0 * h * mry, c * rz + 2.0 * h * mrz, d ** (-gamma) * (inv_los - inv_nlos) / d2 * q_r
 
     def normalised_residual(self, z: FloatArray, d: FloatArray, inv_sr: FloatArray) -> FloatArray:
         """e = (d̂ − d)/σ_r, the estimator's normalised range residual (σ_r: 1/``inv_sr``, m)."""
@@ -396,25 +340,6 @@ class BearingModel(SensingComponent):
         has = np.asarray(mask, dtype=bool)
         return (has * los_w)[..., None] * g_b, has * tr_b if los_trace else None
 
-    def cost_gradient_one_terms(
-        self,
-        r: tuple[float, float, float],
-        rho2: float,
-        d: float,
-        d2: float,
-        m: list[list[float]],
-        mask: bool,
-        los: float,
-        channel: Channel,
-        los_trace: bool,
-    ) -> tuple[float, float, float, float] | None:
-        """q :meth:`cost_gradient_one` where the drone has bearings and q > 0 (or the trace is
-        wanted); an NLOS bearing carries no information."""
-        if not (bool(mask) and (los > 0.0 or los_trace)):
-            return None
-        bgx, bgy, bgz, tr_b = self.cost_gradient_one(r, rho2, d2, m, channel)
-        return los * bgx, los * bgy, los * bgz, tr_b
-
     def simulate(self, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
         from scipy.special import ndtri  # imported here: the planner node never simulates
@@ -460,32 +385,6 @@ class BearingModel(SensingComponent):
         grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
         g_el = (2.0 * c2[..., None] * VtMv + q_v[..., None] * grad_c2) / sb2
         return g_az + g_el, w_az * q_b + c2 * q_v / sb2
-
-    def cost_gradient_one(
-        self, r: tuple[float, float, float], rho2: float, d2: float, m: list[list[float]], channel: Channel
-    ) -> tuple[float, float, float, float]:
-        """:meth:`cost_gradient` for one drone in Python floats: (g_x, g_y, g_z, trace)."""
-        rx, ry, rz = r
-        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
-        sb2 = channel.sigma_bearing_rad**2
-        # Azimuth term w b bᵀ, b = [-r_y, r_x, 0], w = 1/(σ_b² ρ⁴).
-        bx, by = -ry, rx
-        mbx, mby = m00 * bx + m01 * by, m10 * bx + m11 * by
-        q_b = bx * mbx + by * mby
-        w_az = 1.0 / (sb2 * rho2 * rho2)
-        k_az = 4.0 * w_az * q_b / rho2
-        bgx = 2.0 * w_az * mby - k_az * rx
-        bgy = -2.0 * w_az * mbx - k_az * ry
-        bgz = 0.0
-        # Elevation term c² v vᵀ/σ_b², v = [-r_x r_z, -r_y r_z, ρ²], c = 1/(d² ρ).
-        vx, vy, vz = -rx * rz, -ry * rz, rho2
-        mvx, mvy, mvz = m00 * vx + m01 * vy + m02 * vz, m10 * vx + m11 * vy + m12 * vz, m20 * vx + m21 * vy + m22 * vz
-        q_v = vx * mvx + vy * mvy + vz * mvz
-        c2 = 1.0 / (d2 * d2 * rho2)
-        bgx += (2.0 * c2 * (-rz * mvx + 2.0 * rx * mvz) + q_v * (-2.0 * c2 * (2.0 * rx / d2 + rx / rho2))) / sb2
-        bgy += (2.0 * c2 * (-rz * mvy + 2.0 * ry * mvz) + q_v * (-2.0 * c2 * (2.0 * ry / d2 + ry / rho2))) / sb2
-        bgz += (2.0 * c2 * (-rx * mvx - ry * mvy) + q_v * (-2.0 * c2 * (2.0 * rz / d2))) / sb2
-        return bgx, bgy, bgz, w_az * q_b + c2 * q_v / sb2
 
     def normalised_residuals(
         self, za: FloatArray, ze: FloatArray, rx: FloatArray, ry: FloatArray, rz: FloatArray, rho: FloatArray, inv_sb: float
