@@ -1,8 +1,7 @@
 """Compiled small linear algebra of the estimator (one element at a time): 3 × 3 determinant,
 adjugate inverse of a symmetric matrix, normalised determinant, a 3 × 3 solve with partial
-pivoting and the eigen-decomposition of a small symmetric matrix (LAPACK, as numpy), a median,
-and NaN-propagating
-min/max and box projection (numpy's ``minimum``/``maximum`` semantics). Loops over elements
+pivoting, the eigen-decomposition of a small symmetric matrix (LAPACK, as numpy), a median,
+sums in numpy's order, and NaN-propagating min/max and box projection (numpy's ``minimum``/``maximum`` semantics). Loops over elements
 throughout: no array expressions (each would compile its own loop nest) and no slice
 assignment of arrays (each would compile its shape checks and error messages)."""
 
@@ -82,23 +81,36 @@ def normalised_det(a: np.ndarray) -> float:
 
 @njit(cache=True, error_model="numpy")
 def solve3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out`` = a⁻¹ b for a 3 × 3 ``a`` (LAPACK's ``gesv``, as ``numpy.linalg.solve``); NaN
-    where ``a`` or ``b`` is not finite."""
+    """``out`` = a⁻¹ b for a 3 × 3 ``a`` by LU with partial pivoting (LAPACK's ``gesv`` order:
+    the column below the pivot scaled by the pivot's reciprocal); ``a``, ``b`` untouched."""
     m, y = np.empty((3, 3)), np.empty(3)
-    finite = True
     for i in range(3):
         y[i] = b[i]
-        finite = finite and np.isfinite(b[i])
         for j in range(3):
             m[i, j] = a[i, j]
-            finite = finite and np.isfinite(a[i, j])
-    if not finite:
-        for i in range(3):
-            out[i] = np.nan
-        return
-    x = np.linalg.solve(m, y)
+    for k in range(3):
+        piv = k
+        for i in range(k + 1, 3):
+            if abs(m[i, k]) > abs(m[piv, k]):
+                piv = i
+        if piv != k:
+            for j in range(3):
+                m[k, j], m[piv, j] = m[piv, j], m[k, j]
+            y[k], y[piv] = y[piv], y[k]
+        r = 1.0 / m[k, k]
+        for i in range(k + 1, 3):
+            m[i, k] *= r
+            for j in range(k + 1, 3):
+                m[i, j] -= m[i, k] * m[k, j]
+    for k in range(3):  # forward substitution, unit lower triangle
+        for i in range(k + 1, 3):
+            y[i] -= y[k] * m[i, k]
+    for k in range(2, -1, -1):  # back substitution, column by column
+        y[k] /= m[k, k]
+        for i in range(k):
+            y[i] -= y[k] * m[i, k]
     for i in range(3):
-        out[i] = x[i]
+        out[i] = y[i]
 
 
 @njit(cache=True, error_model="numpy")

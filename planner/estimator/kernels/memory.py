@@ -216,7 +216,7 @@ def _cells_of_rows(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndar
     σ_r0 set on the empty cells that the first row of each new group takes."""
     C, M = mem.shape[0], rng.shape[0]
     cc = np.empty((C, 4))  # centre and its squared norm
-    n_empty = 0
+    n_empty = np.int64(0)
     for c in range(C):
         n = mem[c, M_N]
         full = n >= EMPTY

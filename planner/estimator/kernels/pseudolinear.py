@@ -108,7 +108,7 @@ def distance_scale(rows: np.ndarray, n: int, p: np.ndarray) -> float:
     """The median measured range of the first n rows (at least 1 m), or ``init_distance_m``
     (m) where none has a range."""
     z = np.empty(max(n, 1))
-    m = 0
+    m = np.int64(0)
     for k in range(n):
         if rows[k, R_AR] > 0.0:
             z[m] = abs(rows[k, R_ZR])
@@ -136,12 +136,12 @@ def pl_cost(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> float:
     """θᵀAθ − 2bᵀθ at θ = (x, ‖x‖²), in numpy's order."""
     th = np.empty(4)
     th[0], th[1], th[2] = x[0], x[1], x[2]
-    th[3] = dot(x, x, 3)
+    th[3] = dot(x, x, np.int64(3))
     q = 0.0
     for i in range(4):
         for j in range(4):
             q += th[i] * A[i, j] * th[j]
-    return q - 2.0 * dot(b, th, 4)
+    return q - 2.0 * dot(b, th, np.int64(4))
 
 
 @njit(cache=True, error_model="numpy")
@@ -217,11 +217,11 @@ def pl_solve(A: np.ndarray, b: np.ndarray, p: np.ndarray, out: np.ndarray) -> bo
     v_r, rank = _ls_solution(A, b, p, theta, v)
     x, r1, r2 = theta[:3].copy(), np.empty(3), np.empty(3)
     cost_ls = pl_cost(A, b, x) if rank == 4 else np.inf
-    qa = dot(v, v, 3)
+    qa = dot(v, v, np.int64(3))
     use_root = False
     if has_r and rank >= 3 and abs(v_r) > 1e-6 and qa > 1e-300:
-        qb = 2.0 * dot(x, v, 3) - v[3]
-        qc = dot(x, x, 3) - theta[3]
+        qb = 2.0 * dot(x, v, np.int64(3)) - v[3]
+        qc = dot(x, x, np.int64(3)) - theta[3]
         sq = math.sqrt(abs(qb * qb - 4.0 * qa * qc))
         t1, t2 = (-qb - sq) / (2.0 * qa), (-qb + sq) / (2.0 * qa)
         for i in range(3):

@@ -260,8 +260,8 @@ def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> Non
 @njit(cache=True, error_model="numpy")
 def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndarray, fisher_scale: float) -> None:
     """The prior (Λ, F × ``fisher_scale``, η) of the output row ``fo``."""
-    _put(fo, F_PINFO, lam, 1.0)
-    _put(fo, F_PFISH, fisher, fisher_scale)
+    _put(fo, np.int64(F_PINFO), lam, 1.0)
+    _put(fo, np.int64(F_PFISH), fisher, fisher_scale)
     for i in range(3):
         fo[F_PVEC + i] = eta[i]
 
@@ -288,7 +288,7 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
     for i in range(3):
         x[i] = clip(xi[i], p[P_LO + i], p[P_HI + i])
     lam, eta = np.empty((3, 3)), np.empty(3)
-    schur_prior(_get(fo, F_DRA, np.int64(4), np.empty((4, 4))), fo[F_DRB : F_DRB + 4], lam, eta)
+    schur_prior(_get(fo, np.int64(F_DRA), np.int64(4), np.empty((4, 4))), fo[F_DRB : F_DRB + 4], lam, eta)
     _set_prior(fo, lam, lam, eta, 1.0)
     return True
 
@@ -388,7 +388,7 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
     along any direction (J its information)."""
     if not (p[P_GATE] == p[P_GATE] and observable):
         return
-    J = _get(fi, F_INFO, np.int64(3), np.empty((3, 3)))
+    J = _get(fi, np.int64(F_INFO), np.int64(3), np.empty((3, 3)))
     det = det3(J)
     if det > 0.0:
         tr_adj = J[1, 1] * J[2, 2] - J[1, 2] ** 2 + J[0, 0] * J[2, 2] - J[0, 2] ** 2 + J[0, 0] * J[1, 1] - J[0, 1] ** 2
@@ -411,7 +411,7 @@ def _refine(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: i
     n_el = max(n_short, int(p[P_INIT_ITER])) if flags[1] else n_short
     rd0 = redescend(p[P_TUKEY] != 0.0, np.int64(0), flags[0], before, n_el)
     cost0 = evaluate(x, r, K, xz, xa, p, rd0, ev, xg, xh, counts, cb, buf)
-    lam, eta = _get(fo, F_PINFO, np.int64(3), np.empty((3, 3))), fo[F_PVEC : F_PVEC + 3].copy()
+    lam, eta = _get(fo, np.int64(F_PINFO), np.int64(3), np.empty((3, 3))), fo[F_PVEC : F_PVEC + 3].copy()
     if K == 0:
         accumulate(ev, K, K, xg, xh, g, H, F)
         add_prior(x, lam, eta, g, H)
@@ -465,7 +465,7 @@ def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.
             T += s[i] * (S_inv[i, 0] * s[0] + S_inv[i, 1] * s[1] + S_inv[i, 2] * s[2])
     fo[F_CONS] = T
     fail = p[P_CONS_THR] < T
-    _put(fo, F_SH, S_H, 0.0 if fail else 1.0)
+    _put(fo, np.int64(F_SH), S_H, 0.0 if fail else 1.0)
     for i in range(3):
         fo[F_SV + i] = 0.0 if fail else fo[F_SV + i]
     return fail
@@ -489,7 +489,7 @@ def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, 
     (symmetrised) and observability. Returns (observable, suspect)."""
     K = work[0].shape[0]
     F = refined[2]
-    lam, fis = _get(fo, F_PINFO, np.int64(3), np.empty((3, 3))), _get(fo, F_PFISH, np.int64(3), np.empty((3, 3)))
+    lam, fis = _get(fo, np.int64(F_PINFO), np.int64(3), np.empty((3, 3))), _get(fo, np.int64(F_PFISH), np.int64(3), np.empty((3, 3)))
     eta = fo[F_PVEC : F_PVEC + 3].copy()
     fisher = np.empty((3, 3))
     for i in range(3):
@@ -625,7 +625,7 @@ def _advance_memory(memory: tuple, memt_ok: bool, nrows: np.ndarray, take: bool,
 
 
 # --------------------------------------------------------------------------- one element, a batch
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
     order); ``ws`` = :func:`workspace`."""
