@@ -27,7 +27,7 @@ C_X, C_N, C_S1, C_S2, C_S0SQ, C_L, C_SP = 0, 3, 4, 5, 6, 7, 10
 NC = 11
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def forget(mem: np.ndarray, lam: float, out: np.ndarray) -> None:
     """``out`` = the cells of ``mem`` with every sum times λ (σ_r0 kept)."""
     for c in range(mem.shape[0]):
@@ -35,7 +35,7 @@ def forget(mem: np.ndarray, lam: float, out: np.ndarray) -> None:
             out[c, j] = mem[c, j] if (j == M_S0 or lam == 1.0) else mem[c, j] * lam
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def cells_of(mem: np.ndarray, cells: np.ndarray) -> int:
     """Fill ``cells`` (≥ C, NC) with the occupied cells of ``mem`` (C, NM), in order; returns
     their count."""
@@ -59,7 +59,7 @@ def cells_of(mem: np.ndarray, cells: np.ndarray) -> int:
     return k
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _terms(cells: np.ndarray, c: int, x0: float, x1: float, x2: float, gamma: float) -> tuple[float, float, float, float, float, float]:
     """Cell c at x: distance d (floored at 1 mm), unit vector u, variance σ_r0² d^γ and the
     residual sum S2 − 2(S1 d − u·lever) + n d² + spread."""
@@ -72,7 +72,7 @@ def _terms(cells: np.ndarray, c: int, x0: float, x1: float, x2: float, gamma: fl
     return d, u0, u1, u2, var, resid2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def nll(cells: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float) -> float:
     """Σ_cells resid2/(2 var) + (nγ/2) ln d at x: the memory's negative log-likelihood."""
     total = 0.0
@@ -82,7 +82,7 @@ def nll(cells: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: floa
     return total
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def gradient_fisher(cells: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, g: np.ndarray, F: np.ndarray) -> None:
     """``g`` (3,) and ``F`` (3, 3): gradient and Fisher information of the memory's cost at x,
     of the full likelihood (``full``) or of the generalised LS cost with σ_r² held at x."""
@@ -115,7 +115,7 @@ def gradient_fisher(cells: np.ndarray, nc: int, x: np.ndarray, gamma: float, ful
     F[0, 2] = F[2, 0] = f[5]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def polish(cells: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray, iterations: int, tolerance: float) -> float:
     """Projected Fisher-scoring (Levenberg-Marquardt) minimisation of :func:`nll` from x (3,),
     in place, inside the search box of ``p``; a step is kept only if the cost does not
@@ -161,7 +161,7 @@ def polish(cells: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarra
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def best_start(cells: np.ndarray, nc: int, x: np.ndarray, cand: np.ndarray, gamma: float, p: np.ndarray, points: int, out: np.ndarray) -> None:
     """``out``: of ``cand`` and of ``points`` points on the line through x along the memory's
     least-informed direction (within ± the mean distance from x to the cells, in the search
@@ -191,7 +191,7 @@ def best_start(cells: np.ndarray, nc: int, x: np.ndarray, cand: np.ndarray, gamm
             out[0], out[1], out[2] = pt[0], pt[1], pt[2]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _nearest(mem: np.ndarray, cc: np.ndarray, pos: np.ndarray, m: int, sig: float) -> tuple[int, float, int]:
     """The occupied cell nearest to row m's position of σ_r0 ``sig`` and its squared distance
     ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and the nearest occupied
@@ -210,7 +210,7 @@ def _nearest(mem: np.ndarray, cc: np.ndarray, pos: np.ndarray, m: int, sig: floa
     return best, bd, near
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _cells_of_rows(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, cell: np.ndarray) -> None:
     """The cell of every row with a positive weight (:func:`insert`'s rule; −1: no row), and
     σ_r0 set on the empty cells that the first row of each new group takes."""
@@ -241,7 +241,7 @@ def _cells_of_rows(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndar
     _group(mem, pos, rng, sig, rf, fresh, fallback, n_empty, cell)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _group(
     mem: np.ndarray,
     pos: np.ndarray,
@@ -291,7 +291,7 @@ def _group(
             cell[m] = took[leader[m]] if took[leader[m]] >= 0 else fallback[m]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def insert(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float) -> None:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (C, NM), in place (the rule of

@@ -38,7 +38,7 @@ RHO2_FLOOR_M2 = 1e-12
 XB_HEAD = 3
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float]:
     """Robust loss ρ(e), influence ψ(e) and IRLS weight ψ/e: Tukey's biweight (threshold c)
     where ``tukey``, else Huber (threshold k)."""
@@ -51,13 +51,13 @@ def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float
     return m * (ae - 0.5 * m), nmax(nmin(e, k), -k), k / nmax(ae, k)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def wrap(angle: float) -> float:
     """The angle wrapped into [−π, π] (rad)."""
     return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def residuals(x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: float) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
     """Row k at source x: r = x − p (rx, ry, rz), ρ² (floored), ρ, d², d, σ_r = σ_r0 dv^{γ/2}
     (dv = ``dv_given`` if positive, else d) and e = (z − h)/σ for range, azimuth (wrapped),
@@ -78,7 +78,7 @@ def residuals(x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: 
     return rx, ry, rz, rho2, rho, d2, d, sr, er, ea, ee
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def extra_terms(cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool) -> float:
     """The components outside the kernel at x: ``cb`` (their own code) leaves in ``buf`` the
     normalised residuals e (K, X) and gradients ∂e/∂x (K, X, 3) of the rows' values; returns
@@ -115,7 +115,7 @@ def extra_terms(cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def cost_at(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, huber: float, tukey: bool, ml: bool, ev: np.ndarray, use_dvar: bool, cb, buf: np.ndarray) -> float:
     """Robust cost Σ a ρ(e) (+ ½ ln σ_r² of the ranges if ``ml``) of the rows at x, σ_r at the
     distances of the evaluation ``ev`` if ``use_dvar`` (generalised LS), plus the extension
@@ -138,7 +138,7 @@ def cost_at(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndar
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _has_extra(xa: np.ndarray, K: int) -> bool:
     """Whether any of the first K rows carries a weighted extension value."""
     for k in range(K):
@@ -148,7 +148,7 @@ def _has_extra(xa: np.ndarray, K: int) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarray) -> None:
     """The innovation gate (``gate`` = (σ, max fraction, variance bound tr Σ, m²)): a component
     whose innovation exceeds σ standard deviations of σ² + tr(Σ)‖∇h‖² gets weight 0 in
@@ -176,7 +176,7 @@ def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarra
             return
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def evaluate(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, ev: np.ndarray, xg: np.ndarray, xh: np.ndarray, counts: np.ndarray, cb, buf: np.ndarray) -> float:
     """Robust cost of the rows at x (returned) and, per row, the factors of its gradient and
     scoring matrix (``ev``), the extension components' gradient ``xg`` (K, 3) and scoring
@@ -237,7 +237,7 @@ def evaluate(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.nda
     return cost
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray, g: np.ndarray, H: np.ndarray, F: np.ndarray) -> None:
     """Gradient g (3,), scoring matrix H and Fisher information F (3, 3) of the rows lo..hi−1:
     with v = (−r_y, r_x, 0) and w = (−r_x r_z, −r_y r_z, ρ²), g = Σ gA r + gB v + gC w,
@@ -275,7 +275,7 @@ def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray,
                 F[i, j] += xh[k, 3 * i + j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> bool:
     """Whether Tukey's biweight applies at iteration ``it`` (else Huber): settled elements
     always; after a pseudo-linear initialisation (``fresh`` and not initialised ``before``)
@@ -288,7 +288,7 @@ def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> boo
     return 2 * it >= n_el and not before
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     """½ xᵀΛx − ηᵀx."""
     q = 0.0
@@ -297,7 +297,7 @@ def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     return 0.5 * q - (eta[0] * x[0] + eta[1] * x[1] + eta[2] * x[2])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H: np.ndarray) -> None:
     """g += Λx − η, H += Λ (the prior's gradient and curvature)."""
     for i in range(3):
@@ -306,7 +306,7 @@ def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H:
             H[i, j] += lam[i, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _lm_step(x: np.ndarray, g: np.ndarray, H: np.ndarray, mu: float, ev: np.ndarray, K: int, counts: np.ndarray, p: np.ndarray, cand: np.ndarray) -> None:
     """``cand``: the damped Fisher-scoring step from x, capped at half the mean distance to the
     records (weighted as used) and projected into the search box (x itself if the damped
@@ -330,7 +330,7 @@ def _lm_step(x: np.ndarray, g: np.ndarray, H: np.ndarray, mu: float, ev: np.ndar
         cand[i] = clip(x[i] + (step[i] * shrink if ok else 0.0), p[P_LO + i], p[P_HI + i])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def lm_iterations(
     x: np.ndarray,
     rows: np.ndarray,

@@ -117,7 +117,7 @@ from planner.estimator.layout import (
 
 
 # --------------------------------------------------------------------------- array helpers
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> np.ndarray:
     """``out`` (n, n) = the matrix stored row-major at f[off:]; returns ``out``."""
     for i in range(n):
@@ -126,7 +126,7 @@ def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
     """The n × n matrix ``a`` times ``scale`` stored row-major at f[off:]."""
     n = a.shape[0]
@@ -135,7 +135,7 @@ def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
             f[off + n * i + j] = a[i, j] * scale if scale != 1.0 else a[i, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 2-D arrays of one shape."""
     for i in range(src.shape[0]):
@@ -143,7 +143,7 @@ def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
             dst[i, j] = src[i, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 1-D arrays of one length."""
     for i in range(src.shape[0]):
@@ -151,7 +151,7 @@ def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- the records
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, rows: np.ndarray, xz: np.ndarray, xa: np.ndarray) -> None:
     """The first n rows (component-major, NaN replaced by 0 and weight 0) of the raw records
     ``raw`` (position, range, azimuth, elevation, LOS, weight, extension values): ranges get
@@ -178,7 +178,7 @@ def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, ro
             xa[k, j] = w if present else 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, los: np.ndarray, xv: np.ndarray, nraw: np.ndarray) -> None:
     """The new records of one element as raw rows, weight 1 where the position is finite."""
     for m in range(rng.shape[0]):
@@ -190,7 +190,7 @@ def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, l
             nraw[m, NW + j] = xv[m, j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> int:
     """All rows of this call into ``raw``: the window (weights times λ) then the new ones; with
     a window and new rows, the invalid ones first (stable: by validity, then by age). Returns
@@ -214,7 +214,7 @@ def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> in
     return k
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.ndarray) -> None:
     """Rows (ranges only) of the first n range-window rows ``rw`` (position, range, LOS,
     weight), their weights times ``factor``."""
@@ -230,7 +230,7 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
         rrows[k, R_S0] = p[P_S0_LOS] if rw[k, RW_LOS] != 0.0 else p[P_S0_NLOS]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _insert_ranges(mem: np.ndarray, nrows: np.ndarray, cols: tuple, p: np.ndarray) -> None:
     """The ranges of the rows ``nrows`` join the memory ``mem`` (``cols`` = contiguous scratch
     for their positions, ranges, weights and σ_r0)."""
@@ -242,7 +242,7 @@ def _insert_ranges(mem: np.ndarray, nrows: np.ndarray, cols: tuple, p: np.ndarra
 
 
 # --------------------------------------------------------------------------- steps 1 and 3
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> None:
     """The output row before the call's records: the prior times λ (times λ·
     ``suspect_deflation`` for a suspect element), the PL systems times λ, the rest as was."""
@@ -257,7 +257,7 @@ def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> Non
             fo[j] = fi[j]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndarray, fisher_scale: float) -> None:
     """The prior (Λ, F × ``fisher_scale``, η) of the output row ``fo``."""
     _put(fo, np.int64(F_PINFO), lam, 1.0)
@@ -266,7 +266,7 @@ def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndar
         fo[F_PVEC + i] = eta[i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray) -> bool:
     """Step 1 for an element not initialised: the new records' PL equations join its system;
     where it becomes solvable (and :func:`determined`) the estimate is its solution in the
@@ -293,7 +293,7 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, memory: tuple, nrows: np.ndarray, cand: np.ndarray, p: np.ndarray) -> None:
     """Step 3 on the range memory (an initialised element that used only ranges): ``memory`` =
     (memt, cells, the forgotten memory memw, insertion scratch); memt = memw with this call's
@@ -327,7 +327,7 @@ def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, memory: tu
     flags[0] = flags[1] = True  # fresh start, long run
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _recheck_system(fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray) -> None:
     """The re-check's system (A, b): the squared-range summary plus the ranges still in the
     range window, weighted at the previous estimate."""
@@ -342,7 +342,7 @@ def _recheck_system(fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: n
         b[i] = fo[F_PRB + i] + b_p[i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _recheck(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, ranges_only: bool, rw: np.ndarray, new: tuple, memory: tuple, scratch: tuple, p: np.ndarray, cb) -> bool:
     """Step 3, the global re-check of an initialised element, every ``recheck_every``-th call
     with records. The candidate is the squared-range PL solution of all past ranges
@@ -381,7 +381,7 @@ def _recheck(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, ranges_only: bool
 
 
 # --------------------------------------------------------------------------- step 2
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray) -> None:
     """The innovation gate against the previous state (when ``gate_sigma`` is set and it was
     observable): tr(J⁻¹) = tr(adj J)/det J, m², bounds the variance of the previous estimate
@@ -397,7 +397,7 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
         _gate_rows(x, rows, K, p, gate)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _refine(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: int, rows: tuple, work: tuple, p: np.ndarray, cb, buf: np.ndarray, out: tuple) -> None:
     """Step 2, the robust refinement of an initialised element (its ``rows`` = (rows,
     extension values, weights), the gate applied before): ``iterations`` LM iterations
@@ -421,7 +421,7 @@ def _refine(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: i
 
 
 # --------------------------------------------------------------------------- steps 3-5
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: int, hi: int, out: tuple) -> None:
     """``out`` = (g, H, F) of the rows lo..hi−1 at x_lin: from the evaluation ``work``, or, when
     they are all its rows, the totals of ``refined`` = (g, H, F, x_lin) minus the prior's part
@@ -438,7 +438,7 @@ def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: 
         accumulate(work[0], lo, hi, work[1], work[2], go, Ho, Fo)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.ndarray, x: np.ndarray, p: np.ndarray) -> bool:
     """Rao's score test of the recent records against the estimate x (package doc, step 3):
     S_H ← λ_c S_H + H_new, S_v ← λ_c S_v + H_new x_lin − g_new, T = sᵀS_H⁻¹s with s = S_H x − S_v
@@ -471,7 +471,7 @@ def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.
     return fail
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     """More than ``suspect_fraction`` of the values of one component type (at least 2.5,
     weighted) lie beyond ``suspect_sigma``."""
@@ -481,7 +481,7 @@ def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple) -> tuple[bool, bool]:
     """Steps 3-5 after the refinement of an initialised element: the suspect flag, the rows
     leaving the window (the oldest M) marginalised into the prior (linearised at x_lin), the
@@ -517,7 +517,7 @@ def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, 
     return _report(fo, fi, x, fisher, p), suspect
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p: np.ndarray) -> bool:
     """The reported estimate and information (symmetrised), the previous estimate and none
     where either is not finite; returns observability, det J/(tr J/3)³ ≥ ``min_rcond``."""
@@ -533,7 +533,7 @@ def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p
     return finite and normalised_det(fisher) >= p[P_MIN_RCOND]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -> None:
     """An element still not initialised: the estimate stays, no information; the rows leaving
     the window (the oldest M) join the PL equations dropped before initialisation."""
@@ -549,7 +549,7 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 
 # --------------------------------------------------------------------------- the windows and the memory
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _advance_range_window(fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray) -> None:
     """The new ranges join the range window ``rwo`` (weights times λ); the oldest rows (the
     invalid ones first) leave it and join the re-check's squared-range summary, each weighted
@@ -593,7 +593,7 @@ def _advance_range_window(fo: np.ndarray, initialised: bool, rw: np.ndarray, nra
             fo[F_PRB + i] += b_r[i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     """The values the new rows used join the count, and whether any record ever used a value
     other than a range; returns whether the new rows carry a range."""
@@ -610,7 +610,7 @@ def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     return ranges
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _advance_memory(memory: tuple, memt_ok: bool, nrows: np.ndarray, take: bool, p: np.ndarray, mo: np.ndarray) -> None:
     """The range memory after the call, ``mo``: with this call's ranges where ``take`` (ranges
     and never an angle; ``memory[0]`` already holds them if ``memt_ok``), else the forgotten
@@ -625,7 +625,7 @@ def _advance_memory(memory: tuple, memt_ok: bool, nrows: np.ndarray, take: bool,
 
 
 # --------------------------------------------------------------------------- one element, a batch
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, inline="always")
 def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
     order); ``ws`` = :func:`workspace`."""
@@ -667,7 +667,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     _advance_memory(memory, memt_ok, nrows, take, p, mem2[e])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     """Scratch arrays of one element's update (reused by every element of a batch), K = W + M:
     the raw rows of the call, their rows, extension values and weights; the same for the new
