@@ -98,7 +98,13 @@ def pack_memory(memory: RangeMemory) -> FloatArray:
     out = np.empty((E, C, NM))
     out[..., M_PS : M_PS + 3] = np.reshape(memory.position_sum, (E, C, 3))
     out[..., M_T : M_T + 3] = np.reshape(memory.cross_sum, (E, C, 3))
-    for col, f in ((M_N, memory.weight), (M_S1, memory.range_sum), (M_S2, memory.square_sum), (M_S0, memory.sigma_r0), (M_Q, memory.position_square_sum)):
+    for col, f in (
+        (M_N, memory.weight),
+        (M_S1, memory.range_sum),
+        (M_S2, memory.square_sum),
+        (M_S0, memory.sigma_r0),
+        (M_Q, memory.position_square_sum),
+    ):
         out[..., col] = np.reshape(f, (E, C))
     return out
 
@@ -128,7 +134,13 @@ class Cells:
         cells, counts = km.cells_batch(pack_memory(memory))
         c = cells[:, : int(counts.max(initial=0))].reshape(batch + (-1, km.NC))
         return Cells(
-            c[..., km.C_X : km.C_X + 3], c[..., km.C_N], c[..., km.C_S1], c[..., km.C_S2], c[..., km.C_S0SQ], c[..., km.C_L : km.C_L + 3], c[..., km.C_SP]
+            c[..., km.C_X : km.C_X + 3],
+            c[..., km.C_N],
+            c[..., km.C_S1],
+            c[..., km.C_S2],
+            c[..., km.C_S0SQ],
+            c[..., km.C_L : km.C_L + 3],
+            c[..., km.C_SP],
         )
 
 

@@ -35,7 +35,13 @@ def _groups(components: Sequence[SensingComponent], names: tuple[str, ...]) -> l
     ]
 
 
-def extension_terms(groups: list[tuple[SensingComponent, list[int]]], x: NDArray[np.float64], positions: NDArray[np.float64], values: NDArray[np.float64], channel: Channel) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def extension_terms(
+    groups: list[tuple[SensingComponent, list[int]]],
+    x: NDArray[np.float64],
+    positions: NDArray[np.float64],
+    values: NDArray[np.float64],
+    channel: Channel,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Normalised residuals e (K, X) and gradients ∂e/∂x (K, X, 3), m⁻¹, of the values (K, X)
     of rows taken at ``positions`` (K, 3), m, ENU, for a source at x (3,); 0 in the columns of
     no component in ``groups``."""
@@ -52,7 +58,9 @@ def extension_terms(groups: list[tuple[SensingComponent, list[int]]], x: NDArray
     return e, de
 
 
-def extension_callback(components: Sequence[SensingComponent], names: tuple[str, ...], channel: Channel) -> tuple[NDArray[np.bool_], Any, list[BaseException]]:
+def extension_callback(
+    components: Sequence[SensingComponent], names: tuple[str, ...], channel: Channel
+) -> tuple[NDArray[np.bool_], Any, list[BaseException]]:
     """For values named ``names``: which belong to a component of ``components`` outside the
     kernel (X,), the compiled refinement's callback computing their terms
     (:func:`extension_terms`), and the list where it leaves an exception it met (re-raised by

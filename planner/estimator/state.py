@@ -486,7 +486,7 @@ class Packed:
         names = tuple(w.extra_values)
         cols = (w.range_m, w.azimuth_rad, w.elevation_rad, w.los, state.window_weight, *(w.extra_values[n] for n in names))
         win = np.concatenate((np.reshape(w.positions_m, (E, W, 3)), *(np.reshape(np.asarray(a, dtype=float), (E, W, 1)) for a in cols)), axis=-1)
-        return Packed(fs, ist, rwin, win, pack_memory(state.range_memory), b, names)
+        return Packed(fs, ist, np.asarray(rwin, dtype=np.float64), win, pack_memory(state.range_memory), b, names)
 
 
 def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | None = None) -> EstimatorState:

@@ -99,7 +99,8 @@ def update(
     )
     if errors:
         raise errors[0]
-    return EstimatorState.of_packed(Packed(*out, packed.batch_shape, names), state.calls + 1)
+    fs, ist, rwin, win_out, mem = out
+    return EstimatorState.of_packed(Packed(fs, ist, rwin, win_out, mem, packed.batch_shape, names), state.calls + 1)
 
 
 __all__ = ["update"]

@@ -165,7 +165,7 @@ def median(z: np.ndarray, n: int) -> float:
     return z[h] if n % 2 == 1 else (z[h - 1] + z[h]) / 2.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy")
 def dot(a: np.ndarray, b: np.ndarray, n: int) -> float:
     """Σ a[k] b[k] over k < n in ``numpy.einsum``'s order for two contiguous operands (two
     lanes of even and odd k, four lane-pairs per step, then the lanes added): the pseudo-linear
@@ -209,7 +209,7 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     return res
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy")
 def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
     """Σ a[lo:lo + n] in ``numpy.sum``'s pairwise order: blocks of at most 128 values
     (:func:`_block_sum`), longer runs halved (the first half a multiple of 8) and their sums

@@ -58,7 +58,9 @@ def wrap(angle: float) -> float:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def residuals(x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: float) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
+def residuals(
+    x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: float
+) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
     """Row k at source x: r = x − p (rx, ry, rz), ρ² (floored), ρ, d², d, σ_r = σ_r0 dv^{γ/2}
     (dv = ``dv_given`` if positive, else d) and e = (z − h)/σ for range, azimuth (wrapped),
     elevation."""
@@ -79,7 +81,9 @@ def residuals(x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: 
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def extra_terms(cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool) -> float:
+def extra_terms(
+    cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool
+) -> float:
     """The components outside the kernel at x: ``cb`` (their own code) leaves in ``buf`` the
     normalised residuals e (K, X) and gradients ∂e/∂x (K, X, 3) of the rows' values; returns
     their robust cost Σ a ρ(e) and, if ``want``, fills ``grad`` = (xg, xh, counts): per row
@@ -116,7 +120,21 @@ def extra_terms(cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def cost_at(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, huber: float, tukey: bool, ml: bool, ev: np.ndarray, use_dvar: bool, cb, buf: np.ndarray) -> float:
+def cost_at(
+    x: np.ndarray,
+    rows: np.ndarray,
+    K: int,
+    xz: np.ndarray,
+    xa: np.ndarray,
+    p: np.ndarray,
+    huber: float,
+    tukey: bool,
+    ml: bool,
+    ev: np.ndarray,
+    use_dvar: bool,
+    cb,
+    buf: np.ndarray,
+) -> float:
     """Robust cost Σ a ρ(e) (+ ½ ln σ_r² of the ranges if ``ml``) of the rows at x, σ_r at the
     distances of the evaluation ``ev`` if ``use_dvar`` (generalised LS), plus the extension
     components'."""
@@ -177,7 +195,21 @@ def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarra
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def evaluate(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, ev: np.ndarray, xg: np.ndarray, xh: np.ndarray, counts: np.ndarray, cb, buf: np.ndarray) -> float:
+def evaluate(
+    x: np.ndarray,
+    rows: np.ndarray,
+    K: int,
+    xz: np.ndarray,
+    xa: np.ndarray,
+    p: np.ndarray,
+    tukey: bool,
+    ev: np.ndarray,
+    xg: np.ndarray,
+    xh: np.ndarray,
+    counts: np.ndarray,
+    cb,
+    buf: np.ndarray,
+) -> float:
     """Robust cost of the rows at x (returned) and, per row, the factors of its gradient and
     scoring matrix (``ev``), the extension components' gradient ``xg`` (K, 3) and scoring
     matrix ``xh`` (K, 9), and per component type the weighted count of values used and of
@@ -307,7 +339,9 @@ def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _lm_step(x: np.ndarray, g: np.ndarray, H: np.ndarray, mu: float, ev: np.ndarray, K: int, counts: np.ndarray, p: np.ndarray, cand: np.ndarray) -> None:
+def _lm_step(
+    x: np.ndarray, g: np.ndarray, H: np.ndarray, mu: float, ev: np.ndarray, K: int, counts: np.ndarray, p: np.ndarray, cand: np.ndarray
+) -> None:
     """``cand``: the damped Fisher-scoring step from x, capped at half the mean distance to the
     records (weighted as used) and projected into the search box (x itself if the damped
     matrix is singular)."""

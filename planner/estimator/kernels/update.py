@@ -328,7 +328,9 @@ def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, memory: tu
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _recheck_system(fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray) -> None:
+def _recheck_system(
+    fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray
+) -> None:
     """The re-check's system (A, b): the squared-range summary plus the ranges still in the
     range window, weighted at the previous estimate."""
     R = rw.shape[0]
@@ -343,7 +345,9 @@ def _recheck_system(fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: n
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _recheck(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, ranges_only: bool, rw: np.ndarray, new: tuple, memory: tuple, scratch: tuple, p: np.ndarray, cb) -> bool:
+def _recheck(
+    fo: np.ndarray, x: np.ndarray, flags: np.ndarray, ranges_only: bool, rw: np.ndarray, new: tuple, memory: tuple, scratch: tuple, p: np.ndarray, cb
+) -> bool:
     """Step 3, the global re-check of an initialised element, every ``recheck_every``-th call
     with records. The candidate is the squared-range PL solution of all past ranges
     (:func:`_recheck_system`). An element that used only ranges is re-checked on the range
@@ -398,7 +402,9 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _refine(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: int, rows: tuple, work: tuple, p: np.ndarray, cb, buf: np.ndarray, out: tuple) -> None:
+def _refine(
+    fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: int, rows: tuple, work: tuple, p: np.ndarray, cb, buf: np.ndarray, out: tuple
+) -> None:
     """Step 2, the robust refinement of an initialised element (its ``rows`` = (rows,
     extension values, weights), the gate applied before): ``iterations`` LM iterations
     (``init_iterations`` where initialised or moved this call, ``flags`` = (fresh start, long
@@ -550,7 +556,9 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 # --------------------------------------------------------------------------- the windows and the memory
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _advance_range_window(fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray) -> None:
+def _advance_range_window(
+    fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray
+) -> None:
     """The new ranges join the range window ``rwo`` (weights times λ); the oldest rows (the
     invalid ones first) leave it and join the re-check's squared-range summary, each weighted
     at this call's estimate. ``scratch`` = (range rows, scales, pool of 2 (R + M) rows)."""
