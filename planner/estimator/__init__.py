@@ -76,6 +76,9 @@ Every batch element runs its own number of LM iterations (``iterations``, or
 computes what the same records give with batch shape () (the simulator, batch (trials,
 drones), and a planner node, batch (), agree).
 
+The arithmetic is compiled (numba; :mod:`planner.estimator.kernels`, imported on the first
+update, cached on disk): one call updates every batch element in one compiled loop.
+
 Per-call cost is O(batch × (window_rows + M)), independent of the number of calls. No NaN is
 returned: the estimate is finite everywhere (the origin, or the last value, until the element
 is initialised), and ``observable`` says when it can be trusted.
