@@ -20,6 +20,7 @@ Public API
 ``initial_state(batch_shape, config) -> EstimatorState``
 ``update(state, measurements, channel, config) -> EstimatorState``  (pure)
 ``empty_measurements(batch_shape, rows) -> Measurements``  (all NaN)
+``warm_up(config)``  (load, or compile, the kernels before a real-time loop)
 
 Measurement model (paper eqs. 3-5), drone at p, source at p0, r = p0 - p:
 
@@ -87,6 +88,6 @@ is initialised), and ``observable`` says when it can be trusted.
 from __future__ import annotations
 
 from planner.estimator.state import EstimatorConfig, EstimatorState, Measurements, empty_measurements, initial_state
-from planner.estimator.update import update
+from planner.estimator.update import update, warm_up
 
-__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update"]
+__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update", "warm_up"]

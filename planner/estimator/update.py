@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from planner.estimator.robust import extension_callback
-from planner.estimator.state import EstimatorConfig, EstimatorState, Measurements, Packed, _check
+from planner.estimator.state import EstimatorConfig, EstimatorState, Measurements, Packed, _check, initial_state
 from planner.params import Channel
 from planner.sensing import COMPONENTS, SensingComponent
 
@@ -103,4 +103,13 @@ def update(
     return EstimatorState.of_packed(Packed(fs, ist, rwin, win_out, mem, packed.batch_shape, names), state.calls + 1)
 
 
-__all__ = ["update"]
+def warm_up(config: EstimatorConfig | None = None) -> None:
+    """Load the compiled kernels (compile them if numba's cache has none: the first update
+    after installation) with one update of one record, so that a real-time process (a planner
+    node) pays it at start-up, not at its first step."""
+    config = EstimatorConfig() if config is None else config
+    nan = np.full(1, np.nan)
+    update(initial_state((), config), Measurements(np.zeros((1, 3)), np.ones(1), nan, nan, np.ones(1, dtype=bool)), Channel(), config)
+
+
+__all__ = ["update", "warm_up"]
