@@ -76,8 +76,8 @@ def swarm_mission(path: Path, drones: int) -> Path:
 
 
 def simulator_time(mission_path: Path, steps: int) -> float:
-    from missions.loader import load_mission
-    from missions.simulator import RunSpec, simulate
+    from missions.format.loader import load_mission
+    from missions.study.simulator import RunSpec, simulate
 
     m = load_mission(mission_path)
     t0 = time.perf_counter()

@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import minimize
 
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 from planner import Channel, FimStatus, Limits, control_step, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
 from planner.geometry import distance_to_boxes_with_gradient
 

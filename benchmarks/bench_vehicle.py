@@ -54,12 +54,12 @@ def sink_socket() -> tuple[socket.socket, int]:
 #: Used only to quantify what a lazy planner/__init__ would save.
 LAZY_PLANNER = (
     "import sys, types; m = types.ModuleType('planner'); m.__path__ = [sys.argv.pop(1)]; "
-    "sys.modules['planner'] = m; from missions.cli import main; sys.exit(main(sys.argv[1:]))"
+    "sys.modules['planner'] = m; from missions.cli.main import main; sys.exit(main(sys.argv[1:]))"
 )
 
 
 def spawn(args: list[str], lazy_planner: bool = False) -> subprocess.Popen[bytes]:
-    head = ["-c", LAZY_PLANNER, str(ROOT / "planner")] if lazy_planner else ["-m", "missions.cli"]
+    head = ["-c", LAZY_PLANNER, str(ROOT / "planner")] if lazy_planner else ["-m", "missions.cli.main"]
     return subprocess.Popen(
         [sys.executable, *head, "vehicle", *args],
         cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,

@@ -38,10 +38,10 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))
 
-from missions.cmd_optimum import mission_optimum  # noqa: E402
-from missions.loader import load_mission  # noqa: E402
-from missions.schema import Mission  # noqa: E402
-from missions.simulator import RunSpec, simulate  # noqa: E402
+from missions.study.optimum import mission_optimum  # noqa: E402
+from missions.format.loader import load_mission  # noqa: E402
+from missions.format.schema import Mission  # noqa: E402
+from missions.study.simulator import RunSpec, simulate  # noqa: E402
 from planner import estimator as est  # noqa: E402
 from planner.fim import fisher_information, position_error_bound  # noqa: E402
 from planner.geometry import line_of_sight  # noqa: E402

@@ -42,9 +42,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))
 
-from missions.loader import load_mission, resolve_mission  # noqa: E402
-from missions.schema import Mission  # noqa: E402
-from missions.simulator import RunSpec, SimulationResult, simulate  # noqa: E402
+from missions.format.loader import load_mission, resolve_mission  # noqa: E402
+from missions.format.schema import Mission  # noqa: E402
+from missions.study.simulator import RunSpec, SimulationResult, simulate  # noqa: E402
 from planner.geometry import line_of_sight  # noqa: E402
 from planner.placement import PlacementBounds, optimal_placement, placement_bounds  # noqa: E402
 

@@ -1,7 +1,7 @@
 """Receiving-side loss and delay injection for the peers' records.
 
 Deterministic fault emulation shared by the planner node (:class:`comms.latency.DelayedView`)
-and the in-process simulator (:func:`missions.simulator.simulate`), so that both see the same
+and the in-process simulator (:func:`missions.study.simulator.simulate`), so that both see the same
 faults for a seed.
 
 Model. For every receiver i, sender j ≠ i and record step s, receiver i decides, from its own

@@ -1,6 +1,6 @@
 """The mission frame and WGS-84, at the MAVLink edge, through pyproj (never by hand).
 
-Frames and conventions (DESIGN.md):
+Frames and conventions (docs/architecture.md, "Frames, units, time"):
 
 * Mission frame: ENU, metres, x east, y north, z up, about the mission ``origin`` (latitude,
   longitude in degrees WGS-84, altitude in metres AMSL).
@@ -58,7 +58,7 @@ class Origin:
     """Geodetic origin of a mission ENU frame (or of a vehicle's EKF frame).
 
     The one plain origin type: the mission schema's ``origin`` section converts to it
-    (``missions.schema.Origin.to_origin()``), the simulated vehicle's configuration holds it.
+    (``missions.format.schema.OriginSpec.to_origin()``), the simulated vehicle's configuration holds it.
 
     Attributes:
         lat_deg, lon_deg: WGS84 latitude and longitude (degrees).
@@ -104,14 +104,14 @@ class GeoPoint:
 
 
 class OriginSection(Protocol):
-    """The schema's ``origin`` section (``missions.schema.Origin``; duck-typed: comms does not
+    """The schema's ``origin`` section (``missions.format.schema.OriginSpec``; duck-typed: comms does not
     import missions): it converts to an :class:`Origin`."""
 
     def to_origin(self) -> Origin: ...
 
 
 class HasOrigin(Protocol):
-    """A mission (``missions.schema.Mission``): anything with an :class:`OriginSection`."""
+    """A mission (``missions.format.schema.Mission``): anything with an :class:`OriginSection`."""
 
     @property
     def origin(self) -> OriginSection: ...
@@ -150,7 +150,7 @@ class MissionFrame:
 
     @classmethod
     def of_mission(cls, mission: HasOrigin) -> MissionFrame:
-        """The frame of a ``missions.schema.Mission`` (its ``origin`` section)."""
+        """The frame of a ``missions.format.schema.Mission`` (its ``origin`` section)."""
         return cls.of_origin(mission.origin.to_origin())
 
     def to_global(self, x_m: float, y_m: float, z_m: float) -> GeoPoint:
@@ -181,6 +181,14 @@ class MissionFrame:
         h0 = self.origin.alt_m
         x, y, _ = self._geo_enu.transform(lat_deg, lon_deg, h0)
         return float(x), float(y), float(alt_amsl_m) - h0
+
+    def to_enu_many(self, lat_lon_alt: np.ndarray) -> np.ndarray:
+        """WGS-84 (n, 3) of (lat deg, lon deg, m AMSL) → mission ENU (n, 3), m, many points at
+        once (the convention of :meth:`to_enu`)."""
+        g = np.asarray(lat_lon_alt, dtype=float).reshape(-1, 3)
+        h0 = self.origin.alt_m
+        x, y, _ = self._geo_enu.transform(g[:, 0], g[:, 1], np.full(len(g), h0))
+        return np.column_stack([x, y, g[:, 2] - h0])
 
     def matches(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, tol_m: float = 0.05) -> bool:
         """True when a WGS-84 point (e.g. a vehicle's EKF origin) is the mission origin within

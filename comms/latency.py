@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comms.faults import FaultBuffer, FaultModel
-from comms.messages import Observation
+from comms.messages import Record
 from planner.network import NEVER, hop_counts, update_saved_steps
 
 
@@ -39,10 +39,10 @@ class View:
             estimator. Oldest first, then by sender (:attr:`comms.faults.FaultBuffer.late_steps`).
     """
 
-    records: tuple[Observation | None, ...]
+    records: tuple[Record | None, ...]
     saved_steps: np.ndarray
     hops: np.ndarray
-    late_records: tuple[Observation, ...] = ()
+    late_records: tuple[Record, ...] = ()
 
 
 class DelayedView:
@@ -74,11 +74,11 @@ class DelayedView:
         self.faults: FaultBuffer | None = None
         if faults is not None and faults.enabled:
             self.faults = FaultBuffer(faults, seed, [trial], [own_index], count, h_max if emulate else 1)
-        self._history: list[dict[int, Observation]] = [{} for _ in range(count)]
+        self._history: list[dict[int, Record]] = [{} for _ in range(count)]
         self._saved = np.full(count, NEVER, dtype=np.int64)
         self._last_position = np.full((count, 3), np.nan)
 
-    def add(self, record: Observation) -> None:
+    def add(self, record: Record) -> None:
         """Store a received record (own or peer's); duplicates replace nothing."""
         j = record.sender - 1
         if not 0 <= j < self.count:
@@ -126,7 +126,7 @@ class DelayedView:
                 new[j] = self._saved[j]
                 rec = self._history[j].get(int(new[j])) if new[j] >= 0 else None
             records.append(rec)
-        late: list[Observation] = []
+        late: list[Record] = []
         if self.faults is not None:
             for s_, j in zip(*np.nonzero(self.faults.late_steps[:, 0, 0, :] >= 0)):
                 rec = self._history[int(j)].get(int(self.faults.late_steps[s_, 0, 0, j]))

@@ -95,7 +95,7 @@ class Header:
 
 
 @dataclass(frozen=True)
-class Observation:
+class Record:
     """A drone's record (kind RECORD) or its payload's measurement (kind MEASUREMENT).
 
     Attributes:
@@ -159,15 +159,15 @@ class Status:
     saved_steps: tuple[int, ...]
 
 
-Message = Observation | Tick | Done | Status
+Message = Record | Tick | Done | Status
 
 
 def _header(kind: MessageKind, mission_id: str, sender: int, seq: int) -> bytes:
     return _HEADER.pack(MAGIC, SCHEMA_VERSION, int(kind), mission_tag(mission_id), sender, seq & 0xFFFFFFFF)
 
 
-def _extension(msg: Observation, sensing: SensingTable) -> tuple[list[str], list[float]]:
-    """The components beyond range and bearing an Observation's ``extra_values`` carry (names)
+def _extension(msg: Record, sensing: SensingTable) -> tuple[list[str], list[float]]:
+    """The components beyond range and bearing a Record's ``extra_values`` carry (names)
     and their values in wire order.
 
     Raises:
@@ -190,14 +190,14 @@ def _extension(msg: Observation, sensing: SensingTable) -> tuple[list[str], list
 
 
 def encode(msg: Message, mission_id: str, seq: int, kind: MessageKind | None = None, sensing: SensingTable = SENSING) -> bytes:
-    """Serialise a message (``kind`` picks RECORD or MEASUREMENT for an Observation; ``sensing``:
+    """Serialise a message (``kind`` picks RECORD or MEASUREMENT for a Record; ``sensing``:
     the role table whose bits a record's role byte carries).
 
     Raises:
-        ValueError: an Observation whose components form no role of ``sensing``, or whose
+        ValueError: a Record whose components form no role of ``sensing``, or whose
             ``extra_values`` do not match its components.
     """
-    if isinstance(msg, Observation):
+    if isinstance(msg, Record):
         k = kind or MessageKind.RECORD
         extra_names, extra = _extension(msg, sensing)
         taken = [name for name, has in ((RANGE.name, msg.ranging), (BEARING.name, msg.bearing)) if has] + extra_names
@@ -233,6 +233,24 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None, sensing:
     Raises:
         MessageError: with the reason, for anything malformed or implausible.
     """
+    header, body = _decode_header(data, mission_id)
+    kind = header.kind
+    if kind in (MessageKind.RECORD, MessageKind.MEASUREMENT):
+        return header, _decode_record(header, body, max_sender, sensing)
+    if kind == MessageKind.TICK:
+        _need(body, _TICK.size, kind)
+        step, t = _TICK.unpack(body)
+        _finite("time", t)
+        return header, Tick(step, t)
+    if kind == MessageKind.DONE:
+        _need(body, _DONE.size, kind)
+        _sender(header.sender, max_sender)
+        return header, Done(header.sender, _DONE.unpack(body)[0])
+    return header, _decode_status(header, body, max_sender)
+
+
+def _decode_header(data: bytes, mission_id: str) -> tuple[Header, memoryview]:
+    """The header of a message of mission ``mission_id`` and the body after it."""
     if len(data) < _HEADER.size:
         raise MessageError(f"truncated message: {len(data)} bytes, expected at least {_HEADER.size}")
     magic, version, kind, tag, sender, seq = _HEADER.unpack_from(data)
@@ -246,73 +264,62 @@ def decode(data: bytes, mission_id: str, max_sender: int | None = None, sensing:
         raise MessageError(f"unknown message kind {kind}") from None
     if tag != mission_tag(mission_id):
         raise MessageError(f"message of another mission (tag {tag:#010x}, expected {mission_tag(mission_id):#010x})")
-    header = Header(kind, tag, sender, seq)
-    body = memoryview(data)[_HEADER.size :]
-    if kind in (MessageKind.RECORD, MessageKind.MEASUREMENT):
-        if len(body) < _OBS.size:
-            _need(body, _OBS.size, kind)
-        step, t, x, y, z, role, flags, rng, az, el = _OBS.unpack_from(body)
-        _sender(sender, max_sender)
-        _finite("time", t)
-        for name, v in (("x", x), ("y", y), ("z", z)):
-            _finite(f"position {name}", v)
-            if abs(v) > MAX_COORD_M:
-                raise MessageError(f"position {name} = {v:g} m is outside ±{MAX_COORD_M:g} m")
-        found = sensing.role_of_bits(role)
-        if found is None:
-            raise MessageError(f"role bits {role:#x}: expected {_known_role_bits(sensing)}")
-        if flags & ~(LOS_FLAG | STALE_FLAG | TAKEN_OVER_FLAG):
-            raise MessageError(f"unknown flag bits {flags:#x}")
-        extra_values = _decode_extension(body[_OBS.size :], _extra_components_of_bits(role, sensing), kind)
-        ranging, bearing = found.ranging, found.bearing
-        # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
-        # negative. Any finite value of plausible size is a measurement.
-        if ranging and not (math.isnan(rng) or (math.isfinite(rng) and abs(rng) <= 2 * MAX_COORD_M)):
-            raise MessageError(f"range {rng!r}: expected a finite distance within ±{2 * MAX_COORD_M:g} m (or NaN: no measurement)")
-        if not ranging and not math.isnan(rng):
-            raise MessageError("range given by a drone without the ranging role")
-        if bearing:
-            for name, v, lim in (("azimuth", az, math.pi), ("elevation", el, 0.5 * math.pi)):
-                if not (math.isnan(v) or (math.isfinite(v) and -lim - 1e-9 <= v <= lim + 1e-9)):
-                    raise MessageError(f"{name} {v!r}: expected an angle in [-{lim:.4f}, {lim:.4f}] rad (or NaN)")
-        elif not (math.isnan(az) and math.isnan(el)):
-            raise MessageError("bearing given by a drone without the bearing role")
-        return header, Observation(
-            sender,
-            step,
-            t,
-            (x, y, z),
-            ranging,
-            bearing,
-            bool(flags & LOS_FLAG),
-            rng,
-            az,
-            el,
-            bool(flags & STALE_FLAG),
-            bool(flags & TAKEN_OVER_FLAG),
-            extra_values,
-        )
-    if kind == MessageKind.TICK:
-        _need(body, _TICK.size, kind)
-        step, t = _TICK.unpack(body)
-        _finite("time", t)
-        return header, Tick(step, t)
-    if kind == MessageKind.DONE:
-        _need(body, _DONE.size, kind)
-        _sender(sender, max_sender)
-        return header, Done(sender, _DONE.unpack(body)[0])
-    # STATUS
+    return Header(kind, tag, sender, seq), memoryview(data)[_HEADER.size :]
+
+
+def _decode_record(header: Header, body: memoryview, max_sender: int | None, sensing: SensingTable) -> Record:
+    """The :class:`Record` of a RECORD or MEASUREMENT body: position within ±MAX_COORD_M,
+    a known role, known flags, and a measurement that fits the role."""
+    if len(body) < _OBS.size:
+        _need(body, _OBS.size, header.kind)
+    step, t, x, y, z, role, flags, rng, az, el = _OBS.unpack_from(body)
+    _sender(header.sender, max_sender)
+    _finite("time", t)
+    for name, v in (("x", x), ("y", y), ("z", z)):
+        _finite(f"position {name}", v)
+        if abs(v) > MAX_COORD_M:
+            raise MessageError(f"position {name} = {v:g} m is outside ±{MAX_COORD_M:g} m")
+    found = sensing.role_of_bits(role)
+    if found is None:
+        raise MessageError(f"role bits {role:#x}: expected {_known_role_bits(sensing)}")
+    if flags & ~(LOS_FLAG | STALE_FLAG | TAKEN_OVER_FLAG):
+        raise MessageError(f"unknown flag bits {flags:#x}")
+    extra_values = _decode_extension(body[_OBS.size :], _extra_components_of_bits(role, sensing), header.kind)
+    _check_measurement(found.ranging, found.bearing, rng, az, el)
+    los, stale, taken_over = bool(flags & LOS_FLAG), bool(flags & STALE_FLAG), bool(flags & TAKEN_OVER_FLAG)
+    return Record(header.sender, step, t, (x, y, z), found.ranging, found.bearing, los, rng, az, el, stale, taken_over, extra_values)
+
+
+def _check_measurement(ranging: bool, bearing: bool, rng: float, az: float, el: float) -> None:
+    """A record's range and angles fit its role: finite and plausible where measured, NaN where
+    not measured, absent (NaN) for a component the role does not have."""
+    # The paper's ranging model is additive Gaussian (eq. 3): a far, noisy range can be
+    # negative. Any finite value of plausible size is a measurement.
+    if ranging and not (math.isnan(rng) or (math.isfinite(rng) and abs(rng) <= 2 * MAX_COORD_M)):
+        raise MessageError(f"range {rng!r}: expected a finite distance within ±{2 * MAX_COORD_M:g} m (or NaN: no measurement)")
+    if not ranging and not math.isnan(rng):
+        raise MessageError("range given by a drone without the ranging role")
+    if bearing:
+        for name, v, lim in (("azimuth", az, math.pi), ("elevation", el, 0.5 * math.pi)):
+            if not (math.isnan(v) or (math.isfinite(v) and -lim - 1e-9 <= v <= lim + 1e-9)):
+                raise MessageError(f"{name} {v!r}: expected an angle in [-{lim:.4f}, {lim:.4f}] rad (or NaN)")
+    elif not (math.isnan(az) and math.isnan(el)):
+        raise MessageError("bearing given by a drone without the bearing role")
+
+
+def _decode_status(header: Header, body: memoryview, max_sender: int | None) -> Status:
+    """The :class:`Status` of a STATUS body (``max_sender``: N, the peers it must list)."""
     if len(body) < _STATUS_HEAD.size:
         raise MessageError(f"truncated status: {len(body)} bytes")
     step, t, ex, ey, ez, obs, sing, active, n = _STATUS_HEAD.unpack_from(body)
-    _sender(sender, max_sender)
+    _sender(header.sender, max_sender)
     if max_sender is not None and n != max_sender:
         raise MessageError(f"status lists {n} peers, expected {max_sender}")
-    _need(body, _STATUS_HEAD.size + 4 * n, kind)
+    _need(body, _STATUS_HEAD.size + 4 * n, header.kind)
     for v in (t, ex, ey, ez):
         _finite("status value", v)
     saved = tuple(int(s) for s in np.frombuffer(body[_STATUS_HEAD.size :], dtype="<i4", count=n))
-    return header, Status(sender, step, t, (ex, ey, ez), bool(obs), bool(sing), active, saved)
+    return Status(header.sender, step, t, (ex, ey, ez), bool(obs), bool(sing), active, saved)
 
 
 def _decode_extension(tail: memoryview, components: tuple[SensingComponent, ...], kind: MessageKind) -> Mapping[str, float]:

@@ -52,7 +52,7 @@ KEEP_ALIVE: int = 4
 
 
 class ZenohSection(Protocol):
-    """What this module reads of ``missions.schema.ZenohSpec`` (duck-typed: comms does not
+    """What this module reads of ``missions.format.schema.ZenohSpec`` (duck-typed: comms does not
     import missions). Read-only: the mission's sections are frozen."""
 
     @property

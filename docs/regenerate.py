@@ -3,8 +3,9 @@
     python docs/regenerate.py                 # the full size the docs quote (about two hours on 2 cores)
     python docs/regenerate.py --trials 5 --steps 100 --out /tmp/quick --no-docs   # a quick look
 
-It runs the ``fimnav montecarlo`` commands that the docs name (the same code path, in this
-process, one command after the other), then rewrites the tables between the markers
+It runs the studies that the docs name, as ``fimnav montecarlo`` commands, through the same
+library call (:func:`missions.study.montecarlo.run_study`, in this process, one study after the
+other), then rewrites the tables between the markers
 
     <!-- BEGIN regenerate.py: NAME -->
     ...
@@ -73,14 +74,38 @@ FAMILIES = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
 
 @dataclass(frozen=True)
 class Command:
-    """One ``fimnav montecarlo`` command and the results directory it writes."""
+    """One study the docs name, as the ``fimnav montecarlo`` command that runs it and the
+    results directory it writes."""
 
     name: str
-    args: tuple[str, ...]
+    missions: tuple[str, ...]
     out: Path
+    criterion: str | None = None
+    activation: str | None = None
+    trials: int | None = None
+    steps: int | None = None
+    #: worker processes (``--jobs``; None: the command's default, one)
+    jobs: int | None = None
+    figures: bool = True
+    #: ``--set KEY=VALUE`` overrides
+    sets: tuple[str, ...] = ()
     #: The results directory of the same runs without faults, whose baselines this command
     #: reads instead of simulating them again (``--baselines``; the same numbers).
     baselines: Path | None = None
+
+    @property
+    def args(self) -> tuple[str, ...]:
+        """The command's arguments after ``fimnav montecarlo`` (without ``--out``, ``--baselines``)."""
+        return (
+            *self.missions,
+            *(["--criterion", self.criterion] if self.criterion else []),
+            *(["--activation", self.activation] if self.activation else []),
+            *(["--trials", str(self.trials)] if self.trials else []),
+            *(["--steps", str(self.steps)] if self.steps else []),
+            *(["--jobs", str(self.jobs)] if self.jobs is not None else []),
+            *([] if self.figures else ["--no-figures"]),
+            *(a for kv in self.sets for a in ("--set", kv)),
+        )
 
     def argv(self) -> list[str]:
         reuse = ["--baselines", str(self.baselines)] if self.baselines is not None else []
@@ -93,37 +118,20 @@ class Command:
 
 def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figures: bool) -> dict[str, Command]:
     """Every command the docs' tables and figures come from."""
-    size = [*(["--trials", str(trials)] if trials else []), *(["--steps", str(steps)] if steps else [])]
-    fig = [] if figures else ["--no-figures"]
-    par = ["--jobs", str(jobs)]
+    paper = tuple(f"paper/{n}" for n in PAPER_NAMES)
     cmds = {
-        "case-study": Command(
-            "case-study",
-            (*(f"paper/{n}" for n in PAPER_NAMES), "--criterion", "both", "--activation", "both", *size, *par, *fig),
-            out / "case-study",
-        ),
-        "fig3": Command("fig3", (*(f"paper/{n}" for n in FIG3_NAMES), "--criterion", "both", *size, *par, *fig), out / "fig3"),
+        "case-study": Command("case-study", paper, out / "case-study", "both", "both", trials, steps, jobs, figures),
+        "fig3": Command("fig3", tuple(f"paper/{n}" for n in FIG3_NAMES), out / "fig3", "both", None, trials, steps, jobs, figures),
     }
-    fault_size = ["--trials", str(trials or FAULT_TRIALS), *(["--steps", str(steps)] if steps else [])]
     first = out / "faults-loss{:g}-delay{}".format(*FAULT_SETTINGS[0])
     for loss, delay in FAULT_SETTINGS:
         name = f"faults-loss{loss:g}-delay{delay}"
-        cmds[name] = Command(
-            name,
-            ("paper/heterogeneous", *fault_size, "--no-figures",
-             "--set", f"comms.faults.loss={loss:g}", "--set", f"comms.faults.extra_delay_steps={delay}"),
-            out / name,
-            first if loss or delay else None,
-        )
-    grid_size = ["--trials", str(trials or GRID_TRIALS), *(["--steps", str(steps)] if steps else [])]
+        sets = (f"comms.faults.loss={loss:g}", f"comms.faults.extra_delay_steps={delay}")
+        cmds[name] = Command(name, ("paper/heterogeneous",), out / name, trials=trials or FAULT_TRIALS, steps=steps, figures=False, sets=sets,
+                             baselines=first if loss or delay else None)  # fmt: skip
     for g, (_, sets) in enumerate(GRID_SETTINGS):
-        cmds[f"grid-{g}"] = Command(
-            f"grid-{g}",
-            (*(f"paper/{n}" for n in PAPER_NAMES), "--criterion", "both", *grid_size, *par, "--no-figures",
-             *(a for kv in sets for a in ("--set", kv))),
-            out / f"grid-{g}",
-            out / "grid-0" if sets else None,
-        )
+        cmds[f"grid-{g}"] = Command(f"grid-{g}", paper, out / f"grid-{g}", "both", None, trials or GRID_TRIALS, steps, jobs, False, sets,
+                                    out / "grid-0" if sets else None)  # fmt: skip
     return cmds
 
 
@@ -154,18 +162,30 @@ STAMP_FILE = "regenerate-stamp.txt"
 
 
 def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
-    """Run one ``fimnav montecarlo`` command in this process; return its run summaries (the
-    results directory also records ``when``, the commit and versions it ran at)."""
-    from missions.cli import main
+    """Run one study in this process (the library call ``fimnav montecarlo`` makes,
+    :func:`missions.study.montecarlo.run_study`), write its results directory; return its run
+    summaries (the directory also records ``when``, the commit and versions it ran at)."""
+    from tqdm import tqdm
+
+    from comms.errors import FimnavError
+    from missions.format.loader import parse_overrides
+    from missions.study.montecarlo import expand_runs, run_study, study_size
+    from missions.study.results import write_results
 
     print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
     if cmd.out.exists():
         shutil.rmtree(cmd.out)
-    status = main(cmd.argv())
-    if status != 0:
-        raise SystemExit(f"regenerate: {cmd.shown()} exited with status {status}")
+    try:
+        specs = expand_runs(cmd.missions, parse_overrides(list(cmd.sets)), cmd.criterion, cmd.activation, cmd.trials, cmd.steps)
+        with tqdm(total=study_size(specs, cmd.baselines), unit="trial-step", desc=cmd.name, file=sys.stderr, disable=None) as bar:
+            study = run_study(specs, baselines=cmd.baselines, workers=cmd.jobs or 1, progress=bar.update,
+                              warn=lambda why: bar.write(f"regenerate: --baselines: {why}", file=sys.stderr))  # fmt: skip
+        summaries = write_results(study.results, cmd.out, command=["fimnav", *cmd.argv()], figures=cmd.figures,
+                                  penalties=study.penalties, extras=study.extras)  # fmt: skip
+    except FimnavError as exc:
+        raise SystemExit(f"regenerate: {cmd.shown()}: {exc}") from None
     (cmd.out / STAMP_FILE).write_text(when + "\n")
-    return json.loads((cmd.out / "summary.json").read_text())["runs"]
+    return summaries
 
 
 def reuse_command(cmd: Command) -> tuple[list[dict[str, Any]], str]:

@@ -2,6 +2,6 @@
 
 import sys
 
-from missions.cli import main
+from missions.cli.main import main
 
 sys.exit(main())

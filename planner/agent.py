@@ -1,6 +1,6 @@
 """One drone's planning step from its view: the chain shared by the in-process simulator and
-the planner node, so both compute the same thing (DESIGN.md: "build the delayed view →
-estimate the source → compute the control step under constraints").
+the planner node, so both compute the same thing (docs/distributed.md, "Distributed =
+in-process": build the delayed view → estimate the source → compute the control step).
 
 Given drone i's view (the records it holds of every drone, itself included), its estimator
 state and its last displacement, :func:`plan` returns the control step of

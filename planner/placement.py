@@ -438,6 +438,30 @@ def _solve_from(prob: _Problem, x0: FloatArray) -> FloatArray:
     return x.reshape(n, 3)
 
 
+def _best_start(
+    prob: _Problem, x0s: Sequence[FloatArray], src: FloatArray, bounds: PlacementBounds, bmin: FloatArray, bmax: FloatArray
+) -> tuple[FloatArray, tuple[float, FloatArray, float, BoolArray] | None, int]:
+    """Solve problem 7 from every start ``x0s`` ((N, 3) each, m, ENU); return each start's exact
+    cost (eq. 6; +inf where the solution breaks a distance of ``bounds`` by more than
+    :data:`FEASIBILITY_TOL_M` or J is singular), the best (cost, positions, PEB (eq. 18), LOS
+    links) or None, and the index of the best start (-1 for none)."""
+    costs = np.full(len(x0s), np.inf)
+    best: tuple[float, FloatArray, float, BoolArray] | None = None
+    best_k = -1
+    for k, x0 in enumerate(x0s):
+        p = _solve_from(prob, x0)
+        margins = placement_margins(p, src, bounds, bmin, bmax)
+        if min(margins.values()) < -FEASIBILITY_TOL_M:
+            continue
+        value, peb, los = prob.exact(p)
+        if not math.isfinite(value):
+            continue
+        costs[k] = value
+        if best is None or value < best[0]:
+            best, best_k = (value, p, peb, los), k
+    return costs, best, best_k
+
+
 def optimal_placement(
     source: ArrayLike,
     ranging: ArrayLike,
@@ -492,20 +516,7 @@ def optimal_placement(
     x0s = [_random_start(gen, src, n, bounds, bmin, bmax) for _ in range(starts)]
     if initial_positions is not None:
         x0s.insert(0, np.asarray(initial_positions, dtype=float).reshape(n, 3))
-    costs = np.full(len(x0s), np.inf)
-    best: tuple[float, FloatArray, float, BoolArray] | None = None
-    best_k = -1
-    for k, x0 in enumerate(x0s):
-        p = _solve_from(prob, x0)
-        margins = placement_margins(p, src, bounds, bmin, bmax)
-        if min(margins.values()) < -FEASIBILITY_TOL_M:
-            continue
-        value, peb, los = prob.exact(p)
-        if not math.isfinite(value):
-            continue
-        costs[k] = value
-        if best is None or value < best[0]:
-            best, best_k = (value, p, peb, los), k
+    costs, best, best_k = _best_start(prob, x0s, src, bounds, bmin, bmax)
     if best is None:
         raise RuntimeError(f"no placement keeping every distance was found from {len(x0s)} starts (seed {seed})")
     value, p, peb, los = best

@@ -6,7 +6,7 @@
   index: the bridge numbers them itself and remembers each one's mission step).
 * Payload: after the vehicles advanced to a mission tick k, each payload measures at its
   vehicle's *true* position and the bridge publishes the record
-  (:class:`comms.messages.Observation`, kind MEASUREMENT) on ``fimnav/<id>/measurement/<sysid>``.
+  (:class:`comms.messages.Record`, kind MEASUREMENT) on ``fimnav/<id>/measurement/<sysid>``.
   The source moves with mission time k·Δt (the in-process simulator's clock), not with the
   vehicle's boot time, which includes the pre-flight. A real RSS payload on a companion
   computer publishes the same record on the same key (docs/distributed.md).
@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from comms import keys
-from comms.messages import MessageError, MessageKind, Observation, Tick, decode, encode
+from comms.messages import MessageError, MessageKind, Record, Tick, decode, encode
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings, open_session
 from vehicle_sim.clock import TickQueue
@@ -92,7 +92,7 @@ class ZenohBridge:
         record for ``step``, stamped ``time_s`` (UNIX s in real time, mission s in lockstep)."""
         m = vehicle.payload.measure(position_m, step, step * self.dt)
         nan = math.nan
-        obs = Observation(
+        obs = Record(
             sender=vehicle.sysid,
             step=step,
             time_s=time_s,

@@ -3,36 +3,31 @@
 * :class:`RealTimeClock`: sim time = speed-up × wall time elapsed since start.
 * :class:`TickQueue`: sim time advances only when a tick arrives, in process
   (:meth:`TickQueue.push`), from :class:`vehicle_sim.bridge.ZenohBridge` (a mission's clock,
-  :mod:`missions.clock`) or from Zenoh as JSON (:class:`ZenohTickSource`, key
-  ``fimnav/<mission_id>/clock/tick``, payload ``{"step": k, "t_s": t}``). The queue is thread
-  safe and exposes a file descriptor that becomes readable when a tick is queued, so a select()
-  loop wakes up at once.
+  :mod:`missions.launch.clock`) or, for a vehicle without a mission, from
+  :class:`ZenohTickSource`. The queue is thread safe and exposes a file descriptor that
+  becomes readable when a tick is queued, so a select() loop wakes up at once.
 
-A tick is :class:`comms.messages.Tick` (``step``, ``time_s``), the type the mission clock
-publishes; only its encoding differs between the two Zenoh sources: the standalone vehicle's
-JSON (:func:`parse_tick`, :func:`encode_tick`) and the mission's binary message
-(:func:`comms.messages.decode`, with a header naming the mission).
+A tick is :class:`comms.messages.Tick` (``step``, ``time_s``) on the key
+:func:`comms.keys.tick` (``fimnav/<mission id>/clock/tick``), with one encoding whoever
+publishes it: the binary message of :func:`comms.messages.encode`, whose header names the
+mission. The Zenoh session comes from :func:`comms.session.open_session`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
-from comms.messages import Tick
+from comms import keys
+from comms.messages import MessageError, Tick, decode
+from comms.session import SessionSettings, open_session
 
 log = logging.getLogger(__name__)
-
-
-def tick_key(mission_id: str) -> str:
-    """Zenoh key expression of the mission clock ticks."""
-    return f"fimnav/{mission_id}/clock/tick"
 
 
 class RealTimeClock:
@@ -59,39 +54,10 @@ class RealTimeClock:
         return self.wall_start + t_s / self.speedup
 
 
-def parse_tick(payload: bytes | str) -> Tick:
-    """Decode a JSON tick payload ``{"step": int >= 0, "t_s": finite float >= 0}`` (UTF-8) into
-    ``Tick(step, time_s=t_s)``.
-
-    Raises:
-        ValueError: with a message naming what was expected and what was found.
-    """
-    try:
-        obj: Any = json.loads(payload)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ValueError(f"tick: expected a JSON object, found undecodable payload ({exc})") from None
-    if not isinstance(obj, dict):
-        raise ValueError(f"tick: expected a JSON object, found {type(obj).__name__}")
-    unknown = set(obj) - {"step", "t_s"}
-    if unknown:
-        raise ValueError(f"tick: unknown keys {sorted(unknown)}; expected 'step' and 't_s'")
-    step, t_s = obj.get("step"), obj.get("t_s")
-    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
-        raise ValueError(f"tick.step: expected an integer >= 0, found {step!r}")
-    if isinstance(t_s, bool) or not isinstance(t_s, (int, float)) or not math.isfinite(t_s) or t_s < 0:
-        raise ValueError(f"tick.t_s: expected a finite number >= 0, found {t_s!r}")
-    return Tick(step, float(t_s))
-
-
-def encode_tick(tick: Tick) -> bytes:
-    """The JSON payload of ``tick`` (inverse of :func:`parse_tick`)."""
-    return json.dumps({"step": tick.step, "t_s": tick.time_s}).encode()
-
-
 class TickQueue:
     """Thread-safe queue of the lockstep ticks a vehicle host consumes; time never goes backwards.
 
-    Not the mission's clock (:class:`missions.clock.LockstepClock` publishes the ticks): this
+    Not the mission's clock (:class:`missions.launch.clock.LockstepClock` publishes the ticks): this
     queue only receives them. A tick whose ``time_s`` is earlier than the last accepted one, or whose ``step`` is not
     larger, is dropped with a warning (a duplicate or out-of-order message).
     """
@@ -120,16 +86,21 @@ class TickQueue:
             pass
         return True
 
-    def push_payload(self, payload: bytes | str) -> bool:
-        """Decode and queue a tick payload; a bad payload is dropped with a warning."""
+    def push_payload(self, payload: bytes, mission_id: str) -> bool:
+        """Decode and queue a tick message of mission ``mission_id`` (:func:`comms.messages.decode`);
+        a bad payload, another mission's or another kind of message is dropped with a warning."""
         try:
-            tick = parse_tick(payload)
-        except ValueError as exc:
+            _, msg = decode(payload, mission_id)
+        except MessageError as exc:
+            msg, why = None, str(exc)
+        else:
+            why = f"a {type(msg).__name__} on the tick key"
+        if not isinstance(msg, Tick):
             with self._lock:
                 self.dropped += 1
-            log.warning("lockstep: dropped bad tick: %s", exc)
+            log.warning("lockstep: dropped bad tick: %s", why)
             return False
-        return self.push(tick)
+        return self.push(msg)
 
     def pop_all(self) -> list[Tick]:
         """Take every queued tick, oldest first."""
@@ -155,50 +126,31 @@ class TickQueue:
                 pass
 
 
-def zenoh_config(listen: Sequence[str] = ("tcp/127.0.0.1:0",), connect: Sequence[str] = ()) -> Any:
-    """An embedded-peer zenoh 1.x config: mode peer, given listen/connect endpoints,
-    multicast scouting off."""
-    import zenoh
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("peer"))
-    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
 class ZenohTickSource:
-    """Feed a :class:`TickQueue` from the Zenoh key ``fimnav/<mission_id>/clock/tick``.
+    """Feed a :class:`TickQueue` from the Zenoh key :func:`comms.keys.tick` of ``mission_id``
+    (binary :class:`comms.messages.Tick` messages of that mission; others are dropped).
 
     Args:
-        mission_id: the mission id of the key expression.
+        mission_id: the mission id of the key expression and of the messages.
         clock: the tick queue to feed.
-        listen, connect: zenoh endpoints (e.g. ``tcp/127.0.0.1:7447``).
+        settings: the Zenoh session (:class:`comms.session.SessionSettings`; default: an
+            embedded peer listening on an OS-chosen loopback port).
     """
 
-    def __init__(
-        self,
-        mission_id: str,
-        clock: TickQueue,
-        *,
-        listen: Sequence[str] = ("tcp/127.0.0.1:0",),
-        connect: Sequence[str] = (),
-    ) -> None:
-        import zenoh
-
-        self.key = tick_key(mission_id)
+    def __init__(self, mission_id: str, clock: TickQueue, settings: SessionSettings | None = None) -> None:
+        self.mission_id = mission_id
+        self.key = keys.tick(mission_id)
         self.clock = clock
-        self.session = zenoh.open(zenoh_config(listen, connect))
+        self.session = open_session(settings or SessionSettings())
         self.subscriber = self.session.declare_subscriber(self.key, self._on_sample)
 
     def _on_sample(self, sample: Any) -> None:
         try:
-            payload = sample.payload.to_bytes()
+            payload = bytes(sample.payload.to_bytes())
         except Exception as exc:  # never let a bad sample kill the zenoh thread
             log.warning("lockstep: unreadable tick sample: %s", exc)
             return
-        self.clock.push_payload(payload)
+        self.clock.push_payload(payload, self.mission_id)
 
     def close(self) -> None:
         """Undeclare the subscriber and close the session."""

@@ -2,7 +2,7 @@
 
 It flies one drone of a mission. Zenoh carries the swarm's records, the payload's measurements
 and, in lockstep simulation, the clock; MAVLink carries the setpoints to its own autopilot.
-Each step, in order (DESIGN.md): read own position (MAVLink) → take own measurement (payload)
+Each step, in order (docs/distributed.md, "The planner node"): read own position (MAVLink) → take own measurement (payload)
 → publish own record → collect the peers' records for the step → delayed view → estimate the
 source → control step under constraints → send the setpoint (position with velocity
 feed-forward). The maths is :func:`planner.agent.plan`, the same function the in-process
@@ -17,7 +17,10 @@ Modules:
 - :mod:`~planner.node.lockstep`: the lockstep driver (clock ticks over Zenoh, simulation).
 - :mod:`~planner.node.realtime` and :mod:`~planner.node.realtime_preflight`: the real-time
   driver (wall clock, external autopilots).
-- :mod:`~planner.node.takeover`: pilot take-over and ``fimnav handback``, in both clocks.
+- :mod:`~planner.node.takeover`: pilot take-over and ``fimnav handback``, in both clocks, and
+  the one rule at a planner's start (a vehicle armed in a pilot's mode is left alone).
+- :mod:`~planner.node.stopping`: the mission's ``on_stop``, told to the vehicle when the
+  planner stops early (a signal, a fatal error, the launch stopping it).
 - :mod:`~planner.node.swarm`, :mod:`~planner.node.inbox`: the Zenoh side.
 - :mod:`~planner.node.io`: the injected clock and the waits that serve Zenoh and MAVLink.
 - :mod:`~planner.node.steplog`: the JSON-lines step log, read back by a rejoining planner.

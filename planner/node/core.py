@@ -1,4 +1,4 @@
-"""One step of one planner, the same for both clocks (DESIGN.md): own record (position and
+"""One step of one planner, the same for both clocks (docs/distributed.md, "The planner node"): own record (position and
 measurement) → publish it → collect the peers' records → delayed view → source estimate →
 control step (:func:`planner.agent.plan`, the function the in-process simulator runs) →
 setpoint → status and ``Done``. The drivers (:mod:`planner.node.lockstep`,
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from comms.latency import DelayedView
-from comms.messages import Observation, Status
+from comms.messages import Record, Status
 from planner import estimator as est
 from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, measurements_from_records, own_ranges, plan
 from planner.geometry import vec3
@@ -67,7 +67,7 @@ class StepOutcome:
             published, after the peers' records were collected, after the setpoint was sent.
     """
 
-    record: Observation
+    record: Record
     view: Any
     rows: int
     result: Any
@@ -112,7 +112,7 @@ class StepCore:
         #: when each peer's last record was taken (the partition planes, planner.agent.plan).
         self.own_track: dict[int, np.ndarray] = {}
         #: This drone's last own record.
-        self.last_record: Observation | None = None
+        self.last_record: Record | None = None
         #: The value names of this drone's components beyond range and bearing (its record's
         #: extension, comms.messages).
         self.own_extra_value_names = tuple(
@@ -166,9 +166,9 @@ class StepCore:
         if self.step_log is not None:
             self.step_log.write_step(k, t_s, own_m, outcome.record, outcome.view, self.state, outcome.result, outcome.rows, timing)
 
-    def own_record(self, k: int, t_s: float, own_m: np.ndarray, measurement: OwnMeasurement) -> Observation:
+    def own_record(self, k: int, t_s: float, own_m: np.ndarray, measurement: OwnMeasurement) -> Record:
         """This drone's record of step ``k``, entered in its own view, range window and track."""
-        record = Observation(
+        record = Record(
             self.config.uav,
             k,
             t_s,
@@ -187,12 +187,12 @@ class StepCore:
         self.track(k, own_m)
         return record
 
-    def taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Observation:
+    def taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Record:
         """The record of step k while a pilot flies the drone: its position (m, ENU) at time
         ``t_s``, flagged taken over, without a measurement (the pilot's flight is no planned
         sensing)."""
         nan = float("nan")
-        return Observation(
+        return Record(
             self.config.uav,
             k,
             t_s,

@@ -11,7 +11,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from comms.messages import Observation
+from comms.messages import Record
 from planner import estimator as est
 from planner.params import Channel
 from planner.sensing import SENSING, SensingTable
@@ -107,7 +107,7 @@ class StepLog:
             self._file = path.open("a" if append else "w")
 
     def write_step(
-        self, k: int, t_s: float, own_m: np.ndarray, record: Observation, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]
+        self, k: int, t_s: float, own_m: np.ndarray, record: Record, view: Any, state: Any, result: Any, rows: int, timing: dict[str, float]
     ) -> None:
         """One row: step ``k`` at time ``t_s`` (mission s in lockstep, UNIX s in real time), the
         own position (m, ENU), the own measurement, the view, the estimate, the plan and the

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from comms import keys
-from comms.messages import Done, MessageKind, Observation, Status, Tick, encode
+from comms.messages import Done, MessageKind, Record, Status, Tick, encode
 from comms.pubsub import declare_publisher
 from comms.session import SessionSettings
 from planner.node.config import NodeConfig
@@ -37,7 +37,7 @@ class Swarm:
         config: NodeConfig,
         session_factory: Callable[[SessionSettings], Any],
         wall: Callable[[], float],
-        on_peer_record: Callable[[Observation], None],
+        on_peer_record: Callable[[Record], None],
     ) -> None:
         self.config = config
         self.inbox = Inbox(config.mission_id, config.drone_count)
@@ -63,9 +63,9 @@ class Swarm:
         #: The clock's newest tick (lockstep).
         self.tick: Tick | None = None
         #: Lockstep: the payload's measurements by step, not yet taken.
-        self.measurements: dict[int, Observation] = {}
+        self.measurements: dict[int, Record] = {}
         #: Real time: the payload's newest measurement.
-        self.latest_measurement: Observation | None = None
+        self.latest_measurement: Record | None = None
         #: Operator commands from ``fimnav/<id>/control/<uav>`` (Zenoh thread → main loop).
         self.control: queue.SimpleQueue[str] = queue.SimpleQueue()
 
@@ -110,7 +110,7 @@ class Swarm:
         self._sequence += 1
         self._publishers[name].put(encode(msg, self.config.mission_id, self._sequence, kind))
 
-    def publish_record(self, record: Observation) -> None:
+    def publish_record(self, record: Record) -> None:
         """This drone's record of a step (own position and measurement)."""
         self._publish("record", record, MessageKind.RECORD)
 
@@ -171,7 +171,7 @@ class Swarm:
 
     def _on_data(self, key: str, data: bytes) -> None:
         msg = self.inbox.decode(key, data)
-        if isinstance(msg, Observation):
+        if isinstance(msg, Record):
             if "/measurement/" in key:
                 if self.config.lockstep:
                     self.measurements[msg.step] = msg

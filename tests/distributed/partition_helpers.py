@@ -74,7 +74,7 @@ class HalfWatch:
             self.liveliness.append((time.monotonic(), kind, int(uav) if uav is not None else -1))
 
     def _run(self) -> None:
-        from comms.messages import MessageKind, Observation, encode
+        from comms.messages import MessageKind, Record, encode
 
         seq = 0
         nan = float("nan")
@@ -84,7 +84,7 @@ class HalfWatch:
             for uav, pos in positions.items():
                 seq += 1
                 rng = float(np.linalg.norm(pos - self.source_m))
-                obs = Observation(uav, seq, time.time(), tuple(float(v) for v in pos), True, False, True, rng, nan, nan)  # type: ignore[arg-type]
+                obs = Record(uav, seq, time.time(), tuple(float(v) for v in pos), True, False, True, rng, nan, nan)  # type: ignore[arg-type]
                 self._pubs[uav].put(encode(obs, self.mission_id, seq, MessageKind.MEASUREMENT))
 
     def alive(self) -> set[int]:

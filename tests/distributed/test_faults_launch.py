@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.loader import load_mission
-from missions.schema import Mission
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.format.schema import Mission
+from missions.study.simulator import RunSpec, simulate
 from tests.simulator.test_faults import ref_decisions, ref_saved
 from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.sparse.csgraph import shortest_path
 
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 from tests.support.launch import PAPER, Launch, read_peb, read_trajectories
 from tests.support.zenoh import open_hub

@@ -32,8 +32,8 @@ from typing import NamedTuple
 import pytest
 
 from comms.errors import UsageError
-from missions.rundir import claim_results_dir, previous_run, unique_results_dir
-from missions.supervisor import ready_line
+from missions.runtime.rundir import claim_results_dir, previous_run, unique_results_dir
+from missions.launch.supervisor import ready_line
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav, with_hangup
@@ -157,7 +157,7 @@ def test_a_finished_launch_has_stopped_its_fork_server_when_it_returns(tmp_path:
 
 
 def test_a_launch_started_with_hangups_ignored_flies_on_through_a_hangup(tmp_path: Path, launches: list[Launch]) -> None:
-    """``nohup fimnav launch``: a SIGHUP inherited ignored stays ignored (missions.launch_signals),
+    """``nohup fimnav launch``: a SIGHUP inherited ignored stays ignored (missions.runtime.signals),
     so the run outlives its terminal. SIGHUP to the launcher's group (the terminal closing) while
     the mission flies: the launch ends the mission normally (exit 0, its results line, a summary)
     and leaves no process behind."""
@@ -273,7 +273,7 @@ def test_children_run_the_launchers_code(tmp_path: Path, launches: list[Launch],
     bindir.mkdir()
     script = bindir / "fimnav"
     # (as pip writes a console script: multiprocessing imports it again in a forked child)
-    script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\nfrom missions.cli import main\nif __name__ == '__main__':\n    sys.exit(main())\n")
+    script.write_text(f"import sys\nsys.path.insert(0, {str(ROOT)!r})\nfrom missions.cli.main import main\nif __name__ == '__main__':\n    sys.exit(main())\n")
     out = tmp_path / "run"
     run = Launch.command([sys.executable, str(script), "launch", str(PAPER / "joint.yaml"), "--steps", "2", "--set", "drones.count=2",
                           *([] if fork_server else ["--no-fork-server"]), "--out", str(out)], out, cwd=decoy)

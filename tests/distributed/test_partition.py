@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 
 from tests.distributed.partition_helpers import (
     HalfWatch,
@@ -291,8 +291,8 @@ def test_a_silent_cut_between_two_groups_of_three(tmp_path: Path, procs: list[Pr
 def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[Proc]) -> None:
     """``fimnav router``: the ready line gives the OS-chosen endpoint; a client of router A
     receives what a client of router B publishes once a third router links A and B (and not
-    before); SIGINT and SIGTERM stop a router with exit 0 and no traceback; a bad endpoint is a
-    one-line error (exit 2)."""
+    before); SIGINT, SIGTERM and SIGHUP stop a router (its session closed) with exit 130, 143,
+    129, one line naming the signal and no traceback; a bad endpoint is a one-line error (exit 2)."""
     from comms.session import SessionSettings, open_session
 
     _, ea, _ = start_router(procs)
@@ -325,11 +325,12 @@ def test_router_links_forward_between_clients_and_it_stops_cleanly(procs: list[P
     bad = {args: Proc(fimnav("router", *args)) for args in (("--listen", "tcp/127.0.0.1"), ("--listen", "7447"), ("--connect", "tcp 127.0.0.1:7447"),
                                                        ("--auth-user", "swarm"), ("--duration", "nan"))}
     procs.extend(bad.values())
-    stopped = {signum: start_router(procs)[0] for signum in (signal.SIGINT, signal.SIGTERM)}
+    stopped = {signum: start_router(procs)[0] for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     for signum, r in stopped.items():
         os.kill(r.p.pid, signum)
-    for r in stopped.values():
-        assert r.wait(15.0) == 0 and "Traceback" not in r.err, r.tail()
+    for signum, r in stopped.items():
+        assert r.wait(15.0) == 128 + signum and "Traceback" not in r.err, r.tail()
+        assert f"fimnav router: stopped by {signal.Signals(signum).name}" in r.err, r.tail()
     for args, p in bad.items():
         assert p.wait(30.0) == 2 and "fimnav router: error:" in p.err and "Traceback" not in p.err, (args, p.tail())
     assert "cannot open the router" in bad[("--listen", "tcp/127.0.0.1")].err

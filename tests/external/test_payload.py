@@ -30,8 +30,8 @@ SPEEDUP = 5.0
 def test_payload_follows_the_autopilot_and_measures_as_the_vehicles_payload(tmp_path: Path, procs: list[Proc]) -> None:
     from comms import keys
     from comms.messages import decode
-    from missions.cmd_payload import build_payload
-    from missions.loader import load_mission
+    from missions.cli.payload import build_payload
+    from missions.format.loader import load_mission
 
     steps = 12
     mission = write_mission(tmp_path / "m.yaml", "payload", [[0.0, 0.0, 6.0]], steps, "land",

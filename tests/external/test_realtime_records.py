@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from comms.messages import Observation
-from missions.loader import load_mission
+from comms.messages import Record
+from missions.format.loader import load_mission
 from planner.node import NodeError, NodeOptions, PlannerNode
 from planner.node.realtime import PeerRecordGrid
 
@@ -26,9 +26,9 @@ def node(tmp_path: Path, speedup: float = 4.0) -> PeerRecordGrid:
     return grid
 
 
-def record(t: float, stale: bool = False, x: float = 20.0) -> Observation:
+def record(t: float, stale: bool = False, x: float = 20.0) -> Record:
     nan = float("nan")
-    return Observation(2, 999, t, (x, 20.0, 8.0), True, False, True, 50.0, nan, nan, stale)
+    return Record(2, 999, t, (x, 20.0, 8.0), True, False, True, 50.0, nan, nan, stale)
 
 
 def test_records_are_indexed_by_time_on_the_receivers_grid(tmp_path: Path) -> None:
@@ -50,7 +50,7 @@ def test_a_stale_record_answers_for_the_step_but_keeps_the_old_data(tmp_path: Pa
     assert n.missing(2, ALIVE) == []  # no wait until the deadline for a drone that said so
     assert not n.view.has(2, 2)  # ... but nothing new entered the view
     for k in (1, 2):
-        n.view.add(Observation(1, k, t0 + k * 0.25, (10.0, 20.0, 8.0), True, False, True, 50.0, float("nan"), float("nan")))
+        n.view.add(Record(1, k, t0 + k * 0.25, (10.0, 20.0, 8.0), True, False, True, 50.0, float("nan"), float("nan")))
     assert int(n.view.advance(1).saved_steps[1]) == 1
     view = n.view.advance(2)
     assert int(view.saved_steps[1]) == 1  # the saved record of drone 2 is still step 1 (age 1)

@@ -120,12 +120,12 @@ def test_a_pilot_takes_a_drone_over_and_hands_it_back(tmp_path: Path, procs: lis
 
 class LockstepHub:
     """The test's Zenoh router (every process a client of it, as in ``fimnav launch``), the
-    lockstep clock on it (:class:`missions.clock.LockstepClock`, stepped by the test) and a
+    lockstep clock on it (:class:`missions.launch.clock.LockstepClock`, stepped by the test) and a
     log of the planners' records."""
 
     def __init__(self, mission_id: str, count: int, dt_s: float) -> None:
         from comms import keys
-        from missions.clock import LockstepClock
+        from missions.launch.clock import LockstepClock
 
         self.session, self.endpoint = open_hub("router")
         self.mission_id, self.count = mission_id, count

@@ -27,7 +27,7 @@ from comms.messages import (
     Done,
     MessageError,
     MessageKind,
-    Observation,
+    Record,
     Status,
     Tick,
     decode,
@@ -45,9 +45,9 @@ finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e5, max_va
 angle = st.floats(min_value=-3.14, max_value=3.14)
 
 
-def _draw_observation(draw: st.DrawFn, ranging: bool, bearing: bool, extra_values: dict[str, float] | None = None) -> Observation:
+def _draw_observation(draw: st.DrawFn, ranging: bool, bearing: bool, extra_values: dict[str, float] | None = None) -> Record:
     """A record of the given roles with drawn sender, step, time, position and measurements."""
-    return Observation(
+    return Record(
         sender=draw(st.integers(1, N)), step=draw(st.integers(0, 10_000)), time_s=draw(finite),
         position_m=(draw(finite), draw(finite), draw(finite)), ranging=ranging, bearing=bearing, los=draw(st.booleans()),
         range_m=draw(finite) if ranging else math.nan,
@@ -60,17 +60,17 @@ def _draw_observation(draw: st.DrawFn, ranging: bool, bearing: bool, extra_value
 
 
 @st.composite
-def observations(draw: st.DrawFn) -> Observation:
+def observations(draw: st.DrawFn) -> Record:
     ranging, bearing = draw(st.sampled_from([(True, False), (False, True), (True, True)]))
     return _draw_observation(draw, ranging, bearing)
 
 
 def valid_record(sender: int = 2) -> bytes:
-    return encode(Observation(sender, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7)
+    return encode(Record(sender, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7)
 
 
 def _finite_values(msg: object) -> bool:
-    if isinstance(msg, Observation):
+    if isinstance(msg, Record):
         return math.isfinite(msg.time_s) and all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in msg.position_m)
     if isinstance(msg, (Tick, Status)):
         return math.isfinite(msg.time_s)
@@ -89,7 +89,7 @@ def test_random_bytes_never_raise_anything_but_message_error(data: bytes) -> Non
 
 @settings(max_examples=2000, deadline=None)
 @given(observations(), st.data())
-def test_any_corruption_of_a_record_is_refused_or_reencodes_identically(obs: Observation, data: st.DataObject) -> None:
+def test_any_corruption_of_a_record_is_refused_or_reencodes_identically(obs: Record, data: st.DataObject) -> None:
     raw = bytearray(encode(obs, MISSION, 1))
     i = data.draw(st.integers(0, len(raw) - 1))
     raw[i] ^= data.draw(st.integers(1, 255))
@@ -104,7 +104,7 @@ def test_any_corruption_of_a_record_is_refused_or_reencodes_identically(obs: Obs
 
 @settings(max_examples=500, deadline=None)
 @given(observations())
-def test_valid_records_round_trip(obs: Observation) -> None:
+def test_valid_records_round_trip(obs: Record) -> None:
     header, msg = decode(encode(obs, MISSION, 9), MISSION, N)
     assert header.kind == MessageKind.RECORD and header.seq == 9
     assert msg.sender == obs.sender and msg.position_m == obs.position_m and msg.step == obs.step
@@ -136,7 +136,7 @@ def test_unknown_kinds_are_refused(kind: int) -> None:
 
 
 def test_records_of_another_mission_are_refused() -> None:
-    other = encode(Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, False, True, 10.0, math.nan, math.nan), "bravo", 7)
+    other = encode(Record(2, 3, 1.5, (1.0, 2.0, 3.0), True, False, True, 10.0, math.nan, math.nan), "bravo", 7)
     assert mission_tag("bravo") != mission_tag(MISSION)
     with pytest.raises(MessageError, match="another mission"):
         decode(other, MISSION, N)
@@ -251,7 +251,7 @@ def test_range_and_bearing_records_keep_their_bytes() -> None:
         "030100000000000024409a9999999999b93f9a9999999999c93f"
     )
     # ... and do not depend on a table having more components.
-    assert encode(Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7, sensing=TOY_TABLE) == valid_record()
+    assert encode(Record(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2), MISSION, 7, sensing=TOY_TABLE) == valid_record()
 
 
 class _Squared(SensingComponent):
@@ -286,7 +286,7 @@ TOY_ROLES = {"squared": (False, False, ("range_squared_m2",)), "joint_squared": 
 
 
 @st.composite
-def toy_observations(draw: st.DrawFn) -> Observation:
+def toy_observations(draw: st.DrawFn) -> Record:
     ranging, bearing, names = TOY_ROLES[draw(st.sampled_from(sorted(TOY_ROLES)))]
     value = st.one_of(finite, st.just(math.nan))
     return _draw_observation(draw, ranging, bearing, {name: draw(value) for name in names})
@@ -297,16 +297,16 @@ BODY_END = 76
 
 
 def toy_record() -> bytes:
-    obs = Observation(2, 3, 1.5, (1.0, 2.0, 3.0), False, True, True, math.nan, 0.1, 0.2, extra_values={"range_squared_m2": 100.0, "first_m": 1.0, "second_m": 2.0})
+    obs = Record(2, 3, 1.5, (1.0, 2.0, 3.0), False, True, True, math.nan, 0.1, 0.2, extra_values={"range_squared_m2": 100.0, "first_m": 1.0, "second_m": 2.0})
     return encode(obs, MISSION, 7, sensing=TOY_TABLE)
 
 
 @settings(max_examples=500, deadline=None)
 @given(toy_observations())
-def test_extended_records_round_trip(obs: Observation) -> None:
+def test_extended_records_round_trip(obs: Record) -> None:
     raw = encode(obs, MISSION, 9, sensing=TOY_TABLE)
     header, msg = decode(raw, MISSION, N, sensing=TOY_TABLE)
-    assert isinstance(msg, Observation)
+    assert isinstance(msg, Record)
     assert list(msg.extra_values) == [n for n in TOY_TABLE.extra_value_names if n in obs.extra_values]
     assert all(v == obs.extra_values[k] or (math.isnan(v) and math.isnan(obs.extra_values[k])) for k, v in msg.extra_values.items())
     assert encode(msg, MISSION, header.seq, kind=header.kind, sensing=TOY_TABLE) == raw
@@ -317,7 +317,7 @@ def test_extended_records_round_trip(obs: Observation) -> None:
 
 @settings(max_examples=1500, deadline=None)
 @given(toy_observations(), st.data())
-def test_any_corruption_of_an_extended_record_is_refused_or_reencodes_identically(obs: Observation, data: st.DataObject) -> None:
+def test_any_corruption_of_an_extended_record_is_refused_or_reencodes_identically(obs: Record, data: st.DataObject) -> None:
     raw = bytearray(encode(obs, MISSION, 1, sensing=TOY_TABLE))
     i = data.draw(st.integers(0, len(raw) - 1))
     raw[i] ^= data.draw(st.integers(1, 255))
@@ -364,7 +364,7 @@ def test_an_extension_on_a_range_and_bearing_record_is_refused() -> None:
 
 
 def test_encode_refuses_extra_values_that_do_not_match_a_role() -> None:
-    base = Observation(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2)
+    base = Record(2, 3, 1.5, (1.0, 2.0, 3.0), True, True, True, 10.0, 0.1, 0.2)
     for extra, match in (({"nope": 1.0}, "value names among"), ({"first_m": 1.0}, "all of"), ({"range_squared_m2": 1.0, "first_m": 1.0, "second_m": 2.0}, "no sensing role")):
         with pytest.raises(ValueError, match=match):
             encode(dataclasses.replace(base, extra_values=extra), MISSION, 1, sensing=TOY_TABLE)

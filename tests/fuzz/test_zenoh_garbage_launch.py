@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from comms.messages import Observation, Tick, encode
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from comms.messages import Record, Tick, encode
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 from tests.support.launch import PAPER, Launch, read_trajectories
 from tests.support.net import free_port
@@ -35,7 +35,7 @@ MISSION_ID = "hostile"
 
 def garbage(rng: np.random.Generator, count: int) -> list[tuple[str, bytes]]:
     """(key tail, payload) pairs that a correct receiver must all drop."""
-    obs = Observation(2, 1, 0.5, (1.0, 2.0, 3.0), True, False, True, 10.0, math.nan, math.nan)
+    obs = Record(2, 1, 0.5, (1.0, 2.0, 3.0), True, False, True, 10.0, math.nan, math.nan)
     rec = encode(obs, MISSION_ID, 1)
     items: list[tuple[str, bytes]] = []
     for j in range(1, count + 1):
@@ -47,8 +47,8 @@ def garbage(rng: np.random.Generator, count: int) -> list[tuple[str, bytes]]:
         struct.pack_into("<d", nan_pos, 26, math.nan)
         inf_range = bytearray(rec)
         struct.pack_into("<d", inf_range, 52, math.inf)
-        spoof = encode(Observation(j % count + 1, 1, 0.5, (900.0, 900.0, 900.0), True, False, True, 1.0, math.nan, math.nan), MISSION_ID, 2)
-        other = encode(Observation(j, 1, 0.5, (900.0, 900.0, 900.0), True, False, True, 1.0, math.nan, math.nan), "another-mission", 3)
+        spoof = encode(Record(j % count + 1, 1, 0.5, (900.0, 900.0, 900.0), True, False, True, 1.0, math.nan, math.nan), MISSION_ID, 2)
+        other = encode(Record(j, 1, 0.5, (900.0, 900.0, 900.0), True, False, True, 1.0, math.nan, math.nan), "another-mission", 3)
         big_sender = bytearray(rec)
         struct.pack_into("<H", big_sender, 8, count + 7)
         for kind in ("record", "measurement"):

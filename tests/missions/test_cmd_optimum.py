@@ -41,10 +41,10 @@ def test_optimum_bad_starts_exits_2() -> None:
 def test_montecarlo_optimum_adds_the_ratio_to_each_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     import json
 
-    import missions.cmd_optimum
-    from missions.cli import main
+    import missions.study.optimum
+    from missions.cli.main import main
 
-    monkeypatch.setattr(missions.cmd_optimum, "DEFAULT_STARTS", 1)
+    monkeypatch.setattr(missions.study.optimum, "DEFAULT_STARTS", 1)
     out = tmp_path / "mc"
     assert main(["montecarlo", "paper/joint", "--trials", "1", "--steps", "3", "--no-figures", "--optimum", "--oracle-estimate", "--out", str(out)]) == 0
     assert "PEB_K/PEB*" in capsys.readouterr().out

@@ -1,4 +1,4 @@
-"""KML and GeoJSON of a run (missions/exports.py), read back with the libraries and checked
+"""KML and GeoJSON of a run (missions/study/exports.py), read back with the libraries and checked
 against the simulator's ENU positions through an independent geodetic → ENU pipeline (pyproj's
 topocentric conversion about the mission origin, written out here)."""
 
@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
-from missions.exports import write_exports
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from missions.study.exports import write_exports
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 
 def enu_of(mission, lon_lat_alt: np.ndarray) -> np.ndarray:

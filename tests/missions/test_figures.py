@@ -1,4 +1,4 @@
-"""The results figures (missions/figures.py) say what was run and can be read.
+"""The results figures (missions/study/figures.py) say what was run and can be read.
 
 Tiny runs of the paper's missions (2 trials × 25 steps) are drawn and the figures inspected:
 the log axis is labelled with plain numbers spanning the data, every curve's final value is
@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from matplotlib.text import Text
 
-from missions import figures as F
-from missions.loader import load_mission
-from missions.results import run_name, write_results
-from missions.simulator import RunSpec, SimulationResult, simulate
+from missions.study import figures as F
+from missions.format.loader import load_mission
+from missions.study.results import run_name, write_results
+from missions.study.simulator import RunSpec, SimulationResult, simulate
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 TRIALS, STEPS = 2, 25

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from comms.messages import Observation
-from missions.launcher import Launcher
-from missions.loader import load_mission
-from missions.simulator import RunSpec, simulate
+from comms.messages import Record
+from missions.launch.launcher import Launcher
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
 
 K, TAKEN_FROM, PILOT = 12, 8, 2  # steps, first taken-over step, the drone the pilot flies
 
@@ -32,7 +32,7 @@ def test_taken_over_steps_are_no_planner_commands_and_keep_the_last_estimate(tmp
         lines = []
         for k in range(K):
             if j == PILOT and k >= TAKEN_FROM:
-                launcher.collected.records[(k, j)] = Observation(j, k, k * mission.dt_s, tuple(pilot[k]), True, False, True,
+                launcher.collected.records[(k, j)] = Record(j, k, k * mission.dt_s, tuple(pilot[k]), True, False, True,
                                                                  math.nan, math.nan, math.nan, taken_over=True)
                 continue
             ages = sim.record_ages[k, 0, j - 1]

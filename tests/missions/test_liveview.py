@@ -1,4 +1,4 @@
-"""The live view's recording (missions.liveview), read back from the .rrd with rerun's own reader
+"""The live view's recording (missions.launch.liveview), read back from the .rrd with rerun's own reader
 and compared with independent references: the in-process simulator's arrays, the distributed
 run's trajectories, closed-form ellipsoids."""
 
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from missions.liveview import STATE_COLOURS, SwarmView, ViewError, covariances, ellipsoid_axes, require_rerun, swarm_frame
-from missions.loader import load_mission
-from missions.simulator import RunSpec, SimStep, simulate
+from missions.launch.liveview import STATE_COLOURS, SwarmView, ViewError, covariances, ellipsoid_axes, require_rerun, swarm_frame
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, SimStep, simulate
 from planner.fim import fisher_information
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -3,12 +3,14 @@ opens the view of a running ``fimnav launch --view`` (real processes on 127.0.0.
 screenshot shows the drones, in the view's colour for a drone that is alive, while the launch
 still flies. Ctrl-C then ends the launch; the recording is complete and rerun's server is gone.
 
-Run with ``FIMNAV_CHROMIUM=/usr/bin/chromium``; add ``FIMNAV_LIVE_VIEW_PNG=docs/figures/live-view.png``
+Run with ``FIMNAV_CHROMIUM=/usr/bin/chromium`` and Playwright installed (``pip install -e
+'.[browser]'``, not in the test install); add ``FIMNAV_LIVE_VIEW_PNG=docs/figures/live-view.png``
 to keep the screenshot (the one in docs/in-the-field.md is made that way).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -19,17 +21,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.liveview import STATE_COLOURS
+from missions.launch.liveview import STATE_COLOURS
 from tests.support.launch import PAPER, Launch, processes_mentioning
 from tests.support.wait import wait_for
 
 #: The browser, named like the SITL binaries: the test takes about 40 s of the default run's
 #: 5 minutes on two cores, so it runs when asked (FIMNAV_CHROMIUM=/usr/bin/chromium).
 CHROMIUM = shutil.which(os.environ.get("FIMNAV_CHROMIUM", "")) if os.environ.get("FIMNAV_CHROMIUM") else None
+#: Playwright, a third-party driver in its own extra (fimnav[browser]), not in the test install.
+PLAYWRIGHT = importlib.util.find_spec("playwright") is not None
 pytestmark = [
     pytest.mark.integration,
     pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="set FIMNAV_CHROMIUM to a Chromium binary (Debian's chromium: /usr/bin/chromium) to run it"),
+    pytest.mark.skipif(
+        CHROMIUM is None,
+        reason="set FIMNAV_CHROMIUM to a Chromium binary (Debian's chromium: /usr/bin/chromium) and pip install -e '.[browser]' (Playwright) to run it",
+    ),
+    pytest.mark.skipif(not PLAYWRIGHT, reason="needs Playwright: pip install -e '.[browser]' (fimnav[browser], not in the test install)"),
 ]
 
 #: Pixels of the alive-drone colour a screenshot must hold to show the drones (each drone is a

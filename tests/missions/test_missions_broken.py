@@ -45,11 +45,11 @@ def run_check(target: str) -> subprocess.CompletedProcess[str]:
 
 
 def run_check_in_process(target: str) -> subprocess.CompletedProcess[str]:
-    """The same ``fimnav check`` entry point (``missions.cli.main``), in this process."""
+    """The same ``fimnav check`` entry point (``missions.cli.main.main``), in this process."""
     import contextlib
     import io
 
-    from missions.cli import main
+    from missions.cli.main import main
 
     out, err = io.StringIO(), io.StringIO()
     cwd = os.getcwd()

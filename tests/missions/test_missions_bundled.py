@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from missions.cli import build_parser
-from missions.loader import MissionError, bundled_missions, load_mission, loads_mission, resolve_mission
+from missions.cli.main import build_parser
+from missions.format.loader import MissionError, bundled_missions, load_mission, loads_mission, resolve_mission
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "missions" / "paper"
@@ -247,6 +247,6 @@ def test_non_editable_install_finds_the_bundled_missions(tmp_path: Path) -> None
                               timeout=120, cwd=str(work), env=env)
         assert proc.returncode == 0, proc.stderr
         assert proc.stdout.startswith(f"{given}: OK")
-    where = subprocess.run([sys.executable, "-c", "import missions.loader as m; print(m.bundled_missions()['paper/joint'])"],
+    where = subprocess.run([sys.executable, "-c", "import missions.format.loader as m; print(m.bundled_missions()['paper/joint'])"],
                            capture_output=True, text=True, timeout=60, cwd=str(work), env=env)
     assert where.stdout.strip().startswith(str(target))

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from missions.cli import main
-from missions.loader import load_mission, loads_mission
+from missions.cli.main import main
+from missions.format.loader import load_mission, loads_mission
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 

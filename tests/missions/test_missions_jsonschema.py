@@ -14,7 +14,7 @@ import jsonschema
 import pytest
 import yaml
 
-from missions.loader import load_mission, mission_to_yaml
+from missions.format.loader import load_mission, mission_to_yaml
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "missions" / "paper"

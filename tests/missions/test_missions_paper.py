@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.loader import load_mission
-from missions.schema import Ellipse, Mission
+from missions.format.loader import load_mission
+from missions.format.schema import Ellipse, Mission
 from planner import geometry
 from planner.params import Channel, Limits
 

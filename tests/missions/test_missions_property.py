@@ -11,8 +11,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from missions.loader import MissionError, loads_mission, mission_to_yaml
-from missions.schema import mission_json_schema
+from missions.format.loader import MissionError, loads_mission, mission_to_yaml
+from missions.format.schema import mission_json_schema
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
 

@@ -9,8 +9,8 @@ import numpy as np
 import pydantic
 import pytest
 
-from missions.loader import MissionError, load_mission, loads_mission, mission_to_yaml, parse_overrides
-from missions.schema import Mission
+from missions.format.loader import MissionError, load_mission, loads_mission, mission_to_yaml, parse_overrides
+from missions.format.schema import Mission
 from comms.errors import UsageError
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"

@@ -17,8 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from missions.cli import main
-from missions.loader import MAX_FILE_BYTES, MissionError, load_mission, loads_mission
+from missions.cli.main import main
+from missions.format.loader import MAX_FILE_BYTES, MissionError, load_mission, loads_mission
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 

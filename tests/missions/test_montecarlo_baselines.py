@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.cli import main
-from missions.results import PENALTY_REFERENCE
-from missions.simulator import PenaltyReference, RunSpec, fault_penalty, simulate
+from missions.cli.main import main
+from missions.study.results import PENALTY_REFERENCE
+from missions.study.simulator import PenaltyReference, RunSpec, fault_penalty, simulate
 from tests.simulator.conftest import paper_mission
 
 SIZE = ["--trials", "2", "--steps", "12", "--no-figures"]

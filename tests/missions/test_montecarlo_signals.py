@@ -1,5 +1,6 @@
 """``fimnav montecarlo --jobs N`` stopped by a signal sent to it alone (not to its process group):
-it exits 128 + signal at once and leaves none of its worker processes behind."""
+Ctrl-C, SIGTERM or SIGHUP, it exits 128 + signal at once and leaves none of its worker processes
+behind."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.proc import with_default_interrupt
+from tests.support.proc import with_default_hangup, with_default_interrupt
 from tests.support.wait import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -40,14 +41,14 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the worker processes")
-@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130), (signal.SIGHUP, 129)])
 def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Signals, status: int) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    # Started as from a terminal (SIGINT at its default): the command honours an inherited
-    # ignored SIGINT on purpose, and the suite's own process may have it ignored.
+    # Started as from a terminal (SIGINT and SIGHUP at their defaults): the suite's own process
+    # may have them ignored, and the command honours an inherited ignored SIGHUP on purpose (nohup).
     proc = subprocess.Popen(
-        with_default_interrupt([sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
-                                "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")]),
+        with_default_hangup(with_default_interrupt([sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
+                                "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")])),
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
     try:

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from missions.loader import load_mission
-from missions.results import violating_drones
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.study.results import violating_drones
+from missions.study.simulator import RunSpec, simulate
 
 
 @pytest.mark.parametrize(

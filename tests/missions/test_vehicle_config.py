@@ -7,8 +7,8 @@ import argparse
 
 import numpy as np
 
-from missions.cmd_vehicle import build_configs, register
-from missions.loader import load_mission
+from missions.cli.vehicle import build_configs, register
+from missions.format.loader import load_mission
 
 
 def _vehicle_args(argv: list[str]) -> argparse.Namespace:

@@ -16,8 +16,8 @@ import pytest
 
 from comms import keys
 from comms.latency import DelayedView
-from comms.messages import Done, Message, MessageKind, Observation, Status, Tick
-from missions.loader import load_mission
+from comms.messages import Done, Message, MessageKind, Record, Status, Tick
+from missions.format.loader import load_mission
 from planner import estimator as est
 from planner.agent import PlanView, own_ranges, plan
 from planner.node import NodeError, NodeOptions, PlannerNode
@@ -47,8 +47,8 @@ class ScriptedSwarm:
         self.drop_peer_record_at = drop_peer_record_at
         self.peer_leaves_at = peer_leaves_at
         self.session = FakeSession(self.mid, tokens=(keys.alive(self.mid, "planner", 2),), on_publish=self.on_publish)
-        self.peer_records: list[Observation] = []
-        self.measurements: list[Observation] = []
+        self.peer_records: list[Record] = []
+        self.measurements: list[Record] = []
 
     def on_publish(self, key: str, msg: Message) -> None:
         if isinstance(msg, Done) and msg.sender == 1:
@@ -67,9 +67,9 @@ class ScriptedSwarm:
             own = position + velocity * self.dt if self.link.flavour == "ardupilot" else position
         self.link.report(own, int(round(t * 1000)))
         nan = float("nan")
-        meas = Observation(1, k, t, tuple(own), True, False, True, float(np.linalg.norm(own - SOURCE)) + 0.5, nan, nan)
+        meas = Record(1, k, t, tuple(own), True, False, True, float(np.linalg.norm(own - SOURCE)) + 0.5, nan, nan)
         peer_pos = np.array(STARTS[1]) + [0.0, 0.5 * k, 0.0]
-        peer = Observation(2, k, t, tuple(peer_pos), True, False, True, float(np.linalg.norm(peer_pos - SOURCE)) - 0.3, nan, nan)
+        peer = Record(2, k, t, tuple(peer_pos), True, False, True, float(np.linalg.norm(peer_pos - SOURCE)) - 0.3, nan, nan)
         s.send(keys.tick(self.mid), Tick(k, t))
         s.send(keys.measurement(self.mid, 1), meas, MessageKind.MEASUREMENT)
         self.measurements.append(meas)
@@ -87,7 +87,7 @@ def make_node(tmp_path: Path, flavour: str = "ardupilot", step_timeout_s: float 
     return node, swarm, mission
 
 
-def reference_plan_step0(mission: Any, own_record: Observation, peer_record: Observation) -> tuple[Any, Any]:
+def reference_plan_step0(mission: Any, own_record: Record, peer_record: Record) -> tuple[Any, Any]:
     """planner.agent.plan for drone 1's step 0, from its own and its peer's record of step 0;
     returns (plan, estimator state)."""
     config = mission.planner_config()
@@ -116,7 +116,7 @@ def test_a_lockstep_step_sends_the_setpoint_plan_gives(tmp_path: Path, flavour: 
     node, swarm, mission = make_node(tmp_path, flavour)
     summary = node.run()
     assert summary["steps"] == STEPS and summary["end"]["confirmed"]
-    records = [m for m in swarm.session.of_kind(Observation) if m.sender == 1]
+    records = [m for m in swarm.session.of_kind(Record) if m.sender == 1]
     assert [r.step for r in records] == list(range(STEPS))
     assert [d.step for d in swarm.session.of_kind(Done)] == [-1, 0, 1, 2]
     # Step 0: the record carries the payload's measurement at the reported position.
@@ -139,8 +139,9 @@ def test_a_lockstep_step_sends_the_setpoint_plan_gives(tmp_path: Path, flavour: 
     status0 = swarm.session.of_kind(Status)[0]
     assert status0.step == 0 and status0.saved_steps == (0, 0)
     np.testing.assert_allclose(status0.estimate_m, state.estimate_m, rtol=1e-6, atol=1e-4)
-    # The end of mission (hold): ArduPilot stays in GUIDED, PX4 switches to AUTO.LOITER.
-    assert swarm.link.modes_set[-1] == ("GUIDED" if flavour == "ardupilot" else "AUTO.LOITER")
+    # The end of mission (hold): ArduPilot stays in GUIDED, PX4 switches to AUTO.LOITER; a
+    # vehicle armed in the guided mode at the start is not switched again.
+    assert swarm.link.modes_set == ([] if flavour == "ardupilot" else ["AUTO.LOITER"])
 
 
 def test_a_dropped_peer_record_stops_the_barrier_naming_the_peer(tmp_path: Path) -> None:

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from comms import keys
-from comms.messages import Done, Message, MessageKind, Observation, Status
-from missions.loader import load_mission
+from comms.messages import Done, Message, MessageKind, Record, Status
+from missions.format.loader import load_mission
 from planner.node import NodeOptions, PlannerNode
 from tests.external.helpers import write_mission
 from tests.node.fakes import FakeClock, FakeLink, FakeSession
@@ -42,13 +42,13 @@ def run_node(tmp_path: Path) -> tuple[dict[str, Any], FakeClock, FakeSession, Fa
     def measurement(k: int) -> None:
         t = t0 + k - 0.05
         pos = link.position_m
-        meas = Observation(1, 10_000 + k, t, tuple(pos), True, False, True, float(np.linalg.norm(pos - SOURCE)), nan, nan)
+        meas = Record(1, 10_000 + k, t, tuple(pos), True, False, True, float(np.linalg.norm(pos - SOURCE)), nan, nan)
         session.send(keys.measurement(mission.id, 1), meas, MessageKind.MEASUREMENT)
 
     def peer_record(k: int) -> None:
         # The peer numbers its steps differently; its time stamp puts the record on our grid.
         pos = np.array(STARTS[1]) + [0.0, 0.5 * k, 0.0]
-        rec = Observation(2, 500 + k, t0 + k + 0.05, tuple(pos), True, False, True, float(np.linalg.norm(pos - SOURCE)), nan, nan)
+        rec = Record(2, 500 + k, t0 + k + 0.05, tuple(pos), True, False, True, float(np.linalg.norm(pos - SOURCE)), nan, nan)
         session.send(keys.record(mission.id, 2), rec, MessageKind.RECORD)
 
     def stall() -> None:
@@ -79,7 +79,7 @@ def test_realtime_steps_follow_the_grid_and_the_peer_deadline(tmp_path: Path) ->
     for k, t in expected_done.items():
         assert done_at[k] == pytest.approx(t, abs=1e-9), k
     # The own records are stamped with the step's start on the grid (UNIX s).
-    records = {m.step: m.time_s for _, m in published if isinstance(m, Observation) and m.sender == 1}
+    records = {m.step: m.time_s for _, m in published if isinstance(m, Record) and m.sender == 1}
     assert records == pytest.approx({0: t0, 1: t0 + 1.0, 2: t0 + 2.0, 5: t0 + 5.2}, abs=1e-9)
     # Without the peer's record of step 2 the step plans on its record of step 1.
     saved = {m.step: m.saved_steps for _, m in published if isinstance(m, Status)}

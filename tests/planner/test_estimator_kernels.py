@@ -135,7 +135,7 @@ def test_importing_the_estimator_does_not_load_the_compiler() -> None:
     update loads it."""
     code = (
         "import json, sys\n"
-        "import planner.estimator as est, missions.schema\n"
+        "import planner.estimator as est, missions.format.schema\n"
         "before = 'numba' in sys.modules\n"
         "import numpy as np\n"
         "from planner.params import Channel\n"

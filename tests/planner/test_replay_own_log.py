@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from missions.loader import load_mission
+from missions.format.loader import load_mission
 from planner import estimator as est
 from planner.node import read_step_log, replay_step_logs
 from planner.observation import observe_from_uniforms

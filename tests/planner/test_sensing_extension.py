@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike
 
-from comms.messages import Observation, decode, encode
-from missions.loader import load_mission
-from missions.schema import Mission
-from missions.simulator import RunSpec, SimulationResult, simulate
+from comms.messages import Record, decode, encode
+from missions.format.loader import load_mission
+from missions.format.schema import Mission
+from missions.study.simulator import RunSpec, SimulationResult, simulate
 from planner import Channel, cost, cost_gradient, fisher_information
 from planner.agent import measurements_from_records
 from planner.estimator import EstimatorConfig, EstimatorState, Measurements, initial_state, update
@@ -266,7 +266,7 @@ def test_the_toy_records_round_trip_the_wire_into_the_estimator(toy_run: tuple[M
     los = line_of_sight(positions, source, config.boxes_min_m, config.boxes_max_m)
     obs = observe_from_uniforms(source, positions, config.ranging, config.bearing, los, config.channel, uniforms, config.extra_masks, EXTENDED)
     records = [
-        Observation(
+        Record(
             j + 1,
             k,
             k * mission.dt_s,
@@ -287,7 +287,7 @@ def test_the_toy_records_round_trip_the_wire_into_the_estimator(toy_run: tuple[M
     decoded = [decode(b, mission.id, 10, sensing=TOY_SENSING)[1] for b in wire]
     assert [encode(rec, mission.id, k, sensing=TOY_SENSING) for rec in decoded] == wire
     assert [dict(rec.extra_values) for rec in decoded] == [dict(rec.extra_values) for rec in records]
-    meas = measurements_from_records([rec for rec in decoded if isinstance(rec, Observation)], TOY_SENSING.extra_value_names)
+    meas = measurements_from_records([rec for rec in decoded if isinstance(rec, Record)], TOY_SENSING.extra_value_names)
     np.testing.assert_array_equal(meas.extra_values["range_squared_m2"], obs.values["range_squared_m2"])
     np.testing.assert_array_equal(meas.range_m, obs.range_m)
     np.testing.assert_array_equal(meas.positions_m, positions)

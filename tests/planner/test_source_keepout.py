@@ -235,8 +235,8 @@ def test_a_converged_joint_estimate_four_sigma_off_keeps_every_drone_outside_d_s
     positions). With the keep-out's former inflation max(3σ, 1.5 m) its drone 10 came 0.03 m
     inside d_S* at step 151, its converged estimate 2.50 m off with σ = 0.64 m (3.9σ, along its
     own line of sight). With 4σ for a converged estimate no drone-step crosses d_S*."""
-    from missions.loader import load_mission
-    from missions.simulator import RunSpec, simulate
+    from missions.format.loader import load_mission
+    from missions.study.simulator import RunSpec, simulate
 
     result = simulate(RunSpec(load_mission("paper/joint"), "D", 1, 152, first_trial=99))
     worst = float(np.min(result.margins_m["source"]))

@@ -17,8 +17,8 @@ import pytest
 
 from comms.mavlink_transport import MavlinkTransport, mavutil_module
 from comms.session import SessionSettings, open_session
-from missions.loader import load_mission
-from missions.schema import ZenohSpec
+from missions.format.loader import load_mission
+from missions.format.schema import ZenohSpec
 
 from tests.security.sockets import sockets_of
 from tests.support.proc import Proc, fimnav

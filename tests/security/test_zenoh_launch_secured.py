@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from comms.messages import Observation, encode
+from comms.messages import Record, encode
 from comms.session import SessionSettings, open_session
-from missions.loader import load_mission
-from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
-from missions.simulator import RunSpec, simulate
+from missions.format.loader import load_mission
+from missions.format.schema import ZenohAuth, ZenohSpec, ZenohTls
+from missions.study.simulator import RunSpec, simulate
 
 from tests.security.certs import Authority
 from tests.support.launch import PAPER, Launch, read_trajectories
@@ -59,7 +59,7 @@ def test_secured_launch_keeps_an_intruder_out(tmp_path: Path, launches: list[Lau
         step = 0
         while not stop.wait(0.02):
             for j in range(1, 11):
-                rec = Observation(j, step % 40, 0.5, (500.0, 500.0, 50.0), True, False, True, 0.5, math.nan, math.nan)
+                rec = Record(j, step % 40, 0.5, (500.0, 500.0, 50.0), True, False, True, 0.5, math.nan, math.nan)
                 intruder.put(f"fimnav/{MISSION_ID}/record/{j}", encode(rec, MISSION_ID, 10_000 + step))
                 forged[0] += 1
             step += 1

@@ -1,5 +1,5 @@
 """Zenoh TLS and user/password authentication configured from the mission's ``zenoh`` section
-(``missions.schema.ZenohSpec`` → ``comms.session``), on 127.0.0.1 with certificates made by
+(``missions.format.schema.ZenohSpec`` → ``comms.session``), on 127.0.0.1 with certificates made by
 the test (tests/security/certs.py).
 
 Two legitimate nodes (A listens, B connects, both built from the mission's settings) exchange
@@ -20,9 +20,9 @@ from typing import Any
 
 import pytest
 
-from comms.messages import Observation, encode
+from comms.messages import Record, encode
 from comms.session import SessionSettings, open_session, zenoh_config
-from missions.schema import ZenohAuth, ZenohSpec, ZenohTls
+from missions.format.schema import ZenohAuth, ZenohSpec, ZenohTls
 from comms.errors import UsageError
 
 from tests.security.certs import Authority, Node
@@ -38,7 +38,7 @@ KEY = f"fimnav/{MISSION}/record"
 
 
 def record(sender: int, x: float) -> bytes:
-    return encode(Observation(sender, 1, 0.1, (x, 0.0, 10.0), True, False, True, 5.0, math.nan, math.nan), MISSION, 1)
+    return encode(Record(sender, 1, 0.1, (x, 0.0, 10.0), True, False, True, 5.0, math.nan, math.nan), MISSION, 1)
 
 
 def secret(path: Path, text: str) -> Path:

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from missions.loader import load_mission
-from missions.schema import Mission
-from missions.simulator import RunSpec, SimulationResult, simulate
+from missions.format.loader import load_mission
+from missions.format.schema import Mission
+from missions.study.simulator import RunSpec, SimulationResult, simulate
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from missions.simulator import RunSpec, SimulationResult, simulate
+from missions.study.simulator import RunSpec, SimulationResult, simulate
 from tests.simulator.conftest import paper_mission
 
 REFERENCE = Path(__file__).resolve().parents[1] / "data" / "simulator_reference.npz"

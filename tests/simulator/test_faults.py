@@ -15,10 +15,10 @@ from scipy.sparse.csgraph import shortest_path
 
 from comms.faults import FaultBuffer, FaultModel
 from comms.latency import DelayedView
-from comms.messages import Observation
-from missions.results import summarize
-from missions.schema import Faults
-from missions.simulator import RunSpec, fault_penalty, mean_record_age, simulate
+from comms.messages import Record
+from missions.study.results import summarize
+from missions.format.schema import Faults
+from missions.study.simulator import RunSpec, fault_penalty, mean_record_age, simulate
 from tests.simulator.conftest import paper_mission
 
 FAULT_PURPOSE = 2  # the purpose id of the fault stream, written out: the reference does not import it
@@ -69,8 +69,8 @@ def random_walk(rng: np.random.Generator, steps: int, n: int) -> np.ndarray:
     return start + np.cumsum(rng.normal(0.0, 4.0, (steps, n, 3)) * [1.0, 1.0, 0.2], axis=0)
 
 
-def record(j: int, k: int, p: np.ndarray) -> Observation:
-    return Observation(j + 1, k, float(k), tuple(float(v) for v in p), True, False, True, 10.0, float("nan"), float("nan"))
+def record(j: int, k: int, p: np.ndarray) -> Record:
+    return Record(j + 1, k, float(k), tuple(float(v) for v in p), True, False, True, 10.0, float("nan"), float("nan"))
 
 
 @pytest.mark.parametrize(("h_max", "loss", "max_delay", "emulate"), [(3, 0.3, 2, True), (1, 0.2, 0, True), (2, 0.0, 3, True), (1, 0.25, 2, False)])

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from missions.simulator import RunSpec, simulate
+from missions.study.simulator import RunSpec, simulate
 from planner.placement import optimal_placement, placement_bounds
 from tests.simulator.conftest import paper_mission
 

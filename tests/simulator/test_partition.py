@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from missions.simulator import RunSpec, simulate
+from missions.study.simulator import RunSpec, simulate
 from tests.simulator.conftest import paper_mission
 
 START, LENGTH = 20, 50

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.sparse.csgraph import shortest_path
 
-from missions.simulator import RunSpec, simulate
+from missions.study.simulator import RunSpec, simulate
 from tests.simulator.conftest import paper_mission
 
 
@@ -129,7 +129,7 @@ def test_bearing_only_survives_singular_fim(tmp_path) -> None:
     start = [[x, 130.0, z] for z in (5.0, 15.0) for x in (-30.0, -26.5, -23.0, -19.5, -16.0)]
     import yaml
 
-    from missions.loader import load_mission
+    from missions.format.loader import load_mission
     from tests.simulator.conftest import PAPER
 
     doc = yaml.safe_load((PAPER / "bearing.yaml").read_text())

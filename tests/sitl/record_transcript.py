@@ -59,7 +59,7 @@ def _version(binary: Path) -> str:
 def vehicle_argv(speedup: float) -> list[str]:
     """``fimnav vehicle`` as the differential check runs it (ArduPilot flavour, CMAC origin,
     not ready for :data:`VEHICLE_READY_AFTER_S`, ephemeral loopback TCP port)."""
-    return [sys.executable, "-m", "missions.cli", "vehicle", "--sysid", "1", "--mavlink", "tcpin:127.0.0.1:0",
+    return [sys.executable, "-m", "missions.cli.main", "vehicle", "--sysid", "1", "--mavlink", "tcpin:127.0.0.1:0",
             "--speedup", f"{speedup:g}", "--ready-after", f"{VEHICLE_READY_AFTER_S:g}", "--log-level", "WARNING"]
 
 

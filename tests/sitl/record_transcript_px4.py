@@ -49,7 +49,7 @@ def record_px4(speedup: float, log: Any = None) -> dict[str, Any]:
 def vehicle_argv(speedup: float) -> list[str]:
     """``fimnav vehicle`` as the differential check runs it (PX4 flavour, CMAC origin, not
     ready for :data:`VEHICLE_READY_AFTER_S`, ephemeral loopback UDP port)."""
-    return [sys.executable, "-m", "missions.cli", "vehicle", "--flavour", "px4", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0",
+    return [sys.executable, "-m", "missions.cli.main", "vehicle", "--flavour", "px4", "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0",
             "--speedup", f"{speedup:g}", "--ready-after", f"{VEHICLE_READY_AFTER_S:g}", "--log-level", "WARNING"]
 
 

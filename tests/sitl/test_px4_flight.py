@@ -41,7 +41,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.integration, pytest.mark.skipif(_CFG
 def home_below(mission: Path, enu: list[float]) -> tuple[float, float, float]:
     """(lat deg, lon deg, ground altitude m AMSL) below ``enu`` of the mission frame, for SIH."""
     from comms.geodesy import MissionFrame
-    from missions.loader import load_mission
+    from missions.format.loader import load_mission
 
     g = MissionFrame.of_mission(load_mission(mission)).to_global(enu[0], enu[1], 0.0)
     return g.lat_deg, g.lon_deg, g.alt_amsl_m

@@ -61,7 +61,7 @@ def write_mission(path: Path, steps: int = STEPS) -> Path:
 def home_below(mission: Path, enu: list[float]) -> str:
     """SITL's --home (lat,lon,alt,heading) on the ground below ``enu`` of the mission frame."""
     from comms.geodesy import MissionFrame
-    from missions.loader import load_mission
+    from missions.format.loader import load_mission
 
     g = MissionFrame.of_mission(load_mission(mission)).to_global(enu[0], enu[1], 0.0)
     return f"{g.lat_deg:.8f},{g.lon_deg:.8f},{g.alt_amsl_m:.2f},0"

@@ -1,0 +1,1 @@
+"""The ``fimnav`` command line: the entry point (``main``) and one module per subcommand."""

@@ -1,0 +1,95 @@
+"""The ``fimnav`` command line: one entry point, one subcommand module each.
+
+Each subcommand lives in its own module exposing ``register(subparsers) -> None``; the
+module adds its parser and sets ``func`` (``Callable[[argparse.Namespace], int]``).
+Heavy imports (zenoh, matplotlib, pymavlink) happen inside ``func``, so ``fimnav --help``
+stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import signal
+import sys
+from collections.abc import Sequence
+
+from comms.errors import FimnavError
+from missions.runtime.signals import Stopped, exit_status, raise_on_signals
+
+#: Subcommand modules, in the order ``fimnav --help`` lists them.
+COMMAND_MODULES: tuple[str, ...] = (
+    "missions.cli.vehicle",
+    "missions.cli.check",
+    "missions.cli.montecarlo",
+    "missions.cli.optimum",
+    "missions.cli.plan",
+    "missions.cli.payload",
+    "missions.cli.launch",
+    "missions.cli.router",
+    "missions.cli.handback",
+    "missions.cli.view",
+    "missions.cli.missions",
+    "missions.cli.calibrate",
+    "missions.cli.localize",
+)
+
+
+def installed_version() -> str:
+    """The version of the installed ``fimnav`` distribution (``importlib.metadata``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fimnav")
+    except PackageNotFoundError:
+        return "(unknown version: the fimnav distribution is not installed; python3 -m pip install .)"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: print ``fimnav X.Y.Z`` on stdout and exit 0 (the version is looked up only then)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object, option_string: str | None = None) -> None:
+        sys.stdout.write(f"fimnav {installed_version()}\n")
+        parser.exit(0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every subcommand registered."""
+    parser = argparse.ArgumentParser(
+        prog="fimnav",
+        description="Fly a drone swarm to localize a radio source (A/D-optimal Fisher navigation).",
+    )
+    parser.add_argument("--version", action=_VersionAction, help="print the installed fimnav version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``fimnav`` with ``argv`` (default ``sys.argv[1:]``); return the exit status: 0, the
+    command's error status (1, 2, 3), or 128 + the signal that ended it (SIGINT 130, SIGTERM
+    143, SIGHUP 129; :mod:`missions.runtime.signals`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        with raise_on_signals(args.command):
+            return int(args.func(args) or 0)
+    except FimnavError as exc:
+        # An interruption (exit status 128 + signal, e.g. fimnav launch's) is not an error.
+        label = "" if exc.exit_code >= 128 else "error: "
+        print(f"fimnav {args.command}: {label}{exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"fimnav {args.command}: interrupted by SIGINT", file=sys.stderr)
+        return exit_status(signal.SIGINT)
+    except Stopped as exc:
+        print(f"fimnav {args.command}: stopped by {exc}", file=sys.stderr)
+        return exit_status(exc.signum)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

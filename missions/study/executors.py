@@ -1,0 +1,151 @@
+"""Where a study's chunks of trials are simulated: the executor seam of :func:`missions.study.montecarlo.run_study`.
+
+A run of M trials is cut into chunks of consecutive trials (:func:`chunk_bounds`, from M alone:
+never from the number of workers), and a chunk is the unit of work: :func:`simulate_chunk`
+simulates one, in whatever process the executor gives it. Every draw of trial m is seeded by
+(seed, m, drone) (:mod:`planner.randomness`), so a chunk simulates its trials as the whole run
+would, and the study merges the chunks of a run into one result
+(:func:`missions.study.montecarlo.merge_chunks`): the same for any executor and any number of
+workers.
+
+An executor is anything with :meth:`ChunkExecutor.map`; two are here: :class:`InProcess`
+(one after the other, in this process) and :class:`LocalPool` (worker processes on this
+machine). Another (a cluster's) plugs in behind the same method.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Protocol
+
+from missions.runtime.signals import signals_deferred, worker_defaults
+from missions.study.simulator import RunSpec, SimStep, SimulationResult, simulate
+
+#: Fewest trials in a chunk: the simulator steps a chunk's trials together, one numpy call for
+#: all of them, so a short chunk costs more per trial (paper/joint, 100 trials × 60 steps, one
+#: process: chunks of 50 trials 0.95 × the time of one chunk of 100, of 25 1.11 ×, of 10 1.96 ×).
+MIN_CHUNK_TRIALS: int = 50
+#: Most chunks a run is cut into: two workers share a run of 100 trials or more.
+MAX_CHUNKS: int = 4
+
+#: What :func:`simulate_chunk` calls for the chunk holding a run's first trial when the study is
+#: watched live: given the run, a context that yields the per-step observer
+#: (:class:`missions.study.simulator.SimStep`; it sees that chunk's first trial as trial 0).
+#: It runs in the executor's process, so it must be picklable (a module-level function or a
+#: ``functools.partial`` of one).
+Watch = Callable[[RunSpec], AbstractContextManager[Callable[[SimStep], None]]]
+
+
+def chunk_bounds(trials: int, min_trials: int = MIN_CHUNK_TRIALS, max_chunks: int = MAX_CHUNKS) -> list[tuple[int, int]]:
+    """``(first, count)`` of each chunk of a run of ``trials`` trials, counted from the run's
+    first trial: as many chunks of consecutive trials as hold ``min_trials`` each, one at least
+    and ``max_chunks`` at most, sizes differing by one at most, the larger first. Depends on
+    the run alone (never on the number of workers)."""
+    if min_trials < 1 or max_chunks < 1:
+        raise ValueError(f"chunk_bounds: expected min_trials and max_chunks >= 1, found {min_trials}, {max_chunks}")
+    n = max(1, min(int(max_chunks), int(trials) // int(min_trials)))
+    size, rest = divmod(int(trials), n)
+    bounds = []
+    first = 0
+    for c in range(n):
+        count = size + (1 if c < rest else 0)
+        bounds.append((first, count))
+        first += count
+    return bounds
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """One unit of work: trials ``spec.first_trial`` … ``+ spec.trials − 1`` of a run.
+
+    Attributes:
+        spec: the run's spec restricted to the chunk's trials.
+        oracle_estimate: plan with the true source (:func:`missions.study.simulator.simulate`).
+        watch: the live view of the chunk (its first trial), or None.
+    """
+
+    spec: RunSpec
+    oracle_estimate: bool = False
+    watch: Watch | None = None
+
+    @property
+    def trial_steps(self) -> int:
+        """Trials × steps of the chunk: its share of the study's progress."""
+        return self.spec.trials * self.spec.steps
+
+
+def simulate_chunk(chunk: Chunk, progress: Callable[[int], object] | None = None) -> SimulationResult:
+    """Simulate one chunk (in any process); ``progress(n)``: n more trial-steps done."""
+    trials = chunk.spec.trials
+
+    def step_progress(steps: int) -> None:
+        if progress is not None:
+            progress(steps * trials)
+
+    if chunk.watch is None:
+        return simulate(chunk.spec, progress=step_progress, oracle_estimate=chunk.oracle_estimate)
+    with chunk.watch(chunk.spec) as observer:
+        return simulate(chunk.spec, progress=step_progress, oracle_estimate=chunk.oracle_estimate, observer=observer)
+
+
+class ChunkExecutor(Protocol):
+    """Simulates chunks somewhere: the seam between a study and the machines it runs on."""
+
+    def map(self, chunks: Sequence[Chunk], progress: Callable[[int], object] | None = None) -> Iterator[SimulationResult]:
+        """:func:`simulate_chunk` of every chunk, yielded in the order of ``chunks``;
+        ``progress(n)``: n more trial-steps done (as often as the executor can tell).
+        Leaving the iteration early (an error, a signal) stops the work still running."""
+        ...
+
+
+class InProcess:
+    """Every chunk in this process, one after the other (progress at every step)."""
+
+    def map(self, chunks: Sequence[Chunk], progress: Callable[[int], object] | None = None) -> Iterator[SimulationResult]:
+        """See :meth:`ChunkExecutor.map`."""
+        for chunk in chunks:
+            yield simulate_chunk(chunk, progress)
+
+
+@dataclass(frozen=True)
+class LocalPool:
+    """Chunks in ``workers`` processes on this machine (``multiprocessing``), a chunk at a time
+    each; progress when a chunk is done."""
+
+    workers: int
+
+    def map(self, chunks: Sequence[Chunk], progress: Callable[[int], object] | None = None) -> Iterator[SimulationResult]:
+        """See :meth:`ChunkExecutor.map`."""
+        if not chunks:
+            return
+        # A Pool, not a ProcessPoolExecutor: leaving on an error, a signal or Ctrl-C terminates
+        # the workers instead of waiting for the queued chunks. After the last result the
+        # workers are told to finish and joined (close, join) before the terminate of the
+        # ``finally``: terminating them earlier could find one blocked on the task queue's lock,
+        # which the terminating pool holds, and wait for it forever.
+        # The pool starts with Ctrl-C, SIGTERM and SIGHUP held back (signals_deferred):
+        # interrupted while multiprocessing forks its workers, the command would lose the
+        # signal (raised in a fork hook, where Python ignores it) or leave behind a worker it
+        # had not yet recorded.
+        # A signal held back is raised when the deferral ends, with the pool already in hand.
+        pool = None
+        try:
+            with signals_deferred():
+                pool = multiprocessing.Pool(min(self.workers, len(chunks)), initializer=worker_defaults)
+            for chunk, result in zip(chunks, pool.imap(simulate_chunk, chunks)):
+                if progress is not None:
+                    progress(chunk.trial_steps)
+                yield result
+            pool.close()
+            pool.join()
+        finally:
+            if pool is not None:
+                pool.terminate()
+
+
+def local_executor(workers: int) -> ChunkExecutor:
+    """:class:`InProcess` for one worker, else a :class:`LocalPool` of ``workers``."""
+    return InProcess() if workers <= 1 else LocalPool(workers)

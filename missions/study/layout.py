@@ -1,0 +1,25 @@
+"""The names in a results directory (:mod:`missions.study.results`): a run's directory and
+legend name, and the file of a fault-free run's PEB penalty reference. Read by the results
+writer and by the figures, which the writer draws."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from missions.study.simulator import RunSpec, SimulationResult
+
+#: File name of a fault-free run's :class:`missions.study.simulator.PenaltyReference` in its
+#: ``runs/<run>/`` directory.
+PENALTY_REFERENCE = "penalty_reference.npz"
+
+
+def run_name(result: SimulationResult) -> str:
+    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
+    return spec_name(result.spec)
+
+
+def spec_name(spec: RunSpec) -> str:
+    """:func:`run_name` of the run of ``spec``."""
+    suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
+    return f"{spec.mission.id}_{spec.criterion}{suffix}"

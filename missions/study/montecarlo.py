@@ -1,0 +1,241 @@
+"""A Monte Carlo study as a library call: the runs of one or several missions, simulated in
+chunks of trials on an executor, merged, with their fault penalties and, if asked, the optimum.
+
+    specs = expand_runs(["paper/joint", "paper/heterogeneous"], criterion="both", trials=20)
+    study = run_study(specs, workers=2)
+    write_results(study.results, out, penalties=study.penalties, extras=study.extras)
+
+``fimnav montecarlo`` is this and a table; ``docs/regenerate.py`` calls it directly. A run's
+trials are cut into chunks by their number alone (:func:`missions.study.executors.chunk_bounds`)
+and the chunks of a run are merged in trial order (:func:`merge_chunks`), so a study's results
+are the same, bit for bit, on one worker or many, in this process or in a pool. Without
+injected comms faults they are also those of :func:`missions.study.simulator.simulate` over
+the whole run (trial m depends on (seed, m, drone) only); with them some batched sums run over
+arrays of the chunk's shape (see :class:`missions.study.simulator.RunSpec`), so the chunking
+sets the rounding there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from missions.format.loader import load_mission
+from missions.study.executors import MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
+from missions.study.results import PENALTY_REFERENCE, spec_name
+from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
+from planner.params import Criterion
+
+#: Fields of :class:`SimulationResult` with the trial axis second (step axis first).
+TRIAL_AXIS_FIELDS: tuple[str, ...] = (
+    "positions_m",
+    "estimates_m",
+    "estimate_error_m",
+    "observable",
+    "peb_m",
+    "singular_fallback",
+    "filtered",
+    "loiter",
+    "record_ages",
+)
+
+
+def expand_runs(
+    missions: Sequence[str | os.PathLike[str]],
+    overrides: Mapping[str, Any] | None = None,
+    criterion: Literal["A", "D", "both"] | None = None,
+    activation: Literal["safe", "paper", "both"] | None = None,
+    trials: int | None = None,
+    steps: int | None = None,
+) -> list[RunSpec]:
+    """The runs of a study: every mission (a file or a shipped mission's name) × activation
+    rule × criterion, in that order, with ``overrides`` (``--set``) applied.
+
+    Args:
+        missions: mission files or names (``paper/joint``).
+        overrides: dotted key → value, as ``fimnav montecarlo --set`` gives them.
+        criterion: "A", "D", "both", or None for each mission's own.
+        activation: constraint activation rule "safe", "paper", "both", or None for the mission's.
+        trials, steps: M and K of every run; None: each mission's.
+
+    Raises:
+        UsageError: a mission or an override is invalid (one message naming it).
+    """
+    specs: list[RunSpec] = []
+    activations = ("safe", "paper") if activation == "both" else (activation,)
+    for path in missions:
+        for rule in activations:
+            ov = dict(overrides or {})
+            if rule is not None:
+                ov["constraints.activation"] = rule
+            mission = load_mission(path, ov)
+            criteria: tuple[Criterion, ...] = ("A", "D") if criterion == "both" else (criterion or mission.criterion,)
+            for crit in criteria:
+                m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
+                specs.append(RunSpec(m, crit, trials or m.trials, steps or m.steps))
+    return specs
+
+
+@dataclass(frozen=True)
+class Study:
+    """What :func:`run_study` returns, one entry per run in the order of the specs.
+
+    Attributes:
+        results: every run's :class:`SimulationResult` (all its trials).
+        penalties: a run with injected comms faults: its PEB penalty against the same run
+            without them (:func:`missions.study.simulator.fault_penalty`); else None.
+        extras: with ``optimum``: ``{"optimum": ..., "final_peb_over_optimum": ...}``
+            (:func:`missions.study.optimum.run_optimum_summary`); else None.
+    """
+
+    results: list[SimulationResult]
+    penalties: list[dict[str, float | None] | None]
+    extras: list[dict[str, Any] | None]
+
+
+def run_study(
+    specs: Sequence[RunSpec],
+    *,
+    oracle_estimate: bool = False,
+    baselines: Path | None = None,
+    optimum: bool = False,
+    workers: int = 1,
+    executor: ChunkExecutor | None = None,
+    chunk_trials: int = MIN_CHUNK_TRIALS,
+    progress: Callable[[int], object] | None = None,
+    watch: Watch | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> Study:
+    """Run every spec's trials in chunks on ``executor`` and merge them; the runs with injected
+    faults are compared with the same runs without them (simulated with the others, or read
+    from ``baselines``).
+
+    Args:
+        specs: the runs (:func:`expand_runs`).
+        oracle_estimate: plan with the true source (the paper's assumption).
+        baselines: a results directory of the same runs without faults: a baseline found there
+            (same mission, criterion, trials, steps, flags) is read, not simulated.
+        optimum: add the optimal placement's PEB to each run (``extras``).
+        workers: processes on this machine (:func:`missions.study.executors.local_executor`)
+            when no ``executor`` is given.
+        executor: where the chunks run (:class:`missions.study.executors.ChunkExecutor`).
+        chunk_trials: the fewest trials in a chunk (:func:`missions.study.executors.chunk_bounds`);
+            with injected faults it sets the batches, and so the rounding, of a run's trials.
+        progress: called with the number of trial-steps just done (all runs and baselines:
+            ``sum(trials × steps)`` in all, see :func:`study_size`).
+        watch: the live view of each run's first trial (not of the baselines).
+        warn: told why a baseline is simulated although ``baselines`` was given.
+
+    Returns:
+        The :class:`Study`: the results, the same whatever the executor and number of workers.
+    """
+    known = {i: known_baseline(baselines, s, oracle_estimate, warn) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
+    clean = [dataclasses.replace(specs[i], mission=without_faults(specs[i].mission)) for i, ref in known.items() if ref is None]
+    runs = [*specs, *clean]
+    chunks: list[Chunk] = []
+    owner: list[int] = []
+    for r, spec in enumerate(runs):
+        for first, count in chunk_bounds(spec.trials, chunk_trials):
+            part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
+            chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and r < len(specs) else None))
+            owner.append(r)
+    parts: list[list[SimulationResult]] = [[] for _ in runs]
+    merged: list[SimulationResult | None] = [None] * len(runs)
+    for r, result in zip(owner, (executor or local_executor(workers)).map(chunks, progress)):
+        parts[r].append(result)
+        if sum(p.spec.trials for p in parts[r]) == runs[r].trials:
+            merged[r] = merge_chunks(runs[r], parts[r])
+            parts[r] = []
+    done = [m for m in merged if m is not None]
+    if len(done) != len(runs):
+        raise RuntimeError(f"run_study: the executor returned {len(done)} of {len(runs)} runs")
+    results, simulated = done[: len(specs)], iter(done[len(specs) :])
+    penalties: list[dict[str, float | None] | None] = [
+        fault_penalty(r.spec.mission, r, next(simulated) if known[i] is None else known[i]) if i in known else None for i, r in enumerate(results)
+    ]
+    extras: list[dict[str, Any] | None] = [None] * len(results)
+    if optimum:
+        from missions.study.optimum import run_optimum_summary
+
+        extras = [run_optimum_summary(r) for r in results]
+    return Study(results, penalties, extras)
+
+
+def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False) -> int:
+    """Trial-steps :func:`run_study` reports through ``progress`` for ``specs``: every run's,
+    and the fault-free baseline's of each run with faults that ``baselines`` does not hold."""
+    total = 0
+    for spec in specs:
+        total += spec.trials * spec.steps
+        if spec.mission.comms.faults.enabled and known_baseline(baselines, spec, oracle_estimate, None) is None:
+            total += spec.trials * spec.steps
+    return total
+
+
+def merge_chunks(spec: RunSpec, parts: Sequence[SimulationResult]) -> SimulationResult:
+    """One run's result from its chunks' (consecutive trials, in trial order): the per-trial
+    arrays joined along the trial axis, the counts summed, the fault loss fraction made again
+    from the summed counts; ``runtime_s`` is the chunks' total (their compute time).
+
+    Raises:
+        ValueError: the chunks are not the run's trials in order, or a field of
+            :class:`SimulationResult` has no merge rule here.
+    """
+    first = spec.first_trial
+    for p in parts:
+        if p.spec.first_trial != first:
+            raise ValueError(f"merge_chunks: {spec.label}: expected trial {first} next, found {p.spec.first_trial}")
+        first += p.spec.trials
+    if first != spec.first_trial + spec.trials:
+        raise ValueError(f"merge_chunks: {spec.label}: the chunks hold {first - spec.first_trial} trials, the run {spec.trials}")
+    rules = {*TRIAL_AXIS_FIELDS, "spec", "source_m", "margins_m", "active", "runtime_s", "extra"}
+    unknown = sorted({f.name for f in dataclasses.fields(SimulationResult)} - rules)
+    if unknown:
+        raise ValueError(f"merge_chunks: no rule to merge SimulationResult.{', '.join(unknown)}")
+    head = parts[0]
+    if len(parts) == 1:
+        return dataclasses.replace(head, spec=spec)
+    joined = {name: np.concatenate([getattr(p, name) for p in parts], axis=1) for name in TRIAL_AXIS_FIELDS}
+    extra = dict(head.extra)
+    if "fault_decided" in extra:
+        lost = sum(p.extra["fault_lost"] for p in parts)
+        decided = sum(p.extra["fault_decided"] for p in parts)
+        extra.update(fault_lost=lost, fault_decided=decided, fault_lost_fraction=int(lost) / max(int(decided), 1))
+    return dataclasses.replace(
+        head,
+        spec=spec,
+        margins_m={name: np.concatenate([p.margins_m[name] for p in parts], axis=1) for name in head.margins_m},
+        active=np.sum([p.active for p in parts], axis=0),
+        runtime_s=sum(p.runtime_s for p in parts),
+        extra=extra,
+        **joined,
+    )
+
+
+def known_baseline(directory: Path | None, spec: RunSpec, oracle: bool, warn: Callable[[str], None] | None) -> PenaltyReference | None:
+    """The :class:`missions.study.simulator.PenaltyReference` of ``spec`` (a run with faults) in
+    the results ``directory`` (``--baselines``), or None when there is none to use there: then
+    the baseline is simulated, and ``warn`` is told why."""
+    if directory is None:
+        return None
+    path = directory / "runs" / spec_name(spec) / PENALTY_REFERENCE
+    if not path.is_file():
+        why = f"no {path}"
+    else:
+        try:
+            ref = PenaltyReference.load(path)
+        except ValueError as exc:
+            why = str(exc)
+        else:
+            if ref.matches(spec, oracle):
+                return ref
+            why = f"{path} is another run (mission, criterion, trials, steps or flags differ)"
+    if warn is not None:
+        warn(f"{why}; simulating {spec.label} without faults")
+    return None

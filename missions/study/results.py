@@ -1,0 +1,216 @@
+"""Results directories: CSV curves and trajectories, summary JSON, and the paper's figures.
+
+Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
+
+    OUT/
+      summary.json              every run's summary (list), plus the command and versions
+      figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.study.figures)
+      figures/estimate_error.png   median source estimate error vs step, every run, log scale
+      figures/trajectories_<run>.png   trial 0: 3-D and top view, obstacles, source, start/end (Fig. 2)
+      runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
+      runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
+      runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
+      runs/<run>/summary.json   final PEB, estimate error, violations per constraint, run time
+                                (with injected comms faults: "faults", the PEB penalty against
+                                the same mission without faults; with ``fimnav montecarlo
+                                --optimum``: "optimum", the optimal placement's PEB, and
+                                "final_peb_over_optimum")
+      runs/<run>/penalty_reference.npz   a run without faults: what the PEB penalty of the same
+                                run with faults needs from it (``fimnav montecarlo --baselines
+                                OUT``; missions.study.simulator.PenaltyReference)
+
+``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
+was used).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from missions.format.loader import mission_to_yaml
+from missions.runtime.rundir import make_results_dir, writing
+from missions.study.layout import PENALTY_REFERENCE, run_name, spec_name
+from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, SimulationResult, fault_penalty
+
+__all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
+
+
+def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time.
+
+    A run with injected comms faults (``comms.faults``) also gets ``"faults"``: the PEB penalty
+    against the same mission without faults (:func:`missions.study.simulator.fault_penalty`), given
+    as ``penalty`` or else computed here (a fault-free simulation of the same trials and steps).
+    """
+    spec = result.spec
+    stats = result.peb_stats()
+    final_err = result.estimate_error_m[-1]
+    m = spec.mission
+    drone_steps = spec.trials * spec.steps * m.drones.count
+    return {
+        "run": run_name(result),
+        "mission_id": m.id,
+        "criterion": spec.criterion,
+        "activation": m.constraints.activation,
+        "trials": spec.trials,
+        "steps": spec.steps,
+        "drones": m.drones.count,
+        "seed": m.seed,
+        "oracle_estimate": bool(result.extra.get("oracle_estimate", 0.0)),
+        "final_peb_mean_m": _num(stats["mean"][-1]),
+        "final_peb_p10_m": _num(stats["p10"][-1]),
+        "final_peb_p90_m": _num(stats["p90"][-1]),
+        "final_singular_fraction": _num(stats["singular_fraction"][-1]),
+        "initial_peb_mean_m": _num(stats["mean"][0]),
+        "final_estimate_error_mean_m": _num(final_err.mean()),
+        "final_estimate_error_median_m": _num(np.median(final_err)),
+        "violations": result.violations(),
+        "violation_families": list(SAFETY_FAMILIES),
+        "violating_drones": violating_drones(result),
+        "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
+        "singular_fallback_steps": int(result.singular_fallback.sum()),
+        "safety_filter_steps": int(result.filtered.sum()),
+        "loiter_steps": int(result.loiter.sum()),
+        "runtime_s": round(result.runtime_s, 3),
+        "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
+    } | _faults(result, penalty)
+
+
+#: At most this many violating (trial, drone) pairs are listed per family in a summary.
+MAX_VIOLATING_DRONES: int = 10
+
+
+def violating_drones(result: SimulationResult) -> dict[str, list[dict[str, Any]]]:
+    """Per safety family with violations, the (trial, drone) pairs that crossed it: their first
+    and last violating step, how many steps, the worst margin (m, negative) and, for the source
+    family, the range of the drone's own source-estimate error (m) over those steps (a keep-out
+    is held about the estimate). At most :data:`MAX_VIOLATING_DRONES` pairs per family, worst
+    first; trials and steps count from 0, drones from 1."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    err = result.estimate_error_m  # (K, M, N)
+    for family, margins in result.margins_m.items():
+        bad = margins < 0.0  # (K, M, N) or (K+1, M, N)
+        if not bad.any():
+            continue
+        pairs = []
+        for t, i in sorted({(int(t), int(i)) for _, t, i in np.argwhere(bad)}):
+            steps = np.flatnonzero(bad[:, t, i])
+            entry: dict[str, Any] = {
+                "trial": t + result.spec.first_trial,
+                "drone": i + 1,
+                "first_step": int(steps[0]),
+                "last_step": int(steps[-1]),
+                "steps": int(steps.size),
+                "worst_margin_m": round(float(margins[steps, t, i].min()), 3),
+            }
+            if family == "source":
+                e = err[steps[steps < err.shape[0]], t, i]
+                if e.size:
+                    entry["estimate_error_m"] = [round(float(e.min()), 1), round(float(e.max()), 1)]
+            pairs.append(entry)
+        out[family] = sorted(pairs, key=lambda d: d["worst_margin_m"])[:MAX_VIOLATING_DRONES]
+    return out
+
+
+def _faults(result: SimulationResult, penalty: dict[str, Any] | None) -> dict[str, Any]:
+    """``{"faults": penalty}`` for a run with injected comms faults, else nothing."""
+    mission = result.spec.mission
+    if not mission.comms.faults.enabled:
+        return {}
+    return {"faults": penalty if penalty is not None else fault_penalty(mission, result)}
+
+
+def _num(x: float) -> float | None:
+    """JSON has no inf/NaN: None stands for 'undefined' (e.g. every view singular)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``runs/<run>/`` for one run; return its summary (``penalty``: see :func:`summarize`;
+    ``extra``: entries added to the summary, e.g. the optimum of ``fimnav montecarlo --optimum``)."""
+    run_dir = out / "runs" / run_name(result)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "mission.yaml").write_text(mission_to_yaml(result.spec.mission))
+    stats = result.peb_stats()
+    err = result.estimate_error_m.reshape(result.estimate_error_m.shape[0], -1)
+    with (run_dir / "peb.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["step", "peb_mean_m", "peb_p10_m", "peb_p90_m", "singular_fraction", "estimate_error_mean_m", "estimate_error_median_m"])
+        for k in range(len(stats["mean"])):
+            w.writerow(
+                [
+                    k,
+                    _fmt(stats["mean"][k]),
+                    _fmt(stats["p10"][k]),
+                    _fmt(stats["p90"][k]),
+                    _fmt(stats["singular_fraction"][k]),
+                    _fmt(err[k].mean()),
+                    _fmt(np.median(err[k])),
+                ]
+            )
+    roles = result.spec.mission.drones.roles
+    with (run_dir / "trajectories.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "step", "drone", "role", "x_m", "y_m", "z_m", "estimate_x_m", "estimate_y_m", "estimate_z_m", "peb_m"])
+        pos, est, peb = result.positions_m[:, 0], result.estimates_m[:, 0], result.peb_m[:, 0]
+        K = est.shape[0]
+        for k in range(K + 1):
+            for i in range(pos.shape[1]):
+                e = est[min(k, K - 1), i]
+                w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
+    from missions.study.exports import write_exports
+
+    write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
+    if not result.spec.mission.comms.faults.enabled:
+        PenaltyReference.of(result).save(run_dir / PENALTY_REFERENCE)
+    summary = summarize(result, penalty) | (extra or {})
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _fmt(x: float) -> str:
+    return f"{float(x):.10g}"
+
+
+def write_results(
+    results: Sequence[SimulationResult],
+    out: Path,
+    command: Sequence[str] = (),
+    figures: bool = True,
+    penalties: Sequence[dict[str, Any] | None] | None = None,
+    extras: Sequence[dict[str, Any] | None] | None = None,
+) -> list[dict[str, Any]]:
+    """Write the whole results directory for one or several runs; return the summaries.
+
+    ``penalties``: per run, its fault penalty if already computed (see :func:`summarize`).
+    ``extras``: per run, entries added to its summary (see :func:`write_run`).
+    The only writer of ``summary.json`` (and of ``runs/<run>/summary.json``).
+
+    Raises:
+        UsageError: ``out`` cannot be made or written (:mod:`missions.runtime.rundir`).
+    """
+    make_results_dir(out)
+    pens = list(penalties) if penalties is not None else [None] * len(results)
+    exs = list(extras) if extras is not None else [None] * len(results)
+    with writing(out):
+        summaries = [write_run(r, out, p, e) for r, p, e in zip(results, pens, exs, strict=True)]
+        doc = {
+            "command": list(command),
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "runs": summaries,
+        }
+        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+        if figures:
+            from missions.study.figures import write_figures  # matplotlib only when figures are wanted
+
+            write_figures(results, out / "figures")
+    return summaries

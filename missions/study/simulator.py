@@ -1,0 +1,750 @@
+"""In-process Monte Carlo simulator: M trials × K steps of an N-drone mission, vectorised.
+
+Every drone of every trial runs the same chain as a planner process (docs/distributed.md, "The
+planner node"): its own measurement (eq. 3, noise from its own seeded stream), its delayed view
+of the peers (hop latency and memory buffer, :mod:`planner.network`), its own source estimate
+(:mod:`planner.estimator`), its own control step (:func:`planner.control.control_step`). The
+arrays carry the trial and drone axes together, so one numpy call serves all M·N drones.
+
+Step k of a trial, for every drone i (all drones in parallel):
+
+1. record: true position p_i^(k), LOS of its link, measurement from p_i^(k) (eq. 3);
+2. hop counts on the disk graph of the current positions; memory buffer update (ℓ = k − h + 1;
+   with injected loss and delay, ``comms.faults``, the newest usable record, :mod:`comms.faults`);
+3. the records new to drone i feed its estimator; p̂_0,i^(k) and its information;
+4. J(p̂_0,i; q_i^(k)) over the records it holds, cost gradient (eq. 6, 13), control step (eq. 14);
+5. PEB (eq. 18) at the true source with the positions known to drone i, estimate error, and
+   the margin of every constraint with the true positions.
+
+The noise of drone i in trial m comes from ``planner.randomness.measurement_rng(seed, m, i)``,
+five uniforms per step, the same stream a vehicle payload process draws from, so a distributed
+run of trial 0 sees the same measurements as trial 0 here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import zipfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comms.faults import FaultBuffer
+from missions.format.schema import Faults, Mission
+from planner import estimator as est
+from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, own_ranges, plan
+from planner.control import StepResult
+from planner.fim import fisher_information, position_error_bound
+from planner.geometry import distance_to_boxes, line_of_sight
+from planner.network import hop_counts, update_saved_steps
+from planner.observation import observe_from_uniforms
+from planner.params import Criterion, Limits
+from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_STREAM, presampled_uniforms
+from planner.sensing import SENSING, SensingTable
+
+FloatArray = NDArray[np.float64]
+
+#: Constraint families of the safety accounting, in summary order.
+SAFETY_FAMILIES: tuple[str, ...] = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
+
+#: Tolerance of the kinematic accounting (floating point of the polar round trip), m and rad.
+KINEMATIC_TOL: float = 1e-9
+#: The same for positions reported over MAVLink (m): float32 resolves ~1.5e-5 m at 150 m
+#: from the origin, and a step length or direction comes from two such positions.
+MAVLINK_KINEMATIC_TOL: float = 1e-4
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to run: a mission with its per-run overrides."""
+
+    mission: Mission
+    criterion: Criterion
+    trials: int
+    steps: int
+    #: Index of the first trial: the run is trials ``first_trial`` … ``first_trial + trials − 1``
+    #: of the mission's seed. Trial m's noise, faults and perturbations depend on (seed, m,
+    #: drone) only, so one trial of a larger run replays alone (``first_trial=99, trials=1``):
+    #: bit-identical without injected faults. With them the faults drawn are the same, but some
+    #: batched sums then run over arrays of another shape: the positions agree to rounding at
+    #: first, and the chaotic runs can part after tens of steps.
+    first_trial: int = 0
+
+    @property
+    def label(self) -> str:
+        """``<mission id> (A)``: the name of the run in tables and legends."""
+        return f"{self.mission.id} ({self.criterion})"
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Records of a Monte Carlo run. Step axis first; k = 0 is the start.
+
+    Attributes:
+        spec: what was run.
+        positions_m: true positions, (K+1, M, N, 3), m, ENU.
+        estimates_m: each drone's source estimate at step k, (K, M, N, 3).
+        estimate_error_m: |p̂_0,i − p0|, (K, M, N), m.
+        observable: estimator says observable, (K, M, N) bool.
+        peb_m: PEB of eq. 18 per drone view, (K, M, N), m; +inf where J is singular.
+        source_m: true source position per step, (K+1, 3).
+        margins_m: per family, the worst margin of each drone at each step, (K, M, N): distance
+            minus its safety distance for uav/source/obstacle, distance to the altitude box for
+            altitude, and for speed and turn_rate the slack to the limit (m and rad).
+        active: counts of steps where each control constraint family was active (uav, source,
+            obstacle, altitude), summed over drones and trials, (K, 4).
+        singular_fallback: (K, M, N) bool, the drone used the singular-FIM fallback.
+        filtered: (K, M, N) bool, the safety filter replaced the step.
+        loiter: (K, M, N) bool, the drone loitered: its own ranges put the source within reach
+            and its estimate gave no direction to trust (:func:`planner.agent.must_loiter`).
+        record_ages: age k − ℓ of every record drone i held of peer j, (K, M, N, N); −1 if none.
+        runtime_s: wall time of the run (s).
+    """
+
+    spec: RunSpec
+    positions_m: FloatArray
+    estimates_m: FloatArray
+    estimate_error_m: FloatArray
+    observable: NDArray[np.bool_]
+    peb_m: FloatArray
+    source_m: FloatArray
+    margins_m: dict[str, FloatArray]
+    active: NDArray[np.int64]
+    singular_fallback: NDArray[np.bool_]
+    filtered: NDArray[np.bool_]
+    loiter: NDArray[np.bool_]
+    record_ages: NDArray[np.int16]
+    runtime_s: float
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def violations(self) -> dict[str, int]:
+        """Number of (step, trial, drone) with a negative margin, per safety family."""
+        return {name: int((m < 0.0).sum()) for name, m in self.margins_m.items()}
+
+    def peb_stats(self) -> dict[str, FloatArray]:
+        """Per step: mean PEB over drones and trials (eq. 18, singular views excluded), its 10th
+        and 90th percentiles (singular views count as +inf), and the singular fraction."""
+        peb = self.peb_m.reshape(self.peb_m.shape[0], -1)
+        count = np.isfinite(peb).sum(-1)
+        return {
+            "mean": _step_means(self.peb_m),
+            "p10": np.percentile(peb, 10, axis=-1, method="nearest"),
+            "p90": np.percentile(peb, 90, axis=-1, method="nearest"),
+            "singular_fraction": 1.0 - count / peb.shape[1],
+        }
+
+
+def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
+    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N)."""
+    m_idx = np.arange(saved.shape[0])[:, None, None]
+    j_idx = np.arange(saved.shape[2])[None, None, :]
+    return history[np.maximum(saved, 0), m_idx, j_idx]
+
+
+def _own_at(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
+    """history[saved[m,i,j], m, i]: drone i's own position (M, N, N, 3) at the step of its
+    newest record of each peer j (step 0 where it has none)."""
+    M, N = saved.shape[0], saved.shape[1]
+    return history[np.maximum(saved, 0), np.arange(M)[:, None, None], np.arange(N)[None, :, None]]
+
+
+def _with_late_records(
+    meas: est.Measurements,
+    late_steps: NDArray[np.int64],
+    positions: FloatArray,
+    rec_range: FloatArray,
+    rec_az: FloatArray,
+    rec_el: FloatArray,
+    rec_los: NDArray[np.bool_],
+    rec_extra: Mapping[str, FloatArray],
+) -> est.Measurements:
+    """The view's new records plus the peers' records delivered late, after a newer one
+    (:attr:`comms.faults.FaultBuffer.late_steps`, (W, M, N, N)): old evidence about the source
+    is still evidence. They follow the view's N rows, oldest window slot first, then by sender
+    (the order of a planner node's rows); rows empty in every batch element are left out.
+    ``rec_extra``: the records' values of the components other than range and bearing, by
+    value name, each (K, M, N)."""
+    W, M, N, _ = late_steps.shape
+    steps = np.moveaxis(late_steps, 0, 2).reshape(M, N, W * N)  # (m, i, slot·N + j)
+    have = steps >= 0
+    if not have.any():
+        return meas
+    order = np.argsort(~have, axis=-1, kind="stable")[..., : int(have.sum(-1).max())]
+    steps = np.take_along_axis(steps, order, -1)
+    have = np.take_along_axis(have, order, -1)
+    j = np.broadcast_to(np.arange(N), (W, N)).reshape(-1)[order]
+    idx = (np.maximum(steps, 0), np.arange(M)[:, None, None], j)
+    nan = np.nan
+    return est.Measurements(
+        positions_m=np.concatenate([meas.positions_m, np.where(have[..., None], positions[idx], nan)], axis=-2),
+        range_m=np.concatenate([meas.range_m, np.where(have, rec_range[idx], nan)], axis=-1),
+        azimuth_rad=np.concatenate([meas.azimuth_rad, np.where(have, rec_az[idx], nan)], axis=-1),
+        elevation_rad=np.concatenate([meas.elevation_rad, np.where(have, rec_el[idx], nan)], axis=-1),
+        los=np.concatenate([meas.los, have & rec_los[idx]], axis=-1),
+        extra_values={
+            name: np.concatenate([meas.extra_values[name], np.where(have, values[idx], nan)], axis=-1) for name, values in rec_extra.items()
+        },
+    )
+
+
+@dataclass(frozen=True)
+class SimStep:
+    """What :func:`simulate` shows an observer at step k (every trial; mission ENU, m).
+
+    Attributes:
+        step: k. positions_m: (M, N, 3) where the drones took their records of step k.
+        estimates_m: (M, N, 3) each drone's source estimate after step k's records.
+        view_positions_m: (M, N, N, 3) drone i's record of drone j's position.
+        view_valid: (M, N, N) drone i holds a record of drone j. view_los: (M, N, N) it was LOS.
+    """
+
+    step: int
+    positions_m: FloatArray
+    estimates_m: FloatArray
+    view_positions_m: FloatArray
+    view_valid: NDArray[np.bool_]
+    view_los: NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class _View:
+    """Every drone's delayed view at one step (M trials, N drones).
+
+    Attributes:
+        cut: (N, N) links cut by a partition at this step, or None.
+        hops: (M, N, N) hop counts on the disk graph of the current positions.
+        saved: (M, N, N) step of drone i's record of drone j (−1: none).
+        have: (M, N, N) drone i holds a record of drone j.
+        positions_m: (M, N, N, 3) the positions of those records (m, ENU). los: (M, N, N).
+    """
+
+    cut: NDArray[np.bool_] | None
+    hops: NDArray[np.int64]
+    saved: NDArray[np.int64]
+    have: NDArray[np.bool_]
+    positions_m: FloatArray
+    los: NDArray[np.bool_]
+
+
+class _Simulation:
+    """The state of :func:`simulate` between steps: the drones' positions, records, views,
+    estimators, and the arrays of the result (see :func:`simulate` for the arguments)."""
+
+    def __init__(
+        self, spec: RunSpec, estimator_config: est.EstimatorConfig | None, oracle_estimate: bool, float32_positions: bool, sensing: SensingTable
+    ) -> None:
+        mission = spec.mission
+        M, K = spec.trials, spec.steps
+        N = mission.drones.count
+        self.spec = spec
+        self.config = config = mission.planner_config(spec.criterion, sensing)
+        self.channel = config.channel
+        self.bmin, self.bmax = config.boxes_min_m, config.boxes_max_m
+        self.ranging, self.bearing = config.ranging, config.bearing
+        self.extra_masks = config.extra_masks
+        self.components = sensing.components
+        self.comms = comms = mission.comms
+        self.estimator_config = config.estimator if estimator_config is None else estimator_config
+        self.oracle_estimate = oracle_estimate
+        self.float32_positions = float32_positions
+
+        first = spec.first_trial
+        self.meas_u = presampled_uniforms(mission.seed, M, N, K, MEASUREMENT_STREAM, sensing.measurement_draws(), first)
+        self.ctrl_u = presampled_uniforms(mission.seed, M, N, K, CONTROL_STREAM, CONTROL_DRAWS, first)
+
+        # Every drone's start position (the mission's; the planning step keeps clear of a peer not
+        # heard of yet there, planner.agent.plan).
+        pos = np.broadcast_to(mission.drones.start_positions_m(), (M, N, 3)).copy()
+        if float32_positions:
+            pos = pos.astype(np.float32).astype(np.float64)
+        self.pos = pos
+        self.prev_step = np.zeros((M, N, 3))
+        self.positions = np.empty((K + 1, M, N, 3))
+        self.positions[0] = pos
+        self.rec_range = np.full((K, M, N), np.nan)
+        self.rec_az = np.full((K, M, N), np.nan)
+        self.rec_el = np.full((K, M, N), np.nan)
+        self.rec_los = np.zeros((K, M, N), dtype=bool)
+        # The values of the components other than range and bearing, by value name.
+        self.rec_extra = {name: np.full((K, M, N), np.nan) for name in sensing.extra_value_names}
+        self.saved = np.full((M, N, N), -1, dtype=np.int64)
+        fault_model = comms.faults.to_model()
+        # A partition: drones 1..ceil(N/2) and the rest exchange nothing while it lasts; each drone
+        # knows it has lost them (as a planner node sees their planners leave the liveliness view).
+        self.partition = comms.faults.partition
+        half = np.arange(N) < (N + 1) // 2
+        self.partition_links = half[:, None] != half[None, :]
+        # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
+        self.faults = FaultBuffer(fault_model, mission.seed, range(first, first + M), range(N), N, comms.h_max) if fault_model is not None else None
+        self.used = np.full((M, N, N), -1, dtype=np.int64)
+        self.state = est.initial_state((M, N), self.estimator_config)
+        self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
+        self.rng_view = np.broadcast_to(self.ranging, (M, N, N))
+        self.brg_view = np.broadcast_to(self.bearing, (M, N, N))
+
+        self.estimates = np.empty((K, M, N, 3))
+        self.est_err = np.empty((K, M, N))
+        self.observable = np.empty((K, M, N), dtype=bool)
+        self.peb = np.empty((K, M, N))
+        self.sources = np.array([mission.source.position_at(k * mission.dt_s) for k in range(K + 1)])
+        self.active_counts = np.zeros((K, 4), dtype=np.int64)
+        self.fallback = np.empty((K, M, N), dtype=bool)
+        self.filtered = np.empty((K, M, N), dtype=bool)
+        self.loiter = np.empty((K, M, N), dtype=bool)
+        #: Each drone's keep-out of its last step (centre, radius), planner.agent.followable_keepout_m.
+        self.last_keepout: tuple[FloatArray, FloatArray] | None = None
+        #: Each drone's drift of its peers, planner.agent.PeerDrift.
+        self.drift = PeerDrift.empty((M, N, N))
+        self.ages = np.empty((K, M, N, N), dtype=np.int16)
+
+    def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
+        """Step k of every drone of every trial, in the order of the module doc."""
+        src = self.sources[k]
+        self._record(k, src)
+        view = self._delayed_view(k)
+        self._estimate(k, src, view)
+        step = self._plan(k, src, view)
+        self._accuracy(k, src, view, observer)
+        self._move(k, step)
+
+    def _record(self, k: int, src: FloatArray) -> None:
+        """1. Own record: position, LOS and measurement at step k."""
+        los = line_of_sight(self.pos, src, self.bmin, self.bmax)
+        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
+        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
+        for name, values in self.rec_extra.items():
+            values[k] = obs.values[name]
+
+    def _delayed_view(self, k: int) -> _View:
+        """2. Delayed view (hop latency, memory buffer)."""
+        comms, partition = self.comms, self.partition
+        cut = self.partition_links if partition is not None and partition[0] <= k < partition[1] else None
+        hops = hop_counts(self.pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
+        saved = update_saved_steps(self.saved, hops, k, comms.h_max) if self.faults is None else self.faults.update(self.saved, hops, k)
+        self.saved = saved
+        have = saved >= 0
+        self.ages[k] = np.where(have, k - saved, -1)
+        return _View(cut, hops, saved, have, _gather(self.positions, saved), _gather(self.rec_los, saved))
+
+    def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
+        """3. Estimator: records new to each drone."""
+        saved = view.saved
+        new = saved > self.used
+        self.used = saved
+        nan = np.nan
+        meas = est.Measurements(
+            positions_m=np.where(new[..., None], view.positions_m, nan),
+            range_m=np.where(new, _gather(self.rec_range, saved), nan),
+            azimuth_rad=np.where(new, _gather(self.rec_az, saved), nan),
+            elevation_rad=np.where(new, _gather(self.rec_el, saved), nan),
+            los=view.los & new,
+            extra_values={name: np.where(new, _gather(values, saved), nan) for name, values in self.rec_extra.items()},
+        )
+        if self.faults is not None:
+            late = self.faults.late_steps
+            meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
+        self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components)
+        self.estimates[k] = self.state.estimate_m
+        self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
+        self.observable[k] = self.state.observable
+
+    def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
+        """4. Planning step from the view (shared with the planner node); returns the step."""
+        # Each drone's own last ranges bound its distance to the source (second keep-out).
+        lo = max(0, k - OWN_RANGE_WINDOW + 1)
+        own = own_ranges(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
+        self.drift = self.drift.update(view.positions_m, view.saved, view.have)
+        plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops, self.drift.drift_m)
+        planned = plan(
+            self.config,
+            self.pos,
+            self.prev_step,
+            plan_view,
+            self.state,
+            self.ctrl_u[k],
+            step_index=k,
+            oracle_source=src if self.oracle_estimate else None,
+            oracle_slow=self.spec.mission.source_is_slow(),
+            own_ranges=own,
+            loitering=self.loiter[k - 1] if k > 0 else None,
+            last_keepout=self.last_keepout,
+            lost_contact=view.cut,
+            own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
+        )
+        step = planned.step
+        self.fallback[k] = step.singular
+        self.filtered[k] = step.filtered
+        self.loiter[k] = planned.loiter
+        self.last_keepout = (planned.keepout_centre_m, planned.keepout_m)
+        self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
+        return step
+
+    def _accuracy(self, k: int, src: FloatArray, view: _View, observer: Callable[[SimStep], None] | None) -> None:
+        """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
+        extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
+        J_true = fisher_information(
+            src, view.positions_m, self.rng_view & view.have, self.brg_view & view.have, view.los, self.channel, extra_view, self.components
+        )
+        self.peb[k] = position_error_bound(J_true)[0]
+        if observer is not None:
+            observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
+
+    def _move(self, k: int, step: StepResult) -> None:
+        """The drones fly their steps: positions at step k + 1."""
+        u = step.displacement
+        pos = step.next_position
+        if self.float32_positions:
+            # The vehicle lands on the float32 setpoint; the drone keeps its planned step as
+            # its previous direction, as the planner node does.
+            pos = pos.astype(np.float32).astype(np.float64)
+        self.prev_step = u
+        self.pos = pos
+        self.positions[k + 1] = pos
+
+    def result(self, t0: float) -> SimulationResult:
+        """The :class:`SimulationResult` of the steps run (``t0``: ``time.perf_counter()`` at
+        the start, for the runtime)."""
+        margins = safety_margins(self.positions, self.sources, self.config.limits, self.bmin, self.bmax)
+        return SimulationResult(
+            spec=self.spec,
+            positions_m=self.positions,
+            estimates_m=self.estimates,
+            estimate_error_m=self.est_err,
+            observable=self.observable,
+            peb_m=self.peb,
+            source_m=self.sources,
+            margins_m=margins,
+            active=self.active_counts,
+            singular_fallback=self.fallback,
+            filtered=self.filtered,
+            loiter=self.loiter,
+            record_ages=self.ages,
+            runtime_s=time.perf_counter() - t0,
+            extra=_extra(self.oracle_estimate, self.float32_positions, self.faults),
+        )
+
+
+def simulate(
+    spec: RunSpec,
+    progress: Callable[[int], None] | None = None,
+    estimator_config: est.EstimatorConfig | None = None,
+    oracle_estimate: bool = False,
+    float32_positions: bool = False,
+    observer: Callable[[SimStep], None] | None = None,
+    sensing: SensingTable = SENSING,
+) -> SimulationResult:
+    """Run ``spec.trials`` trials of ``spec.steps`` steps of a mission in this process.
+
+    Args:
+        spec: the mission and run overrides (criterion, trials, steps).
+        progress: called with the number of steps just completed (for a progress bar).
+        estimator_config: estimator tuning; default: static source, all measurements; a moving
+            source gets a forgetting factor.
+        oracle_estimate: plan with the true source instead of each drone's estimate (the
+            paper's assumption that the estimate is given); the estimator still runs and its
+            error is still recorded.
+        float32_positions: round every new position to float32, as a MAVLink position setpoint
+            is (the ideal simulated vehicle lands exactly on it): a lockstep distributed run
+            then computes the same numbers (docs/distributed.md).
+        observer: called at every step with a :class:`SimStep` (the live view); it must not
+            change the arrays.
+        sensing: the role table and component registry the mission's roles refer to
+            (:data:`planner.sensing.SENSING`; a larger table flies a component registered
+            outside it, e.g. in a test).
+
+    Returns:
+        The :class:`SimulationResult`.
+    """
+    t0 = time.perf_counter()
+    sim = _Simulation(spec, estimator_config, oracle_estimate, float32_positions, sensing)
+    for k in range(spec.steps):
+        sim.step(k, observer)
+        if progress is not None:
+            progress(1)
+    return sim.result(t0)
+
+
+def _extra(oracle_estimate: bool, float32_positions: bool, faults: FaultBuffer | None) -> dict[str, float]:
+    """The run's flags and, with injected faults, the fraction of peer records lost."""
+    extra = {"oracle_estimate": float(oracle_estimate), "float32_positions": float(float32_positions)}
+    if faults is not None:
+        extra["fault_lost_fraction"] = faults.lost / max(faults.decided, 1)
+        extra["fault_lost"], extra["fault_decided"] = float(faults.lost), float(faults.decided)  # chunks of a run add up
+    return extra
+
+
+def without_faults(mission: Mission) -> Mission:
+    """The same mission with ``comms.faults`` off (the baseline of the PEB penalty)."""
+    return mission.model_copy(update={"comms": mission.comms.model_copy(update={"faults": Faults()})})
+
+
+def mean_record_age(result: SimulationResult) -> float:
+    """Mean age k − ℓ (steps) of the peers' records the drones held, over steps, trials and
+    drone pairs i ≠ j that held one (ages grow when the memory buffer falls back)."""
+    ages = result.record_ages
+    n = ages.shape[-1]
+    held = (ages >= 0) & ~np.eye(n, dtype=bool)
+    return float(ages[held].mean()) if held.any() else float("nan")
+
+
+@dataclass(frozen=True)
+class PenaltyReference:
+    """What :func:`fault_penalty` takes from a fault-free run: enough to compare a run with
+    injected faults against it without simulating it again (``fimnav montecarlo --baselines``).
+
+    Attributes:
+        mission_json: the fault-free mission as run (pydantic JSON): a run with faults matches
+            it when ``without_faults`` of its mission gives the same text.
+        criterion, trials, steps, first_trial: the run's :class:`RunSpec` (criterion "A"/"D").
+        oracle_estimate, float32_positions: the simulation's flags (a distributed run counts as
+            float32 positions).
+        peb_mean_m: per step, the mean PEB (eq. 18) over drones and trials (singular views
+            skipped), (K,), m.
+        final_trial_means_m: per trial, the mean final PEB over drones, (M,), m.
+        trial_means_m: per trial, the mean over steps of the mean PEB over drones, (M,), m.
+        mean_record_age_steps: :func:`mean_record_age`, steps.
+        runtime_s: the run's wall time, s.
+    """
+
+    mission_json: str
+    criterion: str
+    trials: int
+    steps: int
+    first_trial: int
+    oracle_estimate: bool
+    float32_positions: bool
+    peb_mean_m: FloatArray
+    final_trial_means_m: FloatArray
+    trial_means_m: FloatArray
+    mean_record_age_steps: float
+    runtime_s: float
+
+    @classmethod
+    def of(cls, result: SimulationResult, steps: int | None = None) -> PenaltyReference:
+        """The reference of a fault-free ``result``, over its first ``steps`` steps (default all)."""
+        spec = result.spec
+        peb = result.peb_m if steps is None else result.peb_m[:steps]
+        k = peb.shape[0]
+        return cls(
+            mission_json=spec.mission.model_dump_json(),
+            criterion=spec.criterion,
+            trials=spec.trials,
+            steps=spec.steps,
+            first_trial=spec.first_trial,
+            oracle_estimate=bool(result.extra.get("oracle_estimate", 0.0)),
+            float32_positions=bool(result.extra.get("float32_positions", 0.0) or result.extra.get("distributed", 0.0)),
+            peb_mean_m=_step_means(peb),
+            final_trial_means_m=_trial_means(peb[k - 1 : k]),
+            trial_means_m=_trial_means(peb),
+            mean_record_age_steps=mean_record_age(result),
+            runtime_s=float(result.runtime_s),
+        )
+
+    def matches(self, spec: RunSpec, oracle_estimate: bool) -> bool:
+        """True when this is the fault-free reference of ``spec`` (a run with faults, planned
+        with the true source if ``oracle_estimate``): the same mission without faults, the same
+        criterion, trials, steps and first trial, the same flags (float32 positions off)."""
+        return (
+            self.mission_json == without_faults(spec.mission).model_dump_json()
+            and (self.criterion, self.trials, self.steps, self.first_trial) == (spec.criterion, spec.trials, spec.steps, spec.first_trial)
+            and (self.oracle_estimate, self.float32_positions) == (oracle_estimate, False)
+        )
+
+    def save(self, path: Path) -> None:
+        """Write to ``path`` (numpy ``.npz``, float64 exact)."""
+        arrays: dict[str, Any] = {f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        with path.open("wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> PenaltyReference:
+        """Read what :meth:`save` wrote; ValueError naming the file if it is not such a file."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+            kwargs: dict[str, object] = {}
+            for f in dataclasses.fields(cls):
+                v = data[f.name]
+                kwargs[f.name] = v.astype(np.float64) if v.ndim else v.item()
+            ref = cls(**kwargs)  # type: ignore[arg-type]
+        except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a fault-free run's PEB reference ({type(exc).__name__}: {exc})") from None
+        return ref
+
+
+def fault_penalty(mission: Mission, result: SimulationResult, baseline: SimulationResult | PenaltyReference | None = None) -> dict[str, float | None]:
+    """PEB penalty of the injected loss and delay: ``result`` (run with ``mission.comms.faults``)
+    against the same mission without faults.
+
+    The baseline, unless given, is simulated in this process with the same criterion, trials,
+    steps and flags as ``result``; a distributed run (``result.extra['distributed']``) is
+    compared with the float32-position simulation, which equals a fault-free distributed run to
+    1e-7 m (docs/distributed.md). The PEB is eq. 18 at the true source, averaged over drones and
+    trials per step (:meth:`SimulationResult.peb_stats`).
+
+    Args:
+        mission: the mission as run (with faults).
+        result: its result (in-process or distributed).
+        baseline: the fault-free result, or its :class:`PenaltyReference`, if already computed.
+
+    Returns:
+        JSON-ready dict: the fault settings, final mean PEB (m) with and without faults, their
+        difference (m), its standard error over trials (``*_se_m``, paired: the trials share
+        their seeds) and ratio, the same for the mean over steps of the mean PEB, the PEB at
+        step 0 with and without faults (same positions: missing records only raise it), the
+        mean record age (steps) with and without faults, the fraction of peer records lost
+        (in-process runs) and the baseline's run time (s). None where a PEB is undefined.
+    """
+    if baseline is None:
+        spec = result.spec
+        flags = result.extra
+        baseline = simulate(
+            dataclasses.replace(spec, mission=without_faults(mission)),
+            oracle_estimate=bool(flags.get("oracle_estimate", 0.0)),
+            float32_positions=bool(flags.get("float32_positions", 0.0) or flags.get("distributed", 0.0)),
+        )
+    faulty = result.peb_stats()["mean"]
+    if isinstance(baseline, SimulationResult):
+        baseline = PenaltyReference.of(baseline, min(len(faulty), baseline.peb_m.shape[0]))
+    clean = baseline.peb_mean_m
+    k = min(len(faulty), len(clean))
+    if len(baseline.trial_means_m) != result.peb_m.shape[1] or k != len(clean):
+        raise ValueError(
+            f"fault_penalty: the baseline has {len(baseline.trial_means_m)} trials × {len(clean)} steps, "
+            f"the run {result.peb_m.shape[1]} × {len(faulty)}"
+        )
+    final_f, final_b = float(faulty[k - 1]), float(clean[k - 1])
+    both = np.isfinite(faulty[:k]) & np.isfinite(clean[:k])  # steps where every view is singular are skipped
+    mean_f = float(faulty[:k][both].mean()) if both.any() else float("nan")
+    mean_b = float(clean[:k][both].mean()) if both.any() else float("nan")
+
+    # Per trial (same seeds: paired, common random numbers): the spread of the penalty.
+    se_final = _paired_se(_trial_means(result.peb_m[k - 1 : k]), baseline.final_trial_means_m)
+    se_mean = _paired_se(_trial_means(result.peb_m[:k]), baseline.trial_means_m)
+    init_f, init_b = float(faulty[0]), float(clean[0])
+
+    def num(x: float) -> float | None:
+        return x if np.isfinite(x) else None
+
+    out: dict[str, float | None] = {
+        "loss": mission.comms.faults.loss,
+        "extra_delay_steps": float(mission.comms.faults.extra_delay_steps),
+        "final_peb_mean_m": num(final_f),
+        "baseline_final_peb_mean_m": num(final_b),
+        "final_peb_penalty_m": num(final_f - final_b),
+        "final_peb_penalty_ratio": num(final_f / final_b) if final_b > 0 else None,
+        "mean_peb_over_steps_m": num(mean_f),
+        "baseline_mean_peb_over_steps_m": num(mean_b),
+        "mean_peb_penalty_m": num(mean_f - mean_b),
+        "mean_peb_penalty_ratio": num(mean_f / mean_b) if mean_b > 0 else None,
+        "final_peb_penalty_se_m": num(se_final),
+        "mean_peb_penalty_se_m": num(se_mean),
+        "initial_peb_mean_m": num(init_f),
+        "baseline_initial_peb_mean_m": num(init_b),
+        "initial_peb_penalty_ratio": num(init_f / init_b) if init_b > 0 else None,
+        "mean_record_age_steps": num(mean_record_age(result)),
+        "baseline_mean_record_age_steps": num(baseline.mean_record_age_steps),
+        "baseline_runtime_s": round(baseline.runtime_s, 3),
+    }
+    if "fault_lost_fraction" in result.extra:
+        out["lost_fraction"] = float(result.extra["fault_lost_fraction"])
+    return out
+
+
+def _step_means(peb_m: FloatArray) -> FloatArray:
+    """Per step, the mean PEB over trials and drones (singular views skipped), from PEB
+    (K, M, N); NaN at a step without a finite PEB."""
+    peb = peb_m.reshape(peb_m.shape[0], -1)
+    finite = np.isfinite(peb)
+    count = finite.sum(-1)
+    return np.divide(np.where(finite, peb, 0.0).sum(-1), count, out=np.full(peb.shape[0], np.nan), where=count > 0)
+
+
+def _trial_means(peb_m: FloatArray) -> FloatArray:
+    """Per trial, the mean over steps of the mean PEB over drones (singular views skipped),
+    from PEB (K, M, N); NaN for a trial without a finite PEB."""
+    finite = np.isfinite(peb_m)
+    count = finite.sum(-1)
+    per_step = np.divide(np.where(finite, peb_m, 0.0).sum(-1), count, out=np.full(count.shape, np.nan), where=count > 0)
+    ok = np.isfinite(per_step)
+    n = ok.sum(0)
+    return np.divide(np.where(ok, per_step, 0.0).sum(0), n, out=np.full(n.shape, np.nan), where=n > 0)
+
+
+def _paired_se(a: FloatArray, b: FloatArray) -> float:
+    """Standard error (m) of the mean of the per-trial differences a − b (NaN below 2 trials)."""
+    d = (a - b)[np.isfinite(a - b)]
+    return float(d.std(ddof=1) / np.sqrt(d.size)) if d.size >= 2 else float("nan")
+
+
+def safety_margins(
+    positions: FloatArray,
+    sources: FloatArray,
+    limits: Limits,
+    boxes_min: FloatArray,
+    boxes_max: FloatArray,
+    kinematic_tol: float = KINEMATIC_TOL,
+) -> dict[str, FloatArray]:
+    """Margins of every safety constraint after each step, from the true trajectories.
+
+    Args:
+        positions: (K+1, M, N, 3) true positions, m, ENU. sources: (K+1, 3) true source.
+        limits, boxes_min, boxes_max: the mission's.
+        kinematic_tol: tolerance of the speed and turn-rate accounting (m, rad): float64
+            round-off here; positions reported over MAVLink are float32
+            (:data:`MAVLINK_KINEMATIC_TOL`).
+
+    Returns:
+        Per family of :data:`SAFETY_FAMILIES`, (K, M, N): the margin of the position after
+        step k (distance minus its safety distance for uav/source/obstacle, distance inside the
+        altitude box) and of step k itself (slack to the speed bounds and to the heading and
+        tilt change limits). Negative is a violation.
+    """
+    K = positions.shape[0] - 1
+    N = positions.shape[2]
+    eye = np.eye(N, dtype=bool)
+    nxt = positions[1:]
+    u = np.diff(positions, axis=0)
+    out = {name: np.empty(nxt.shape[:-1]) for name in SAFETY_FAMILIES}
+    for k in range(K):  # chunked: the pairwise distances of all steps at once would be large
+        p = nxt[k]
+        diff = p[..., :, None, :] - p[..., None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        dist[..., eye] = np.inf
+        out["uav"][k] = dist.min(-1) - limits.d_uav_m
+    out["source"] = np.linalg.norm(nxt - sources[1:, None, None, :], axis=-1) - limits.d_source_m
+    out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
+    out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
+    speed = np.linalg.norm(u, axis=-1)
+    out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + kinematic_tol
+    prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
+    out["turn_rate"] = _turn_margin(prev, u, limits, kinematic_tol) + KINEMATIC_TOL
+    return out
+
+
+def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
+    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step.
+
+    ``position_tol_m`` is the position uncertainty of the recorded trajectory (float32 over
+    MAVLink): it becomes an angle tolerance of tol / (length of the shorter step), horizontal
+    length for the heading, whole length for the tilt.
+    """
+    has_prev = np.linalg.norm(prev, axis=-1) > 0.0
+    psi0, psi1 = np.arctan2(prev[..., 1], prev[..., 0]), np.arctan2(u[..., 1], u[..., 0])
+    th0 = np.arctan2(prev[..., 2], np.hypot(prev[..., 0], prev[..., 1]))
+    th1 = np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
+    dpsi = np.abs((psi1 - psi0 + np.pi) % (2.0 * np.pi) - np.pi)
+    rho = np.minimum(np.hypot(prev[..., 0], prev[..., 1]), np.hypot(u[..., 0], u[..., 1]))
+    length = np.minimum(np.linalg.norm(prev, axis=-1), np.linalg.norm(u, axis=-1))
+    # The heading of a vertical step is undefined: no heading limit applies across it.
+    vertical = rho < max(1e-9, 100.0 * position_tol_m)
+    dpsi = np.where(vertical, 0.0, dpsi)
+    heading_tol = 2.0 * position_tol_m / np.maximum(rho, 1e-300)
+    tilt_tol = 2.0 * position_tol_m / np.maximum(length, 1e-300)
+    slack = np.minimum(limits.heading_change_max_rad - dpsi + heading_tol, limits.tilt_change_max_rad - np.abs(th1 - th0) + tilt_tol)
+    return np.where(has_prev, slack, np.inf)
