@@ -11,7 +11,10 @@ A batch element's state is five arrays (leading batch axis flattened to E elemen
   weight);
 * ``win`` (E, W, :data:`NW` + X) float64: the raw window (position, range, azimuth, elevation,
   LOS 0/1, weight, then the X extension values);
-* ``mem`` (E, C, :data:`NM`) float64: the range memory's cells (Σwp, n, S1, S2, σ_r0, T, Q).
+* ``mem`` (E, :data:`NM`, C) float64: the range memory, one row per quantity, one column per
+  cell: the sums (Σwp, n, S1, S2, σ_r0, T, Q), then what an evaluation reads (centre, σ_r0²,
+  lever, spread, ‖centre‖², n, S1, S2; zeros for an empty cell), see
+  :mod:`planner.estimator.kernels.memory`.
 """
 
 from __future__ import annotations
@@ -34,9 +37,11 @@ NRW = 6
 W_X, W_R, W_AZ, W_EL, W_LOS, W_W = 0, 3, 4, 5, 6, 7
 NW = 8
 
-# mem: range memory cells
+# mem: range memory rows (sums, then the evaluation rows)
 M_PS, M_N, M_S1, M_S2, M_S0, M_T, M_Q = 0, 3, 4, 5, 6, 7, 10
-NM = 11
+M_CX, M_S0SQ, M_L, M_SP, M_CC, M_EN, M_ES1, M_ES2 = 11, 14, 15, 18, 19, 20, 21, 22
+NM_SUMS = 11
+NM = 23
 
 # The configuration and channel as one float64 vector (EstimatorConfig.kernel_parameters).
 P_WINDOW, P_LAMBDA, P_HUBER, P_TUKEY, P_TUKEY_C, P_GATE, P_GATE_FRAC = 0, 1, 2, 3, 4, 5, 6

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from planner.estimator.layout import M_N, M_PS, M_Q, M_S0, M_S1, M_S2, M_T, NM, NP, P_HI, P_LO
+from planner.estimator.layout import M_CX, M_EN, M_ES1, M_ES2, M_L, M_N, M_PS, M_Q, M_S0, M_S0SQ, M_S1, M_S2, M_SP, M_T, NM, NP, P_HI, P_LO
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -80,32 +80,35 @@ class RangeMemory:
         return int(self.weight.shape[-1])
 
     def packed(self) -> FloatArray:
-        """The cells as one array (E, C, NM) (:mod:`planner.estimator.layout`), E the
+        """The cells as one array (E, NM, C) (:mod:`planner.estimator.layout`), E the
         flattened batch."""
         return pack_memory(self)
 
     @staticmethod
     def of_packed(mem: FloatArray, batch_shape: tuple[int, ...]) -> RangeMemory:
-        """The memory whose cells are ``mem`` (E, C, NM), as views, with batch shape
+        """The memory whose cells are ``mem`` (E, NM, C), as views, with batch shape
         ``batch_shape``."""
-        m = mem.reshape(tuple(batch_shape) + mem.shape[-2:])
+        m = np.moveaxis(mem.reshape(tuple(batch_shape) + mem.shape[-2:]), -1, -2)  # (..., C, NM)
         return RangeMemory(m[..., M_PS : M_PS + 3], m[..., M_N], m[..., M_S1], m[..., M_S2], m[..., M_S0], m[..., M_T : M_T + 3], m[..., M_Q])
 
 
 def pack_memory(memory: RangeMemory) -> FloatArray:
-    """The cells of ``memory`` as one array (E, C, NM)."""
+    """The cells of ``memory`` as one array (E, NM, C), the evaluation rows computed."""
+    from planner.estimator.kernels import memory as km
+
     E, C = int(np.prod(memory.weight.shape[:-1], dtype=np.int64)), memory.cells
-    out = np.empty((E, C, NM))
-    out[..., M_PS : M_PS + 3] = np.reshape(memory.position_sum, (E, C, 3))
-    out[..., M_T : M_T + 3] = np.reshape(memory.cross_sum, (E, C, 3))
-    for col, f in (
+    out = np.zeros((E, NM, C))
+    out[:, M_PS : M_PS + 3] = np.moveaxis(np.reshape(memory.position_sum, (E, C, 3)), -1, -2)
+    out[:, M_T : M_T + 3] = np.moveaxis(np.reshape(memory.cross_sum, (E, C, 3)), -1, -2)
+    for row, f in (
         (M_N, memory.weight),
         (M_S1, memory.range_sum),
         (M_S2, memory.square_sum),
         (M_S0, memory.sigma_r0),
         (M_Q, memory.position_square_sum),
     ):
-        out[..., col] = np.reshape(f, (E, C))
+        out[:, row] = np.reshape(f, (E, C))
+    km.refresh_batch(out)
     return out
 
 
@@ -127,27 +130,27 @@ class Cells:
 
     @staticmethod
     def of(memory: RangeMemory) -> Cells:
-        """The occupied cells of ``memory`` (:func:`planner.estimator.kernels.memory.cells_of`)."""
-        from planner.estimator.kernels import memory as km
-
+        """The occupied cells of ``memory`` (the evaluation rows of its packed form,
+        :mod:`planner.estimator.kernels.memory`)."""
         batch = memory.weight.shape[:-1]
-        cells, counts = km.cells_batch(pack_memory(memory))
-        c = cells[:, : int(counts.max(initial=0))].reshape(batch + (-1, km.NC))
-        return Cells(
-            c[..., km.C_X : km.C_X + 3],
-            c[..., km.C_N],
-            c[..., km.C_S1],
-            c[..., km.C_S2],
-            c[..., km.C_S0SQ],
-            c[..., km.C_L : km.C_L + 3],
-            c[..., km.C_SP],
-        )
+        mem = pack_memory(memory)  # (E, NM, C)
+        E = mem.shape[0]
+        occ = mem[:, M_N] >= _EMPTY
+        width = int(occ.sum(axis=-1).max(initial=0))
+        rows = (M_CX, M_CX + 1, M_CX + 2, M_EN, M_ES1, M_ES2, M_S0SQ, M_L, M_L + 1, M_L + 2, M_SP)
+        out = np.zeros((E, width, len(rows)))
+        out[..., 6] = 1.0
+        for e in range(E):
+            cols = np.flatnonzero(occ[e])
+            out[e, : len(cols)] = mem[e][list(rows)][:, cols].T
+        c = out.reshape(batch + (width, len(rows)))
+        return Cells(c[..., 0:3], c[..., 3], c[..., 4], c[..., 5], c[..., 6], c[..., 7:10], c[..., 10])
 
 
 def empty_memory(batch_shape: tuple[int, ...], cells: int) -> RangeMemory:
     """A memory of ``cells`` empty cells per batch element."""
-    mem = np.zeros((int(np.prod(batch_shape, dtype=np.int64)), cells, NM))
-    mem[..., M_S0] = 1.0
+    mem = np.zeros((int(np.prod(batch_shape, dtype=np.int64)), NM, cells))
+    mem[:, M_S0] = 1.0
     return RangeMemory.of_packed(mem, tuple(batch_shape))
 
 

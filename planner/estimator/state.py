@@ -425,7 +425,7 @@ _FLAG_FIELDS: dict[str, int] = {"observable": L.I_OBS, "initialised": L.I_INIT, 
 class Packed:
     """An estimator state as the compiled kernels take it (:mod:`planner.estimator.layout`):
     ``fs`` (E, NF), ``ist`` (E, NI) int64, ``rwin`` (E, R, NRW), ``win`` (E, W, NW + X),
-    ``mem`` (E, C, NM), E the flattened ``batch_shape``; ``extra_names`` the X extension values
+    ``mem`` (E, NM, C), E the flattened ``batch_shape``; ``extra_names`` the X extension values
     the raw window carries (:attr:`Measurements.extra_values`), in order."""
 
     fs: FloatArray
@@ -507,8 +507,8 @@ def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | N
     rwin[..., L.RW_LOS], rwin[..., L.RW_W] = 1.0, 0.0
     win = np.full((E, config.window_rows, L.NW), np.nan)
     win[..., L.W_LOS], win[..., L.W_W] = 1.0, 0.0
-    mem = np.zeros((E, config.range_memory_cells, L.NM))
-    mem[..., L.M_S0] = 1.0
+    mem = np.zeros((E, L.NM, config.range_memory_cells))
+    mem[:, L.M_S0] = mem[:, L.M_S0SQ] = 1.0
     return EstimatorState.of_packed(Packed(np.zeros((E, L.NF)), np.zeros((E, L.NI), dtype=np.int64), rwin, win, mem, b), 0)
 
 

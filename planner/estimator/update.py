@@ -28,7 +28,7 @@ def _check_windows(packed: Packed, config: EstimatorConfig) -> None:
     """Raise ValueError when the state was not created with ``config``'s window sizes."""
     sizes = (
         ("window has", packed.win.shape[1], "rows, config.window_rows is", config.window_rows),
-        ("range memory has", packed.mem.shape[1], "cells, config.range_memory_cells is", config.range_memory_cells),
+        ("range memory has", packed.mem.shape[2], "cells, config.range_memory_cells is", config.range_memory_cells),
         ("range window has", packed.rwin.shape[1], "rows, config.recheck_window_rows is", config.recheck_window_rows),
     )
     for what, found, expected, value in sizes:
@@ -57,8 +57,11 @@ def update(
     channel: Channel,
     config: EstimatorConfig | None = None,
     components: Sequence[SensingComponent] = COMPONENTS,
+    *,
+    overwrite: bool = False,
 ) -> EstimatorState:
-    """Incorporate new records and return the new state (pure function, inputs untouched).
+    """Incorporate new records and return the new state (pure function, inputs untouched,
+    unless ``overwrite``).
 
     Args:
         state: previous state, batch shape ``B`` (``()`` for one planner).
@@ -69,6 +72,9 @@ def update(
         components: the measurement components (:data:`planner.sensing.COMPONENTS`): those
             other than range and bearing whose values ``measurements.extra_values`` carries
             join the robust refinement (not the pseudo-linear initialisation).
+        overwrite: the caller will not use ``state`` again: the new state is written into its
+            arrays (no allocation, no copy of the range memory; for a loop that replaces its
+            state at every call, e.g. the simulator's). ``state`` then holds the new values.
 
     Returns:
         The updated :class:`EstimatorState`; see the module docstring for the method.
@@ -96,6 +102,7 @@ def update(
         due,
         used,
         callback,
+        overwrite,
     )
     if errors:
         raise errors[0]

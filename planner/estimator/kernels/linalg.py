@@ -55,7 +55,8 @@ def inv3_spd(a: np.ndarray, out: np.ndarray) -> bool:
     """``out`` = inverse of the symmetric 3 × 3 ``a`` (adjugate over determinant); returns
     whether it is well defined (finite det > 1e-14 (tr a)³)."""
     det = det3(a)
-    scale = nmax(a[0, 0] + a[1, 1] + a[2, 2], 1e-300) ** 3.0
+    t = nmax(a[0, 0] + a[1, 1] + a[2, 2], 1e-300)
+    scale = t * t * t
     ok = np.isfinite(det) and det > 1e-14 * scale
     safe = det if ok else 1.0
     out[0, 0] = (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]) / safe
@@ -75,7 +76,7 @@ def normalised_det(a: np.ndarray) -> float:
     """det(A)/(tr(A)/3)³ of a symmetric PSD 3 × 3 matrix (0 where tr A ≤ 0)."""
     tr = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
     if tr > 0.0:
-        return det3(a) / tr**3.0
+        return det3(a) / (tr * tr * tr)
     return 0.0
 
 

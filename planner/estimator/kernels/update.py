@@ -77,6 +77,8 @@ from planner.estimator.layout import (
     I_INIT,
     I_OBS,
     I_SUSP,
+    NF,
+    NI,
     NM,
     NRW,
     NW,
@@ -231,14 +233,30 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _insert_ranges(mem: np.ndarray, nrows: np.ndarray, cols: tuple, p: np.ndarray) -> None:
-    """The ranges of the rows ``nrows`` join the memory ``mem`` (``cols`` = contiguous scratch
-    for their positions, ranges, weights and σ_r0)."""
+def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray) -> int:
+    """The ranges of the rows ``nrows`` join the memory ``mem`` whose first nc cells are used
+    (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
+    positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed);
+    returns the new count of used cells."""
+    _, _, iw, backup, cols = memory
     pos, zr, ar, s0 = cols
     for m in range(nrows.shape[0]):
         pos[m, 0], pos[m, 1], pos[m, 2] = nrows[m, R_PX], nrows[m, R_PY], nrows[m, R_PZ]
         zr[m], ar[m], s0[m] = nrows[m, R_ZR], nrows[m, R_AR], nrows[m, R_S0]
-    km.insert(mem, pos, zr, ar, s0, p[P_RADIUS])
+    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup)
+
+
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarray) -> bool:
+    """Whether this call's ranges join the range memory: the memory is on, the new rows carry a
+    range and the element never used another component (these rows included)."""
+    ranges, angles = False, angles_before
+    for m in range(nrows.shape[0]):
+        ranges = ranges or nrows[m, R_AR] > 0.0
+        angles = angles or nrows[m, R_AA] > 0.0 or nrows[m, R_AE] > 0.0
+        for j in range(nxa.shape[1]):
+            angles = angles or nxa[m, j] > 0.0
+    return ranges and p[P_CELLS] > 0 and not angles
 
 
 # --------------------------------------------------------------------------- steps 1 and 3
@@ -294,31 +312,39 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, memory: tuple, nrows: np.ndarray, cand: np.ndarray, p: np.ndarray) -> None:
-    """Step 3 on the range memory (an initialised element that used only ranges): ``memory`` =
-    (memt, cells, the forgotten memory memw, insertion scratch); memt = memw with this call's
-    ranges. The previous estimate and the best start of another basin are polished to their
-    optima on memt's likelihood; when the previous estimate is less likely than the better one
-    by more than ``recheck_likelihood_drop``, the element moves there with memw's cost (every
-    range before this call's) re-linearised there as its prior."""
-    memt, cells, memw, cols = memory
+def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, mo: np.ndarray, memory: tuple, mi: np.ndarray, nrows: np.ndarray, cand: np.ndarray, p: np.ndarray) -> None:
+    """Step 3 on the range memory (an initialised element that used only ranges): ``mo`` the
+    element's memory, ``memory`` = (a scratch memory, pass scratch, the insertion's record, its
+    saved cells, columns), ``mi`` = (cells used before this call's ranges, after, whether mo already holds
+    them). memt = the memory with this call's ranges (mo, or the scratch). The previous
+    estimate and the best start of another basin are polished to their optima on memt's
+    likelihood; when the previous estimate is less likely than the better one by more than
+    ``recheck_likelihood_drop``, the element moves there with the memory's cost before this
+    call's ranges (those are rows) re-linearised there as its prior."""
+    memt, sc, iw, backup, _ = memory
     gamma = p[P_GAMMA]
-    _copy2(memt, memw)
-    _insert_ranges(memt, nrows, cols, p)
-    nc = km.cells_of(memt, cells)
+    nc0, take = mi[0], mi[2] != 0
+    if take:
+        memt, nct = mo, mi[1]
+    else:
+        _copy2(memt, mo)
+        nct = _insert_ranges(memt, nc0, nrows, memory, p)
     x_prev, here, there = fo[F_EST : F_EST + 3], np.empty(3), np.empty(3)
     _copy1(here, x_prev)
-    km.best_start(cells, nc, x_prev, cand, gamma, p, np.int64(16), there)
-    nll_here = km.polish(cells, nc, here, gamma, p, np.int64(15), 1e-3)
-    nll_there = km.polish(cells, nc, there, gamma, p, np.int64(15), 1e-3)
+    km.best_start(memt, nct, x_prev, cand, gamma, p, np.int64(16), sc, there)
+    nll_here, start = km.polish(memt, nct, here, gamma, p, np.int64(15), 1e-3, sc)
+    nll_there, _ = km.polish(memt, nct, there, gamma, p, np.int64(15), 1e-3, sc)
     best = there if nll_there < nll_here else here
-    gain = km.nll(cells, nc, x_prev[0], x_prev[1], x_prev[2], gamma) - nmin(nll_here, nll_there)
-    if not (nc > 0 and gain > p[P_LL_DROP]):
+    gain = start - nmin(nll_here, nll_there)
+    if not (nct > 0 and gain > p[P_LL_DROP]):
         return
-    nc = km.cells_of(memw, cells)  # the prior: the ranges before this call's (those are rows)
+    if take:  # the cells as they were before this call's ranges
+        km.swap_backup(mo, iw, backup)
     g, H, F = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
-    km.gradient_fisher(cells, nc, best, gamma, p[P_ML] != 0.0, g, H)
-    km.gradient_fisher(cells, nc, best, gamma, np.bool_(True), np.empty(3), F)
+    km.evaluate(mo, nc0, best, gamma, p[P_ML] != 0.0, sc, g, H)
+    km.evaluate(mo, nc0, best, gamma, np.bool_(True), sc, np.empty(3), F)
+    if take:
+        km.swap_backup(mo, iw, backup)
     eta = np.empty(3)
     for i in range(3):
         eta[i] = (H[i, 0] * best[0] + H[i, 1] * best[1] + H[i, 2] * best[2]) - g[i]
@@ -346,13 +372,23 @@ def _recheck_system(
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _recheck(
-    fo: np.ndarray, x: np.ndarray, flags: np.ndarray, ranges_only: bool, rw: np.ndarray, new: tuple, memory: tuple, scratch: tuple, p: np.ndarray, cb
-) -> bool:
+    fo: np.ndarray,
+    x: np.ndarray,
+    flags: np.ndarray,
+    ranges_only: bool,
+    rw: np.ndarray,
+    new: tuple,
+    mo: np.ndarray,
+    memory: tuple,
+    mi: np.ndarray,
+    scratch: tuple,
+    p: np.ndarray,
+    cb,
+) -> None:
     """Step 3, the global re-check of an initialised element, every ``recheck_every``-th call
     with records. The candidate is the squared-range PL solution of all past ranges
     (:func:`_recheck_system`). An element that used only ranges is re-checked on the range
-    memory (:func:`_recheck_memory`; returns True: the memory with this call's ranges is then
-    ``memory[0]``); the others move to the candidate when the PL cost drops by more than
+    memory (:func:`_recheck_memory`); the others move to the candidate when the PL cost drops by more than
     ``recheck_threshold`` and the new records prefer it (their full likelihood, Huber loss),
     claiming ``recheck_trust`` of the summary's information. ``new`` = (rows, extension values,
     weights) of the new records; ``scratch`` = (range rows, scales, evaluation, buffer)."""
@@ -363,14 +399,14 @@ def _recheck(
     A, b = np.empty((4, 4)), np.empty(4)
     _recheck_system(fo, x_prev, rw, rrows, scale, p, A, b)
     if not A[0, 0] + A[1, 1] + A[2, 2] + A[3, 3] > 0.0:
-        return False
+        return
     x_pl, cand = np.empty(3), np.empty(3)
     ok = pl_solve(A, b, p, x_pl)
     for i in range(3):
         cand[i] = clip(x_pl[i] if ok else x_prev[i], p[P_LO + i], p[P_HI + i])
     if p[P_CELLS] > 0 and ranges_only:
-        _recheck_memory(fo, x, flags, memory, nrows, cand, p)
-        return True
+        _recheck_memory(fo, x, flags, mo, memory, mi, nrows, cand, p)
+        return
     huber, ml, gls = np.bool_(False), np.bool_(True), np.bool_(False)
     c_prev = cost_at(x_prev, nrows, M, nxz, nxa, p, p[P_HUBER], huber, ml, ev, gls, cb, buf)
     drop = pl_cost(A, b, x_prev) - pl_cost(A, b, cand)
@@ -381,7 +417,6 @@ def _recheck(
         _set_prior(fo, lam, lam, eta, p[P_RECHECK_TRUST])
         _copy1(x, cand)
         flags[0] = flags[1] = True
-    return False
 
 
 # --------------------------------------------------------------------------- step 2
@@ -618,61 +653,56 @@ def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     return ranges
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _advance_memory(memory: tuple, memt_ok: bool, nrows: np.ndarray, take: bool, p: np.ndarray, mo: np.ndarray) -> None:
-    """The range memory after the call, ``mo``: with this call's ranges where ``take`` (ranges
-    and never an angle; ``memory[0]`` already holds them if ``memt_ok``), else the forgotten
-    one ``memory[2]``."""
-    memt, _, memw, cols = memory
-    if take and memt_ok:
-        _copy2(mo, memt)
-        return
-    _copy2(mo, memw)
-    if take:
-        _insert_ranges(mo, nrows, cols, p)
-
-
 # --------------------------------------------------------------------------- one element, a batch
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, inline="always")
-def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple) -> None:
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple, overwrite: bool) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
-    order); ``ws`` = :func:`workspace`."""
+    order); ``ws`` = :func:`workspace`. With ``overwrite`` the outputs ``outs`` are the
+    state's own arrays: the element's inputs are copied first (its range memory is updated
+    in place)."""
     fs, ist, rwin, win, mem = state
     fs2, ist2, rwin2, win2, mem2 = outs
-    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memw, memt, cells, pool, cols = ws
-    fi, fo, io = fs[e], fs2[e], ist2[e]
-    for j in range(io.shape[0]):
-        io[j] = ist[e, j]
+    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw = ws
+    _copy1(fi, fs[e])
+    _copy1(ii, ist[e])
+    _copy2(rw, rwin[e])
+    fo, io, mo = fs2[e], ist2[e], mem2[e]
+    _copy1(io, ii)
+    if not overwrite:
+        _copy2(mo, mem[e])
     _start(fi, io, p, fo)
-    km.forget(mem[e], p[P_LAMBDA], memw)
+    km.forget(mo, p[P_LAMBDA])
     _new_raw(new[0][e], new[1][e], new[2][e], new[3][e], new[4][e], new[5][e], nraw)
     M = nraw.shape[0]
     fill_rows(nraw, M, p, extra_used, nrows, nxz, nxa)
     K = _merge(win[e], nraw, p[P_LAMBDA], raw)
     fill_rows(raw, K, p, extra_used, rows, xz, xa)
     x = fi[F_EST : F_EST + 3].copy()
-    before = ist[e, I_INIT] != 0
+    before = ii[I_INIT] != 0
     flags = np.zeros(2, dtype=np.bool_)  # fresh start, long run
-    flags[0] = io[I_SUSP] != 0 and before
+    flags[0] = ii[I_SUSP] != 0 and before
     if M > 0 and not before and _initialise(fo, x, nrows, p):
         io[I_INIT] = 1
         flags[0] = flags[1] = True
-    memory = (memt, cells, memw, cols)
-    memt_ok = due and before and _recheck(fo, x, flags, ist[e, I_ANG] == 0, rwin[e], (nrows, nxz, nxa), memory, (rrows, scale, ev, buf), p, cb)
+    take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
+    mi[0] = km.used_cells(mo) if mo.shape[1] > 0 else 0
+    mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p) if take else mi[0]
+    mi[2] = take
+    if due and before:
+        _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf), p, cb)
     obs, susp = False, False
     if io[I_INIT] != 0:
-        _gate_previous(fi, ist[e, I_OBS] != 0 and before, x, rows, K, p)
+        _gate_previous(fi, ii[I_OBS] != 0 and before, x, rows, K, p)
         refined = (np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
         _refine(fo, x, flags, before, K, (rows, xz, xa), (ev, xg, xh, counts), p, cb, buf, refined)
         obs, susp = _finish(fo, fi, x, M, (ev, xg, xh, counts), p, refined)
     else:
         _inactive(fo, M, win.shape[1], rows, p)
     io[I_OBS], io[I_SUSP] = obs, susp
-    _advance_range_window(fo, io[I_INIT] != 0, rwin[e], nraw, (rrows, scale, pool), p, rwin2[e])
+    _advance_range_window(fo, io[I_INIT] != 0, rw, nraw, (rrows, scale, pool), p, rwin2[e])
     if win.shape[1] > 0:
         _copy2(win2[e], raw[K - win.shape[1] : K])
-    take = _count(io, nrows, nxa) and p[P_CELLS] > 0 and io[I_ANG] == 0
-    _advance_memory(memory, memt_ok, nrows, take, p, mem2[e])
+    _count(io, nrows, nxa)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
@@ -680,10 +710,12 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     """Scratch arrays of one element's update (reused by every element of a batch), K = W + M:
     the raw rows of the call, their rows, extension values and weights; the same for the new
     records; the evaluation (:func:`~planner.estimator.kernels.robust.evaluate`); range rows
-    and distance scales; the extension callback's buffer; the forgotten memory, the memory
-    with the call's ranges, its occupied cells; the range window's pool; columns of ranges."""
+    and distance scales; the extension callback's buffer; the memory scratch (a memory, pass
+    scratch, the insertion's record and saved cells, columns of ranges) and its counts; the
+    range window's pool; copies of the element's float row, flags and range window."""
     K = W + M
     cols = (np.zeros((M, 3)), np.zeros(M), np.zeros(M), np.zeros(M))
+    memory = (np.zeros((NM, C)), np.zeros((km.NSC, C)), np.zeros((5, 2 * M + 1), dtype=np.int64), np.zeros((NM, 2 * M)), cols)
     return (
         np.zeros((K, NW + X)),
         np.zeros((K, NRC)),
@@ -700,16 +732,17 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
         np.zeros((R + M, NRC)),
         np.zeros(max(R + M, K, 1)),
         np.zeros(XB_HEAD + 3 * K + 5 * K * X),
-        np.zeros((C, NM)),
-        np.zeros((C, NM)),
-        np.zeros((C, km.NC)),
+        memory,
+        np.zeros(3, dtype=np.int64),
         np.zeros((2 * (R + M), NRW)),
-        cols,
+        np.zeros(NF),
+        np.zeros(NI, dtype=np.int64),
+        np.zeros((R, NRW)),
     )
 
 
 @njit(cache=True, error_model="numpy")
-def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due: bool, extra_used: np.ndarray, cb) -> tuple:
+def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due: bool, extra_used: np.ndarray, cb, overwrite: bool) -> tuple:
     """One estimator update of every element of a batch, each on its own.
 
     Args:
@@ -722,6 +755,7 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
         due: whether the global re-check runs in this call.
         extra_used: (X,) which extension values belong to a component in use.
         cb: the extension components' callback (never called without such values).
+        overwrite: write the new state into ``state``'s arrays (returned) instead of new ones.
 
     Returns:
         The packed state after the call.
@@ -729,8 +763,11 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
     p = cfg.copy()
     p[P_GAMMA], p[P_S0_LOS], p[P_S0_NLOS], p[P_SB] = channel
     fs, ist, rwin, win, mem = state
-    outs = (np.empty_like(fs), np.empty_like(ist), np.empty_like(rwin), np.empty_like(win), np.empty_like(mem))
-    ws = workspace(win.shape[1], new[1].shape[1], rwin.shape[1], mem.shape[1], new[5].shape[2])
+    if overwrite:
+        outs = state
+    else:
+        outs = (np.empty_like(fs), np.empty_like(ist), np.empty_like(rwin), np.empty_like(win), np.empty_like(mem))
+    ws = workspace(win.shape[1], new[1].shape[1], rwin.shape[1], mem.shape[2], new[5].shape[2])
     for e in range(fs.shape[0]):
-        _element(e, state, new, p, due, extra_used, cb, ws, outs)
+        _element(e, state, new, p, due, extra_used, cb, ws, outs, overwrite)
     return outs
