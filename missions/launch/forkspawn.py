@@ -284,6 +284,15 @@ class ForkServer:
                 else:
                     os.environ[name] = value
 
+    def wait_ready(self, timeout_s: float = 120.0) -> None:
+        """Wait until the fork server has imported :data:`PRELOAD` (it forks a child only then):
+        fork a child that exits at once and wait for it. The planners' start time (real time)
+        is fixed after this, as the preload loads the compiled planning step (seconds, and
+        once after an install the time to compile it)."""
+        child = self.ctx.Process(target=int)
+        child.start()
+        child.join(timeout_s)
+
     def close(self) -> None:
         """End the fork server and multiprocessing's resource tracker (started with it) and wait
         for them to exit (after the children are stopped).
