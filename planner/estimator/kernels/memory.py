@@ -382,6 +382,21 @@ def _group(mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, sig: np.n
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray) -> int:
+    """Save (:func:`_save`) the empty cells that new groups of M rows may take: the first M
+    empty cells in index order. Returns the new count k of saved cells."""
+    C, c = mem.shape[1], 0
+    for _ in range(M):
+        while c < C and mem[M_N, c] >= EMPTY:
+            c += 1
+        if c >= C:
+            break
+        k = _save(mem, c, k, iw, backup)
+        c += 1
+    return k
+
+
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def insert(mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, iw: np.ndarray, backup: np.ndarray) -> int:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
@@ -413,15 +428,7 @@ def insert(mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.nda
     for m in range(M):
         any_fresh = any_fresh or fresh[m]
     if any_fresh:
-        # save the empty cells the groups may take (those in index order up to M of them)
-        c = 0
-        for _ in range(M):
-            while c < C and mem[M_N, c] >= EMPTY:
-                c += 1
-            if c >= C:
-                break
-            k = _save(mem, c, k, iw, backup)
-            c += 1
+        k = _save_empty(mem, M, k, iw, backup)
         used = _group(mem, nc, pos, rng, sig, rf, fresh, cell, iw)
     for m in range(M):
         c = cell[m]
