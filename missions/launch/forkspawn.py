@@ -68,6 +68,7 @@ PRELOAD: tuple[str, ...] = (
     "comms.mavlink_client",
     "comms.session",
     "planner.node",
+    "planner.node.warm_estimator",
 )
 
 #: Environment variable of a launcher's child: the file descriptor of the read end of the
