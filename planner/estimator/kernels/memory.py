@@ -174,7 +174,9 @@ def _nll_sum(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: f
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST)
-def _gradient_sum(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, full: bool, sc: np.ndarray, g: np.ndarray, F: np.ndarray) -> None:
+def _gradient_sum(
+    mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, full: bool, sc: np.ndarray, g: np.ndarray, F: np.ndarray
+) -> None:
     """``g``, ``F`` (:func:`evaluate`) from the distances ``sc``."""
     g0 = g1 = g2 = 0.0
     fxx = fyy = fzz = fxy = fyz = fxz = 0.0
@@ -260,7 +262,9 @@ def _polish_step(x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.n
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def polish(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray, iterations: int, tolerance: float, sc: np.ndarray) -> tuple[float, float]:
+def polish(
+    mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray, iterations: int, tolerance: float, sc: np.ndarray
+) -> tuple[float, float]:
     """Projected Fisher-scoring (Levenberg-Marquardt) minimisation of :func:`nll` from x (3,),
     in place, inside the search box of ``p``; a step is kept only if the cost does not
     increase; stops after ``iterations`` or once a projected step is shorter than
@@ -273,10 +277,7 @@ def polish(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray,
     mu = 1e-3
     for _ in range(iterations):
         live = _polish_step(x, g, F, mu, p, tolerance, cand)
-        if live:
-            c_new = evaluate(mem, nc, cand, gamma, np.bool_(True), sc, gc, Fc)
-        else:
-            c_new = nll(mem, nc, cand[0], cand[1], cand[2], gamma, sc)
+        c_new = evaluate(mem, nc, cand, gamma, np.bool_(True), sc, gc, Fc) if live else nll(mem, nc, cand[0], cand[1], cand[2], gamma, sc)
         if np.isfinite(c_new) and c_new <= cost:
             x[0], x[1], x[2] = cand[0], cand[1], cand[2]
             cost = c_new
@@ -293,7 +294,9 @@ def polish(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray,
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def best_start(mem: np.ndarray, nc: int, x: np.ndarray, cand: np.ndarray, gamma: float, p: np.ndarray, points: int, sc: np.ndarray, out: np.ndarray) -> None:
+def best_start(
+    mem: np.ndarray, nc: int, x: np.ndarray, cand: np.ndarray, gamma: float, p: np.ndarray, points: int, sc: np.ndarray, out: np.ndarray
+) -> None:
     """``out``: of ``cand`` and of ``points`` points on the line through x along the memory's
     least-informed direction (within ± the mean distance from x to the occupied cells, in the
     search box), the one of lowest :func:`nll` (the first of equal ones)."""
@@ -342,7 +345,9 @@ def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: flo
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _group(mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, sig: np.ndarray, rf: float, fresh: np.ndarray, cell: np.ndarray, iw: np.ndarray) -> int:
+def _group(
+    mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, sig: np.ndarray, rf: float, fresh: np.ndarray, cell: np.ndarray, iw: np.ndarray
+) -> int:
     """The rows that joined no cell (``fresh``; ``cell`` holds their fallback cell): a row
     within reach of an earlier such row of its σ_r0 shares that row's cell (the first row that
     reaches it, followed to the group's first row); the first row of each group takes an empty
@@ -397,7 +402,9 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def insert(mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, iw: np.ndarray, backup: np.ndarray) -> int:
+def insert(
+    mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, iw: np.ndarray, backup: np.ndarray
+) -> int:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
     used, in place (the rule of :func:`planner.estimator.memory.insert`, against the cells as

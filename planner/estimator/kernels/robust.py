@@ -399,14 +399,14 @@ def lm_iterations(
         rd = redescend(tukey, it, fresh, before, n_el)
         if it > 0:
             cost_ev = evaluate(x, rows, K, xz, xa, p, rd, ev, xg, xh, counts, cb, buf)
-        x_lin[:] = x
+        x_lin[0], x_lin[1], x_lin[2] = x[0], x[1], x[2]
         accumulate(ev, np.int64(0), K, xg, xh, g, H, F)
         add_prior(x, lam, eta, g, H)
         cost = cost_ev + prior_cost(x, lam, eta)
         _lm_step(x, g, H, mu, ev, K, counts, p, cand)
         c_new = cost_at(cand, rows, K, xz, xa, p, p[P_HUBER], rd, ml, ev, not ml, cb, buf) + prior_cost(cand, lam, eta)
         if np.isfinite(c_new) and c_new <= cost:
-            x[:] = cand
+            x[0], x[1], x[2] = cand[0], cand[1], cand[2]
             mu = mu / 3.0
         else:
             mu = mu * 4.0

@@ -312,7 +312,17 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _recheck_memory(fo: np.ndarray, x: np.ndarray, flags: np.ndarray, mo: np.ndarray, memory: tuple, mi: np.ndarray, nrows: np.ndarray, cand: np.ndarray, p: np.ndarray) -> None:
+def _recheck_memory(
+    fo: np.ndarray,
+    x: np.ndarray,
+    flags: np.ndarray,
+    mo: np.ndarray,
+    memory: tuple,
+    mi: np.ndarray,
+    nrows: np.ndarray,
+    cand: np.ndarray,
+    p: np.ndarray,
+) -> None:
     """Step 3 on the range memory (an initialised element that used only ranges): ``mo`` the
     element's memory, ``memory`` = (a scratch memory, pass scratch, the insertion's record, its
     saved cells, columns), ``mi`` = (cells used before this call's ranges, after, whether mo already holds
@@ -763,10 +773,7 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
     p = cfg.copy()
     p[P_GAMMA], p[P_S0_LOS], p[P_S0_NLOS], p[P_SB] = channel
     fs, ist, rwin, win, mem = state
-    if overwrite:
-        outs = state
-    else:
-        outs = (np.empty_like(fs), np.empty_like(ist), np.empty_like(rwin), np.empty_like(win), np.empty_like(mem))
+    outs = state if overwrite else (np.empty_like(fs), np.empty_like(ist), np.empty_like(rwin), np.empty_like(win), np.empty_like(mem))
     ws = workspace(win.shape[1], new[1].shape[1], rwin.shape[1], mem.shape[2], new[5].shape[2])
     for e in range(fs.shape[0]):
         _element(e, state, new, p, due, extra_used, cb, ws, outs, overwrite)
