@@ -1,28 +1,67 @@
-"""Benchmark of one :func:`planner.estimator.update` call (not a test).
+"""Benchmark of one :func:`planner.estimator.update` call (not a test), the compiled estimator
+against the numpy estimator it replaced, measured in the same run.
 
-Prints the median wall time of one update for the Monte Carlo shape, batch (trials, drones) =
-(100, 10) with 10 new records per element, and for one planner (batch ``()``, 10 records), in
-the steady state (every element initialised, gate active, warm start) and for the first call
-(pseudo-linear initialisation). Also prints the same for a few configurations, and one planner's
-ranging-only estimator over 550 calls without and with the range memory.
+The baseline is the package ``planner/estimator`` of commit ``48f7e03`` (the last numpy
+estimator), read with ``git show`` into a temporary directory and imported from there as
+``estimator_baseline`` (it needs the repository's git history; ``--no-baseline`` skips it).
 
-    python benchmarks/bench_estimator.py [--repeat 50]
+Prints (1) one planner's ranging estimator in the paper's final ranging geometry (the ten
+drones where ``paper/ranging_los`` ends, held still, LOS ranges to a source 2 m up, range
+memory of 256 cells, the mission's search box), 550 calls of ten records each: the median and
+mean time of a call and of a re-check call (every ``recheck_every``-th), and per record;
+(2) the median time of one update for the Monte Carlo shape, batch (trials, drones) = (100, 10)
+with 10 new joint records per element, and for one planner (batch ``()``), in the steady state
+and for the first call, for a few configurations.
+
+    python benchmarks/bench_estimator.py [--repeat 50] [--calls 550] [--no-baseline]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
-from planner.estimator import EstimatorConfig, EstimatorState, Measurements, initial_state, update
-from planner.params import Channel
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path[:1]:
+    sys.path.insert(0, str(REPO))
+
+from planner import estimator as compiled  # noqa: E402
+from planner.params import Channel  # noqa: E402
+
+#: The last numpy estimator.
+BASELINE_COMMIT = "48f7e03"
+
+#: Where ``paper/ranging_los`` ends (trial 0, seed 1): the paper's final ranging geometry, m, ENU.
+FINAL_GEOMETRY_M = np.array([
+    [3.1, 55.0, 22.5], [33.1, 50.0, 22.5], [26.2, 52.5, 22.4], [-44.8, -38.1, 21.4], [-49.2, -34.1, 22.4],
+    [-43.7, 38.9, 4.6], [-46.9, 35.1, 4.6], [-42.5, -38.5, 23.7], [51.2, -24.8, 22.4], [-39.8, 42.0, 4.6],
+])  # fmt: skip
 
 
-def _records(rng: np.random.Generator, batch: tuple[int, ...], m: int, source: np.ndarray, channel: Channel) -> Measurements:
+def load_baseline(directory: Path, commit: str = BASELINE_COMMIT) -> ModuleType:
+    """The package ``planner/estimator`` of ``commit``, written into ``directory`` as
+    ``estimator_baseline`` (its imports of itself renamed) and imported from there."""
+    package = directory / "estimator_baseline"
+    package.mkdir()
+    names = subprocess.run(["git", "ls-tree", "--name-only", commit, "planner/estimator/"], cwd=REPO, capture_output=True, text=True, check=True)
+    for name in names.stdout.split():
+        text = subprocess.run(["git", "show", f"{commit}:{name}"], cwd=REPO, capture_output=True, text=True, check=True).stdout
+        (package / Path(name).name).write_text(text.replace("planner.estimator", "estimator_baseline"), encoding="utf-8")
+    sys.path.insert(0, str(directory))
+    return importlib.import_module("estimator_baseline")
+
+
+def _records(est: ModuleType, rng: np.random.Generator, batch: tuple[int, ...], m: int, source: np.ndarray, channel: Channel) -> object:
     """Joint range/bearing records from drones 50-200 m around the source, LOS, noisy."""
     shape = batch + (m,)
     az = rng.uniform(-np.pi, np.pi, shape)
@@ -31,7 +70,7 @@ def _records(rng: np.random.Generator, batch: tuple[int, ...], m: int, source: n
     r = source - pos
     d = np.linalg.norm(r, axis=-1)
     sb = channel.sigma_bearing_rad
-    return Measurements(
+    return est.Measurements(
         positions_m=pos,
         range_m=d + rng.normal(size=shape) * channel.sigma_r0_los * d ** (channel.gamma / 2),
         azimuth_rad=np.arctan2(r[..., 1], r[..., 0]) + sb * rng.normal(size=shape),
@@ -40,12 +79,12 @@ def _records(rng: np.random.Generator, batch: tuple[int, ...], m: int, source: n
     )
 
 
-def _median_ms(state: EstimatorState, meas: Sequence[Measurements], channel: Channel, config: EstimatorConfig, repeat: int) -> float:
+def _median_ms(est: ModuleType, state: object, meas: Sequence[object], channel: Channel, config: object, repeat: int) -> float:
     times = []
     for i in range(repeat):
         m = meas[i % len(meas)]
         t0 = time.perf_counter()
-        update(state, m, channel, config)
+        est.update(state, m, channel, config)
         times.append(time.perf_counter() - t0)
     return 1e3 * statistics.median(times)
 
@@ -53,63 +92,85 @@ def _median_ms(state: EstimatorState, meas: Sequence[Measurements], channel: Cha
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=50, help="timed calls per case (default 50)")
+    parser.add_argument("--calls", type=int, default=550, help="calls of the final-geometry run (default 550)")
+    parser.add_argument("--no-baseline", action="store_true", help="the compiled estimator only")
     parser.add_argument("--skip-large-window", action="store_true", help="skip window_rows=50 for batch (100, 10)")
     args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        impls = {"compiled": compiled}
+        if not args.no_baseline:
+            impls = {f"numpy {BASELINE_COMMIT}": load_baseline(Path(tmp)), **impls}
+        _warm_up(compiled)
+        print(f"numpy {np.__version__}; {' vs '.join(impls)}, the same run")
+        for name, est in impls.items():
+            _final_geometry(name, est, args.calls)
+        for name, est in impls.items():
+            _configurations(name, est, args.repeat, args.skip_large_window)
+    return 0
+
+
+def _warm_up(est: ModuleType) -> None:
+    """One update of each shape, so that loading the compiled kernels is not timed."""
+    for batch in ((), (2, 2)):
+        config = est.EstimatorConfig(range_memory_cells=4)
+        nan = np.full(batch + (1,), np.nan)
+        est.update(
+            est.initial_state(batch, config),
+            est.Measurements(np.zeros(batch + (1, 3)), nan, nan, nan, np.ones(batch + (1,), bool)),
+            Channel(),
+            config,
+        )
+
+
+def _final_geometry(name: str, est: ModuleType, calls: int, cells: int = 256) -> None:
+    """One planner's ranging estimator in the paper's final ranging geometry, range memory on."""
+    channel = Channel()
+    rng = np.random.default_rng(np.random.SeedSequence(2026))
+    source = np.array([0.0, 0.0, 2.0])
+    d = np.linalg.norm(FINAL_GEOMETRY_M - source, axis=-1)
+    n = len(d)
+    nan = np.full(n, np.nan)
+    config = est.EstimatorConfig(bounds_min_m=(-1000.0, -1000.0, 0.0), bounds_max_m=(1000.0, 1000.0, 30.0), range_memory_cells=cells)
+    state = est.initial_state((), config)
+    times = []
+    for _ in range(calls):
+        m = est.Measurements(FINAL_GEOMETRY_M, d + rng.normal(size=n) * channel.sigma_r0_los * d ** (channel.gamma / 2), nan, nan, np.ones(n, bool))
+        t0 = time.perf_counter()
+        state = est.update(state, m, channel, config)
+        times.append(time.perf_counter() - t0)
+    every = config.recheck_every
+    us = 1e6 * np.array(times)
+    print(
+        f"final ranging geometry, batch (), {n} records per call, range memory {cells} cells, {calls} calls, {name}: "
+        f"median {statistics.median(us):8.1f} us/call ({statistics.median(us) / n:6.1f} us/record), mean {us.mean():8.1f} us/call "
+        f"({us.mean() / n:6.1f} us/record); re-check calls median {statistics.median(us[every - 1 :: every]):8.1f} us; "
+        f"error {np.linalg.norm(state.estimate_m - source):.2f} m"
+    )
+
+
+def _configurations(name: str, est: ModuleType, repeat: int, skip_large_window: bool) -> None:
+    """The median update time of a few configurations, batch (100, 10) and ()."""
     channel = Channel()
     rng = np.random.default_rng(np.random.SeedSequence(2026))
     source = np.array([20.0, -10.0, 0.0])
     configs = {
-        "default": EstimatorConfig(),
-        "iterations=2": EstimatorConfig(iterations=2),
-        "window_rows=10": EstimatorConfig(window_rows=10),
-        "window_rows=50": EstimatorConfig(window_rows=50),
-        "huber+gate": EstimatorConfig(loss="huber", gate_sigma=5.0),
+        "default": est.EstimatorConfig(),
+        "iterations=2": est.EstimatorConfig(iterations=2),
+        "window_rows=10": est.EstimatorConfig(window_rows=10),
+        "window_rows=50": est.EstimatorConfig(window_rows=50),
+        "huber+gate": est.EstimatorConfig(loss="huber", gate_sigma=5.0),
     }
-    print(f"numpy {np.__version__}; median of {args.repeat} calls; 10 new records per element")
     for batch in ((100, 10), ()):
-        meas = [_records(rng, batch, 10, source, channel) for _ in range(8)]
-        for name, config in configs.items():
-            if batch and args.skip_large_window and config.window_rows >= 50:
+        meas = [_records(est, rng, batch, 10, source, channel) for _ in range(8)]
+        for cname, config in configs.items():
+            if batch and skip_large_window and config.window_rows >= 50:
                 continue
-            first = initial_state(batch, config)
-            warm = first
+            first = initial = est.initial_state(batch, config)
             for m in meas[:6]:
-                warm = update(warm, m, channel, config)
-            t_first = _median_ms(first, meas, channel, config, max(args.repeat // 5, 3))
-            t_warm = _median_ms(warm, meas, channel, config, args.repeat)
-            print(f"batch {str(batch):9s} {name:15s} steady {t_warm:8.3f} ms   first call {t_first:8.3f} ms")
-    _range_memory(rng, channel)
-    return 0
-
-
-def _range_memory(rng: np.random.Generator, channel: Channel, calls: int = 550, cells: int = 256) -> None:
-    """One planner's estimator (batch ``()``) over a mission's worth of calls, ten LOS ranging
-    records each (drones 40-120 m around a source 2 m up, 2-25 m high), without and with the
-    range memory: the median of every call and of the re-check calls (every
-    ``recheck_every``-th), back to back, twice."""
-    source = np.array([0.0, 0.0, 2.0])
-    meas = []
-    nan = np.full(10, np.nan)
-    for _ in range(calls):
-        az, rad = rng.uniform(-np.pi, np.pi, 10), rng.uniform(40.0, 120.0, 10)
-        pos = np.column_stack((rad * np.cos(az), rad * np.sin(az), rng.uniform(2.0, 25.0, 10)))
-        r = np.linalg.norm(pos - source, axis=-1)
-        noisy = r + rng.normal(size=10) * channel.sigma_r0_los * r ** (channel.gamma / 2)
-        meas.append(Measurements(positions_m=pos, range_m=noisy, azimuth_rad=nan, elevation_rad=nan, los=np.ones(10, dtype=bool)))
-    for _ in range(2):
-        for n in (0, cells):
-            config = EstimatorConfig(bounds_min_m=(-1000.0, -1000.0, 0.0), bounds_max_m=(1000.0, 1000.0, 30.0), range_memory_cells=n)
-            state = initial_state((), config)
-            times = []
-            for m in meas:
-                t0 = time.perf_counter()
-                state = update(state, m, channel, config)
-                times.append(time.perf_counter() - t0)
-            every = config.recheck_every
-            print(
-                f"batch ()        ranging, range_memory_cells={n:<4d} {calls} calls: median {1e3 * statistics.median(times):7.3f} ms, "
-                f"re-check calls {1e3 * statistics.median(times[every - 1 :: every]):7.3f} ms, total {sum(times):6.2f} s"
-            )
+                initial = est.update(initial, m, channel, config)
+            t_first = _median_ms(est, first, meas, channel, config, max(repeat // 5, 3))
+            t_warm = _median_ms(est, initial, meas, channel, config, repeat)
+            print(f"{name:15s} batch {batch!s:9s} {cname:15s} steady {t_warm:8.3f} ms   first call {t_first:8.3f} ms")
 
 
 if __name__ == "__main__":

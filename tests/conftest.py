@@ -14,11 +14,12 @@ from tests.support.wait import wait_for
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Load the compiled planning kernels once, before any worker starts (the first run after a
-    clean clone compiles them into numba's on-disk cache): the workers and every planner process
-    a test starts then load them instead of each compiling them at its first step."""
+    """Load the compiled planning and estimator kernels once, before any worker starts (the first
+    run after a clean clone compiles them into numba's on-disk cache): the workers and every
+    planner process a test starts then load them instead of each compiling them."""
     if not hasattr(config, "workerinput"):  # the controller, or a run without workers
         import planner.node.warm  # noqa: F401
+        import planner.node.warm_estimator  # noqa: F401
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:

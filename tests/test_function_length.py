@@ -17,8 +17,6 @@ PENDING: frozenset[str] = frozenset(
     {
         "planner/agent.py:plan",
         "planner/control.py:control_step",
-        "planner/estimator/update.py:update",
-        "planner/estimator/memory.py:insert",
     }
 )
 

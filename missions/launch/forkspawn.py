@@ -69,6 +69,7 @@ PRELOAD: tuple[str, ...] = (
     "comms.session",
     "planner.node",
     "planner.node.warm",  # loads (or, once after an install, compiles) the planning kernels before the fork
+    "planner.node.warm_estimator",  # the same for the estimator kernels
 )
 
 #: Environment variable of a launcher's child: the file descriptor of the read end of the

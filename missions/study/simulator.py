@@ -340,7 +340,7 @@ class _Simulation:
         if self.faults is not None:
             late = self.faults.late_steps
             meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
-        self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components)
+        self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components, overwrite=True)
         self.estimates[k] = self.state.estimate_m
         self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
         self.observable[k] = self.state.observable

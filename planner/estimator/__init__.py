@@ -20,6 +20,7 @@ Public API
 ``initial_state(batch_shape, config) -> EstimatorState``
 ``update(state, measurements, channel, config) -> EstimatorState``  (pure)
 ``empty_measurements(batch_shape, rows) -> Measurements``  (all NaN)
+``warm_up(config)``  (load, or compile, the kernels before a real-time loop)
 
 Measurement model (paper eqs. 3-5), drone at p, source at p0, r = p0 - p:
 
@@ -76,6 +77,9 @@ Every batch element runs its own number of LM iterations (``iterations``, or
 computes what the same records give with batch shape () (the simulator, batch (trials,
 drones), and a planner node, batch (), agree).
 
+The arithmetic is compiled (numba; :mod:`planner.estimator.kernels`, imported on the first
+update, cached on disk): one call updates every batch element in one compiled loop.
+
 Per-call cost is O(batch × (window_rows + M)), independent of the number of calls. No NaN is
 returned: the estimate is finite everywhere (the origin, or the last value, until the element
 is initialised), and ``observable`` says when it can be trusted.
@@ -84,6 +88,6 @@ is initialised), and ``observable`` says when it can be trusted.
 from __future__ import annotations
 
 from planner.estimator.state import EstimatorConfig, EstimatorState, Measurements, empty_measurements, initial_state
-from planner.estimator.update import update
+from planner.estimator.update import update, warm_up
 
-__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update"]
+__all__ = ["EstimatorConfig", "EstimatorState", "Measurements", "empty_measurements", "initial_state", "update", "warm_up"]

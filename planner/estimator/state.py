@@ -7,13 +7,15 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from types import MappingProxyType
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from planner.estimator.memory import RangeMemory, empty_memory
+from planner.estimator import layout as L
+from planner.estimator.memory import RangeMemory, pack_memory
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -251,6 +253,50 @@ class EstimatorConfig:
         """Project estimates (..., 3) into the search box."""
         return np.minimum(np.maximum(x, self.bounds_min_m), self.bounds_max_m)
 
+    @cached_property
+    def kernel_parameters(self) -> FloatArray:
+        """This configuration as the compiled kernels' parameter vector (read-only;
+        :mod:`planner.estimator.layout`: the ``P_*`` entries; None is NaN; the channel's four
+        entries are 0, the update fills them)."""
+        p = np.zeros(L.NP)
+        nan = math.nan
+        values = {
+            L.P_WINDOW: self.window_rows,
+            L.P_LAMBDA: self.forgetting,
+            L.P_HUBER: self.huber_k,
+            L.P_TUKEY: self.loss == "tukey",
+            L.P_TUKEY_C: self.tukey_c,
+            L.P_GATE: nan if self.gate_sigma is None else self.gate_sigma,
+            L.P_GATE_FRAC: self.gate_max_fraction,
+            L.P_ITER: self.iterations,
+            L.P_INIT_ITER: self.init_iterations,
+            L.P_SUSP_SIGMA: self.suspect_sigma,
+            L.P_SUSP_FRAC: self.suspect_fraction,
+            L.P_SUSP_DEFL: self.suspect_deflation,
+            L.P_RECHECK_THR: self.recheck_threshold,
+            L.P_RECHECK_TRUST: self.recheck_trust,
+            L.P_RWINDOW: self.recheck_window_rows,
+            L.P_CELLS: self.range_memory_cells,
+            L.P_RADIUS: self.range_memory_radius,
+            L.P_LL_DROP: self.recheck_likelihood_drop,
+            L.P_CONS_THR: nan if self.consistency_threshold is None else self.consistency_threshold,
+            L.P_CONS_LAMBDA: self.consistency_forgetting,
+            L.P_LM_DAMP: self.lm_damping,
+            L.P_NLOS_BW: self.nlos_bearing_weight,
+            L.P_MIN_RCOND: self.min_rcond,
+            L.P_PL_RCOND: self.pl_rcond,
+            L.P_INIT_D: self.init_distance_m,
+            L.P_INIT_REL: nan if self.init_max_relative_sigma is None else self.init_max_relative_sigma,
+            L.P_MIRROR_BELOW: self.mirror == "below",
+            L.P_ML: self.range_cost == "ml",
+        }
+        for index, value in values.items():
+            p[index] = float(value)
+        p[L.P_LO : L.P_LO + 3] = self.bounds_min_m
+        p[L.P_HI : L.P_HI + 3] = self.bounds_max_m
+        p.flags.writeable = False
+        return p
+
 
 @dataclass(frozen=True)
 class EstimatorState:
@@ -321,7 +367,126 @@ class EstimatorState:
     @property
     def batch_shape(self) -> tuple[int, ...]:
         """Leading (batch) shape."""
-        return tuple(self.estimate_m.shape[:-1])
+        packed = self.__dict__.get("_packed")
+        return packed.batch_shape if packed is not None else tuple(self.estimate_m.shape[:-1])
+
+    def __getattr__(self, name: str) -> Any:
+        """A field of a state made by :func:`planner.estimator.update` or
+        :func:`initial_state`, which hold the packed arrays of the compiled kernels
+        (:class:`Packed`): the field is made (a view where it can be) on first use."""
+        packed = self.__dict__.get("_packed")
+        if packed is None or name not in _FIELD_NAMES:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        value = packed.field(name)
+        object.__setattr__(self, name, value)
+        return value
+
+    @staticmethod
+    def of_packed(packed: Packed, calls: int) -> EstimatorState:
+        """The state whose arrays are ``packed`` (its fields made on first use)."""
+        state = object.__new__(EstimatorState)
+        object.__setattr__(state, "_packed", packed)
+        object.__setattr__(state, "calls", int(calls))
+        return state
+
+    def packed(self) -> Packed:
+        """The state as the compiled kernels take it (packed from the fields where the state
+        was built from them, e.g. by ``dataclasses.replace``)."""
+        packed = self.__dict__.get("_packed")
+        return packed if packed is not None else Packed.of(self)
+
+
+#: The fields made on first use by :meth:`EstimatorState.__getattr__`.
+_FIELD_NAMES: frozenset[str] = frozenset(EstimatorState.__dataclass_fields__) - {"calls"}
+
+#: Fields stored in ``Packed.fs``: offset and shape per element.
+_FS_FIELDS: dict[str, tuple[int, tuple[int, ...]]] = {
+    "estimate_m": (L.F_EST, (3,)),
+    "information": (L.F_INFO, (3, 3)),
+    "prior_information": (L.F_PINFO, (3, 3)),
+    "prior_fisher": (L.F_PFISH, (3, 3)),
+    "prior_vector": (L.F_PVEC, (3,)),
+    "pl_matrix": (L.F_PLA, (4, 4)),
+    "pl_vector": (L.F_PLB, (4,)),
+    "pl_dropped_matrix": (L.F_DRA, (4, 4)),
+    "pl_dropped_vector": (L.F_DRB, (4,)),
+    "pl_range_matrix": (L.F_PRA, (4, 4)),
+    "pl_range_vector": (L.F_PRB, (4,)),
+    "score_matrix": (L.F_SH, (3, 3)),
+    "score_vector": (L.F_SV, (3,)),
+    "consistency": (L.F_CONS, ()),
+}
+
+#: Flags stored in ``Packed.ist``: column.
+_FLAG_FIELDS: dict[str, int] = {"observable": L.I_OBS, "initialised": L.I_INIT, "angles_used": L.I_ANG, "suspect": L.I_SUSP}
+
+
+@dataclass(frozen=True)
+class Packed:
+    """An estimator state as the compiled kernels take it (:mod:`planner.estimator.layout`):
+    ``fs`` (E, NF), ``ist`` (E, NI) int64, ``rwin`` (E, R, NRW), ``win`` (E, W, NW + X),
+    ``mem`` (E, NM, C), E the flattened ``batch_shape``; ``extra_names`` the X extension values
+    the raw window carries (:attr:`Measurements.extra_values`), in order."""
+
+    fs: FloatArray
+    ist: NDArray[np.int64]
+    rwin: FloatArray
+    win: FloatArray
+    mem: FloatArray
+    batch_shape: tuple[int, ...]
+    extra_names: tuple[str, ...] = ()
+
+    def field(self, name: str) -> Any:
+        """The :class:`EstimatorState` field ``name``, with the batch shape (a view of these
+        arrays, except the flags, the range window's absent bearings and the LOS flags)."""
+        b = self.batch_shape
+        if name in _FS_FIELDS:
+            offset, shape = _FS_FIELDS[name]
+            size = int(np.prod(shape, dtype=np.int64))
+            return self.fs[:, offset : offset + size].reshape(b + shape)
+        if name in _FLAG_FIELDS:
+            return self.ist[:, _FLAG_FIELDS[name]].reshape(b).astype(bool)
+        if name == "measurement_count":
+            return self.ist[:, L.I_COUNT].reshape(b)
+        if name == "range_memory":
+            return RangeMemory.of_packed(self.mem, b)
+        rw, w = self.rwin.reshape(b + self.rwin.shape[1:]), self.win.reshape(b + self.win.shape[1:])
+        if name == "range_window":
+            nan = np.full(rw.shape[:-1], np.nan)
+            return Measurements(rw[..., L.RW_X : L.RW_X + 3], rw[..., L.RW_R], nan, nan.copy(), rw[..., L.RW_LOS] != 0.0)
+        if name == "range_window_weight":
+            return rw[..., L.RW_W]
+        if name == "window":
+            extra = MappingProxyType({n: w[..., L.NW + j] for j, n in enumerate(self.extra_names)})
+            return Measurements(w[..., L.W_X : L.W_X + 3], w[..., L.W_R], w[..., L.W_AZ], w[..., L.W_EL], w[..., L.W_LOS] != 0.0, extra)
+        if name == "window_weight":
+            return w[..., L.W_W]
+        raise AttributeError(name)
+
+    @staticmethod
+    def of(state: EstimatorState) -> Packed:
+        """The packed arrays of a state built from its fields."""
+        b = state.batch_shape
+        E = int(np.prod(b, dtype=np.int64))
+        fs = np.empty((E, L.NF))
+        for name, (offset, shape) in _FS_FIELDS.items():
+            size = int(np.prod(shape, dtype=np.int64))
+            fs[:, offset : offset + size] = np.reshape(getattr(state, name), (E, size))
+        ist = np.empty((E, L.NI), dtype=np.int64)
+        for name, col in _FLAG_FIELDS.items():
+            ist[:, col] = np.reshape(getattr(state, name), E)
+        ist[:, L.I_COUNT] = np.reshape(state.measurement_count, E)
+        rw = state.range_window
+        R = np.shape(rw.range_m)[-1]
+        rwin = np.concatenate(
+            (np.reshape(rw.positions_m, (E, R, 3)), *(np.reshape(a, (E, R, 1)) for a in (rw.range_m, rw.los, state.range_window_weight))), axis=-1
+        )
+        w = state.window
+        W = np.shape(w.range_m)[-1]
+        names = tuple(w.extra_values)
+        cols = (w.range_m, w.azimuth_rad, w.elevation_rad, w.los, state.window_weight, *(w.extra_values[n] for n in names))
+        win = np.concatenate((np.reshape(w.positions_m, (E, W, 3)), *(np.reshape(np.asarray(a, dtype=float), (E, W, 1)) for a in cols)), axis=-1)
+        return Packed(fs, ist, np.asarray(rwin, dtype=np.float64), win, pack_memory(state.range_memory), b, names)
 
 
 def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | None = None) -> EstimatorState:
@@ -332,40 +497,28 @@ def initial_state(batch_shape: tuple[int, ...] = (), config: EstimatorConfig | N
         config: the configuration (for the window size); defaults to ``EstimatorConfig()``.
 
     Returns:
-        An :class:`EstimatorState` with ``estimate_m`` at the origin, not observable.
+        An :class:`EstimatorState` with ``estimate_m`` at the origin, not observable; its
+        windows' rows empty (NaN, LOS True), its memory's cells empty (σ_r0 1 m).
     """
     config = EstimatorConfig() if config is None else config
     b = tuple(int(n) for n in batch_shape)
-    return EstimatorState(
-        estimate_m=np.zeros(b + (3,)),
-        information=np.zeros(b + (3, 3)),
-        observable=np.zeros(b, dtype=bool),
-        initialised=np.zeros(b, dtype=bool),
-        prior_information=np.zeros(b + (3, 3)),
-        prior_fisher=np.zeros(b + (3, 3)),
-        prior_vector=np.zeros(b + (3,)),
-        pl_matrix=np.zeros(b + (4, 4)),
-        pl_vector=np.zeros(b + (4,)),
-        pl_dropped_matrix=np.zeros(b + (4, 4)),
-        pl_dropped_vector=np.zeros(b + (4,)),
-        pl_range_matrix=np.zeros(b + (4, 4)),
-        pl_range_vector=np.zeros(b + (4,)),
-        range_window=empty_measurements(b, config.recheck_window_rows),
-        range_window_weight=np.zeros(b + (config.recheck_window_rows,)),
-        range_memory=empty_memory(b, config.range_memory_cells),
-        angles_used=np.zeros(b, dtype=bool),
-        window=empty_measurements(b, config.window_rows),
-        window_weight=np.zeros(b + (config.window_rows,)),
-        measurement_count=np.zeros(b, dtype=np.int64),
-        suspect=np.zeros(b, dtype=bool),
-        score_matrix=np.zeros(b + (3, 3)),
-        score_vector=np.zeros(b + (3,)),
-        consistency=np.zeros(b),
-    )
+    E = int(np.prod(b, dtype=np.int64))
+    rwin = np.full((E, config.recheck_window_rows, L.NRW), np.nan)
+    rwin[..., L.RW_LOS], rwin[..., L.RW_W] = 1.0, 0.0
+    win = np.full((E, config.window_rows, L.NW), np.nan)
+    win[..., L.W_LOS], win[..., L.W_W] = 1.0, 0.0
+    mem = np.zeros((E, L.NM, config.range_memory_cells))
+    mem[:, L.M_S0] = mem[:, L.M_S0SQ] = 1.0
+    return EstimatorState.of_packed(Packed(np.zeros((E, L.NF)), np.zeros((E, L.NI), dtype=np.int64), rwin, win, mem, b), 0)
 
 
 # --------------------------------------------------------------------------- update
 def _check(measurements: Measurements, batch_shape: tuple[int, ...]) -> Measurements:
+    """``measurements`` as float arrays (bool LOS flags), checked against the batch shape.
+
+    Raises:
+        ValueError: a field's shape or dtype does not match (the message names the field).
+    """
     p = np.asarray(measurements.positions_m, dtype=float)
     if p.ndim < 2 or p.shape[-1] != 3 or p.shape[:-2] != batch_shape:
         raise ValueError(f"Measurements.positions_m: expected shape {batch_shape + ('M', 3)}, found {p.shape}")
@@ -386,49 +539,3 @@ def _check(measurements: Measurements, batch_shape: tuple[int, ...]) -> Measurem
             raise ValueError(f"Measurements.extra_values[{name!r}]: expected shape {rows}, found {arr.shape}")
         extra[name] = arr
     return Measurements(p, fields["range_m"], fields["azimuth_rad"], fields["elevation_rad"], los, MappingProxyType(extra))
-
-
-def _concat(a: Measurements, b: Measurements) -> Measurements:
-    names = list(dict.fromkeys([*a.extra_values, *b.extra_values]))
-
-    def value(m: Measurements, name: str) -> FloatArray:
-        return m.extra_values[name] if name in m.extra_values else np.full(np.shape(m.range_m), np.nan)
-
-    return Measurements(
-        np.concatenate((a.positions_m, b.positions_m), axis=-2),
-        np.concatenate((a.range_m, b.range_m), axis=-1),
-        np.concatenate((a.azimuth_rad, b.azimuth_rad), axis=-1),
-        np.concatenate((a.elevation_rad, b.elevation_rad), axis=-1),
-        np.concatenate((a.los, b.los), axis=-1),
-        MappingProxyType({name: np.concatenate((value(a, name), value(b, name)), axis=-1) for name in names}),
-    )
-
-
-def _take(m: Measurements, idx: NDArray[np.intp]) -> Measurements:
-    return Measurements(
-        np.take_along_axis(m.positions_m, idx[..., None], axis=-2),
-        np.take_along_axis(m.range_m, idx, axis=-1),
-        np.take_along_axis(m.azimuth_rad, idx, axis=-1),
-        np.take_along_axis(m.elevation_rad, idx, axis=-1),
-        np.take_along_axis(m.los, idx, axis=-1),
-        MappingProxyType({name: np.take_along_axis(v, idx, axis=-1) for name, v in m.extra_values.items()}),
-    )
-
-
-def _rows_of(m: Measurements, sl: slice) -> Measurements:
-    """The rows ``sl`` of ``m``."""
-    return Measurements(
-        m.positions_m[..., sl, :],
-        m.range_m[..., sl],
-        m.azimuth_rad[..., sl],
-        m.elevation_rad[..., sl],
-        m.los[..., sl],
-        MappingProxyType({name: v[..., sl] for name, v in m.extra_values.items()}),
-    )
-
-
-def _scatter(a: NDArray, b: NDArray, sel: BoolArray) -> NDArray:
-    """A copy of ``a`` with ``a[sel] = b``."""
-    out = np.array(a, copy=True)
-    out[sel] = b
-    return out

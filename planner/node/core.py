@@ -94,6 +94,7 @@ class StepCore:
         self.count = config.drone_count
         self.ctrl_rng = control_rng(config.seed, 0, self.index)
         self.state = est.initial_state((), self.planner.estimator)
+        est.warm_up(self.planner.estimator)  # the compiled estimator loaded before the first step
         #: Per drone, the newest step fed to the estimator.
         self.used_steps = np.full(self.count, -1, dtype=np.int64)
         #: What this drone carries from one planning step to the next (its last displacement, own

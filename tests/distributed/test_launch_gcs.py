@@ -14,6 +14,7 @@ one: the swarm flies on): system 2 answers MAVProxy, and only vehicle 2's .tlog 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -111,4 +112,8 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
     assert asked and acks == {2: 1}, acks
     counts = {i: commands_in(out / "tlogs" / f"vehicle_{i}.tlog", MAV_CMD_REQUEST_MESSAGE) for i in (1, 2, 3)}
     assert counts == {1: 0, 2: 1, 3: 0}, counts
+    # Every planner flew every step (none late for step 0): the results are defined.
+    summary = json.loads((out / "summary.json").read_text())["runs"][0]
+    assert summary["missing_drone_steps"] == 0, summary
+    assert summary["final_peb_mean_m"] is not None and summary["final_estimate_error_median_m"] is not None, summary
     assert not processes_mentioning(str(out))
