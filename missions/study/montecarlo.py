@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -27,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 
 from missions.format.loader import load_mission
-from missions.study.executors import MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
+from missions.study.executors import MAX_CHUNKS, MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
 from missions.study.results import PENALTY_REFERENCE, spec_name
 from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
 from planner.params import Criterion
@@ -108,6 +108,7 @@ def run_study(
     workers: int = 1,
     executor: ChunkExecutor | None = None,
     chunk_trials: int = MIN_CHUNK_TRIALS,
+    max_chunks: int = MAX_CHUNKS,
     progress: Callable[[int], object] | None = None,
     watch: Watch | None = None,
     warn: Callable[[str], None] | None = None,
@@ -125,8 +126,9 @@ def run_study(
         workers: processes on this machine (:func:`missions.study.executors.local_executor`)
             when no ``executor`` is given.
         executor: where the chunks run (:class:`missions.study.executors.ChunkExecutor`).
-        chunk_trials: the fewest trials in a chunk (:func:`missions.study.executors.chunk_bounds`);
-            with injected faults it sets the batches, and so the rounding, of a run's trials.
+        chunk_trials, max_chunks: the fewest trials in a chunk and the most chunks of a run
+            (:func:`missions.study.executors.chunk_bounds`); with injected faults they set the
+            batches, and so the rounding, of a run's trials.
         progress: called with the number of trial-steps just done (all runs and baselines:
             ``sum(trials × steps)`` in all, see :func:`study_size`).
         watch: the live view of each run's first trial (not of the baselines).
@@ -135,36 +137,100 @@ def run_study(
     Returns:
         The :class:`Study`: the results, the same whatever the executor and number of workers.
     """
-    known = {i: known_baseline(baselines, s, oracle_estimate, warn) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
-    clean = [dataclasses.replace(specs[i], mission=without_faults(specs[i].mission)) for i, ref in known.items() if ref is None]
-    runs = [*specs, *clean]
-    chunks: list[Chunk] = []
-    owner: list[int] = []
-    for r, spec in enumerate(runs):
-        for first, count in chunk_bounds(spec.trials, chunk_trials):
-            part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
-            chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and r < len(specs) else None))
-            owner.append(r)
-    parts: list[list[SimulationResult]] = [[] for _ in runs]
-    merged: list[SimulationResult | None] = [None] * len(runs)
-    for r, result in zip(owner, (executor or local_executor(workers)).map(chunks, progress)):
-        parts[r].append(result)
-        if sum(p.spec.trials for p in parts[r]) == runs[r].trials:
-            merged[r] = merge_chunks(runs[r], parts[r])
-            parts[r] = []
-    done = [m for m in merged if m is not None]
-    if len(done) != len(runs):
-        raise RuntimeError(f"run_study: the executor returned {len(done)} of {len(runs)} runs")
-    results, simulated = done[: len(specs)], iter(done[len(specs) :])
-    penalties: list[dict[str, float | None] | None] = [
-        fault_penalty(r.spec.mission, r, next(simulated) if known[i] is None else known[i]) if i in known else None for i, r in enumerate(results)
-    ]
-    extras: list[dict[str, Any] | None] = [None] * len(results)
+    results: list[SimulationResult | None] = [None] * len(specs)
+    penalties: list[dict[str, float | None] | None] = [None] * len(specs)
+    for done in iter_study(
+        specs,
+        oracle_estimate=oracle_estimate,
+        baselines=baselines,
+        workers=workers,
+        executor=executor,
+        chunk_trials=chunk_trials,
+        max_chunks=max_chunks,
+        progress=progress,
+        watch=watch,
+        warn=warn,
+    ):
+        results[done.index], penalties[done.index] = done.result, done.penalty
+    finished = [r for r in results if r is not None]
+    if len(finished) != len(specs):
+        raise RuntimeError(f"run_study: the executor returned {len(finished)} of {len(specs)} runs")
+    extras: list[dict[str, Any] | None] = [None] * len(finished)
     if optimum:
         from missions.study.optimum import run_optimum_summary
 
-        extras = [run_optimum_summary(r) for r in results]
-    return Study(results, penalties, extras)
+        extras = [run_optimum_summary(r) for r in finished]
+    return Study(finished, penalties, extras)
+
+
+@dataclass(frozen=True)
+class RunDone:
+    """One run of a study, as :func:`iter_study` yields it.
+
+    Attributes:
+        index: the run's place in the specs.
+        result: its :class:`SimulationResult` (all its trials, merged).
+        penalty: with injected faults, its PEB penalty against the same run without them
+            (:func:`missions.study.simulator.fault_penalty`); else None.
+    """
+
+    index: int
+    result: SimulationResult
+    penalty: dict[str, float | None] | None
+
+
+def iter_study(
+    specs: Sequence[RunSpec],
+    *,
+    oracle_estimate: bool = False,
+    baselines: Path | None = None,
+    workers: int = 1,
+    executor: ChunkExecutor | None = None,
+    chunk_trials: int = MIN_CHUNK_TRIALS,
+    max_chunks: int = MAX_CHUNKS,
+    progress: Callable[[int], object] | None = None,
+    watch: Watch | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> Iterator[RunDone]:
+    """:func:`run_study`'s runs one at a time, each as soon as its chunks (and, with injected
+    faults, its fault-free baseline's) are done, in the order of ``specs``: a caller that
+    writes each run away holds one run in memory, not the study (``fimnav sweep``). The chunks
+    of a run's baseline follow the run's own on the executor. Arguments as :func:`run_study`;
+    leaving the iteration early stops the executor's work."""
+    known = {i: known_baseline(baselines, s, oracle_estimate, warn) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
+    runs: list[RunSpec] = []
+    #: for each entry of ``runs``: the spec it is (index), or the baseline of which spec (−1 − index)
+    role: list[int] = []
+    for i, spec in enumerate(specs):
+        runs.append(spec)
+        role.append(i)
+        if i in known and known[i] is None:
+            runs.append(dataclasses.replace(spec, mission=without_faults(spec.mission)))
+            role.append(-1 - i)
+    chunks: list[Chunk] = []
+    owner: list[int] = []
+    for r, spec in enumerate(runs):
+        for first, count in chunk_bounds(spec.trials, chunk_trials, max_chunks):
+            part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
+            chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and role[r] >= 0 else None))
+            owner.append(r)
+    parts: list[list[SimulationResult]] = [[] for _ in runs]
+    waiting: dict[int, SimulationResult] = {}  # a run with faults whose baseline is still running
+    for r, result in zip(owner, (executor or local_executor(workers)).map(chunks, progress)):
+        parts[r].append(result)
+        if sum(p.spec.trials for p in parts[r]) < runs[r].trials:
+            continue
+        merged = merge_chunks(runs[r], parts[r])
+        parts[r] = []
+        i = role[r]
+        if i >= 0 and i in known and known[i] is None:
+            waiting[i] = merged
+        elif i >= 0:
+            reference = known.get(i)
+            yield RunDone(i, merged, fault_penalty(merged.spec.mission, merged, reference) if reference is not None else None)
+        else:
+            run = waiting.pop(-1 - i)
+            yield RunDone(-1 - i, run, fault_penalty(run.spec.mission, run, merged))
 
 
 def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False) -> int:
