@@ -191,13 +191,17 @@ def iter_study(
     progress: Callable[[int], object] | None = None,
     watch: Watch | None = None,
     warn: Callable[[str], None] | None = None,
+    penalties: bool = True,
 ) -> Iterator[RunDone]:
     """:func:`run_study`'s runs one at a time, each as soon as its chunks (and, with injected
     faults, its fault-free baseline's) are done, in the order of ``specs``: a caller that
     writes each run away holds one run in memory, not the study (``fimnav sweep``). The chunks
     of a run's baseline follow the run's own on the executor. Arguments as :func:`run_study`;
-    leaving the iteration early stops the executor's work."""
-    known = {i: known_baseline(baselines, s, oracle_estimate, warn) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
+    ``penalties=False``: no baseline is simulated or read, every penalty is None (then
+    :func:`study_size` with ``penalties=False`` is the progress total). Leaving the iteration
+    early stops the executor's work."""
+    faulty = [i for i, s in enumerate(specs) if s.mission.comms.faults.enabled] if penalties else []
+    known = {i: known_baseline(baselines, specs[i], oracle_estimate, warn) for i in faulty}
     runs: list[RunSpec] = []
     #: for each entry of ``runs``: the spec it is (index), or the baseline of which spec (−1 − index)
     role: list[int] = []
@@ -233,13 +237,14 @@ def iter_study(
             yield RunDone(-1 - i, run, fault_penalty(run.spec.mission, run, merged))
 
 
-def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False) -> int:
+def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False, penalties: bool = True) -> int:
     """Trial-steps :func:`run_study` reports through ``progress`` for ``specs``: every run's,
-    and the fault-free baseline's of each run with faults that ``baselines`` does not hold."""
+    and (with ``penalties``) the fault-free baseline's of each run with faults that
+    ``baselines`` does not hold."""
     total = 0
     for spec in specs:
         total += spec.trials * spec.steps
-        if spec.mission.comms.faults.enabled and known_baseline(baselines, spec, oracle_estimate, None) is None:
+        if penalties and spec.mission.comms.faults.enabled and known_baseline(baselines, spec, oracle_estimate, None) is None:
             total += spec.trials * spec.steps
     return total
 
