@@ -34,7 +34,9 @@ def register(subparsers: Any) -> None:
         help="a mission key and its values, read as --set reads a value (repeatable: the grid of every combination; "
         "values holding commas in brackets, e.g. [0,150,8],[0,200,8], are kept whole)",
     )
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value in every cell (repeatable)")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override a mission value in every cell (repeatable)"
+    )
     p.add_argument("--trials", type=int, help="Monte Carlo trials M per cell (default: the mission's)")
     p.add_argument("--steps", type=int, help="steps K (default: the mission's)")
     p.add_argument("--criterion", choices=("A", "D", "both"), help="design criterion (default: the mission's)")

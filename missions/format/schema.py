@@ -233,9 +233,7 @@ class Start(_Section):
     """Initial positions: exactly one of ``positions_m`` (explicit), ``ellipse`` (the paper's)
     or ``rows`` (a formation for any number of drones)."""
 
-    model_config = ConfigDict(
-        json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}, {"required": ["rows"]}]}
-    )
+    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}, {"required": ["rows"]}]})
 
     #: The keys of which a start has exactly one. An override (``--set``) of one of them
     #: replaces the mission file's (:func:`missions.format.loader.load_mission`).

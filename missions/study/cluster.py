@@ -187,9 +187,7 @@ class DaskCluster:
         expected = environment()
         finished: queue.Queue[Any] = queue.Queue()  # futures, as they finish (done callbacks)
         self.client.subscribe_topic(topic, on_event)
-        futures = [
-            self.client.submit(run_chunk_on_worker, chunk, tag, topic, expected, key=tag, pure=False) for chunk, tag in zip(chunks, tags)
-        ]
+        futures = [self.client.submit(run_chunk_on_worker, chunk, tag, topic, expected, key=tag, pure=False) for chunk, tag in zip(chunks, tags)]
         for f in futures:
             f.add_done_callback(finished.put)
         index = {f.key: n for n, f in enumerate(futures)}
@@ -222,7 +220,7 @@ class DaskCluster:
         from distributed import KilledWorker
 
         try:
-            return future.result()  # type: ignore[no-any-return]
+            return future.result()
         except EnvironmentMismatch as exc:
             raise FimnavError(f"--cluster: {exc}: install the same fimnav and libraries on every worker") from None
         except KilledWorker as exc:

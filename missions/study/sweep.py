@@ -348,9 +348,15 @@ def run_sweep(
     if figures:
         from missions.study.sweep_figures import plot_sweep
 
+        first = plan.cells[0].specs[0]
         with writing(out):
             for vary in plan.varies:
-                plot_sweep(plan, done, vary.key, out / "figures" / f"final_peb_vs_{vary.key}.png")
+                title = (
+                    f"{first.mission.id}: final mean PEB vs {vary.key}\n{first.trials} trials × {first.steps} steps per cell, "
+                    "same seeds; band: 95 % interval over trials"
+                )
+                others = [v.key for v in plan.varies if v.key != vary.key]
+                plot_sweep(done, vary.key, vary.texts, others, title, out / "figures" / f"final_peb_vs_{vary.key}.png")
     return done
 
 

@@ -7,14 +7,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from missions.study.figures import _pyplot, _save, _set_log_axis, format_value
-
-if TYPE_CHECKING:
-    from missions.study.sweep import SweepPlan
 
 #: Line style per criterion (as the PEB figure: A solid, D dashed).
 CRITERION_STYLES = {"A": "-", "D": "--"}
@@ -28,15 +25,14 @@ def _numeric(texts: Sequence[str]) -> list[float] | None:
         return None
 
 
-def make_sweep_figure(plan: SweepPlan, done: Mapping[int, Sequence[Mapping[str, Any]]], key: str) -> Any:
-    """Final mean PEB vs the values of ``key`` (x: the values, numeric if they all are, else in
-    ``--vary`` order), a line per criterion and combination of the other keys' values, the 95 %
-    interval over trials as a band; cells not finished (or every view singular) are gaps."""
+def make_sweep_figure(done: Mapping[int, Sequence[Mapping[str, Any]]], key: str, texts: Sequence[str], others: Sequence[str], title: str) -> Any:
+    """Final mean PEB vs the values ``texts`` of ``key`` (x: the values, numeric if they all
+    are, else in ``--vary`` order), a line per criterion and combination of the ``others``
+    keys' values, the 95 % interval over trials as a band; ``done``: the sweep's rows
+    (``sweep.csv``'s, by cell); cells not finished (or every view singular) are gaps."""
     plt = _pyplot()
-    vary = next(v for v in plan.varies if v.key == key)
-    others = [v.key for v in plan.varies if v.key != key]
-    numbers = _numeric(vary.texts)
-    xs = numbers if numbers is not None else list(range(len(vary.texts)))
+    numbers = _numeric(texts)
+    xs = numbers if numbers is not None else list(range(len(texts)))
     lines: dict[tuple[str, ...], dict[str, tuple[float | None, float | None, float | None]]] = {}
     for rows in done.values():
         for r in rows:
@@ -46,9 +42,9 @@ def make_sweep_figure(plan: SweepPlan, done: Mapping[int, Sequence[Mapping[str, 
     cmap = plt.get_cmap("tab10")
     finite: list[float] = []
     for n, (label, points) in enumerate(sorted(lines.items())):
-        y = np.array([np.nan if points.get(t, (None,))[0] is None else points[t][0] for t in vary.texts], dtype=float)
-        lo = np.array([np.nan if points.get(t, (None, None))[1] is None else points[t][1] for t in vary.texts], dtype=float)
-        hi = np.array([np.nan if points.get(t, (None, None, None))[2] is None else points[t][2] for t in vary.texts], dtype=float)
+        y = np.array([np.nan if points.get(t, (None,))[0] is None else points[t][0] for t in texts], dtype=float)
+        lo = np.array([np.nan if points.get(t, (None, None))[1] is None else points[t][1] for t in texts], dtype=float)
+        hi = np.array([np.nan if points.get(t, (None, None, None))[2] is None else points[t][2] for t in texts], dtype=float)
         colour = cmap(n % 10)
         name = f"{label[0]}-optimality" + (f", {', '.join(label[1:])}" if label[1:] else "")
         ax.plot(xs, y, CRITERION_STYLES.get(label[0], "-"), marker="o", color=colour, label=name)
@@ -56,21 +52,19 @@ def make_sweep_figure(plan: SweepPlan, done: Mapping[int, Sequence[Mapping[str, 
         finite += [v for v in (*y, *lo, *hi) if np.isfinite(v) and v > 0]
     _set_log_axis(ax, min(finite, default=1.0), max(finite, default=10.0))
     if numbers is None:
-        ax.set_xticks(xs, list(vary.texts))
+        ax.set_xticks(xs, list(texts))
     else:
-        ax.set_xticks(xs, [format_value(x) if len(t) > 8 else t for x, t in zip(xs, vary.texts)])
-    first = plan.cells[0].specs[0]
+        ax.set_xticks(xs, [format_value(x) if len(t) > 8 else t for x, t in zip(xs, texts)])
     ax.set_xlabel(key)
     ax.set_ylabel("final mean PEB [m]")
-    ax.set_title(
-        f"{first.mission.id}: final mean PEB vs {key}\n{first.trials} trials × {first.steps} steps per cell, same seeds; band: 95 % interval over trials",
-        fontsize=10,
-    )
+    ax.set_title(title, fontsize=10)
     ax.grid(True, which="major", alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8, frameon=False)
     return fig
 
 
-def plot_sweep(plan: SweepPlan, done: Mapping[int, Sequence[Mapping[str, Any]]], key: str, path: Path) -> None:
+def plot_sweep(
+    done: Mapping[int, Sequence[Mapping[str, Any]]], key: str, texts: Sequence[str], others: Sequence[str], title: str, path: Path
+) -> None:
     """Save :func:`make_sweep_figure` to ``path``."""
-    _save(make_sweep_figure(plan, done, key), path, dpi=130)
+    _save(make_sweep_figure(done, key, texts, others, title), path, dpi=130)
