@@ -46,6 +46,7 @@ from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+from planner.policies import POLICIES
 from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only
@@ -67,6 +68,12 @@ if TYPE_CHECKING:
     Role = str
 else:
     Role = Literal[ROLE_NAMES]  # validated against the table; the JSON Schema's enum is ROLES
+
+#: The navigation policies (:data:`planner.policies.POLICIES`).
+if TYPE_CHECKING:
+    PolicyField = str
+else:
+    PolicyField = Literal[POLICIES]
 
 # --- scalar and vector types -------------------------------------------------------------
 # Numbers are strict: YAML ``"10"`` (a string) or ``true`` is not a number. An int is a valid
@@ -776,6 +783,11 @@ class Mission(_Section):
     steps: Int = Field(550, ge=1, le=10_000_000, description="Number of steps K.")
     trials: Int = Field(100, ge=1, le=1_000_000, description="Monte Carlo trials M.")
     criterion: Literal["A", "D"] = Field("A", description="Design criterion of eq. (6).")
+    policy: PolicyField = Field(
+        "fim",
+        description="How the drones navigate: 'fim' (the paper's planner) or a baseline ('static', 'orbit', 'random', "
+        "'centralized'; fimnav montecarlo and sweep only).",
+    )
     origin: OriginSpec = OriginSpec()
     drones: Drones
     source: Source
