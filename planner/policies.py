@@ -148,7 +148,9 @@ def policy_planner(name: str, walk_uniforms: FloatArray | None = None) -> Planne
     return functools.partial(_steered, aim=_orbit_gradient)
 
 
-def _held(config: Any, own_position: ArrayLike, previous_step: ArrayLike, view: Any, estimate: Any, perturbation_uniforms: ArrayLike, **_: Any) -> Any:
+def _held(
+    config: Any, own_position: ArrayLike, previous_step: ArrayLike, view: Any, estimate: Any, perturbation_uniforms: ArrayLike, **_: Any
+) -> Any:
     """``static``: the step of a drone that holds its position (no displacement, no constraint,
     no fallback), as :func:`planner.agent.plan` returns it."""
     from planner.agent import PlanResult
@@ -171,7 +173,9 @@ def _random_gradient(
     return -random_walk_direction(table[k]), None
 
 
-def _orbit_gradient(config: Any, position: FloatArray, estimate_m: FloatArray, keepout_m: FloatArray, index: Any, k: int) -> tuple[FloatArray, float | None]:
+def _orbit_gradient(
+    config: Any, position: FloatArray, estimate_m: FloatArray, keepout_m: FloatArray, index: Any, k: int
+) -> tuple[FloatArray, float | None]:
     """``orbit``: the displacement to the drone's slot (:func:`orbit_aim`) as minus a gradient with
     a spatial step ξ = 1 (the control law clips its length to [v_min, v_max] Δt); the first slot
     at the azimuth of the swarm's start centroid seen from the estimate."""
@@ -211,10 +215,20 @@ def _steered(
 
     p = np.asarray(own_position, dtype=float)
     batch = p.shape[:-1]
-    p_hat = np.asarray(estimate.estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), p.shape)
+    p_hat = (
+        np.asarray(estimate.estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), p.shape)
+    )
     placeholder = CostGradient(np.zeros(batch), np.zeros_like(p), np.zeros(batch, dtype=np.int8))
     status, keepout, loiter = _status_and_keepout(
-        placeholder, p, p_hat, estimate, config.limits, oracle=oracle_source is not None, own=own_ranges, loitering=loitering, last_keepout=last_keepout
+        placeholder,
+        p,
+        p_hat,
+        estimate,
+        config.limits,
+        oracle=oracle_source is not None,
+        own=own_ranges,
+        loitering=loitering,
+        last_keepout=last_keepout,
     )
     index = np.broadcast_to(np.argmax(np.asarray(view.own_mask, dtype=bool), axis=-1), batch)
     gradient, xi = aim(config, p, p_hat, np.asarray(keepout, dtype=float), index, step_index)

@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from missions.cli.study_args import add_executor_args, chunking, open_executor, positive
+from missions.cli.study_args import add_executor_args, add_policy_arg, chunking, open_executor, policies, positive
 from missions.runtime.rundir import make_results_dir
 
 if TYPE_CHECKING:
@@ -42,6 +42,7 @@ def register(subparsers: Any) -> None:
         "--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate"
     )
     p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
+    add_policy_arg(p)
     add_executor_args(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument(
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     positive("steps", args.steps)
     positive("jobs", args.jobs)
     chunks = chunking(args)
-    specs = expand_runs(args.missions, parse_overrides(args.overrides), args.criterion, args.activation, args.trials, args.steps)
+    specs = expand_runs(args.missions, parse_overrides(args.overrides), args.criterion, args.activation, args.trials, args.steps, policies(args))
     t0 = time.perf_counter()
     total = study_size(specs, args.baselines, args.oracle_estimate)
     with contextlib.ExitStack() as stack:

@@ -31,6 +31,33 @@ def add_executor_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_policy_arg(p: argparse.ArgumentParser) -> None:
+    """``--policy NAME[,NAME...]``."""
+    from planner.policies import POLICIES
+
+    p.add_argument(
+        "--policy",
+        metavar="NAME[,NAME...]",
+        help=f"navigation policies, one run each with the same seeds: {', '.join(POLICIES)}, or all "
+        "(default: the mission's, fim: the paper's planner; docs/studies.md)",
+    )
+
+
+def policies(args: argparse.Namespace) -> list[str] | None:
+    """The policies of ``--policy`` (None: each mission's); UsageError naming an unknown one."""
+    from planner.policies import POLICIES
+
+    if args.policy is None:
+        return None
+    names = list(POLICIES) if args.policy.strip() == "all" else [n.strip() for n in args.policy.split(",")]
+    for name in names:
+        if name not in POLICIES:
+            raise UsageError(f"--policy: expected policies among {', '.join(POLICIES)} (or all), found {name!r}")
+    if len(set(names)) != len(names):
+        raise UsageError(f"--policy: expected different policies, found {args.policy!r}")
+    return names
+
+
 def positive(name: str, value: int | None) -> None:
     """A ``--name`` that must be a positive integer when given (UsageError otherwise)."""
     if value is not None and value < 1:

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from missions.cli.study_args import add_executor_args, chunking, open_executor, positive
+from missions.cli.study_args import add_executor_args, add_policy_arg, chunking, open_executor, policies, positive
 
 
 def register(subparsers: Any) -> None:
@@ -47,6 +47,7 @@ def register(subparsers: Any) -> None:
         default=None,
         help="sweep directory (default: results/sweep-<mission id>-<hash of the sweep>, so the same command finds it again)",
     )
+    add_policy_arg(p)
     add_executor_args(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=run)
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         args.trials,
         args.steps,
         args.oracle_estimate,
+        policies=policies(args),
         **chunks,
     )
     out = args.out or default_out(plan)
@@ -101,11 +103,13 @@ def print_table(varies: Any, done: dict[int, list[dict[str, Any]]]) -> None:
     keys = [v.key for v in varies]
     width = [max(len(k), *(len(str(r[k])) for rows in done.values() for r in rows)) for k in keys]
     head = " ".join(f"{k:<{w}}" for k, w in zip(keys, width))
-    print(f"{head} crit {'PEB_K [m]':>10} {'95 % interval [m]':>19} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}")
+    print(f"{head} crit {'policy':<11} {'PEB_K [m]':>10} {'95 % interval [m]':>19} {'err_K [m]':>10} {'violations':>11} {'time [s]':>9}")
     for index in sorted(done):
         for r in done[index]:
             ci = "-" if r["final_peb_ci95_low_m"] is None else f"{r['final_peb_ci95_low_m']:.3g}-{r['final_peb_ci95_high_m']:.3g}"
             peb = "singular" if r["final_peb_mean_m"] is None else f"{r['final_peb_mean_m']:.3g}"
             nviol = sum(v for k, v in r.items() if k.startswith("violations_"))
             vals = " ".join(f"{r[k]!s:<{w}}" for k, w in zip(keys, width))
-            print(f"{vals} {r['criterion']:<4} {peb:>10} {ci:>19} {r['final_estimate_error_median_m']:>10.3g} {nviol:>11} {r['runtime_s']:>9.1f}")
+            print(
+                f"{vals} {r['criterion']:<4} {r['policy']:<11} {peb:>10} {ci:>19} {r['final_estimate_error_median_m']:>10.3g} {nviol:>11} {r['runtime_s']:>9.1f}"
+            )

@@ -53,9 +53,10 @@ def expand_runs(
     activation: Literal["safe", "paper", "both"] | None = None,
     trials: int | None = None,
     steps: int | None = None,
+    policies: Sequence[str] | None = None,
 ) -> list[RunSpec]:
     """The runs of a study: every mission (a file or a shipped mission's name) × activation
-    rule × criterion, in that order, with ``overrides`` (``--set``) applied.
+    rule × criterion × policy, in that order, with ``overrides`` (``--set``) applied.
 
     Args:
         missions: mission files or names (``paper/joint``).
@@ -63,6 +64,8 @@ def expand_runs(
         criterion: "A", "D", "both", or None for each mission's own.
         activation: constraint activation rule "safe", "paper", "both", or None for the mission's.
         trials, steps: M and K of every run; None: each mission's.
+        policies: navigation policies (:data:`planner.policies.POLICIES`), or None for each
+            mission's.
 
     Raises:
         UsageError: a mission or an override is invalid (one message naming it).
@@ -77,8 +80,11 @@ def expand_runs(
             mission = load_mission(path, ov)
             criteria: tuple[Criterion, ...] = ("A", "D") if criterion == "both" else (criterion or mission.criterion,)
             for crit in criteria:
-                m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
-                specs.append(RunSpec(m, crit, trials or m.trials, steps or m.steps))
+                for policy in policies or (mission.policy,):
+                    changes = {"criterion": crit, "policy": policy}
+                    same = crit == mission.criterion and policy == mission.policy
+                    m = mission if same else load_mission(path, {**ov, **changes})
+                    specs.append(RunSpec(m, crit, trials or m.trials, steps or m.steps))
     return specs
 
 
@@ -159,7 +165,8 @@ def run_study(
     if optimum:
         from missions.study.optimum import run_optimum_summary
 
-        extras = [run_optimum_summary(r) for r in finished]
+        placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
+        extras = [run_optimum_summary(r, known=placements) for r in finished]
     return Study(finished, penalties, extras)
 
 

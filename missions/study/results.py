@@ -7,6 +7,8 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
       figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.study.figures)
       figures/estimate_error.png   median source estimate error vs step, every run, log scale
       figures/trajectories_<run>.png   trial 0: 3-D and top view, obstacles, source, start/end (Fig. 2)
+      figures/policies_<run>.png   a mission run under several policies (--policy): mean PEB
+                                vs step per policy, the optimum's as a line (missions.study.comparison)
       runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
       runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
       runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
@@ -20,7 +22,7 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
                                 OUT``; missions.study.simulator.PenaltyReference)
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
-was used).
+was used, and ``_<policy>`` under a baseline policy).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None, w
         "run": run_name(result),
         "mission_id": m.id,
         "criterion": spec.criterion,
+        "policy": m.policy,
         "activation": m.constraints.activation,
         "trials": spec.trials,
         "steps": spec.steps,
@@ -237,4 +240,7 @@ def write_results(
             from missions.study.figures import write_figures  # matplotlib only when figures are wanted
 
             write_figures(results, out / "figures")
+            from missions.study.comparison import write_policy_figures
+
+            write_policy_figures(results, exs, out / "figures")
     return summaries

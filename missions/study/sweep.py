@@ -54,6 +54,7 @@ CELL_FILE = "cell.json"
 #: Columns of ``sweep.csv`` after the varied keys (one per key, named as the key).
 CSV_TAIL: tuple[str, ...] = (
     "criterion",
+    "policy",
     "activation",
     "trials",
     "steps",
@@ -192,9 +193,11 @@ def plan_sweep(
     oracle_estimate: bool = False,
     chunk_trials: int = MIN_CHUNK_TRIALS,
     max_chunks: int = MAX_CHUNKS,
+    policies: Sequence[str] | None = None,
 ) -> SweepPlan:
     """Every cell of the grid of ``varies`` over ``mission`` (with ``overrides``, ``--set``),
-    each loaded and checked before anything runs.
+    each loaded and checked before anything runs; a cell runs each criterion (``criterion``)
+    and policy (``policies``, :data:`planner.policies.POLICIES`; None: the mission's).
 
     Raises:
         UsageError: a cell's mission is invalid (the message names the key and value).
@@ -206,7 +209,7 @@ def plan_sweep(
             cell_overrides[v.key] = v.values[n]
         values = tuple((v.key, v.texts[n]) for v, n in zip(varies, combo))
         try:
-            specs = expand_runs([mission], cell_overrides, criterion, None, trials, steps)
+            specs = expand_runs([mission], cell_overrides, criterion, None, trials, steps, policies)
         except MissionError as exc:
             where = ", ".join(f"{k}={t}" for k, t in values)
             raise UsageError(f"--vary {where}: {exc}") from None
@@ -247,6 +250,7 @@ def _row(cell: Cell, summary: Mapping[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {"cell": cell.name, **dict(cell.values)}
     row |= {
         "criterion": summary["criterion"],
+        "policy": summary["policy"],
         "activation": summary["activation"],
         "trials": summary["trials"],
         "steps": summary["steps"],

@@ -28,7 +28,7 @@ def _numeric(texts: Sequence[str]) -> list[float] | None:
 def make_sweep_figure(done: Mapping[int, Sequence[Mapping[str, Any]]], key: str, texts: Sequence[str], others: Sequence[str], title: str) -> Any:
     """Final mean PEB vs the values ``texts`` of ``key`` (x: the values, numeric if they all
     are, else in ``--vary`` order), a line per criterion and combination of the ``others``
-    keys' values, the 95 % interval over trials as a band; ``done``: the sweep's rows
+    keys' values (and per policy), the 95 % interval over trials as a band; ``done``: the sweep's rows
     (``sweep.csv``'s, by cell); cells not finished (or every view singular) are gaps."""
     plt = _pyplot()
     numbers = _numeric(texts)
@@ -36,7 +36,7 @@ def make_sweep_figure(done: Mapping[int, Sequence[Mapping[str, Any]]], key: str,
     lines: dict[tuple[str, ...], dict[str, tuple[float | None, float | None, float | None]]] = {}
     for rows in done.values():
         for r in rows:
-            label = (str(r["criterion"]), *(f"{o}={r[o]}" for o in others))
+            label = (str(r["criterion"]), str(r.get("policy", "fim")), *(f"{o}={r[o]}" for o in others))
             lines.setdefault(label, {})[str(r[key])] = (r["final_peb_mean_m"], r["final_peb_ci95_low_m"], r["final_peb_ci95_high_m"])
     fig, ax = plt.subplots(figsize=(8.0, 5.2), constrained_layout=True)
     cmap = plt.get_cmap("tab10")
@@ -46,7 +46,7 @@ def make_sweep_figure(done: Mapping[int, Sequence[Mapping[str, Any]]], key: str,
         lo = np.array([np.nan if points.get(t, (None, None))[1] is None else points[t][1] for t in texts], dtype=float)
         hi = np.array([np.nan if points.get(t, (None, None, None))[2] is None else points[t][2] for t in texts], dtype=float)
         colour = cmap(n % 10)
-        name = f"{label[0]}-optimality" + (f", {', '.join(label[1:])}" if label[1:] else "")
+        name = f"{label[0]}-optimality" + ("" if label[1] == "fim" else f", {label[1]}") + (f", {', '.join(label[2:])}" if label[2:] else "")
         ax.plot(xs, y, CRITERION_STYLES.get(label[0], "-"), marker="o", color=colour, label=name)
         ax.fill_between(xs, lo, hi, color=colour, alpha=0.18, linewidth=0)
         finite += [v for v in (*y, *lo, *hi) if np.isfinite(v) and v > 0]
