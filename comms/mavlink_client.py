@@ -203,6 +203,9 @@ class VehicleLink:
         self.statustexts = self.telemetry.statustexts
         self._setpoints = SetpointEncoder(self.mavutil.mavlink, target_system, frame, mission_frame, altitude_reference)
         self._stream = SetpointStream(period_s=0.25)
+        #: A heartbeat showed the vehicle leave the guided mode since the flag was last cleared
+        #: (the setpoint stream was stopped then); the planner's take-over watch reads it.
+        self.left_guided = False
 
     @property
     def foreign_datagrams(self) -> int:
@@ -245,9 +248,20 @@ class VehicleLink:
     # -- receiving --------------------------------------------------------------------------
     def pump(self, timeout_s: float = 0.0) -> int:
         """Read every pending message (waiting up to ``timeout_s`` for the first); return how
-        many were for us. Sends our own 1 Hz heartbeat and the due setpoint as side effects."""
+        many were for us. Sends our own 1 Hz heartbeat and the due setpoint as side effects.
+
+        What has arrived is read before the due setpoint goes out: a heartbeat saying the
+        vehicle left the guided mode (a pilot's mode change) stops the stream
+        (:attr:`left_guided`) before another setpoint is sent."""
         self._heartbeat_out()
+        n = self._read(0.0)
         self._stream_out()
+        if n == 0 and timeout_s > 0:
+            n = self._read(timeout_s)
+        return n
+
+    def _read(self, timeout_s: float) -> int:
+        """Read every pending message, waiting up to ``timeout_s`` (wall s) for the first."""
         n = 0
         deadline = self.wall() + timeout_s
         while True:
@@ -266,8 +280,18 @@ class VehicleLink:
                 n += 1
 
     def _handle(self, msg: Any) -> bool:
-        """Take one parsed message into the telemetry (False: not for us)."""
-        return self.receiver.handle(msg, self.mav.signing.sig_count)
+        """Take one parsed message into the telemetry (False: not for us). A heartbeat that
+        shows the vehicle leaving the guided mode (GUIDED/OFFBOARD) ends the setpoint stream at
+        once and sets :attr:`left_guided` (docs/in-the-field.md: a pilot's mode change wins)."""
+        before = self.telemetry.custom_mode
+        mine = self.receiver.handle(msg, self.mav.signing.sig_count)
+        after = self.telemetry.custom_mode
+        if mine and before != after and after is not None:
+            guided = self.profile.guided_mode
+            if before == guided and after != guided:
+                self._stream.fn = None
+                self.left_guided = True
+        return mine
 
     def wait_for(self, predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
         """Pump messages until ``predicate()`` holds; :class:`LinkTimeout` naming ``what``."""
@@ -372,6 +396,12 @@ class VehicleLink:
         self._stream.set(fn, period_s)
         self._stream_out()
 
+    @property
+    def streaming(self) -> bool:
+        """Whether a setpoint stream is installed (:meth:`set_stream`; a heartbeat showing the
+        vehicle leave the guided mode ends it)."""
+        return self._stream.fn is not None
+
     def _stream_out(self) -> None:
         if self._stream.fn is None:
             return
@@ -450,8 +480,10 @@ class VehicleLink:
         PX4's custom modes are main_mode << 16 | sub_mode << 24, its AUTO sub-modes named AUTO.<name>)."""
         return client_mode_table(self.flavour)
 
-    def set_mode(self, name: str, timeout_s: float = MODE_CONFIRM_TIMEOUT_S) -> None:
-        """Switch flight mode by name (ArduPilot copter or PX4 names) and wait to see it."""
+    def set_mode(self, name: str, timeout_s: float = MODE_CONFIRM_TIMEOUT_S, ack_timeout_s: float = 15.0) -> None:
+        """Switch flight mode by name (ArduPilot copter or PX4 names) and wait to see it: the
+        acknowledgement within ``ack_timeout_s``, the heartbeat in the mode within
+        ``timeout_s`` (wall s)."""
         m = self.mavutil.mavlink
         profile = self.profile
         table = self._modes()
@@ -462,7 +494,9 @@ class VehicleLink:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, (custom >> 16) & 0xFF, (custom >> 24) & 0xFF]
         else:
             params = [m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom]
-        self.command(m.MAV_CMD_DO_SET_MODE, params, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom)
+        self.command(
+            m.MAV_CMD_DO_SET_MODE, params, timeout_s=ack_timeout_s, what=f"mode {name}", done_already=lambda: self.telemetry.custom_mode == custom
+        )
         if self.telemetry.custom_mode != custom:
             self._poll_heartbeat()
         self.wait_for(lambda: self.telemetry.custom_mode == custom, timeout_s, f"heartbeat in mode {name}")

@@ -21,8 +21,10 @@ from typing import Any
 
 from comms.errors import UsageError
 
-#: How long the command waits for the planner's subscription to be matched (wall s).
-MATCH_TIMEOUT_S = 5.0
+#: How long the command waits for the planner's subscription to be matched (wall s): 5 s was
+#: once too short with a real SITL at x5 and its planner loading the machine, right after the
+#: planner had been restarted.
+MATCH_TIMEOUT_S = 10.0
 
 
 def register(subparsers: Any) -> None:

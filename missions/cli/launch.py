@@ -171,8 +171,6 @@ def _check_options(args: argparse.Namespace) -> None:
     Raises:
         UsageError: naming the option and why.
     """
-    if args.realtime and args.on_failure == "restart":
-        raise UsageError("--on-failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     for name in ("speedup", "start_delay"):
         v = getattr(args, name)
         if v is not None and not (math.isfinite(v) and v > 0):

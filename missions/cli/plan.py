@@ -39,7 +39,14 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--rejoin",
         action="store_true",
-        help="lockstep: take over a vehicle in flight from a planner that died (no pre-flight; fly from the clock's next step; append to --log)",
+        help="take over a vehicle in flight from a planner that died (no take-off, no flight to the start; lockstep: fly from "
+        "the clock's next step; real time, with --start-at: from the grid's current step; append to --log)",
+    )
+    p.add_argument(
+        "--taken-over",
+        action="store_true",
+        help="start with the drone taken over, whatever its mode: command nothing until fimnav handback "
+        "(fimnav launch restarts a planner so while a pilot flies its drone)",
     )
     p.add_argument("--step-timeout", type=float, default=30.0, help="seconds to wait for a tick, a measurement or peers (default 30)")
     p.add_argument(
@@ -111,8 +118,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name.replace('_', '-')}: expected a positive number, found {v}")
     if args.stream_hz < 4:
         raise UsageError(f"--stream-hz: expected at least 4 Hz, found {args.stream_hz:g}")
-    if args.rejoin and not args.lockstep:
-        raise UsageError("--rejoin: only with --lockstep (it rejoins at the lockstep clock's next step)")
+    if args.rejoin and not args.lockstep and args.start_at is None:
+        raise UsageError("--rejoin: in real time only with --start-at (it rejoins the mission's step grid at the current step)")
     if args.signing_key is not None:
         read_signing_key(args.signing_key)  # permissions and format, before anything starts
     options = NodeOptions(
@@ -135,6 +142,6 @@ def run(args: argparse.Namespace) -> int:
         rejoin=args.rejoin,
         tlog_path=args.tlog,
     )
-    summary = PlannerNode(mission, options).run()
+    summary = PlannerNode(mission, options, taken_over=args.taken_over).run()
     print(json.dumps(summary), flush=True)
     return 0

@@ -801,6 +801,11 @@ class Mission(_Section):
     zenoh: ZenohSpec = ZenohSpec()
     vehicles: Vehicles = Vehicles()
     end_action: Literal["hold", "land", "rtl"] = Field("hold", description="What vehicles do after the last step.")
+    on_stop: Literal["hold", "land", "rtl"] = Field(
+        "hold",
+        description="What each vehicle is told when its planner stops early (Ctrl-C, SIGTERM, SIGHUP, a fatal error, the launch "
+        "stopping it): hold (LOITER / AUTO.LOITER), land or rtl; a drone a pilot flies is left alone.",
+    )
     altitude_reference: Literal["amsl", "relative"] = Field(
         "relative", description="How z maps to autopilot altitude: above the origin ('relative') or AMSL."
     )

@@ -237,10 +237,19 @@ def launch_result(
         # Steps a drone did not fly (it died): hold its last known position for the record.
         for k in range(1, K + 1):
             positions[k] = np.where(np.isnan(positions[k]), positions[k - 1], positions[k])
+    # Steps before a drone was first heard (its planner never got it flying, e.g. an external
+    # autopilot nobody answered at): no position to judge; it is placed at its start, on the
+    # ground there as far as the run knows, and its own margins are not counted.
+    unknown = np.isnan(positions).any(-1)
+    if unknown.any():
+        starts = np.asarray(m.drones.start_positions_m(), dtype=float)
+        positions = np.where(unknown[..., None], starts[None, None, :, :], positions)
     # A step no planner flew (its drone lost, or its planner dead until it rejoined) has no
     # speed or turn-rate bound to keep: its displacement is the record's gap, not a command.
     not_flown = missing[:K] | missing[1:] | taken[:K] | taken[1:]
     margins = _margins(m, positions, sources, logs, not_flown, realtime)
+    for family in margins:
+        margins[family][unknown[1:]] = np.inf
     err = np.linalg.norm(arrays.estimates - sources[:K, None, None, :], axis=-1)
     return SimulationResult(
         spec=RunSpec(m, m.criterion, 1, K),

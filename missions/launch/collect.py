@@ -40,6 +40,8 @@ class SwarmListener:
         self._planner_config = planner_config
         self.collected = Collected()
         self.ready: set[int] = set()  # real time: drones that reported ready at their start
+        #: Drone id → (step, taken over) of its newest record heard.
+        self._newest: dict[int, tuple[int, bool]] = {}
 
     def on_record(self, sample: Any) -> None:
         """Subscriber of the records."""
@@ -58,6 +60,12 @@ class SwarmListener:
         if isinstance(msg, Done) and msg.step == -1 and msg.sender == keys.uav_of(str(sample.key_expr)):
             with self.collected.lock:
                 self.ready.add(msg.sender)
+
+    def taken_over_now(self, uav: int) -> bool:
+        """Whether drone ``uav``'s newest record heard is flagged taken over (a pilot flies it)."""
+        with self.collected.lock:
+            newest = self._newest.get(uav)
+        return newest is not None and newest[1]
 
     def ready_count(self) -> int:
         """Real time: how many drones reported being at their starts."""
@@ -80,6 +88,9 @@ class SwarmListener:
         with c.lock:
             if kind == "record" and isinstance(msg, Record):
                 c.records.setdefault((msg.step, msg.sender), msg)
+                newest = self._newest.get(msg.sender)
+                if newest is None or msg.step >= newest[0]:
+                    self._newest[msg.sender] = (msg.step, bool(msg.taken_over))
             elif kind == "status" and isinstance(msg, Status):
                 c.status[(msg.step, msg.sender)] = msg
 

@@ -109,8 +109,6 @@ def _check_options(mission: Mission, vehicles_per_process: int, on_failure: str,
         raise LaunchError(f"vehicles per process: expected a positive integer, found {vehicles_per_process}")
     if on_failure not in ON_FAILURE:
         raise LaunchError(f"on failure: expected one of {', '.join(ON_FAILURE)}, found {on_failure!r}")
-    if realtime and on_failure == "restart":
-        raise LaunchError("on failure restart: only in lockstep (a real-time planner restarted mid-flight would fly its pre-flight again)")
     if not (np.isfinite(speedup) and speedup > 0):
         raise LaunchError(f"speed-up: expected a positive number, found {speedup!r}")
     if mission.comms.faults.partition is not None:
@@ -218,7 +216,7 @@ class Launcher:
         self._stop = threading.Event()
         self._signal: int | None = None  # the signal that asked the run to stop
         self.listener = SwarmListener(mission, self._planner_config)
-        self.processes = ChildSupervisor(out, python, on_failure, fork_server, self._stop)
+        self.processes = ChildSupervisor(out, python, on_failure, fork_server, self._stop, taken_over=self.listener.taken_over_now)
 
     @property
     def collected(self) -> Collected:
@@ -346,6 +344,7 @@ class Launcher:
         timing = ["--speedup", f"{self.speedup:g}"] if self.realtime else ["--lockstep"]
         # Drones flown on an external autopilot (a mixed fleet, real time) get no vehicle.
         external = {i for i in range(1, n + 1) if m.vehicles.for_drone(i - 1).connection is not None} if self.realtime else set()
+        self.processes.external = {i: str(m.vehicles.for_drone(i - 1).connection) for i in sorted(external)}
         # Vehicles bind port 0 and report the port the OS gave them (no race with the
         # ephemeral ports of a hundred other sockets); planners start once they are known.
         vehicle_children = self._spawn_vehicles(mission_file, hub, timing, external)

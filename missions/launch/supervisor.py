@@ -24,7 +24,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,7 +41,8 @@ STOP_GRACE_S: float = 5.0
 
 #: What the launcher does when a vehicle or a planner fails mid-mission (``--on-failure``):
 #: ``abort`` stops the run (exit 1); ``continue`` flies on without that drone; ``restart`` also
-#: restarts a failed planner (whose vehicle is alive) with ``fimnav plan --rejoin``.
+#: restarts a failed planner (whose vehicle is alive, or flown by an external autopilot) with
+#: ``fimnav plan --rejoin`` (lockstep: at the clock's next step; real time: on the step grid).
 ON_FAILURE = ("continue", "abort", "restart")
 
 #: Restarts of one drone's planner before it is given up.
@@ -128,9 +129,19 @@ class ChildSupervisor:
         fork_server: start the planners from a :class:`missions.launch.forkspawn.ForkServer` (only
             with this very interpreter).
         stop: set when the run is asked to stop (a signal); waits end early on it.
+        taken_over: whether drone i's last record heard was flagged taken over (a pilot flies
+            it): a planner restarted then keeps the take-over in force (``--taken-over``).
     """
 
-    def __init__(self, out: Path, python: str, on_failure: str, fork_server: bool, stop: threading.Event) -> None:
+    def __init__(
+        self,
+        out: Path,
+        python: str,
+        on_failure: str,
+        fork_server: bool,
+        stop: threading.Event,
+        taken_over: Callable[[int], bool] | None = None,
+    ) -> None:
         self.out = out
         # Children get absolute paths: they run in the logs directory (child_environment).
         self._abs_out = out.absolute()
@@ -143,6 +154,9 @@ class ChildSupervisor:
         self.handled: set[int] = set()  # pids of failed children already dealt with
         self.planner_args: dict[int, list[str]] = {}
         self.vehicle_child: dict[int, Child] = {}
+        #: Drones flown by an external autopilot: drone id → its connection (no vehicle child).
+        self.external: dict[int, str] = {}
+        self._taken_over = taken_over
         self._restarts: dict[int, int] = {}
         self.step = -1  # the clock's current step (-1: pre-flight)
         self.flying = False  # the mission has started (failures are survivable from then on)
@@ -202,14 +216,30 @@ class ChildSupervisor:
         return child
 
     def stop_children(self) -> None:
-        """SIGTERM every child's process group, then SIGKILL what is left after the grace;
-        then end the fork server, if any, and wait for it."""
+        """Stop the planners first (SIGTERM: each tells its vehicle the mission's ``on_stop``
+        and waits for it to confirm, docs/in-the-field.md), then every other child (the
+        vehicles, payloads): SIGTERM to each process group, SIGKILL to what is left after the
+        grace; then end the fork server, if any, and wait for it."""
+        planners = [c for c in self.children if c.name.startswith("planner")]
+        others = [c for c in self.children if not c.name.startswith("planner")]
+        for group in (planners, others):
+            self._stop_group(group)
+        # Anything left in a group (a grandchild) goes too.
         for c in self.children:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(c.proc.pid, signal.SIGKILL)
+        if self.forks is not None:
+            self.forks.close()
+
+    @staticmethod
+    def _stop_group(children: list[Child]) -> None:
+        """SIGTERM each child's process group, then SIGKILL what is left after the grace."""
+        for c in children:
             if c.proc.poll() is None:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(c.proc.pid, signal.SIGTERM)
         deadline = time.monotonic() + STOP_GRACE_S
-        for c in self.children:
+        for c in children:
             remaining = max(0.0, deadline - time.monotonic())
             try:
                 c.proc.wait(remaining)
@@ -217,12 +247,6 @@ class ChildSupervisor:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(c.proc.pid, signal.SIGKILL)
                 c.proc.wait()
-        # Anything left in a group (a grandchild) goes too.
-        for c in self.children:
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(c.proc.pid, signal.SIGKILL)
-        if self.forks is not None:
-            self.forks.close()
 
     def check_children(self) -> None:
         """Deal with children that ended: before the mission or with ``abort``, any failure
@@ -241,7 +265,7 @@ class ChildSupervisor:
                 continue  # a planner that finished its mission
             if not self.flying or self.on_failure == "abort":
                 during = " during the mission" if vehicle and self.flying else ""
-                raise LaunchError(f"{c.name} exited with status {code}{during}:\n{c.tail()}")
+                raise LaunchError(f"{self.describe(c)} exited with status {code}{during}:\n{c.tail()}")
             self.handled.add(c.proc.pid)
             self._on_failure(c, code)
         planners = self.planners()
@@ -268,22 +292,37 @@ class ChildSupervisor:
         }
         if c.name.startswith("planner"):
             i = drones[0]
-            vehicle_alive = self.vehicle_child[i].proc.poll() is None
+            if i in self.external:
+                entry["connection"] = self.external[i]
+            vehicle = self.vehicle_child.get(i)
+            # (an external autopilot has no process here: its replacement finds out)
+            vehicle_alive = vehicle is None or vehicle.proc.poll() is None
             if self.on_failure == "restart" and vehicle_alive and self._restarts.get(i, 0) < MAX_RESTARTS:
                 self._restarts[i] = self._restarts.get(i, 0) + 1
-                self.spawn(c.name, [*self.planner_args[i], "--rejoin"])
-                entry["action"] = f"restarted (restart {self._restarts[i]} of at most {MAX_RESTARTS})"
-            elif not vehicle_alive:
+                # A pilot flies the drone: the replacement keeps the take-over in force.
+                held = self._taken_over is not None and self._taken_over(i)
+                self.spawn(c.name, [*self.planner_args[i], "--rejoin", *(["--taken-over"] if held else [])])
+                entry["action"] = f"restarted (restart {self._restarts[i]} of at most {MAX_RESTARTS}){', taken over' if held else ''}"
+            elif vehicle is not None and not vehicle_alive:
                 entry["action"] = "drone lost with its vehicle"
         self.failures.append(entry)
-        log.error("%s failed at step %d (status %s): %s; %s", c.name, self.step, code, reason, entry["action"])
+        log.error("%s failed at step %d (status %s): %s; %s", self.describe(c), self.step, code, reason, entry["action"])
+
+    def describe(self, c: Child) -> str:
+        """The child's name, and for a planner of an external autopilot its drone and connection
+        (``planner_1 (drone 1, external autopilot at tcp:127.0.0.1:5760)``)."""
+        if c.name.startswith("planner"):
+            i = int(c.name.split("_")[1])
+            if i in self.external:
+                return f"{c.name} (drone {i}, external autopilot at {self.external[i]})"
+        return c.name
 
     def raise_child_failure(self) -> None:
         """Raise :class:`LaunchError` for the first child that failed and was not dealt with."""
         for c in self.children:
             code = c.proc.poll()
             if code not in (None, 0) and c.proc.pid not in self.handled:
-                raise LaunchError(f"{c.name} exited with status {code}:\n{c.tail()}")
+                raise LaunchError(f"{self.describe(c)} exited with status {code}:\n{c.tail()}")
 
     def vehicle_ports(self, children: list[Child], timeout_s: float) -> dict[int, int]:
         """The MAVLink UDP port of every vehicle (by system id), from the vehicles' JSON ready

@@ -58,7 +58,11 @@ def flight_features(result: SimulationResult) -> list[Feature]:
         for i in range(n)
     )
     out.append({"kind": "source", "name": "source", "drone": None, "role": None, "lonlatalt": lla[-1:]})
-    return out
+    # Points never known (a drone of a launch whose planner never flew: NaN) are left out, and
+    # so is a feature without enough of them (a line needs two points).
+    for f in out:
+        f["lonlatalt"] = f["lonlatalt"][np.isfinite(f["lonlatalt"]).all(axis=1)]
+    return [f for f in out if len(f["lonlatalt"]) >= (2 if f["kind"] == "trajectory" else 1)]
 
 
 def write_kml(features: list[Feature], name: str, path: Path) -> None:

@@ -17,7 +17,10 @@ Modules:
 - :mod:`~planner.node.lockstep`: the lockstep driver (clock ticks over Zenoh, simulation).
 - :mod:`~planner.node.realtime` and :mod:`~planner.node.realtime_preflight`: the real-time
   driver (wall clock, external autopilots).
-- :mod:`~planner.node.takeover`: pilot take-over and ``fimnav handback``, in both clocks.
+- :mod:`~planner.node.takeover`: pilot take-over and ``fimnav handback``, in both clocks, and
+  the one rule at a planner's start (a vehicle armed in a pilot's mode is left alone).
+- :mod:`~planner.node.stopping`: the mission's ``on_stop``, told to the vehicle when the
+  planner stops early (a signal, a fatal error, the launch stopping it).
 - :mod:`~planner.node.swarm`, :mod:`~planner.node.inbox`: the Zenoh side.
 - :mod:`~planner.node.io`: the injected clock and the waits that serve Zenoh and MAVLink.
 - :mod:`~planner.node.steplog`: the JSON-lines step log, read back by a rejoining planner.

@@ -233,13 +233,17 @@ class LockstepDriver:
         return 0
 
     def preflight(self) -> None:
-        """Heartbeat, streams, GUIDED, arm, take-off and flight to the start position."""
+        """Heartbeat, streams, GUIDED, arm, take-off and flight to the start position. A vehicle
+        found armed in another mode than the guided one is a pilot's (the one rule,
+        :meth:`TakeoverWatch.found_at_start`): nothing is changed or commanded."""
         link = self.io.require_link()
         t = self.config.preflight_timeout_s
         link.wait_heartbeat(t)
         for msg_id, hz in LOCKSTEP_STREAM_HZ:
             link.request_interval(msg_id, hz)
         self.io.wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
+        if self.takeover.found_at_start("start"):
+            return
         profile = self.io.profile
         if not link.telemetry.armed:
             position = link.telemetry.position_enu_m
@@ -257,10 +261,25 @@ class LockstepDriver:
                     pos = link.telemetry.position_enu_m
                     return pos is not None and pos[2] >= climb_to - START_TOLERANCE_M
 
-                self.io.wait(climbed, t, "take-off altitude")
-        else:
-            link.set_mode(self.io.guided_mode)
-        self.io.wait(lambda: self._hold_start() < START_TOLERANCE_M, t, "start position")
+                self.io.wait(self._unless_taken_over(climbed), t, "take-off altitude")
+        # (armed: in the guided mode already, found_at_start says)
+        self.io.wait(self._unless_taken_over(lambda: self._hold_start() < START_TOLERANCE_M), t, "start position")
+
+    def _unless_taken_over(self, predicate: Callable[[], bool]) -> Callable[[], bool]:
+        """``predicate`` that also ends a pre-flight wait when a pilot takes the vehicle over
+        meanwhile (it leaves the guided mode: the take-over watch records it at step 0)."""
+
+        def check() -> bool:
+            link = self.io.require_link()
+            if link.left_guided or (link.telemetry.armed and not link.in_mode(self.io.guided_mode)):
+                if self.takeover.found_at_start("start"):
+                    return True
+                raise NodeError(
+                    f"uav {self.uav}: the vehicle left {self.io.guided_mode} during the pre-flight and is disarmed (mode {link.mode_name()})"
+                )
+            return predicate()
+
+        return check
 
     def _hold_start(self) -> float:
         """Send the start position as setpoint; return the distance to it (m)."""
@@ -294,7 +313,7 @@ class LockstepDriver:
             link.request_interval(msg_id, hz)
         self._flight_streams()
         self.io.wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
-        if not link.telemetry.armed:
+        if not link.telemetry.armed and not self.takeover.in_force:
             raise NodeError(f"uav {self.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
         self.io.wait(lambda: self.swarm.tick is not None and self.swarm.tick.step >= 0, t, "a clock tick of the mission to rejoin at")
         if self.swarm.tick is None:
@@ -302,10 +321,12 @@ class LockstepDriver:
         p = self.swarm.tick.step
         if p >= self.config.steps - 1:
             raise NodeError(f"uav {self.uav}: cannot rejoin at step {p}: the mission has {self.config.steps} steps")
-        link.set_mode(self.io.guided_mode)
+        # The one rule: a vehicle a pilot flies (armed in another mode, or a take-over the
+        # launch says is in force) is left as it is; only one armed in GUIDED/OFFBOARD is flown.
+        taken = self.takeover.found_at_start("rejoin")
         self.swarm.publish_done(p)
         self.core.skip_control_draws(p + 1)
-        log.warning("uav %d rejoined at step %d (flying from step %d)", self.uav, p, p + 1)
+        log.warning("uav %d rejoined at step %d (%s from step %d)", self.uav, p, "taken over" if taken else "flying", p + 1)
         return p + 1
 
     def _rebuild(self, first: int) -> None:

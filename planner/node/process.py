@@ -7,14 +7,15 @@ from collections.abc import Callable
 from typing import Any
 
 from comms.latency import DelayedView
-from comms.mavlink_client import VehicleLink
+from comms.mavlink_client import LinkError, VehicleLink
 from comms.session import SessionSettings, open_session
-from planner.node.config import NodeConfig, NodeOptions
+from planner.node.config import NodeConfig, NodeError, NodeOptions
 from planner.node.core import StepCore, build_view
 from planner.node.io import NodeClock, NodeIO
 from planner.node.lockstep import LockstepDriver
 from planner.node.realtime import PeerRecordGrid, RealtimeDriver
 from planner.node.steplog import StepLog, read_step_log
+from planner.node.stopping import OnStop, command_on_stop, stop_reason
 from planner.node.swarm import Swarm
 from planner.node.takeover import TakeoverWatch
 
@@ -26,12 +27,14 @@ class PlannerNode:
     """One drone's planner: MAVLink to its vehicle, Zenoh to the swarm.
 
     Args:
-        mission: the mission (``missions.schema.Mission``; duck-typed here), read once into
+        mission: the mission (``missions.format.schema.Mission``; duck-typed here), read once into
             the node's :class:`NodeConfig` (:attr:`config`).
         options: how to run.
         link_factory: builds the :class:`VehicleLink` (in-memory fakes in tests).
         session_factory: opens the Zenoh session (in-memory fakes in tests).
         clock: the node's clocks and its blocking wait (a simulated clock in tests).
+        taken_over: a take-over is in force from the start, whatever the vehicle's mode (the
+            launch restarts a planner whose drone a pilot flies: ``fimnav plan --taken-over``).
     """
 
     def __init__(
@@ -41,8 +44,13 @@ class PlannerNode:
         link_factory: LinkFactory | None = None,
         session_factory: Callable[[SessionSettings], Any] = open_session,
         clock: NodeClock | None = None,
+        taken_over: bool = False,
     ) -> None:
         self.config = NodeConfig.from_mission(mission, options)
+        #: What the vehicle is told when this planner stops early (the mission's ``on_stop``).
+        self.on_stop: OnStop = getattr(mission, "on_stop", "hold")
+        #: The outcome of that command, once the planner stopped early.
+        self.stopped: dict[str, object] | None = None
         config = self.config
         self.clock = clock or NodeClock()
         self._link_factory = link_factory or self._default_link
@@ -52,7 +60,7 @@ class PlannerNode:
         self.swarm = Swarm(config, session_factory, self.clock.wall, self.view.add if config.lockstep else self.grid.add)
         self.io = NodeIO(config, self.swarm, self.clock)
         self.core = StepCore(config, self.view, self.swarm)
-        self.takeover = TakeoverWatch(self.io)
+        self.takeover = TakeoverWatch(self.io, in_force=taken_over)
         self._step_log: StepLog | None = None
         #: A rejoining planner's step logs: its predecessor's and its peers' (drone index → rows).
         self.predecessor_rows: dict[int, list[dict[str, Any]]] = {}
@@ -72,13 +80,21 @@ class PlannerNode:
         )
 
     def run(self) -> dict[str, Any]:
-        """Fly the mission; return a summary (steps done, dropped messages, ...)."""
+        """Fly the mission; return a summary (steps done, dropped messages, ...).
+
+        A planner that stops early (any exception: Ctrl-C's KeyboardInterrupt, the exception a
+        SIGTERM or SIGHUP raised, a fatal error) first tells its vehicle the mission's
+        ``on_stop`` and waits briefly for it to confirm (:func:`command_on_stop`), then the
+        exception goes on (the command's exit status is unchanged)."""
         try:
             self._open()
             self.swarm.drain(0.0)
             if self.config.lockstep:
                 return LockstepDriver(self.config, self.io, self.core, self.takeover, self.predecessor_rows).run()
-            return RealtimeDriver(self.config, self.io, self.core, self.takeover, self.grid).run()
+            return RealtimeDriver(self.config, self.io, self.core, self.takeover, self.grid, self.predecessor_rows).run()
+        except BaseException as exc:
+            self.stopped = command_on_stop(self.io, self.takeover, self.on_stop, stop_reason(exc))
+            raise
         finally:
             self.close()
 
@@ -97,7 +113,10 @@ class PlannerNode:
                         self.predecessor_rows[j] = read_step_log(peer)
         self._step_log = StepLog(c.log_path, append=c.rejoin)
         self.core.step_log = self._step_log
-        self.io.link = self._link_factory(c.mavlink, c.sysid)
+        try:
+            self.io.link = self._link_factory(c.mavlink, c.sysid)
+        except LinkError as exc:
+            raise NodeError(f"uav {c.uav}: vehicle unreachable: {exc}") from None
 
     def close(self) -> None:
         """Release the link, the Zenoh session and the log (idempotent)."""

@@ -26,7 +26,7 @@ from comms.messages import Record
 from planner.node.config import NodeConfig, NodeError
 from planner.node.core import OwnMeasurement, StepCore
 from planner.node.io import NodeIO
-from planner.node.realtime_preflight import RealtimePreflight
+from planner.node.realtime_preflight import STREAM_BEFORE_GUIDED_S, RealtimePreflight
 from planner.node.takeover import TakeoverWatch
 
 log = logging.getLogger("fimnav.plan")
@@ -81,18 +81,29 @@ class RealtimeDriver:
     Args:
         config: the node's configuration. io: its link, swarm and clock. core: the step.
         takeover: the pilot take-over watch. grid: the peers' records on the step grid.
+        predecessor_rows: a rejoining planner's step logs, drone index → rows (its
+            predecessor's and its peers').
     """
 
-    def __init__(self, config: NodeConfig, io: NodeIO, core: StepCore, takeover: TakeoverWatch, grid: PeerRecordGrid) -> None:
+    def __init__(
+        self,
+        config: NodeConfig,
+        io: NodeIO,
+        core: StepCore,
+        takeover: TakeoverWatch,
+        grid: PeerRecordGrid,
+        predecessor_rows: dict[int, list[dict[str, Any]]] | None = None,
+    ) -> None:
         self.config = config
         self.io = io
         self.swarm = io.swarm
         self.core = core
         self.takeover = takeover
         self.grid = grid
+        self.predecessor_rows = predecessor_rows or {}
         self.uav = config.uav
         self.dt_wall_s = config.dt_wall_s
-        self.preflight = RealtimePreflight(config, io, lambda: self.link_down_since is not None)
+        self.preflight = RealtimePreflight(config, io, lambda: self.link_down_since is not None, takeover)
         #: When the vehicle link was lost (monotonic s), while it is.
         self.link_down_since: float | None = None
         self.resume_needed = False
@@ -103,14 +114,19 @@ class RealtimeDriver:
         io.on_served = self._check_link
 
     def run(self) -> dict[str, Any]:
-        """Pre-flight, the steps on the grid, the end of mission; return the summary."""
+        """Pre-flight (or rejoin), the steps on the grid, the end of mission; return the summary."""
         link = self.io.require_link()
         try:
-            self.preflight.run()
+            if self.config.rejoin:
+                self.preflight.rejoin()
+            else:
+                self.preflight.run()
         except LinkError as exc:
-            raise NodeError(f"uav {self.uav}: pre-flight failed: {exc}") from None
+            raise NodeError(f"uav {self.uav}: {'rejoin' if self.config.rejoin else 'pre-flight'} failed: {exc}") from None
         self.swarm.publish_done(-1)
         k = self._start_grid()
+        if self.config.rejoin:
+            self._rebuild(k)
         done_steps = 0
         while k < self.config.steps:
             advance, planned = self._step(k)
@@ -135,6 +151,21 @@ class RealtimeDriver:
             "vehicle_clock_rate": None if rate is None else round(rate, 3),
         }
 
+    def _rebuild(self, first: int) -> None:
+        """A rejoining planner's estimator, own-range window and own track, from its
+        predecessor's step log and its peers' logs next to it (:meth:`StepCore.rebuild`)."""
+        done = self.core.rebuild(first, self.predecessor_rows)
+        index = self.config.drone_index
+        peers = sum(len(v) for j, v in done.items() if j != index)
+        log.warning(
+            "uav %d rejoined at step %d (%s); estimator rebuilt from %d steps of its predecessor's log and %d records of peers' logs",
+            self.uav,
+            first,
+            "taken over" if self.takeover.active else "flying",
+            len(done.get(index, [])),
+            peers,
+        )
+
     def _start_grid(self) -> int:
         """Fix the UNIX time of step 0 (``--start-at``, else the next multiple of dt/speedup a
         quarter step from now); return the first step to fly."""
@@ -143,7 +174,10 @@ class RealtimeDriver:
         start_at = self.config.start_at_unix
         t0 = start_at if start_at is not None else math.ceil((now + 0.25 * dtw) / dtw) * dtw
         self.grid.t0_unix = t0
-        log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
+        if self.config.rejoin:
+            log.info("uav %d rejoining the step grid: step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
+        else:
+            log.info("uav %d ready at the start position; step 0 at UNIX %.3f (dt %.3g s wall)", self.uav, t0, dtw)
         return max(0, math.ceil((now - t0) / dtw - 1e-9)) if start_at is not None else 0
 
     # -- one step ---------------------------------------------------------------------------
@@ -167,6 +201,12 @@ class RealtimeDriver:
             except LinkError as exc:
                 log.error("uav %d: resuming failed (%s); retrying next step", self.uav, exc)
                 self.resume_needed = True
+        if self.link_down_since is not None and self.io.clock.wall() - self.link_down_since > self.config.step_timeout_s:
+            raise NodeError(
+                f"uav {self.uav}: vehicle link at {self.config.mavlink} lost for good: no heartbeat for "
+                f"{self.io.clock.wall() - self.link_down_since:.0f} s (more than the step timeout); giving the drone up; "
+                f"meanwhile {self.io.profile.link_loss_failsafe}"
+            )
         if self.link_down_since is not None or self.resume_needed:
             self._publish_stale(k, w0)
             self.stale_steps += 1
@@ -346,7 +386,20 @@ class RealtimeDriver:
         mode = self.io.guided_mode
         if not link.in_mode(mode):
             log.warning("uav %d: vehicle in %s after the link loss; switching back to %s", self.uav, link.mode_name(), mode)
+            pos = link.telemetry.position_enu_m
+            if not link.streaming and pos is not None:
+                # The failsafe's mode change, heard when the link came back, ended the stream:
+                # a hold where the vehicle is (PX4 enters OFFBOARD only with a stream running).
+                hold = pos.astype(float)
+                link.set_stream(lambda _t: (hold, None))
+                if self.io.profile.guided_needs_setpoint_stream:
+                    wall = self.io.clock.wall
+                    since = wall()
+                    self.io.wait(
+                        lambda: wall() - since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, self.config.step_timeout_s, "setpoint stream"
+                    )
             link.set_mode(mode)
+        link.left_guided = False
         log.info("uav %d: resumed in %s", self.uav, mode)
 
     # -- after the last step ----------------------------------------------------------------

@@ -26,6 +26,7 @@ from comms.mavlink_client import (
 )
 from planner.node.config import NodeConfig, NodeError
 from planner.node.io import NodeIO
+from planner.node.takeover import TakeoverWatch
 
 log = logging.getLogger("fimnav.plan")
 
@@ -42,19 +43,27 @@ CLOCK_CHECK_TIMEOUT_S: float = 15.0
 STREAM_BEFORE_GUIDED_S: float = 1.2
 
 
+class _PilotTookOver(Exception):
+    """A pilot took the vehicle over during the take-off or the flight to the start."""
+
+
 class RealtimePreflight:
-    """Brings one external vehicle from the ground (or wherever it is) to its start position.
+    """Brings one external vehicle from the ground (or wherever it is) to its start position,
+    unless a pilot flies it (the one rule, :meth:`TakeoverWatch.found_at_start`): a vehicle
+    found armed in another mode than the guided one is neither switched nor commanded.
 
     Args:
         config: the node's configuration. io: its link, swarm and clock.
         link_down: whether the vehicle link is lost now (the driver's link watch).
+        takeover: the pilot take-over watch.
     """
 
-    def __init__(self, config: NodeConfig, io: NodeIO, link_down: Callable[[], bool]) -> None:
+    def __init__(self, config: NodeConfig, io: NodeIO, link_down: Callable[[], bool], takeover: TakeoverWatch) -> None:
         self.config = config
         self.io = io
         self.uav = config.uav
         self._link_down = link_down
+        self.takeover = takeover
         #: The vehicle's clock rate (its time_boot_ms per wall second), once measured.
         self.vehicle_clock_rate: float | None = None
 
@@ -72,6 +81,8 @@ class RealtimePreflight:
             log.info("uav %d: autopilot %s (HEARTBEAT.autopilot = %s)", self.uav, link.flavour, detected)
         link.stream_period_s = 1.0 / (self.config.stream_hz * self.config.speedup)
         self.request_streams()
+        if self.takeover.found_at_start("start"):
+            return  # a pilot's: no readiness wait, no mode change, no take-off
         link.request_message(MSG_HOME_POSITION)
         link.request_message(MSG_GPS_GLOBAL_ORIGIN)
         self._ready_wait()
@@ -84,14 +95,42 @@ class RealtimePreflight:
         climb_to = self.config.takeoff_alt_m
         # Take-off done at 95 % of the climb (an autopilot's altitude settles slowly at the end).
         climb_tol = max(START_TOLERANCE_REALTIME_M, 0.05 * (climb_to - float(pos[2])))
-        if not self.io.profile.takeoff_by_setpoint:
-            self._takeoff_by_command(climb_to, climb_tol)
-        else:
-            self._takeoff_on_setpoints(pos, climb_to, climb_tol)
-        start = self.config.start_m
-        link.set_stream(lambda _t: (start, None))
-        log.info("uav %d: airborne in %s, flying to the start position", self.uav, link.mode_name())
-        self._wait_linked(lambda: self._distance_to(start) < START_TOLERANCE_REALTIME_M, t, "start position")
+        try:
+            if not self.io.profile.takeoff_by_setpoint:
+                self._takeoff_by_command(climb_to, climb_tol)
+            else:
+                self._takeoff_on_setpoints(pos, climb_to, climb_tol)
+            start = self.config.start_m
+            link.set_stream(lambda _t: (start, None))
+            log.info("uav %d: airborne in %s, flying to the start position", self.uav, link.mode_name())
+            self._wait_linked(lambda: self._distance_to(start) < START_TOLERANCE_REALTIME_M, t, "start position")
+        except _PilotTookOver:
+            link.set_stream(None)
+
+    def rejoin(self) -> None:
+        """Take over a vehicle in flight from a planner that died (``--rejoin``): heartbeat,
+        streams, the clock check and a position; no take-off, no flight to the start. A vehicle
+        armed in another mode than the guided one (or whose take-over the launch says is in
+        force) is a pilot's and is left alone; one armed in the guided mode holds where it is
+        until the first step; a disarmed one is refused."""
+        link = self.io.require_link()
+        t = self.config.preflight_timeout_s
+        link.wait_heartbeat(t)
+        link.check_signing()
+        link.stream_period_s = 1.0 / (self.config.stream_hz * self.config.speedup)
+        self.request_streams()
+        if not link.telemetry.armed and not self.takeover.in_force:
+            raise NodeError(f"uav {self.uav}: cannot rejoin: the vehicle is disarmed (mode {link.mode_name()})")
+        if self.takeover.found_at_start("rejoin"):
+            return
+        self._check_clock()
+        self.io.wait(lambda: link.telemetry.position_enu_m is not None, t, "position telemetry")
+        pos = link.telemetry.position_enu_m
+        if pos is None:
+            raise NodeError(f"uav {self.uav}: no position telemetry after waiting for it")
+        hold = pos.astype(float)
+        link.set_stream(lambda _t: (hold, None))
+        log.info("uav %d: rejoining in %s, holding at %s until the next step", self.uav, link.mode_name(), tuple(round(float(v), 1) for v in hold))
 
     def request_streams(self) -> None:
         """The telemetry the real-time planner reads, at rates in the autopilot's time (Hz)."""
@@ -163,6 +202,12 @@ class RealtimePreflight:
         def ok() -> bool:
             if self._link_down():
                 raise NodeError(f"uav {self.uav}: vehicle link lost while waiting for {what}")
+            link = self.io.require_link()
+            if link.left_guided or (link.telemetry.armed and not link.in_mode(self.io.guided_mode)):
+                # (only waited on armed in the guided mode) a pilot took it over meanwhile
+                if self.takeover.found_at_start("start"):
+                    raise _PilotTookOver
+                raise NodeError(f"uav {self.uav}: the vehicle left {self.io.guided_mode} while waiting for {what} (now {link.mode_name()}, disarmed)")
             return predicate()
 
         self.io.wait(ok, timeout_s, what, missing)

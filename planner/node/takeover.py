@@ -1,6 +1,11 @@
 """Pilot take-over, in both clocks (docs/in-the-field.md): a vehicle that leaves the guided
 mode (GUIDED/OFFBOARD) has been taken over; the planner stops commanding it and never switches
-it back on its own: only ``fimnav handback`` does."""
+it back on its own: only ``fimnav handback`` does.
+
+The one rule holds on every path a planner starts by (a start, a rejoin, a restart by the
+launch; lockstep and real time): a vehicle found armed in any mode but the guided one is a
+pilot's from the planner's first moment (:meth:`TakeoverWatch.found_at_start`), and so is one
+whose take-over the launch says is in force (``fimnav plan --taken-over``)."""
 
 from __future__ import annotations
 
@@ -24,9 +29,12 @@ class TakeoverWatch:
         io: the node's I/O (its link and profile).
     """
 
-    def __init__(self, io: NodeIO) -> None:
+    def __init__(self, io: NodeIO, in_force: bool = False) -> None:
         self.io = io
         self.uav = io.config.uav
+        #: A take-over is in force from the start whatever the vehicle's mode (the launch
+        #: restarted this planner while a pilot flew its drone: ``fimnav plan --taken-over``).
+        self.in_force = in_force
         #: The pilot's take-over in force ({"step", "mode"}), or None.
         self.current: dict[str, Any] | None = None
         #: Every take-over ({"step", "mode"}, and "handed_back_step" once handed back).
@@ -51,6 +59,7 @@ class TakeoverWatch:
         link = self.io.require_link()
         want = self.io.guided_mode
         now = link.mode_name()
+        link.left_guided = False  # read now (the link already stopped the stream when it heard it)
         if not link.in_mode(want) and now != self._reported_mode:
             self.mode_changes.append(now)
             if self.current is None:
@@ -70,9 +79,48 @@ class TakeoverWatch:
                 log.warning("uav %d: taken over, the vehicle is now in %s", self.uav, now)
         self._reported_mode = now if not link.in_mode(want) else None
 
+    def found_at_start(self, where: str) -> bool:
+        """The one rule at a planner's start (``where``: ``"start"`` or ``"rejoin"``): a
+        vehicle armed in a mode other than the guided one is flown by a pilot (a ground station,
+        the RC, a failsafe), and so is every vehicle when :attr:`in_force`. Then the planner
+        does not change its mode, flies nothing, publishes its position flagged taken over and
+        waits for ``fimnav handback`` (True, logged once); False: the planner may prepare it
+        (disarmed on the ground) or fly it (armed in the guided mode)."""
+        link = self.io.require_link()
+        want = self.io.guided_mode
+        now = link.mode_name()
+        pilot = link.telemetry.armed and not link.in_mode(want)
+        if not (pilot or self.in_force):
+            return False
+        link.set_stream(None)
+        link.left_guided = False
+        self.current = {"step": None, "mode": now, "at_start": where}
+        self.takeovers.append(dict(self.current))
+        if not link.in_mode(want):
+            self.mode_changes.append(now)
+            self._reported_mode = now
+        why = (
+            f"the vehicle is {'armed' if link.telemetry.armed else 'disarmed'} in {now} and the launch restarted this planner while a pilot flew it"
+            if not pilot
+            else f"the vehicle is armed in {now}, not {want}: a pilot or a ground station flies it"
+        )
+        log.warning(
+            "uav %d: taken over at %s: %s; not changing its mode, not commanding it; publishing its position without "
+            "measurements; hand it back with: fimnav handback MISSION --uav %d",
+            self.uav,
+            where,
+            why,
+            self.uav,
+        )
+        return True
+
     def still_taken_over(self, k: int, enter_guided: Callable[[np.ndarray], None]) -> bool:
         """Whether the pilot still flies the drone at step ``k``: taken over and not handed
-        back by a ``fimnav handback`` that arrived (:meth:`hand_back`)."""
+        back by a ``fimnav handback`` that arrived (:meth:`hand_back`). A take-over found at the
+        start is dated by the first step it holds."""
+        if self.current is not None and self.current["step"] is None:
+            self.current["step"] = k
+            self.takeovers[-1]["step"] = k
         return self.current is not None and not (self.io.swarm.handback_requested() and self.hand_back(k, enter_guided))
 
     def hand_back(self, k: int, enter_guided: Callable[[np.ndarray], None]) -> bool:

@@ -93,11 +93,15 @@ class SwarmPeer:
     ranges_m: dict[int, float]
     period_s: float = 0.05
     records: list[Any] = field(default_factory=list)
+    #: The hub's Zenoh mode: ``router`` (as ``fimnav launch``'s) when ``fimnav handback`` is to
+    #: reach a planner through it (a client's publisher matched through a peer was seen to stay
+    #: unmatched at times).
+    mode: str = "peer"
 
     def __post_init__(self) -> None:
         from comms import keys
 
-        self.session, self.endpoint = open_hub()
+        self.session, self.endpoint = open_hub(self.mode)
         self._pubs = {uav: self.session.declare_publisher(keys.measurement(self.mission_id, uav)) for uav in self.ranges_m}
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber(keys.record(self.mission_id), self._on_record)

@@ -187,11 +187,13 @@ class FakeLink:
     forced_flavour: str | None = None
     lost: bool = False
     closed: bool = False
+    left_guided: bool = False
 
     def __post_init__(self) -> None:
         self.clock = FakeClockWatch(self.speedup)
         self.telemetry.armed = self.armed
         self.telemetry.custom_mode = 4
+        self.telemetry.heartbeats = 1
         self.telemetry.origin_global = self.origin
         self.telemetry.home_known = True
         self.report(self.position_m, -1)
@@ -226,9 +228,29 @@ class FakeLink:
     def not_ready(self, require_gps: bool = True) -> list[str]:
         return []
 
-    def set_mode(self, name: str) -> None:
+    def set_mode(self, name: str, timeout_s: float = 30.0, ack_timeout_s: float = 15.0) -> None:
         self.mode = name
         self.modes_set.append(name)
+
+    def heartbeat_in(self, mode: str) -> None:
+        """A heartbeat in ``mode`` arrives (a pilot's mode change): as :class:`VehicleLink`
+        does, leaving the guided mode ends the setpoint stream at once."""
+        guided = self.profile.require_mode(self.profile.guided_mode).qualified_name
+        if self.mode == guided and mode != guided:
+            self.left_guided = True
+            if self.streaming:
+                self.streams.append(None)
+        self.mode = mode
+
+    @property
+    def streaming(self) -> bool:
+        return bool(self.streams) and self.streams[-1] is not None
+
+    @property
+    def profile(self) -> Any:
+        from comms.autopilot import flavour_info
+
+        return flavour_info(self.flavour)
 
     def mode_name(self) -> str:
         return self.mode

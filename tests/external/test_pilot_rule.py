@@ -1,0 +1,269 @@
+"""The one rule on every path a planner starts by, and the state fimnav leaves a drone in when
+it stops (real processes, real MAVLink and Zenoh on 127.0.0.1; simulated ArduPilot and PX4
+vehicles, docs/in-the-field.md).
+
+- A planner started beside an airborne vehicle a ground station holds (ArduPilot LOITER, PX4
+  POSCTL), in real time: it changes no mode and sends no setpoint; it publishes the drone's
+  position flagged taken over until ``fimnav handback``; then it flies the mission to its end.
+- A lockstep planner restarted (``--rejoin``) while its drone is taken over: the same.
+- ``fimnav plan`` stopped by SIGINT or SIGTERM mid-mission: it tells the vehicle the
+  mission's ``on_stop`` and the vehicle confirms it (its .tlog's last heartbeats), exit 130/143.
+
+Checked against each vehicle's own .tlog (what reached the vehicle), not the planner's word.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.external.helpers import SwarmPeer, handback, start_vehicle, write_mission
+from tests.external.test_takeover import LockstepHub
+from tests.support.proc import Proc, fimnav, with_default_interrupt
+from tests.support.wait import wait_for
+
+pytestmark = pytest.mark.integration
+
+SPEEDUP = 5.0
+MAV_CMD_DO_SET_MODE = 176
+#: The pilot's hold of each flavour, as a ground station sets it (DO_SET_MODE param2, param3)
+#: and as the vehicle's heartbeat reports it (custom_mode).
+PILOT_MODE = {"ardupilot": ((5, 0), 5, "LOITER"), "px4": ((3, 0), 3 << 16, "POSCTL")}
+#: The guided mode's custom_mode of each flavour.
+GUIDED = {"ardupilot": 4, "px4": 6 << 16}
+#: custom_mode of the on_stop modes: (flavour, on_stop) -> (custom_mode, name).
+ON_STOP_MODE = {
+    ("ardupilot", "hold"): (5, "LOITER"),
+    ("ardupilot", "land"): (9, "LAND"),
+    ("ardupilot", "rtl"): (6, "RTL"),
+    ("px4", "hold"): ((4 << 16) | (3 << 24), "AUTO.LOITER"),
+    ("px4", "land"): ((4 << 16) | (6 << 24), "AUTO.LAND"),
+    ("px4", "rtl"): ((4 << 16) | (5 << 24), "AUTO.RTL"),
+}
+
+
+def ground_station_sets(port: int, flavour: str) -> None:
+    """A ground station (system 255) switches vehicle 1 to the flavour's pilot hold and sees it
+    acknowledged."""
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    (p2, p3), _, _ = PILOT_MODE[flavour]
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+    try:
+        gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
+        gcs.mav.command_long_send(1, 1, MAV_CMD_DO_SET_MODE, 0, 1, p2, p3, 0, 0, 0, 0)
+        ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=10.0, condition=f"COMMAND_ACK.command == {MAV_CMD_DO_SET_MODE}")
+        assert ack is not None and ack.result == 0, ack
+    finally:
+        gcs.close()
+
+
+def tlog_events(path: Path, sysid: int = 1) -> list[tuple[float, str, Any]]:
+    """(wall time, kind, value) of a vehicle's .tlog: ``mode`` (custom_mode of each vehicle
+    heartbeat of vehicle ``sysid``), ``setpoint`` (from the planner), ``set_mode`` (DO_SET_MODE,
+    value: its sender's system id)."""
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    log = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    events: list[tuple[float, str, Any]] = []
+    while (m := log.recv_match()) is not None:
+        t, kind = float(m._timestamp), m.get_type()
+        if kind == "HEARTBEAT" and m.get_srcComponent() == 1 and m.get_srcSystem() == sysid:
+            events.append((t, "mode", (int(m.custom_mode), bool(m.base_mode & 128))))
+        elif kind.startswith("SET_POSITION_TARGET"):
+            events.append((t, "setpoint", None))
+        elif kind == "COMMAND_LONG" and int(m.command) == MAV_CMD_DO_SET_MODE:
+            events.append((t, "set_mode", m.get_srcSystem()))
+    log.close()
+    return events
+
+
+def planner_alive(hub: LockstepHub) -> bool:
+    """Whether the lockstep clock sees planner 1's liveliness token (what it heard is read first)."""
+    hub.clock._drain(0.01)
+    return 1 in hub.clock.alive
+
+
+def assert_untouched_until_handback(tlog: Path, flavour: str, handback_unix: float) -> None:
+    """From the ground station's mode change until ``fimnav handback`` ran (UNIX s; the .tlog
+    is stamped in UNIX time): no setpoint reached the vehicle, no mode change came from the
+    planner and the vehicle's heartbeats stayed in the pilot's mode; it was flown again after."""
+    events = tlog_events(tlog)
+    t_gcs = next(t for t, kind, v in events if kind == "set_mode" and v == 255)
+    t_back = handback_unix
+    assert not [t for t, kind, v in events if kind == "set_mode" and v != 255 and t_gcs < t < t_back], "a mode change before the hand-back"
+    # (a heartbeat the vehicle had queued before it took the command may still say GUIDED)
+    t_held = next(t for t, kind, v in events if kind == "mode" and t > t_gcs and v[0] == PILOT_MODE[flavour][1])
+    assert t_held < t_back
+    assert not [kind for t, kind, v in events if t_gcs < t < t_back and kind == "setpoint"], "a setpoint reached the vehicle before the hand-back"
+    between = [(kind, v) for t, kind, v in events if t_held <= t < t_back]
+    modes = {v[0] for kind, v in between if kind == "mode"}
+    assert modes == {PILOT_MODE[flavour][1]}, modes
+    assert any(kind == "setpoint" for t, kind, v in events if t > t_back), "no setpoint after the hand-back"
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+    """Real time: the vehicle boots airborne, a ground station switches it to its pilot hold,
+    then ``fimnav plan`` starts on it. The planner says it is taken over at its start, changes
+    no mode, sends no setpoint, publishes the drone's position flagged taken over; after
+    ``fimnav handback`` it flies the mission to the end."""
+    steps = 14
+    mission = write_mission(tmp_path / "m.yaml", "pilotheld", [[10.0, 20.0, 8.0]], steps, "hold")
+    tlog = tmp_path / "v.tlog"
+    vehicle, port = start_vehicle(procs, mission, tlog, "--speedup", str(SPEEDUP), "--flavour", flavour, "--airborne")
+    ground_station_sets(port, flavour)
+    peer = SwarmPeer("pilotheld", 1, {1: 75.0}, mode="router")
+    try:
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
+                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")))
+        procs.append(plan)
+        name = PILOT_MODE[flavour][2]
+        plan.expect(rf"taken over at start: the vehicle is armed in {name}", 30.0, stream="err")
+        wait_for(lambda: sum(1 for r in peer.snapshot() if r.sender == 1 and r.taken_over) >= 3, 30.0, "three taken-over records",
+                 procs=[plan])
+        handback_unix = time.time()
+        r = handback(mission, 1, "--zenoh-connect", peer.endpoint)
+        assert r.returncode == 0, r.stdout + r.stderr
+        plan.expect(r"handed back at step \d+", 20.0, stream="err")
+        assert plan.wait(60.0) == 0, plan.tail()
+        records = peer.snapshot()
+    finally:
+        peer.close()
+    assert "airborne in" not in plan.err and "Traceback" not in plan.err, plan.err[-2000:]
+    summary = json.loads(plan.out.strip().splitlines()[-1])
+    (take,) = summary["taken_over"]
+    assert take["mode"] == PILOT_MODE[flavour][2] and take["at_start"] == "start" and take["step"] == 0, take
+    assert take["handed_back_step"] >= 3 and summary["end"]["confirmed"], summary
+    held = [r for r in records if r.sender == 1 and r.taken_over]
+    assert held and all(math.isnan(r.range_m) for r in held)
+    vehicle.stop()
+    assert_untouched_until_handback(tlog, flavour, handback_unix)
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+    """Lockstep: the planner flies 4 steps, a ground station takes the drone (pilot hold), the
+    planner sees it at step 4 and is killed (SIGKILL) at step 6; ``fimnav plan --rejoin`` on the
+    same vehicle comes up taken over ("taken over at rejoin"), commands nothing (the .tlog: no
+    setpoint, no mode change between the ground station's and the hand-back's), answers every
+    step; after ``fimnav handback`` it flies the mission to its end."""
+    steps = 16
+    mission = write_mission(tmp_path / "m.yaml", "rejoin-taken", [[10.0, 20.0, 8.0]], steps, "hold")
+    hub = LockstepHub("rejoin-taken", 1, 1.0)
+    tlog = tmp_path / "vehicle_1.tlog"
+    try:
+        vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--lockstep",
+                              "--flavour", flavour, "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client", "--tlog", str(tlog)))
+        procs.append(vehicle)
+        port = int(vehicle.ready(30.0)["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+        log = tmp_path / "p1.jsonl"
+        argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep", *hub.client,
+                      "--log", str(log), "--step-timeout", "30")
+        first = Proc(argv)
+        procs.append(first)
+        t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
+        for k in range(4):
+            hub.clock.run_step(k, t0, 30.0)
+        ground_station_sets(port, flavour)
+        for k in range(4, 6):
+            hub.clock.run_step(k, t0, 30.0)
+        first.expect(r"taken over at step 4", 10.0, stream="err")
+        first.p.send_signal(signal.SIGKILL)
+        first.p.wait(10.0)
+        wait_for(lambda: planner_alive(hub) is False, 20.0, "the clock to see planner 1 gone")
+        second = Proc([*argv, "--rejoin"])
+        procs.append(second)
+        wait_for(lambda: planner_alive(hub), 30.0, "the replacement to join the swarm", procs=[second])
+        # The replacement rejoins at the clock's current step (6), answered done, from step 7.
+        hub.clock.run_step(6, t0, 30.0)
+        second.expect(r"taken over at rejoin: the vehicle is armed in", 30.0, stream="err")
+        second.expect(r"rejoined at step 6 \(taken over from step 7\)", 30.0, stream="err")
+        for k in range(7, 9):
+            hub.clock.run_step(k, t0, 30.0)
+        wait_for(lambda: 8 in hub.records_of(1), 10.0, "the record of step 8")
+        assert hub.records_of(1)[8].taken_over
+        handback_unix = time.time()
+        r = handback(mission, 1, "--zenoh-connect", hub.endpoint)
+        assert r.returncode == 0, r.stdout + r.stderr
+        k = 9
+        while "handed back at step" not in second.err:
+            assert k < steps - 2, second.tail()
+            hub.clock.run_step(k, t0, 30.0)
+            k += 1
+        for j in range(k, steps):
+            hub.clock.run_step(j, t0, 30.0)
+
+        def ended() -> bool:  # the end tick, re-sent as the launcher does
+            hub.clock.end(steps, t0)
+            return second.p.poll() is not None
+
+        wait_for(ended, 30.0, "the planner's end", interval_s=0.5)
+        records = hub.records_of(1)
+    finally:
+        hub.close()
+    assert second.p.returncode == 0 and "Traceback" not in second.err, second.tail()
+    summary = json.loads(second.out.strip().splitlines()[-1])
+    (take,) = summary["taken_over"]
+    assert take["at_start"] == "rejoin" and take["step"] == 7 and take["mode"] == PILOT_MODE[flavour][2], take
+    assert all(records[j].taken_over for j in range(7, take["handed_back_step"])), "a step without its taken-over record"
+    vehicle.stop()
+    assert_untouched_until_handback(tlog, flavour, handback_unix)
+
+
+@pytest.mark.parametrize(
+    ("flavour", "signame", "on_stop"),
+    [
+        ("ardupilot", "SIGINT", "hold"),
+        ("px4", "SIGTERM", "hold"),
+        pytest.param("ardupilot", "SIGTERM", "land", marks=pytest.mark.slow),
+        pytest.param("px4", "SIGINT", "rtl", marks=pytest.mark.slow),
+    ],
+)
+def test_fimnav_plan_stopped_by_a_signal_leaves_the_vehicle_in_on_stop(
+    tmp_path: Path, procs: list[Proc], flavour: str, signame: str, on_stop: str
+) -> None:
+    """Real time: ``fimnav plan`` flies; SIGINT (Ctrl-C) or SIGTERM mid-mission; it tells the
+    vehicle the mission's on_stop and waits for it: the vehicle's .tlog ends in that mode,
+    armed, and no setpoint follows the command; the exit status is 128 + the signal."""
+    mission = write_mission(tmp_path / "m.yaml", "onstop", [[10.0, 20.0, 8.0]], 200, "hold", on_stop=on_stop)
+    tlog = tmp_path / "v.tlog"
+    vehicle, port = start_vehicle(procs, mission, tlog, "--speedup", str(SPEEDUP), "--flavour", flavour)
+    peer = SwarmPeer("onstop", 1, {1: 75.0})
+    try:
+        plan = Proc(with_default_interrupt(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP),
+                                                  "--zenoh-connect", peer.endpoint, "--preflight-timeout", "60",
+                                                  "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl"))))
+        procs.append(plan)
+        log = tmp_path / "p.jsonl"
+        wait_for(lambda: log.exists() and len(log.read_text().splitlines()) >= 4, 60.0, "four planned steps", procs=[plan])
+        sig = getattr(signal, signame)
+        plan.p.send_signal(sig)
+        assert plan.wait(15.0) == 128 + sig, plan.tail()
+    finally:
+        peer.close()
+    code, name = ON_STOP_MODE[(flavour, on_stop)]
+    assert f"stopping ({signame}): the vehicle is in {name} (on_stop {on_stop}), confirmed" in plan.err, plan.err[-2000:]
+    assert "Traceback" not in plan.err
+    vehicle.stop()
+    events = tlog_events(tlog)
+    t_cmd = max(t for t, kind, v in events if kind == "set_mode" and v == 1)
+    after = [(kind, v) for t, kind, v in events if t > t_cmd]
+    modes = [v for kind, v in after if kind == "mode"]
+    assert modes and modes[-1][0] == code, (modes[-3:], code)
+    if on_stop == "hold":
+        assert modes[-1][1], "the vehicle disarmed"
+    # The stream ended when the vehicle confirmed (its first heartbeat in the mode reached the
+    # planner at once on loopback; 0.5 s allows for a loaded machine).
+    t_left = min(t for t, kind, v in events if kind == "mode" and t > t_cmd and v[0] == code)
+    late = [t - t_left for t, kind, v in events if kind == "setpoint" and t > t_left + 0.5]
+    assert not late, f"setpoints {late} s after the vehicle confirmed"
