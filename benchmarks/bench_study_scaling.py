@@ -12,7 +12,7 @@ is the command's and its pool workers' (``RUSAGE_CHILDREN``). The three summarie
 
 Usage::
 
-    python benchmarks/bench_study_scaling.py [--mission paper/joint] [--trials 100] [--steps 100] [--rounds 3]
+    python benchmarks/bench_study_scaling.py [--mission paper/joint] [--trials 100] [--steps 550] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mission", default="paper/joint")
     parser.add_argument("--trials", type=int, default=100)
-    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--steps", type=int, default=550)
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
@@ -117,10 +117,13 @@ def main() -> int:
                 if untimed(d / "summary.json") != reference:
                     raise SystemExit(f"bench_study_scaling: {d.name}'s summary differs from the one-worker run's")
     finally:
-        for p in cluster:
+        for p in reversed(cluster):  # the workers, then the scheduler
             p.terminate()
-        for p in cluster:
-            p.wait(10)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(10)
     one = statistics.median(walls[names[0]])
     two = statistics.median(walls[names[1]])
     print(f"\n{args.mission}, {args.trials} trials x {args.steps} steps, {args.rounds} rounds; load average {min(loads):.1f}-{max(loads):.1f}\n")
