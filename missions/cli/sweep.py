@@ -19,7 +19,7 @@ def register(subparsers: Any) -> None:
         help="run a mission over the grid of every combination of --vary values (a Monte Carlo run each, same seeds): CSV and figures",
         description=(
             "Run MISSION once per combination of the --vary values (the grid), each cell a Monte Carlo run with the same "
-            "seeds, and write one CSV row per run of a cell (the values, final mean PEB and its 95 %% interval, median "
+            "seeds, and write one CSV row per run of a cell (the values, final mean PEB and its 95 % interval, median "
             "estimate error, violations per family, time) and a figure per varied key. Run the same command again to "
             "resume: finished cells are read, not simulated again."
         ),
