@@ -1,4 +1,5 @@
-"""Benchmark: one drone's planning step, fimnav's projected gradient vs scipy SLSQP (issue 2).
+"""Benchmark: one drone's planning step, compiled (numba), against the numpy planner and scipy's
+SLSQP measured in the same run.
 
 One planning step of drone i (the hot path of every planner process and of the simulator):
 
@@ -8,21 +9,34 @@ One planning step of drone i (the hot path of every planner process and of the s
 3. ``control_step``: activation, projection (eq. 14), speed / turn-rate limits, altitude box
    and the safety filter (default ``activation="safe"``).
 
-Baseline, in the same run: the same one-step problem (problem 7 restricted to drone i's next
-position) solved by ``scipy.optimize.minimize(method="SLSQP")``: minimise the A cost of J with
-drone i moved to p_i + u, over u, subject to v_min·Δt ≤ |u| ≤ v_max·Δt, heading change ≤ φ_max,
-tilt change ≤ θ_max, z_min ≤ z ≤ z_max, distance ≥ d_U* to every peer, ≥ d_S* to the source
-estimate and ≥ d_O* to every obstacle. SLSQP gets the analytic cost gradient of
-planner.fim.cost_gradient and analytic constraint Jacobians, and starts from the previous step
-(a feasible point). Both are given the same J of the other drones.
+The compiled step is timed in four forms: the three public functions above; the same three
+kernels called on arrays prepared once (the public functions' Python argument handling left
+out); ``planner.agent.plan``, the whole step as the simulator and the planner node run it (own
+link's predicted LOS, FIM, gradient, keep-out, peers by hop count, control step, carried state:
+one kernel call); and ``plan`` of BATCH/N copies of drone 0's step in one call, per drone (the
+simulator's batch of trials × drones).
+
+Baselines, in the same run and the same process:
+
+* the numpy planner of commit 48f7e03 (the last before the compiled core): its ``planner``
+  package is exported with ``git archive`` into a temporary directory, renamed ``planner_np``
+  and imported from there (nothing of it is kept in the repository); the same three calls;
+* the same one-step problem (problem 7 restricted to drone i's next position) solved by
+  ``scipy.optimize.minimize(method="SLSQP")``: minimise the A cost of J with drone i moved to
+  p_i + u, over u, subject to v_min·Δt ≤ |u| ≤ v_max·Δt, heading change ≤ φ_max, tilt change ≤
+  θ_max, z_min ≤ z ≤ z_max, distance ≥ d_U* to every peer, ≥ d_S* to the source estimate and
+  ≥ d_O* to every obstacle. SLSQP gets the analytic cost gradient of planner.fim.cost_gradient
+  (compiled) and analytic constraint Jacobians, and starts from the previous step (a feasible
+  point); "SLSQP-fd" uses scipy's finite differences. Both are given the same J of the others.
 
 Scene: the paper's case study as fimnav's mission files set it (source and buildings read
 from missions/paper/heterogeneous.yaml), the first ten drones on the paper's ellipse centred at
 (0, 150, 8) m; for N = 100 and 1000 the others are spread over a 400 m × 200 m area behind
 them. Roles cycle ranging / bearing / joint as in the paper's heterogeneous case.
 
-Usage:
+Usage (from the repository root, which must hold commit 48f7e03):
     python benchmarks/bench_planning_step.py            # N = 10, 100, 1000
+    python benchmarks/bench_planning_step.py --near-building
     python benchmarks/bench_planning_step.py --sizes 10 --repeats 5000
 
 The machine is shared (2 cores) and noisy: the script reports medians over many repeats
@@ -32,21 +46,42 @@ The machine is shared (2 cores) and noisy: the script reports medians over many 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
+import importlib
+import io
 import math
+import re
+import subprocess
+import sys
+import tarfile
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from types import ModuleType
+from typing import Any, Callable
 
 import numpy as np
 from scipy.optimize import minimize
 
 from missions.format.loader import load_mission
-from planner import Channel, FimStatus, Limits, control_step, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
+from planner import Channel, FimStatus, Limits, cost, cost_gradient, distance_to_boxes, fisher_information, line_of_sight
+from planner import kernels as K
+from planner.agent import plan
+from planner.config import PlannerConfig
+from planner.control import ControlScene, control_step, kernel_limits
+from planner.estimator import EstimatorConfig
 from planner.geometry import distance_to_boxes_with_gradient
+from planner.step import DroneState, StepScene
 
-MISSION_FILE = Path(__file__).resolve().parents[1] / "missions" / "paper" / "heterogeneous.yaml"
+ROOT = Path(__file__).resolve().parents[1]
+#: Drone steps planned in one call (the simulator's batch of trials × drones): BATCH // N copies
+#: of drone 0's step (200 at N = 10, as 20 trials of the paper's ten drones).
+BATCH = 2000
+#: The last commit of the numpy planner (the baseline).
+NUMPY_COMMIT = "48f7e03"
+MISSION_FILE = ROOT / "missions" / "paper" / "heterogeneous.yaml"
 _MISSION = load_mission(MISSION_FILE)
 SOURCE = np.array(_MISSION.source.position_m, dtype=float)
 BOXES_MIN = np.array([o.min_m for o in _MISSION.obstacles], dtype=float).reshape(-1, 3)
@@ -96,12 +131,79 @@ def make_scene(n: int, seed: int = 0, near_building: bool = False) -> Scene:
 
 
 def planning_step(scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarray, uni: np.ndarray):
-    """fimnav: FIM over the view, cost and gradient, control step (drone 0)."""
+    """fimnav (compiled): FIM over the view, cost and gradient, control step (drone 0)."""
     J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
     cg = cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A")
-    return control_step(
+    step = ControlScene(scene.positions[0], scene.prev, cg.gradient, cg.status, scene.positions, mask, age, src, LIMITS.d_source_m, uni)
+    return control_step(step, LIMITS, BOXES_MIN, BOXES_MAX)
+
+
+def kernel_calls(scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarray, uni: np.ndarray) -> Callable[[], object]:
+    """The same three steps as :func:`planning_step`, calling the compiled kernels directly on
+    arrays prepared once (what the public functions cost without their Python argument handling)."""
+    n = len(scene.positions)
+    one = (src[None], scene.positions[None], scene.ranging[None], scene.bearing[None], scene.los.astype(float)[None])
+    J, out, u, flags = np.zeros((1, 3, 3)), np.empty((1, 14)), np.empty((1, 3)), np.empty((1, 7), dtype=bool)
+    own = (scene.positions[0][None], scene.ranging[:1].copy(), scene.bearing[:1].copy(), scene.los[:1].astype(float), np.zeros((1, 3)))
+    lim, chan = kernel_limits(LIMITS), CHANNEL.kernel_array
+    peers = (scene.positions[None], mask[None], age[None], np.zeros((1, n, 3)), np.full((1, n, 3), np.nan))
+    tail = (src[None], np.full(1, LIMITS.d_source_m), uni[None], BOXES_MIN, BOXES_MAX, lim, np.nan, math.radians(20.0), False, u, flags)
+
+    def run() -> None:
+        K.fim_batch(*one, chan, J)
+        K.cost_gradient_batch(J, src[None], own[0], *own[1:], False, chan, False, out)
+        status = out[:, 4].astype(np.int8)
+        K.control_batch(own[0], scene.prev[None], out[:, 1:4].copy(), status, *peers, *tail)
+
+    return run
+
+
+def plan_inputs(scene: Scene, src: np.ndarray, copies: int = 0) -> tuple[PlannerConfig, StepScene, DroneState]:
+    """Drone 0's whole planning step as the simulator and the planner node run it
+    (:func:`planner.agent.plan`: own link's predicted LOS, FIM, cost gradient, keep-out, peers by
+    hop count, control step, carried state), its view the scene's positions of this step, all
+    heard directly; ``copies`` > 0: that many copies of it in one call (the simulator's batch)."""
+    n = len(scene.positions)
+    config = PlannerConfig(
+        channel=CHANNEL, limits=LIMITS, criterion="A", component_masks={"range": scene.ranging, "bearing": scene.bearing},
+        boxes_min_m=BOXES_MIN, boxes_max_m=BOXES_MAX, d_hop_m=_MISSION.comms.d_hop_m, start_positions_m=None, estimator=EstimatorConfig(),
+    )  # fmt: skip
+    b = (copies,) if copies else ()
+    rep = (lambda a: np.broadcast_to(a, b + np.shape(a)).copy()) if copies else (lambda a: np.asarray(a))
+    J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
+    step = StepScene(
+        step_index=5, own_index=rep(np.array(0)), own_position_m=rep(scene.positions[0]),
+        own_range_m=rep(np.array(np.linalg.norm(scene.positions[0] - SOURCE))), own_los=rep(np.array(bool(scene.los[0]))),
+        view_positions_m=rep(scene.positions), view_valid=rep(np.ones(n, bool)), view_los=rep(scene.los),
+        saved_steps=rep(np.full(n, 5, dtype=np.int64)), hops=rep(np.ones(n, dtype=np.int64)), estimate_m=rep(src), information=rep(J),
+        observable=rep(np.array(True)), perturbation_uniforms=rep(np.array([0.3, 0.7])), lost_contact=rep(np.zeros(n, bool)),
+    )  # fmt: skip
+    state = DroneState.initial(b, n)
+    state = plan(config, step, dataclasses.replace(state, previous_step_m=rep(scene.prev))).state  # a carried state
+    return config, step, state
+
+
+def numpy_planner(commit: str = NUMPY_COMMIT) -> ModuleType:
+    """The ``planner`` package of ``commit`` (the numpy planner), exported into a temporary
+    directory as ``planner_np`` and imported from there."""
+    archive = subprocess.run(["git", "archive", commit, "planner"], cwd=ROOT, capture_output=True, check=True).stdout
+    tmp = Path(tempfile.mkdtemp(prefix="fimnav-numpy-planner-"))
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(tmp, filter="data")
+    for path in (tmp / "planner").rglob("*.py"):
+        path.write_text(re.sub(r"\bplanner\b(?=[ .\"'])", "planner_np", path.read_text(encoding="utf-8")), encoding="utf-8")
+    (tmp / "planner").rename(tmp / "planner_np")
+    sys.path.insert(0, str(tmp))
+    return importlib.import_module("planner_np")
+
+
+def numpy_planning_step(np_planner: Any, scene: Scene, src: np.ndarray, mask: np.ndarray, age: np.ndarray, uni: np.ndarray, channel: Any, limits: Any):
+    """The same step with the numpy planner of :data:`NUMPY_COMMIT`."""
+    J = np_planner.fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, channel)
+    cg = np_planner.cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], channel, "A")
+    return np_planner.control_step(
         scene.positions[0], scene.prev, cg.gradient, cg.status, scene.positions, mask, age, src,
-        LIMITS.d_source_m, BOXES_MIN, BOXES_MAX, LIMITS, uni,
+        limits.d_source_m, BOXES_MIN, BOXES_MAX, limits, uni,
     )
 
 
@@ -213,60 +315,90 @@ def timeit(fn: Callable[[], object], repeats: int, warmup: int = 20) -> tuple[fl
     return med, q1, q3
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
-    ap.add_argument("--repeats", type=int, default=3000, help="repeats of the fimnav step (SLSQP: /20, at least 30)")
-    ap.add_argument("--near-building", action="store_true", help="drone 0 next to a building and a peer: constraints active")
-    args = ap.parse_args(argv)
-
+def measure(n: int, near_building: bool, repeats: int, npl: Any) -> dict[str, Any]:
+    """Timings and results of one N (drone 0's step), compiled, numpy and SLSQP, interleaved."""
     # The source estimate is off the truth (as in flight): 3 m east, 2 m north, 1 m up.
     src = SOURCE + np.array([3.0, 2.0, 1.0])
-    rows = []
-    for n in args.sizes:
-        scene = make_scene(n, near_building=args.near_building)
-        mask = np.ones(n, bool)
-        mask[0] = False
-        age = np.zeros(n)
-        uni = np.array([0.3, 0.7])
-        ours = planning_step(scene, src, mask, age, uni)
-        t_ours = timeit(lambda: planning_step(scene, src, mask, age, uni), args.repeats)
-        t_fim = timeit(lambda: fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL), args.repeats)
-        J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
-        t_grad = timeit(lambda: cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A"), args.repeats)
-        t_los = timeit(lambda: line_of_sight(scene.positions, src, BOXES_MIN, BOXES_MAX), args.repeats)
-        u_slsqp, ok, nit = slsqp_step(scene, src)
-        t_slsqp = timeit(lambda: slsqp_step(scene, src), max(30, args.repeats // 20), warmup=3)
-        u_fd, ok_fd, nit_fd = slsqp_step(scene, src, analytic=False)
-        t_fd = timeit(lambda: slsqp_step(scene, src, analytic=False), max(30, args.repeats // 20), warmup=3)
-        c0 = a_cost_after(scene, src, np.zeros(3))
-        c_ours = a_cost_after(scene, src, ours.displacement)
-        c_slsqp = a_cost_after(scene, src, u_slsqp)
-        rows.append(dict(
-            n=n, ours=t_ours, fim=t_fim, grad=t_grad, los=t_los, slsqp=t_slsqp, ok=ok, nit=nit,
-            fd=t_fd, ok_fd=ok_fd, nit_fd=nit_fd, c_fd=a_cost_after(scene, src, u_fd),
-            c0=c0, c_ours=c_ours, c_slsqp=c_slsqp,
-            v_ours=plain_violation(scene, src, ours.displacement), v_slsqp=plain_violation(scene, src, u_slsqp),
-            active=ours.active, filtered=bool(ours.filtered),
-        ))
+    scene = make_scene(n, near_building=near_building)
+    mask = np.ones(n, bool)
+    mask[0] = False
+    age = np.zeros(n)
+    uni = np.array([0.3, 0.7])
+    np_channel = npl.Channel(CHANNEL.gamma, CHANNEL.sigma_ratio_los, CHANNEL.sigma_ratio_nlos, CHANNEL.sigma_bearing_rad)
+    np_limits = npl.Limits()
+    ours = planning_step(scene, src, mask, age, uni)
+    theirs = numpy_planning_step(npl, scene, src, mask, age, uni, np_channel, np_limits)
+    t_ours = timeit(lambda: planning_step(scene, src, mask, age, uni), repeats)
+    t_numpy = timeit(lambda: numpy_planning_step(npl, scene, src, mask, age, uni, np_channel, np_limits), max(30, repeats // 10), warmup=5)
+    t_fim = timeit(lambda: fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL), repeats)
+    J = fisher_information(src, scene.positions, scene.ranging, scene.bearing, scene.los, CHANNEL)
+    t_grad = timeit(lambda: cost_gradient(J, src, scene.positions[0], scene.ranging[0], scene.bearing[0], scene.los[0], CHANNEL, "A"), repeats)
+    t_los = timeit(lambda: line_of_sight(scene.positions, src, BOXES_MIN, BOXES_MAX), repeats)
+    t_kernels = timeit(kernel_calls(scene, src, mask, age, uni), repeats)
+    config, step, state = plan_inputs(scene, src)
+    t_plan = timeit(lambda: plan(config, step, state), repeats)
+    copies = max(1, BATCH // n)
+    config, step, state = plan_inputs(scene, src, copies=copies)
+    t_batch = timeit(lambda: plan(config, step, state), max(30, repeats // copies), warmup=3)
+    u_slsqp, ok, nit = slsqp_step(scene, src)
+    t_slsqp = timeit(lambda: slsqp_step(scene, src), max(30, repeats // 20), warmup=3)
+    u_fd, ok_fd, nit_fd = slsqp_step(scene, src, analytic=False)
+    t_fd = timeit(lambda: slsqp_step(scene, src, analytic=False), max(30, repeats // 20), warmup=3)
+    return dict(
+        n=n, ours=t_ours, kernels=t_kernels, plan=t_plan, batch=tuple(t / copies for t in t_batch), numpy=t_numpy, fim=t_fim, grad=t_grad, los=t_los, slsqp=t_slsqp, ok=ok, nit=nit, fd=t_fd, ok_fd=ok_fd, nit_fd=nit_fd,
+        agree=float(np.abs(np.asarray(ours.displacement) - np.asarray(theirs.displacement)).max()),
+        c0=a_cost_after(scene, src, np.zeros(3)), c_ours=a_cost_after(scene, src, ours.displacement), c_slsqp=a_cost_after(scene, src, u_slsqp),
+        c_fd=a_cost_after(scene, src, u_fd), v_ours=plain_violation(scene, src, ours.displacement), v_slsqp=plain_violation(scene, src, u_slsqp),
+        active=ours.active, filtered=bool(ours.filtered),
+    )  # fmt: skip
 
+
+def print_times(rows: list[dict[str, Any]], near_building: bool) -> None:
+    """The timing tables: medians [interquartile range], µs, and the ratios."""
     us = 1e6
-    where = "drone 0 next to a building and a peer (constraints active)" if args.near_building else "drone 0 in open space"
-    print(f"One drone's planning step (A-optimality), {where}; medians [interquartile range]; shared 2-core machine, noisy.")
-    print("SLSQP: analytic gradient + constraint Jacobians; SLSQP-fd: scipy's finite differences. Ratios: SLSQP time / fimnav time.")
-    print(f"{'N':>5} | {'fimnav step µs':>20} | {'(FIM µs':>7} {'grad µs':>8} {'LOS µs)':>8} | {'SLSQP µs':>20} | {'ratio':>6} | {'it':>3} | {'SLSQP-fd µs':>20} | {'ratio':>6} | {'it':>3}")
+    where = "drone 0 next to a building and a peer (constraints active)" if near_building else "drone 0 in open space"
+    print(f"One drone's planning step (A-optimality), {where}; medians [interquartile range]; shared 2-core machine.")
+    print(f"numpy: the planner of commit {NUMPY_COMMIT}; SLSQP: analytic gradient + constraint Jacobians; SLSQP-fd: finite differences.")
+    print("compiled: fisher_information + cost_gradient + control_step (the public functions). Ratios: the baseline's time /")
+    print("the compiled step's. |Δu|: largest difference of the compiled and numpy steps, m.")
+    print(
+        f"{'N':>5} | {'compiled µs':>20} | {'numpy µs':>18} | {'ratio':>6} | "
+        f"{'SLSQP µs':>18} | {'ratio':>6} | {'it':>3} | {'SLSQP-fd µs':>19} | {'ratio':>6} | {'|Δu| m':>8}"
+    )
     for r in rows:
         m, a, b = (x * us for x in r["ours"])
+        nm, na, nb = (x * us for x in r["numpy"])
         sm, sa, sb = (x * us for x in r["slsqp"])
         fm, fa, fb = (x * us for x in r["fd"])
         print(
-            f"{r['n']:>5} | {m:8.1f} [{a:6.1f}-{b:6.1f}] | {r['fim'][0] * us:7.1f} {r['grad'][0] * us:8.1f} {r['los'][0] * us:8.1f} | "
-            f"{sm:7.0f} [{sa:5.0f}-{sb:5.0f}] | {sm / m:5.0f}× | {r['nit']:>3}{'' if r['ok'] else '!'} | "
-            f"{fm:7.0f} [{fa:5.0f}-{fb:5.0f}] | {fm / m:5.0f}× | {r['nit_fd']:>3}{'' if r['ok_fd'] else '!'}"
+            f"{r['n']:>5} | {m:8.1f} [{a:5.1f}-{b:5.1f}] | "
+            f"{nm:7.0f} [{na:4.0f}-{nb:4.0f}] | {nm / m:5.0f}× | {sm:7.0f} [{sa:4.0f}-{sb:4.0f}] | {sm / m:5.0f}× | "
+            f"{r['nit']:>3}{'' if r['ok'] else '!'} | {fm:7.0f} [{fa:5.0f}-{fb:5.0f}] | {fm / m:5.0f}× | {r['agree']:8.1e}"
         )
     print()
+    print("The compiled step's forms, µs (medians [IQR]): the public functions; the same three kernels called on arrays")
+    print(f"prepared once; planner.agent.plan (the whole step as simulator and node run it: one kernel call); plan of {BATCH}/N")
+    print("copies in one call, per drone (the simulator's batch). (FIM, grad: the public functions; LOS: line_of_sight, numpy,")
+    print("not part of the step.) ×SLSQP: SLSQP's median / this form's.")
+    print(
+        f"{'N':>5} | {'public':>20} | {'kernels':>20} | {'plan':>20} | {'plan, batch/drone':>20} | {'FIM':>6} {'grad':>6} {'LOS':>6} | "
+        f"{'×SLSQP: public':>14} {'kernels':>8} {'plan':>6} {'batch':>6}"
+    )
+    for r in rows:
+        forms = [tuple(x * us for x in r[k]) for k in ("ours", "kernels", "plan", "batch")]
+        cells = " | ".join(f"{m:8.1f} [{a:5.1f}-{b:5.1f}]" for m, a, b in forms)
+        sm = r["slsqp"][0] * us
+        ratios = " ".join(f"{sm / f[0]:{w}.0f}×" for f, w in zip(forms, (13, 7, 5, 5)))
+        print(f"{r['n']:>5} | {cells} | {r['fim'][0] * us:6.1f} {r['grad'][0] * us:6.1f} {r['los'][0] * us:6.1f} | {ratios}")
+
+
+def print_costs(rows: list[dict[str, Any]]) -> None:
+    """The cost each step reaches, and the plain constraints' largest violation."""
     print("Cost tr(J⁻¹) [m²] after the step (lower is better); largest violation of the plain constraints (m, ≤ 0 = none)")
-    print(f"{'N':>5} | {'before':>12} | {'fimnav':>12} | {'SLSQP':>12} | {'SLSQP-fd':>12} | {'(fimnav−SLSQP)/(before−SLSQP)':>30} | {'viol. fimnav':>12} | {'viol. SLSQP':>11} | fimnav active (uav,src,obs,alt) / filtered")
+    print(
+        f"{'N':>5} | {'before':>12} | {'fimnav':>12} | {'SLSQP':>12} | {'SLSQP-fd':>12} | {'(fimnav−SLSQP)/(before−SLSQP)':>30} | "
+        f"{'viol. fimnav':>12} | {'viol. SLSQP':>11} | fimnav active (uav,src,obs,alt) / filtered"
+    )
     for r in rows:
         gain = r["c0"] - r["c_slsqp"]
         rel = (r["c_ours"] - r["c_slsqp"]) / gain if gain != 0 else float("nan")
@@ -274,6 +406,19 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['n']:>5} | {r['c0']:12.6e} | {r['c_ours']:12.6e} | {r['c_slsqp']:12.6e} | {r['c_fd']:12.6e} | {rel:30.2e} | "
             f"{r['v_ours']:12.3f} | {r['v_slsqp']:11.3f} | {tuple(int(x) for x in r['active'])} / {r['filtered']}"
         )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
+    ap.add_argument("--repeats", type=int, default=3000, help="repeats of the compiled step (numpy: /10, SLSQP: /20, at least 30)")
+    ap.add_argument("--near-building", action="store_true", help="drone 0 next to a building and a peer: constraints active")
+    args = ap.parse_args(argv)
+    npl = numpy_planner()
+    rows = [measure(n, args.near_building, args.repeats, npl) for n in args.sizes]
+    print_times(rows, args.near_building)
+    print()
+    print_costs(rows)
     return 0
 
 

@@ -182,6 +182,14 @@ class MissionFrame:
         x, y, _ = self._geo_enu.transform(lat_deg, lon_deg, h0)
         return float(x), float(y), float(alt_amsl_m) - h0
 
+    def to_enu_many(self, lat_lon_alt: np.ndarray) -> np.ndarray:
+        """WGS-84 (n, 3) of (lat deg, lon deg, m AMSL) → mission ENU (n, 3), m, many points at
+        once (the convention of :meth:`to_enu`)."""
+        g = np.asarray(lat_lon_alt, dtype=float).reshape(-1, 3)
+        h0 = self.origin.alt_m
+        x, y, _ = self._geo_enu.transform(g[:, 0], g[:, 1], np.full(len(g), h0))
+        return np.column_stack([x, y, g[:, 2] - h0])
+
     def matches(self, lat_deg: float, lon_deg: float, alt_amsl_m: float, tol_m: float = 0.05) -> bool:
         """True when a WGS-84 point (e.g. a vehicle's EKF origin) is the mission origin within
         ``tol_m`` metres horizontally and vertically."""

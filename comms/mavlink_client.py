@@ -133,6 +133,9 @@ PX4_ARM_TRIES = flavour_info("px4").arm_tries
 MODE_CONFIRM_TIMEOUT_S: float = 30.0
 #: No autopilot heartbeat for this long (wall s) = the link is lost (noticed within 3 s).
 LINK_LOSS_S: float = 2.0
+#: While the link counts as lost, a message from the vehicle asks for a heartbeat at most this
+#: often (wall s): the vehicle's mode, which decides whether the stream may go on, is in it.
+HEARTBEAT_POLL_AFTER_LOSS_S: float = 0.2
 
 
 class VehicleLink:
@@ -199,6 +202,7 @@ class VehicleLink:
         self.telemetry: Telemetry = self.receiver.telemetry
         self.clock: ClockWatch = self.receiver.clock
         self._last_gcs_heartbeat = -math.inf
+        self._last_poll_after_loss = -math.inf
         self.acks: dict[int, int] = self.receiver.acks
         self.statustexts = self.telemetry.statustexts
         self._setpoints = SetpointEncoder(self.mavutil.mavlink, target_system, frame, mission_frame, altitude_reference)
@@ -282,7 +286,9 @@ class VehicleLink:
     def _handle(self, msg: Any) -> bool:
         """Take one parsed message into the telemetry (False: not for us). A heartbeat that
         shows the vehicle leaving the guided mode (GUIDED/OFFBOARD) ends the setpoint stream at
-        once and sets :attr:`left_guided` (docs/in-the-field.md: a pilot's mode change wins)."""
+        once and sets :attr:`left_guided` (docs/in-the-field.md: a pilot's mode change wins).
+        A message from the vehicle while the link counts as lost (no heartbeat yet) asks for a
+        heartbeat at once: until one says the vehicle's mode, nothing is streamed."""
         before = self.telemetry.custom_mode
         mine = self.receiver.handle(msg, self.mav.signing.sig_count)
         after = self.telemetry.custom_mode
@@ -291,6 +297,12 @@ class VehicleLink:
             if before == guided and after != guided:
                 self._stream.fn = None
                 self.left_guided = True
+        if mine and self.lost and self.wall() - self._last_poll_after_loss >= HEARTBEAT_POLL_AFTER_LOSS_S:
+            self._last_poll_after_loss = self.wall()
+            try:
+                self._poll_heartbeat()
+            except OSError:
+                pass  # the link is down again: the heartbeat timeout keeps reporting it
         return mine
 
     def wait_for(self, predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -392,18 +404,23 @@ class VehicleLink:
 
     def set_stream(self, fn: SetpointFunction | None, period_s: float | None = None) -> None:
         """Stream ``fn(wall_s) -> (position ENU m | None, velocity ENU m/s | None)`` every
-        ``period_s`` wall seconds from now on (sent at once); None stops the stream."""
+        ``period_s`` wall seconds from now on (sent at once, unless the link is :attr:`lost`);
+        None stops the stream."""
         self._stream.set(fn, period_s)
         self._stream_out()
 
     @property
     def streaming(self) -> bool:
         """Whether a setpoint stream is installed (:meth:`set_stream`; a heartbeat showing the
-        vehicle leave the guided mode ends it)."""
+        vehicle leave the guided mode ends it). An installed stream sends nothing while the link
+        is :attr:`lost`."""
         return self._stream.fn is not None
 
     def _stream_out(self) -> None:
-        if self._stream.fn is None:
+        # Nothing while the link is lost: who flies the vehicle is unknown until a heartbeat
+        # says its mode (a pilot or a failsafe may have changed it meanwhile); a heartbeat in
+        # another mode than the guided one then ends the stream before it sends again.
+        if self._stream.fn is None or self.lost:
             return
         setpoint = self._stream.due(self.wall())
         if setpoint is None:

@@ -21,11 +21,15 @@ eq. 12.
 
 Costs (eq. 6): A-optimality C = tr(J⁻¹), D-optimality C = −ln det J, with analytic gradients
 with respect to the position of one drone (its own, for the control law of eq. 14).
+
+The range and bearing terms, the inverse and the gradient are compiled (:mod:`planner.kernels`,
+``fim_batch``, ``invert_batch``, ``cost_gradient_batch``: each loops over the batch); the terms of
+further measurement components of a larger registry (:mod:`planner.sensing`) are added here with
+their own numpy methods.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
@@ -33,40 +37,37 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner.geometry import RHO_FLOOR_M
+from planner import kernels as K
 from planner.params import Channel, Criterion
-from planner.sensing import COMPONENTS, LinkGeometry, SensingComponent, component_masks, link_geometry
+from planner.sensing import BEARING, COMPONENTS, RANGE, SensingComponent, component_masks, link_geometry
 
 FloatArray = NDArray[np.float64]
 
 #: Reciprocal condition number (λ_min/λ_max) below which J is reported singular.
-SINGULAR_RCOND: float = 1e-12
+SINGULAR_RCOND: float = K.SINGULAR_RCOND
 #: Reciprocal condition number below which J is reported ill-conditioned (still inverted).
-ILL_CONDITIONED_RCOND: float = 1e-8
+ILL_CONDITIONED_RCOND: float = K.ILL_CONDITIONED_RCOND
 
 
 class FimStatus(IntEnum):
     """Health of a Fisher information matrix."""
 
-    OK = 0
-    ILL_CONDITIONED = 1  #: inverted, but the cost may be inaccurate
-    SINGULAR = 2  #: not invertible: cost +inf (A) or +inf (D), gradient zero
+    OK = K.OK
+    ILL_CONDITIONED = K.ILL  #: inverted, but the cost may be inaccurate
+    SINGULAR = K.SINGULAR  #: not invertible: cost +inf (A) or +inf (D), gradient zero
 
 
-# Plain-int codes for the hot paths: comparing arrays with IntEnum members costs microseconds.
-_OK, _ILL, _SINGULAR = int(FimStatus.OK), int(FimStatus.ILL_CONDITIONED), int(FimStatus.SINGULAR)
+def _extras(components: Sequence[SensingComponent]) -> Sequence[SensingComponent]:
+    """The components after range and bearing, which the kernels cover (registry order)."""
+    if len(components) < 2 or components[0] is not RANGE or components[1] is not BEARING:
+        raise ValueError(f"components: expected range and bearing first, found {[c.name for c in components[:2]]}")
+    return components[2:]
 
 
-def _los_weight(los: ArrayLike) -> FloatArray:
-    """LOS flags (bool) or weights in [0, 1] as floats."""
-    return np.asarray(los, dtype=float)
-
-
-def _stacked_rows(geom: LinkGeometry, components: Sequence[SensingComponent]) -> FloatArray:
-    """The rows u of every component's terms w u uᵀ, stacked in registry order, (..., k, 3):
-    for the registry, r (ranging direction times d), b = [-r_y, r_x, 0] (∇φ·ρ²) and
-    v = [-r_x r_z, -r_y r_z, ρ²] (∇θ·d²ρ)."""
-    return np.concatenate([c.fim_vectors(geom) for c in components], axis=-2)
+def _criterion_d(criterion: Criterion) -> bool:
+    if criterion not in ("A", "D"):
+        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
+    return criterion == "D"
 
 
 def fisher_information(
@@ -95,20 +96,54 @@ def fisher_information(
             bearing, by component name (absent: no drone has it).
         components: the measurement components (:data:`planner.sensing.COMPONENTS`).
 
-    Every component adds its rows u with weights w (w u uᵀ per drone): J = Σ w u uᵀ is one
-    product of the rows of all drones and components, stacked in registry order.
+    Every component adds its rows u with weights w (w u uᵀ per drone): J = Σ w u uᵀ over the
+    rows of all drones and components, in registry order.
 
     Returns:
         J, shape (..., 3, 3), units 1/m².
     """
-    r = np.asarray(source, dtype=float)[..., None, :] - np.asarray(positions, dtype=float)
-    los_w = _los_weight(los)
-    geom = link_geometry(r)
-    masks = component_masks(ranging, bearing, extra_masks, components)
-    V = _stacked_rows(geom, components)
-    w = np.concatenate([c.fim_row_weights(geom, mask, los_w, channel) for c, mask in zip(components, masks, strict=True)], axis=-1)
-    Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
-    return np.swapaxes(Vs, -1, -2) @ Vs
+    extras = _extras(components)
+    src, pos = np.asarray(source, dtype=float), np.asarray(positions, dtype=float)
+    rng, brg, los_w = np.asarray(ranging, dtype=bool), np.asarray(bearing, dtype=bool), np.asarray(los, dtype=float)
+    n = pos.shape[-2]
+    if src.ndim == 1 and pos.ndim == 2 and rng.shape == brg.shape == los_w.shape == (n,):  # one view
+        J = np.zeros((1, 3, 3))
+        one = (K.one_drone(src), K.one_drone(pos), K.one_drone(rng, bool), K.one_drone(brg, bool), K.one_drone(los_w))
+        K.fim_batch(*one, channel.kernel_array, J)
+        J = J[0]
+    else:
+        batch = np.broadcast_shapes(src.shape[:-1], pos.shape[:-2], rng.shape[:-1], brg.shape[:-1], los_w.shape[:-1])
+        args = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(pos, batch + (n, 3), float, 2))
+        masks = (K.as_batch(rng, batch + (n,), bool, 1), K.as_batch(brg, batch + (n,), bool, 1), K.as_batch(los_w, batch + (n,), float, 1))
+        J = np.zeros(batch + (3, 3))
+        K.fim_batch(*args, *masks, channel.kernel_array, J.reshape(-1, 3, 3))
+    if extra_masks:
+        J = J + _extra_fim(src, pos, rng, brg, los_w, channel, extra_masks, components, extras)
+    return J
+
+
+def _extra_fim(
+    src: FloatArray,
+    pos: FloatArray,
+    rng: ArrayLike,
+    brg: ArrayLike,
+    los_w: FloatArray,
+    channel: Channel,
+    extra_masks: Mapping[str, ArrayLike],
+    components: Sequence[SensingComponent],
+    extras: Sequence[SensingComponent],
+) -> FloatArray:
+    """The terms Σ w u uᵀ (..., 3, 3) of the components beyond range and bearing (their own rows
+    and weights, :class:`planner.sensing.SensingComponent`)."""
+    geom = link_geometry(src[..., None, :] - pos)
+    masks = component_masks(rng, brg, extra_masks, components)[2:]
+    J = np.zeros(geom.d.shape[:-1] + (3, 3))
+    for component, mask in zip(extras, masks, strict=True):
+        V = component.fim_vectors(geom)
+        w = component.fim_row_weights(geom, mask, los_w, channel)
+        Vs = (V * np.sqrt(w)[..., None]).reshape(V.shape[:-3] + (-1, 3))
+        J = J + np.swapaxes(Vs, -1, -2) @ Vs
+    return J
 
 
 @dataclass(frozen=True)
@@ -130,28 +165,14 @@ def invert_fim(fim: ArrayLike) -> FimInverse:
     """Invert symmetric 3x3 FIMs with an explicit health check (no silent NaN or inf).
 
     The matrix is reported singular when λ_min ≤ 1e-12 λ_max (or λ_max ≤ 0 or non-finite),
-    ill-conditioned below 1e-8.
+    ill-conditioned below 1e-8. Eigenvalues by cyclic Jacobi rotations, the inverse by
+    cofactors, ln det J = Σ ln λ (compiled, :mod:`planner.kernels`).
     """
     J = np.asarray(fim, dtype=float)
-    finite = np.isfinite(J).all(axis=(-2, -1))
-    if not finite.all():
-        J = np.where(finite[..., None, None], J, 0.0)
-    eig = np.linalg.eigvalsh(J)
-    lmin, lmax = eig[..., 0], eig[..., -1]
-    ok_max = lmax > 0.0
-    rcond = np.divide(lmin, lmax, out=np.zeros_like(lmax), where=ok_max)
-    singular = (~finite) | (~ok_max) | (rcond <= SINGULAR_RCOND)
-    status = np.where(singular, _SINGULAR, np.where(rcond <= ILL_CONDITIONED_RCOND, _ILL, _OK)).astype(np.int8)
-    any_singular = bool(singular.any())
-    if any_singular:
-        J = np.where(singular[..., None, None], np.eye(3), J)
-        eig = np.where(singular[..., None], 1.0, eig)
-    inv = np.linalg.inv(J)
-    logdet = np.log(eig).sum(axis=-1)
-    if any_singular:
-        inv = np.where(singular[..., None, None], 0.0, inv)
-        logdet = np.where(singular, -np.inf, logdet)
-    return FimInverse(inverse=inv, logdet=logdet, status=status)
+    batch = J.shape[:-2]
+    inv, out = np.empty(batch + (3, 3)), np.empty(batch + (2,))
+    K.invert_batch(K.as_batch(J, J.shape, float, 2), inv.reshape(-1, 3, 3), out.reshape(-1, 2))
+    return FimInverse(inverse=inv, logdet=out[..., 0], status=out[..., 1].astype(np.int8))
 
 
 def cost(fim: ArrayLike, criterion: Criterion) -> tuple[FloatArray, NDArray[np.int8]]:
@@ -160,17 +181,10 @@ def cost(fim: ArrayLike, criterion: Criterion) -> tuple[FloatArray, NDArray[np.i
     Returns ``(C, status)``: C = tr(J⁻¹) (m²) for ``"A"``, −ln det J for ``"D"``; where J is
     singular C is ``+inf`` and ``status`` says :attr:`FimStatus.SINGULAR`.
     """
+    d = _criterion_d(criterion)
     inv = invert_fim(fim)
-    singular = inv.status == _SINGULAR
-    if criterion == "A":
-        value = np.trace(inv.inverse, axis1=-2, axis2=-1)
-    elif criterion == "D":
-        value = -inv.logdet
-    else:
-        raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
-    if singular.any():
-        value = np.where(singular, np.inf, value)
-    return value, inv.status
+    value = -inv.logdet if d else np.trace(inv.inverse, axis1=-2, axis2=-1)
+    return np.where(inv.status == K.SINGULAR, np.inf, value), inv.status
 
 
 @dataclass(frozen=True)
@@ -225,118 +239,59 @@ def cost_gradient(
         own_extra: drone i's masks of the other components, by name (see
             :func:`fisher_information`). components: the measurement components.
 
-    Each component supplies its own term's gradient
-    (:meth:`planner.sensing.SensingComponent.cost_gradient_terms`), summed in registry order.
-    One drone (``fim`` (3, 3), ``own_position`` (3,)) takes a scalar fast path with the same
-    value, status and (to round-off) gradient; see :func:`_cost_gradient_one`.
+    The range and bearing terms are compiled (:mod:`planner.kernels`); a further component adds
+    its own term's gradient (:meth:`planner.sensing.SensingComponent.cost_gradient_terms`).
     """
-    if np.shape(own_position) == (3,) and np.shape(source) == (3,) and np.shape(fim) == (3, 3) and criterion in ("A", "D"):
-        fast = _cost_gradient_one(
-            fim, source, own_position, own_ranging, own_bearing, own_los, channel, criterion, own_los_gradient, own_extra, components
-        )
-        if fast is not None:
-            return fast
-    inv, value, M = _criterion_derivative(fim, criterion)
-    singular = inv.status == _SINGULAR
-    r = np.asarray(source, dtype=float) - np.asarray(own_position, dtype=float)
-    los_w = _los_weight(own_los)
-    geom = link_geometry(r)
-    masks = component_masks(own_ranging, own_bearing, own_extra, components)
-    V = _stacked_rows(geom, components)
-    MV = V @ M  # rows M u (M symmetric): M r, M b, M v for the registry
-    q = (V * MV).sum(-1)  # uᵀMu
-    with_trace = own_los_gradient is not None
-    total: FloatArray | None = None
-    tr: FloatArray | None = None
-    row = 0
-    for component, mask in zip(components, masks, strict=True):
-        rows = slice(row, row + component.fim_row_count)
-        row += component.fim_row_count
-        g_c, tr_c = component.cost_gradient_terms(geom, q[..., rows], MV[..., rows, :], mask, los_w, channel, with_trace)
-        total = g_c if total is None else total + g_c
-        if tr_c is not None:
-            # tr(M (J_LOS − J_NLOS)) of the own term.
-            tr = tr_c if tr is None else tr + tr_c
-    gradient = -total if total is not None else np.zeros(np.shape(r))
-    if own_los_gradient is not None and tr is not None:
-        gradient = gradient + tr[..., None] * np.asarray(own_los_gradient, dtype=float)
-    if singular.any():
-        gradient = np.where(singular[..., None], 0.0, gradient)
-        value = np.where(singular, np.inf, value)
-    return CostGradient(value=value, gradient=gradient, status=inv.status)
-
-
-def _criterion_derivative(fim: ArrayLike, criterion: Criterion) -> tuple[FimInverse, FloatArray, FloatArray]:
-    """J's inverse and health (:func:`invert_fim`), the cost C of eq. 6 and M = ∂C/∂J:
-    C = tr J⁻¹, M = −J⁻² for A; C = −ln det J, M = −J⁻¹ for D."""
-    inv = invert_fim(fim)
-    Jinv = inv.inverse
-    if criterion == "A":
-        return inv, np.trace(Jinv, axis1=-2, axis2=-1), -Jinv @ Jinv
-    if criterion == "D":
-        return inv, -inv.logdet, -Jinv
-    raise ValueError(f"criterion: expected 'A' or 'D', found {criterion!r}")
-
-
-def _cost_gradient_one(
-    fim: ArrayLike,
-    source: ArrayLike,
-    own_position: ArrayLike,
-    own_ranging: ArrayLike,
-    own_bearing: ArrayLike,
-    own_los: ArrayLike,
-    channel: Channel,
-    criterion: Criterion,
-    own_los_gradient: ArrayLike | None = None,
-    own_extra: Mapping[str, ArrayLike] | None = None,
-    components: Sequence[SensingComponent] = COMPONENTS,
-) -> CostGradient | None:
-    """:func:`cost_gradient` for one drone and one 3x3 J, in Python floats (the planner node's
-    hot path: ~3x faster than the batched code on 0-d arrays).
-
-    Same health test, inverse, value and status as :func:`invert_fim`; the gradient is the same
-    expression as the batched code, term by term (agrees to round-off; tested in
-    ``tests/planner/test_costs.py``). Returns None when J is singular or not finite (the
-    batched code handles those).
-    """
+    d = _criterion_d(criterion)
+    extras = _extras(components)
     J = np.asarray(fim, dtype=float)
-    if not np.isfinite(J).all():
-        return None
-    eig = np.linalg.eigvalsh(J)
-    lmin, lmax = float(eig[0]), float(eig[-1])
-    if not lmax > 0.0:
-        return None
-    rcond = lmin / lmax
-    if rcond <= SINGULAR_RCOND:
-        return None
-    status = np.array(_ILL if rcond <= ILL_CONDITIONED_RCOND else _OK, dtype=np.int8)
-    Jinv = np.linalg.inv(J)
-    if criterion == "A":
-        value = np.trace(Jinv, axis1=-2, axis2=-1)
-        M = -Jinv @ Jinv
+    src, p = np.asarray(source, dtype=float), np.asarray(own_position, dtype=float)
+    rng, brg, q = np.asarray(own_ranging, dtype=bool), np.asarray(own_bearing, dtype=bool), np.asarray(own_los, dtype=float)
+    use_gq = own_los_gradient is not None
+    gq_in = np.zeros(3) if own_los_gradient is None else own_los_gradient
+    if J.shape == (3, 3) and src.shape == p.shape == (3,) and rng.ndim == brg.ndim == q.ndim == 0:  # one drone
+        batch: tuple[int, ...] = ()
+        args = (K.one_drone(J), K.one_drone(src), K.one_drone(p), rng.reshape(1), brg.reshape(1), q.reshape(1), K.one_drone(gq_in))
     else:
-        value = -np.log(eig).sum(axis=-1)
-        M = -Jinv
-    m = M.tolist()
-    s = np.asarray(source, dtype=float)
-    o = np.asarray(own_position, dtype=float)
-    r = (float(s[0] - o[0]), float(s[1] - o[1]), float(s[2] - o[2]))
-    rho2 = max(r[0] * r[0] + r[1] * r[1], RHO_FLOOR_M**2)
-    d2 = rho2 + r[2] * r[2]
-    d = math.sqrt(d2)
-    los = float(np.asarray(own_los, dtype=float))
-    tr = 0.0  # tr(M (J_LOS − J_NLOS)) of the own term
-    gx = gy = gz = 0.0
-    masks = component_masks(own_ranging, own_bearing, own_extra, components)
-    for component, mask in zip(components, masks, strict=True):
-        terms = component.cost_gradient_one_terms(r, rho2, d, d2, m, bool(np.asarray(mask)), los, channel, own_los_gradient is not None)
-        if terms is not None:
-            gx, gy, gz = gx + terms[0], gy + terms[1], gz + terms[2]
-            tr += terms[3]
-    gradient = np.array([-gx, -gy, -gz])
-    if own_los_gradient is not None:
-        gradient = gradient + tr * np.asarray(own_los_gradient, dtype=float)
-    return CostGradient(value=value, gradient=gradient, status=status)
+        batch = np.broadcast_shapes(J.shape[:-2], src.shape[:-1], p.shape[:-1], rng.shape, brg.shape, q.shape)
+        vectors = (K.as_batch(src, batch + (3,), float, 1), K.as_batch(p, batch + (3,), float, 1))
+        flags = (K.as_batch(rng, batch, bool, 0), K.as_batch(brg, batch, bool, 0), K.as_batch(q, batch, float, 0))
+        args = (K.as_batch(J, batch + (3, 3), float, 2), *vectors, *flags, K.as_batch(gq_in, batch + (3,), float, 1))
+    out = np.empty(batch + (14,))
+    K.cost_gradient_batch(*args, use_gq, channel.kernel_array, d, out.reshape(-1, 14))
+    value, grad, status = out[..., 0], out[..., 1:4], out[..., 4].astype(np.int8)
+    if own_extra:
+        M = out[..., 5:].reshape(batch + (3, 3))
+        grad = grad + _extra_gradient(src - p, M, rng, brg, q, own_los_gradient, channel, own_extra, components, extras)
+        grad = np.where((status == K.SINGULAR)[..., None], 0.0, grad)
+    return CostGradient(value=value, gradient=grad, status=status)
+
+
+def _extra_gradient(
+    r: FloatArray,
+    M: FloatArray,
+    rng: ArrayLike,
+    brg: ArrayLike,
+    q: FloatArray,
+    own_los_gradient: ArrayLike | None,
+    channel: Channel,
+    own_extra: Mapping[str, ArrayLike],
+    components: Sequence[SensingComponent],
+    extras: Sequence[SensingComponent],
+) -> FloatArray:
+    """−∂ tr(M J_c)/∂r of the own terms of the components beyond range and bearing, plus
+    tr(M ∂J_c/∂q) ∇q where the LOS weight q depends on the position (their own methods)."""
+    geom = link_geometry(r)
+    masks = component_masks(rng, brg, own_extra, components)[2:]
+    grad = np.zeros(np.shape(r))
+    for component, mask in zip(extras, masks, strict=True):
+        V = component.fim_vectors(geom)
+        MV = V @ M
+        g_c, tr_c = component.cost_gradient_terms(geom, (V * MV).sum(-1), MV, mask, q, channel, own_los_gradient is not None)
+        grad = grad - g_c
+        if tr_c is not None and own_los_gradient is not None:
+            grad = grad + tr_c[..., None] * np.asarray(own_los_gradient, dtype=float)
+    return grad
 
 
 def position_error_bound(fim: ArrayLike) -> tuple[FloatArray, NDArray[np.int8]]:

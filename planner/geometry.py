@@ -90,20 +90,37 @@ def line_of_sight(positions: ArrayLike, source: ArrayLike, boxes_min: ArrayLike,
     return ~blocked.any(axis=-1)
 
 
-def _box_distances(p: FloatArray, bmin: FloatArray, bmax: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-box signed distances (..., B), outside offsets p - clip(p) (..., B, 3) and face gaps."""
-    q = p[..., None, :]
-    offset = q - np.minimum(np.maximum(q, bmin), bmax)
-    outside = np.sqrt((offset * offset).sum(-1))
-    gaps = np.minimum(q - bmin, bmax - q)  # > 0 inside, per axis
-    depth = gaps.min(-1)
-    return np.where(outside > 0.0, outside, -np.maximum(depth, 0.0)), offset, gaps
+def as_boxes(boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Box corners (B, 3), m, ENU, as C-contiguous float arrays (the form the kernels take)."""
+    return _box_array(boxes_min), _box_array(boxes_max)
+
+
+def _box_array(corners: ArrayLike) -> FloatArray:
+    if (
+        isinstance(corners, np.ndarray)
+        and corners.dtype == np.float64
+        and corners.ndim == 2
+        and corners.flags.c_contiguous
+        and corners.flags.writeable
+    ):
+        return corners
+    return _kernel_points(corners)
+
+
+def _kernel_points(points: ArrayLike) -> FloatArray:
+    """Points (..., 3) as a C-contiguous, writeable (n, 3) float array: the one array type the
+    kernels are compiled for (:func:`planner.kernels.contiguous`; this module does not import
+    numba at its top)."""
+    arr = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+    return arr if arr.flags.writeable else arr.copy()
 
 
 def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> FloatArray:
     """Signed distance from each point to the nearest obstacle surface (negative inside).
 
-    Used by the obstacle constraint g3 = d_O - d_O* (paper eq. 17).
+    Used by the obstacle constraint g3 = d_O - d_O* (paper eq. 17). Per box: |p − clip(p, min,
+    max)| outside, minus the distance to the nearest face inside; the smallest over the boxes
+    (compiled, :mod:`planner.kernels`).
 
     Args:
         points: shape (..., 3), metres, ENU.
@@ -112,12 +129,11 @@ def distance_to_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayL
     Returns:
         Shape (...): metres; ``+inf`` when there is no obstacle.
     """
+    from planner import kernels  # imported here: a vehicle process imports this module without numba
+
     p = np.asarray(points, dtype=float)
-    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
-    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
-    if bmin.shape[0] == 0:
-        return np.full(p.shape[:-1], np.inf)
-    return _box_distances(p, bmin, bmax)[0].min(-1)
+    d, _ = kernels.distances_batch(_kernel_points(p), *as_boxes(boxes_min, boxes_max), False)
+    return d.reshape(p.shape[:-1])
 
 
 def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -125,7 +141,8 @@ def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, box
 
     Outside a box the distance is ``|p - clip(p, min, max)|`` and its gradient the unit vector
     from the closest surface point to p; inside, it is minus the distance to the nearest face
-    and the gradient is that face's outward normal.
+    and the gradient is that face's outward normal (the nearest box: the first of the smallest
+    distance; compiled, :mod:`planner.kernels`).
 
     Args:
         points: shape (..., 3), metres, ENU.
@@ -135,39 +152,11 @@ def distance_to_boxes_with_gradient(points: ArrayLike, boxes_min: ArrayLike, box
         ``(distance, gradient)`` with shapes (...) and (..., 3). With no obstacle: ``+inf`` and
         zeros.
     """
+    from planner import kernels  # imported here: see distance_to_boxes
+
     p = np.asarray(points, dtype=float)
-    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
-    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
-    if bmin.shape[0] == 0:
-        return np.full(p.shape[:-1], np.inf), np.zeros(p.shape)
-    q = p[..., None, :]
-    offset = q - np.minimum(np.maximum(q, bmin), bmax)
-    outside = np.sqrt((offset * offset).sum(-1))
-    if (outside > 0.0).all():  # the usual case, outside every box: unit vector from the surface
-        batch = outside.shape[:-1]
-        nb = outside.shape[-1]
-        nearest = outside.reshape(-1, nb).argmin(-1)
-        off = offset.reshape(-1, nb, 3)[np.arange(nearest.shape[0]), nearest].reshape(batch + (3,))
-        d = outside.min(-1)
-        return d, off / d[..., None]
-    below = q - bmin
-    above = bmax - q
-    gaps = np.minimum(below, above)  # > 0 inside, per axis
-    sd = np.where(outside > 0.0, outside, -np.maximum(gaps.min(-1), 0.0))  # per box, as _box_distances
-    nearest = sd.argmin(-1)[..., None]  # (..., 1)
-    d = np.take_along_axis(sd, nearest, -1)[..., 0]
-    off = np.take_along_axis(offset, nearest[..., None], -2)[..., 0, :]
-    out = d > 0.0
-    # Inside: outward normal of the nearest face (sign: nearer to max -> +, to min -> -).
-    gap = np.take_along_axis(gaps, nearest[..., None], -2)[..., 0, :]
-    axis = gap.argmin(-1)[..., None]
-    lower = np.take_along_axis(np.take_along_axis(below, nearest[..., None], -2)[..., 0, :], axis, -1) < np.take_along_axis(
-        np.take_along_axis(above, nearest[..., None], -2)[..., 0, :], axis, -1
-    )
-    grad = np.zeros(p.shape)
-    np.put_along_axis(grad, axis, np.where(lower, -1.0, 1.0), -1)
-    grad = np.where(out[..., None], off / np.where(out, d, 1.0)[..., None], grad)
-    return d, grad
+    d, g = kernels.distances_batch(_kernel_points(p), *as_boxes(boxes_min, boxes_max), True)
+    return d.reshape(p.shape[:-1]), g.reshape(p.shape)
 
 
 def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: ArrayLike) -> BoolArray:
@@ -177,10 +166,6 @@ def points_inside_boxes(points: ArrayLike, boxes_min: ArrayLike, boxes_max: Arra
 
 #: Points sampled along a link by :func:`link_clearance_with_gradient`.
 LINK_SAMPLES: int = 16
-
-
-#: How far (m) a box is extended past a face a link cannot pass (:func:`link_clearance_with_gradient`).
-_NO_EXIT_M: float = 1.0e4
 
 
 def link_clearance_with_gradient(
@@ -205,7 +190,10 @@ def link_clearance_with_gradient(
     to extend downwards without end for it, one whose top is at or above both ends upwards. This
     leaves the clearance of a link that passes the box unchanged (the segment's heights lie
     between its ends) and turns the gradient of one that crosses it to the nearest side face:
-    otherwise a link low across a building was sent to the ground, under it.
+    otherwise a link low across a building was sent to the ground, under it. A link that
+    crosses a box (the sampled minimum inside it) gets the direction that takes the part of the
+    segment inside the box past a side face with the smallest move of the drone (not the deepest
+    point's nearest face, which can be the building's back). Compiled (:mod:`planner.kernels`).
 
     Args:
         positions: drone positions p, shape (..., 3), m, ENU.
@@ -220,96 +208,14 @@ def link_clearance_with_gradient(
         ``(clearance, gradient)`` per box, shapes (..., B) m and (..., B, 3); the nearest box's
         clearance is ``clearance.min(-1)``.
     """
+    from planner import kernels  # imported here: see distance_to_boxes
+
     p = np.asarray(positions, dtype=float)
     s = np.asarray(source, dtype=float)
     shape = np.broadcast_shapes(p.shape, s.shape)
-    bmin = np.asarray(boxes_min, dtype=float).reshape(-1, 3)
-    bmax = np.asarray(boxes_max, dtype=float).reshape(-1, 3)
+    bmin, bmax = as_boxes(boxes_min, boxes_max)
     nb = bmin.shape[0]
-    if nb == 0:
-        return np.zeros(shape[:-1] + (0,)), np.zeros(shape[:-1] + (0, 3))
-    p, s = np.broadcast_to(p, shape).reshape(-1, 3), np.broadcast_to(s, shape).reshape(-1, 3)
-    if cutoff_m is None:
-        near = np.ones((p.shape[0], nb), dtype=bool)
-        c = np.zeros(near.shape)
-    else:
-        # Distance between the link's bounding box and each box: a lower bound on the clearance.
-        hi_ps, lo_ps = np.maximum(p, s), np.minimum(p, s)
-        c2 = np.zeros((p.shape[0], nb))
-        for a in range(3):  # per axis: reductions over a length-3 last axis are slow in numpy
-            gap = np.maximum(np.maximum(bmin[:, a] - hi_ps[:, a, None], lo_ps[:, a, None] - bmax[:, a]), 0.0)
-            c2 += gap * gap
-        c = np.sqrt(c2)  # (n, B)
-        near = c < cutoff_m
-    g = np.zeros(c.shape + (3,))
-    r, b = np.nonzero(near)
-    if r.size:
-        # A box's bottom at or below both ends of the link (a building on the ground), or its top
-        # at or above both, is no way out for this link: the box is extended past it.
-        lo_b, hi_b = bmin[b], bmax[b]
-        z_lo, z_hi = np.minimum(p[r, 2], s[r, 2]), np.maximum(p[r, 2], s[r, 2])
-        lo_b = np.concatenate((lo_b[:, :2], np.where(lo_b[:, 2] <= z_lo, z_lo - _NO_EXIT_M, lo_b[:, 2])[:, None]), axis=1)
-        hi_b = np.concatenate((hi_b[:, :2], np.where(hi_b[:, 2] >= z_hi, z_hi + _NO_EXIT_M, hi_b[:, 2])[:, None]), axis=1)
-        c[r, b], g[r, b] = _link_sdf_pairs(p[r], s[r], lo_b, hi_b, samples)
+    pf = _kernel_points(np.broadcast_to(p, shape))
+    sf = _kernel_points(np.broadcast_to(s, shape))
+    c, g = kernels.link_clearance_batch(pf, sf, bmin, bmax, samples, -1.0 if cutoff_m is None else float(cutoff_m))
     return c.reshape(shape[:-1] + (nb,)), g.reshape(shape[:-1] + (nb, 3))
-
-
-def _link_sdf_pairs(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray, samples: int) -> tuple[FloatArray, FloatArray]:
-    """Sampled clearance (K,) and its gradient (K, 3) of links s → p from one box each, all (K, 3).
-
-    The signed distance and its gradient are :func:`distance_to_boxes_with_gradient`'s, written
-    for one box per link and axis by axis: called on the simulator's 1000 links × 16 points a
-    step, that function took 6 ms, this form 0.5 ms (with the cutoff of the caller)."""
-    t = np.arange(1, samples + 1, dtype=float) / samples
-    # One (K, samples) array per axis: reductions over a length-3 last axis are slow in numpy.
-    below, above, e = [], [], []
-    for a in range(3):
-        x = s[:, a, None] + t * (p[:, a] - s[:, a])[:, None]  # (K, S)
-        lo, hi = bmin[:, a, None] - x, x - bmax[:, a, None]  # > 0: below / above the box on this axis
-        below.append(lo)
-        above.append(hi)
-        e.append(np.maximum(lo, hi))  # > 0 outside by e, ≤ 0 inside by |e|
-    ep = [np.maximum(ea, 0.0) for ea in e]
-    out = np.sqrt(ep[0] * ep[0] + ep[1] * ep[1] + ep[2] * ep[2])
-    sdf = out + np.minimum(np.maximum(np.maximum(e[0], e[1]), e[2]), 0.0)  # signed distance to a box
-    k = sdf.argmin(1)  # the sample nearest the box
-    rows = np.arange(p.shape[0])
-    clearance = sdf[rows, k]
-    e_sel = np.stack([ea[rows, k] for ea in e], -1)  # (K, 3)
-    # Nearer the lower face on an axis: that axis's outward direction is −.
-    sign = np.stack([np.where(below[a][rows, k] >= above[a][rows, k], -1.0, 1.0) for a in range(3)], -1)
-    out_sel = out[rows, k]
-    inside = out_sel <= 0.0
-    unit_out = np.maximum(e_sel, 0.0) / np.where(inside, 1.0, out_sel)[:, None]
-    grad = sign * unit_out
-    if inside.any():
-        grad[inside] = _crossing_exit(p[inside], s[inside], bmin[inside], bmax[inside])
-    return clearance, grad * t[k][:, None]
-
-
-def _crossing_exit(p: FloatArray, s: FloatArray, bmin: FloatArray, bmax: FloatArray) -> FloatArray:
-    """Unit direction (K, 3) in which drones p move links s → p that cross one box each out of it.
-
-    For each face, the drone's displacement along the face's normal that takes the part of the
-    segment inside the box, x(t) = s + t (p − s) for t in [t_in, t_out] (slab test), past that
-    face: max over t of (face − x(t))/t, found at t_in or t_out as it is monotone in t. The face
-    with the smallest displacement is the way out. (The deepest point's nearest face, the
-    sdf's gradient, can be a face the link runs through, the building's back, which no lateral
-    move clears.)"""
-    d = p - s
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (bmin - s) / d, (bmax - s) / d
-    inside_slab = (s >= bmin) & (s <= bmax)
-    t_lo = np.where(d == 0.0, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
-    t_hi = np.where(d == 0.0, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
-    t_in = np.clip(t_lo.max(-1), 1e-6, 1.0)
-    t_out = np.clip(t_hi.min(-1), t_in, 1.0)
-    ends = np.stack((t_in, t_out), -1)[:, None, :]  # (K, 1, 2)
-    x = s[:, :, None] + ends * d[:, :, None]  # (K, 3, 2)
-    up = ((bmax[:, :, None] - x) / ends).max(-1)  # (K, 3): displacement past the upper face
-    down = ((x - bmin[:, :, None]) / ends).max(-1)  # past the lower face
-    move = np.concatenate((up, down), -1)  # (K, 6)
-    best = move.argmin(-1)
-    out = np.zeros(p.shape)
-    out[np.arange(p.shape[0]), best % 3] = np.where(best < 3, 1.0, -1.0)
-    return out

@@ -58,6 +58,14 @@ class Channel:
         """Ranging std at d0 = 1 m in NLOS, σ_r0 = (ln10/10)(σ_sh/γ) (eq. 5), metres."""
         return LN10_OVER_10 * self.sigma_ratio_nlos
 
+    @cached_property
+    def kernel_array(self) -> NDArray[np.float64]:
+        """The channel as the compiled kernels take it (:func:`planner.kernels.channel_array`):
+        (γ, σ_r0,LOS², σ_r0,NLOS², σ_b²), m² and rad²."""
+        from planner.kernels import channel_array  # imported here: a vehicle process uses Channel without numba
+
+        return channel_array(self.gamma, self.sigma_r0_los, self.sigma_r0_nlos, self.sigma_bearing_rad)
+
     def sigma_r0(self, los: ArrayLike) -> NDArray[np.float64]:
         """σ_r0 of each link (eq. 5), metres: the LOS value where ``los`` (bool, any shape),
         the NLOS value elsewhere. The ranging std at distance d is σ_r0 d^(γ/2)."""

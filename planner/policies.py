@@ -148,21 +148,19 @@ def policy_planner(name: str, walk_uniforms: FloatArray | None = None) -> Planne
     return functools.partial(_steered, aim=_orbit_gradient)
 
 
-def _held(
-    config: Any, own_position: ArrayLike, previous_step: ArrayLike, view: Any, estimate: Any, perturbation_uniforms: ArrayLike, **_: Any
-) -> Any:
+def _held(config: Any, scene: Any, state: Any, **_: Any) -> Any:
     """``static``: the step of a drone that holds its position (no displacement, no constraint,
-    no fallback), as :func:`planner.agent.plan` returns it."""
+    no fallback), as :func:`planner.agent.plan` returns it; the carried state unchanged."""
     from planner.agent import PlanResult
     from planner.control import StepResult
     from planner.fim import CostGradient
 
-    p = np.array(own_position, dtype=float)
+    p = np.array(scene.own_position_m, dtype=float)
     batch = p.shape[:-1]
     none = np.zeros(batch, dtype=bool)
     step = StepResult(p, np.zeros_like(p), np.zeros(batch + (4,), dtype=bool), none, none, none)
     cost = CostGradient(np.zeros(batch), np.zeros_like(p), np.zeros(batch, dtype=np.int8))
-    return PlanResult(step=step, cost=cost, keepout_m=np.full(batch, np.nan), keepout_centre_m=np.asarray(estimate.estimate_m), loiter=none)
+    return PlanResult(step, cost, np.full(batch, np.nan), np.asarray(scene.estimate_m), none, state)
 
 
 def _random_gradient(
@@ -190,70 +188,45 @@ def _orbit_gradient(
 
 def _steered(
     config: Any,
-    own_position: ArrayLike,
-    previous_step: ArrayLike,
-    view: Any,
-    estimate: Any,
-    perturbation_uniforms: ArrayLike,
+    scene: Any,
+    state: Any,
     *,
     aim: Callable[..., tuple[FloatArray, float | None]],
-    step_index: int = 0,
     oracle_source: ArrayLike | None = None,
     oracle_slow: bool = True,
-    own_ranges: Any = None,
-    loitering: ArrayLike | None = None,
-    last_keepout: tuple[ArrayLike, ArrayLike] | None = None,
-    lost_contact: ArrayLike | None = None,
-    own_then_m: ArrayLike | None = None,
 ) -> Any:
     """:func:`planner.agent.plan` with the cost gradient of ``aim`` (``orbit``, ``random``):
-    the same FIM status of the estimate (the singular fallback while it is not observable),
-    keep-out, own-range loiter, peer constraints and control step with its safety filter."""
-    from planner.agent import PlanResult, _peer_constraints, _status_and_keepout, loiter_gradient
-    from planner.control import control_step
-    from planner.fim import CostGradient
+    the same planning kernel after the cost (:func:`planner.kernels.plan_batch`: the FIM status
+    of the estimate, the singular fallback while it is not observable, keep-out, own-range
+    loiter, peer constraints, control step and safety filter)."""
+    import math
 
-    p = np.asarray(own_position, dtype=float)
-    batch = p.shape[:-1]
-    p_hat = (
-        np.asarray(estimate.estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), p.shape)
-    )
-    placeholder = CostGradient(np.zeros(batch), np.zeros_like(p), np.zeros(batch, dtype=np.int8))
-    status, keepout, loiter = _status_and_keepout(
-        placeholder,
-        p,
-        p_hat,
-        estimate,
-        config.limits,
-        oracle=oracle_source is not None,
-        own=own_ranges,
-        loitering=loitering,
-        last_keepout=last_keepout,
-    )
-    index = np.broadcast_to(np.argmax(np.asarray(view.own_mask, dtype=bool), axis=-1), batch)
-    gradient, xi = aim(config, p, p_hat, np.asarray(keepout, dtype=float), index, step_index)
-    cost = CostGradient(np.zeros(batch), gradient, np.zeros(batch, dtype=np.int8))
-    if loiter.any():
-        gradient = np.where(loiter[..., None], loiter_gradient(previous_step), gradient)
-    peer_rows, peers, ages, planes = _peer_constraints(config, view, step_index, lost_contact, own_then_m)
-    step = control_step(
-        p,
-        previous_step,
-        gradient,
-        status,
-        peer_rows,
-        peers,
-        ages,
-        p_hat,
-        keepout,
-        config.boxes_min_m,
-        config.boxes_max_m,
-        config.limits,
-        perturbation_uniforms,
-        xi=xi,
-        perturbation_rad=config.perturbation_rad,
-        peer_planes=planes,
-        source_exact=oracle_source is not None and oracle_slow,
-        peer_drift_m=view.drift_m,
-    )
-    return PlanResult(step=step, cost=cost, keepout_m=np.asarray(keepout), keepout_centre_m=p_hat, loiter=loiter)
+    from planner import kernels as K
+    from planner.agent import PlanResult, _kernel_config, _kernel_scene, estimate_sigma_m, source_keepout_m
+    from planner.control import StepResult
+    from planner.fim import CostGradient
+    from planner.step import DroneState
+
+    batch = scene.batch
+    n = np.shape(scene.view_valid)[-1]
+    p = np.asarray(scene.own_position_m, dtype=float)
+    oracle = oracle_source is not None
+    p_hat = np.broadcast_to(np.asarray(oracle_source, dtype=float), p.shape) if oracle else np.asarray(scene.estimate_m, dtype=float)
+    keepout = np.full(batch, config.limits.d_source_m) if oracle else source_keepout_m(config.limits, estimate_sigma_m(scene.information))
+    index = np.broadcast_to(np.asarray(scene.own_index), batch)
+    gradient, xi = aim(config, p, p_hat, np.asarray(keepout, dtype=float), index, scene.step_index)
+    status = np.zeros(batch, dtype=np.int8)
+    kconfig = list(_kernel_config(config, scene.step_index, oracle, oracle and oracle_slow, n))
+    kconfig[10] = math.nan if xi is None else float(xi)  # the spatial step ξ (NaN: normalised, v_max)
+    old = state.kernel_arrays()
+    new = tuple(np.empty_like(a) for a in old)
+    u, flags, kept = np.empty(batch + (3,)), np.empty(batch + (8,), dtype=bool), np.empty(batch + (1,))
+    out = (u.reshape(-1, 3), flags.reshape(-1, 8), kept.reshape(-1, 1))
+    roles = (K.contiguous(config.ranging, bool), K.contiguous(config.bearing, bool), config.criterion == "D")
+    view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
+    value, grad = np.zeros(batch), np.array(np.broadcast_to(gradient, batch + (3,)), dtype=float)  # writable: the kernel's signature
+    # The cost given (True): the kernel takes the policy's gradient instead of the planner's.
+    K.plan_batch(_kernel_scene(scene, p_hat, batch, n), view_los, roles, old, tuple(kconfig), new, out, (value.reshape(-1), grad.reshape(-1, 3), status.reshape(-1)), True)
+    step = StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
+    cg = CostGradient(np.zeros(batch), gradient, status)
+    return PlanResult(step, cg, kept[..., 0], np.asarray(p_hat), flags[..., 7], DroneState.from_kernel_arrays(new, batch))

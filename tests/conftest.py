@@ -13,6 +13,14 @@ from tests.support.proc import Proc
 from tests.support.wait import wait_for
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Load the compiled planning kernels once, before any worker starts (the first run after a
+    clean clone compiles them into numba's on-disk cache): the workers and every planner process
+    a test starts then load them instead of each compiling them at its first step."""
+    if not hasattr(config, "workerinput"):  # the controller, or a run without workers
+        import planner.node.warm  # noqa: F401
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
     """``-n auto`` (pyproject.toml's addopts): one worker per core (pytest-xdist's count),
     but none with ``-s`` (a worker's output would not be shown) or when the run selects the

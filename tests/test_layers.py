@@ -9,7 +9,7 @@ own layer or below, so no arrow runs back up.
     missions.runtime    what every command's process shares: stop signals, results directory
     vehicle_sim         the simulated vehicle        planner.node   the planner process
     comms               Zenoh, MAVLink, wire format, geodesy, autopilot profiles
-    planner (core)      numpy and scipy only (tests/test_import_graph.py)
+    planner (core)      numpy, scipy and numba only (tests/test_import_graph.py)
 """
 
 from __future__ import annotations

@@ -31,6 +31,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cli.handback",
     "missions.cli.view",
     "missions.cli.missions",
+    "missions.cli.calibrate",
+    "missions.cli.localize",
 )
 
 

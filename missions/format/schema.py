@@ -432,6 +432,13 @@ class ChannelSpec(_Section):
     sigma_ratio_los: Float = Field(1.7, gt=0.0, description="σ_sh/γ in LOS (paper 1.7).")
     sigma_ratio_nlos: Float = Field(3.2, gt=0.0, description="σ_sh/γ in NLOS (paper 3.2).")
     sigma_bearing_deg: Float = Field(10.0, gt=0.0, le=180.0, description="Bearing std σ_b,0 (deg, paper 10).")
+    reference_power_db: Float | None = Field(
+        None,
+        ge=-300.0,
+        le=300.0,
+        description="Received power 1 m from the source, in the receiver's dB (fitted by fimnav calibrate); "
+        "absent: unknown. fimnav localize --power known uses it.",
+    )
 
     @property
     def sigma_bearing_rad(self) -> float:

@@ -68,6 +68,7 @@ PRELOAD: tuple[str, ...] = (
     "comms.mavlink_client",
     "comms.session",
     "planner.node",
+    "planner.node.warm",  # loads (or, once after an install, compiles) the planning kernels before the fork
 )
 
 #: Environment variable of a launcher's child: the file descriptor of the read end of the
@@ -283,6 +284,15 @@ class ForkServer:
                     os.environ.pop(name, None)
                 else:
                     os.environ[name] = value
+
+    def wait_ready(self, timeout_s: float = 120.0) -> None:
+        """Wait until the fork server has imported :data:`PRELOAD` (it forks a child only then):
+        fork a child that exits at once and wait for it. The planners' start time (real time)
+        is fixed after this, as the preload loads the compiled planning step (seconds, and
+        once after an install the time to compile it)."""
+        child = self.ctx.Process(target=int)
+        child.start()
+        child.join(timeout_s)
 
     def close(self) -> None:
         """End the fork server and multiprocessing's resource tracker (started with it) and wait

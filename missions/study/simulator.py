@@ -37,7 +37,6 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.format.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, own_ranges
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
@@ -47,6 +46,7 @@ from planner.params import Criterion, Limits
 from planner.policies import RANDOM_WALK_DRAWS, RANDOM_WALK_STREAM, policy_planner
 from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_STREAM, presampled_uniforms
 from planner.sensing import SENSING, SensingTable
+from planner.step import DroneState, StepScene
 
 FloatArray = NDArray[np.float64]
 
@@ -145,13 +145,6 @@ def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
     m_idx = np.arange(saved.shape[0])[:, None, None]
     j_idx = np.arange(saved.shape[2])[None, None, :]
     return history[np.maximum(saved, 0), m_idx, j_idx]
-
-
-def _own_at(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
-    """history[saved[m,i,j], m, i]: drone i's own position (M, N, N, 3) at the step of its
-    newest record of each peer j (step 0 where it has none)."""
-    M, N = saved.shape[0], saved.shape[1]
-    return history[np.maximum(saved, 0), np.arange(M)[:, None, None], np.arange(N)[None, :, None]]
 
 
 def _with_late_records(
@@ -264,7 +257,6 @@ class _Simulation:
         if float32_positions:
             pos = pos.astype(np.float32).astype(np.float64)
         self.pos = pos
-        self.prev_step = np.zeros((M, N, 3))
         self.positions = np.empty((K + 1, M, N, 3))
         self.positions[0] = pos
         self.rec_range = np.full((K, M, N), np.nan)
@@ -297,10 +289,9 @@ class _Simulation:
         self.fallback = np.empty((K, M, N), dtype=bool)
         self.filtered = np.empty((K, M, N), dtype=bool)
         self.loiter = np.empty((K, M, N), dtype=bool)
-        #: Each drone's keep-out of its last step (centre, radius), planner.agent.followable_keepout_m.
-        self.last_keepout: tuple[FloatArray, FloatArray] | None = None
-        #: Each drone's drift of its peers, planner.agent.PeerDrift.
-        self.drift = PeerDrift.empty((M, N, N))
+        #: What every drone carries from one planning step to the next (planner.step.DroneState).
+        self.drone = DroneState.initial((M, N), N)
+        self.own_index = np.broadcast_to(np.arange(N), (M, N))
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
         # The mission's navigation policy (planner.policies): its planning step (the planner's
         # for 'fim' and 'centralized') and, for 'centralized', every record at once (_view).
@@ -370,33 +361,33 @@ class _Simulation:
         self.observable[k] = self.state.observable
 
     def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
-        """4. Planning step from the view (shared with the planner node); returns the step."""
-        # Each drone's own last ranges bound its distance to the source (second keep-out).
-        lo = max(0, k - OWN_RANGE_WINDOW + 1)
-        own = own_ranges(np.moveaxis(self.rec_range[lo : k + 1], 0, -1), np.moveaxis(self.rec_los[lo : k + 1], 0, -1), self.channel)
-        self.drift = self.drift.update(view.positions_m, view.saved, view.have)
-        plan_view = PlanView(self.eye_b, view.positions_m, view.have, view.los, np.where(view.have, k - view.saved, 0), view.hops, self.drift.drift_m)
-        planned = self.plan_step(
-            self.config,
-            self.pos,
-            self.prev_step,
-            plan_view,
-            self.state,
-            self.ctrl_u[k],
+        """4. Planning step from the view and each drone's carried state (shared with the planner
+        node, planner.agent.plan): every trial and drone in one call of each kernel."""
+        M, N = self.pos.shape[:2]
+        scene = StepScene(
             step_index=k,
-            oracle_source=src if self.oracle_estimate else None,
-            oracle_slow=self.spec.mission.source_is_slow(),
-            own_ranges=own,
-            loitering=self.loiter[k - 1] if k > 0 else None,
-            last_keepout=self.last_keepout,
-            lost_contact=view.cut,
-            own_then_m=None if view.cut is None else _own_at(self.positions, view.saved),
+            own_index=self.own_index,
+            own_position_m=self.pos,
+            own_range_m=self.rec_range[k],
+            own_los=self.rec_los[k],
+            view_positions_m=view.positions_m,
+            view_valid=view.have,
+            view_los=view.los,
+            saved_steps=view.saved,
+            hops=view.hops,
+            estimate_m=self.state.estimate_m,
+            information=self.state.information,
+            observable=self.state.observable,
+            perturbation_uniforms=self.ctrl_u[k],
+            lost_contact=None if view.cut is None else np.broadcast_to(view.cut, (M, N, N)),
         )
+        oracle = src if self.oracle_estimate else None
+        planned = self.plan_step(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow())
+        self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular
         self.filtered[k] = step.filtered
         self.loiter[k] = planned.loiter
-        self.last_keepout = (planned.keepout_centre_m, planned.keepout_m)
         self.active_counts[k] = step.active.reshape(-1, 4).sum(0)
         return step
 
@@ -412,13 +403,11 @@ class _Simulation:
 
     def _move(self, k: int, step: StepResult) -> None:
         """The drones fly their steps: positions at step k + 1."""
-        u = step.displacement
         pos = step.next_position
         if self.float32_positions:
             # The vehicle lands on the float32 setpoint; the drone keeps its planned step as
-            # its previous direction, as the planner node does.
+            # its previous direction (its carried state), as the planner node does.
             pos = pos.astype(np.float32).astype(np.float64)
-        self.prev_step = u
         self.pos = pos
         self.positions[k + 1] = pos
 

@@ -7,9 +7,8 @@ long the peers are awaited and how the setpoint goes out."""
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
@@ -18,16 +17,14 @@ import numpy as np
 from comms.latency import DelayedView
 from comms.messages import Record, Status
 from planner import estimator as est
-from planner.agent import OWN_RANGE_WINDOW, PeerDrift, PlanView, measurements_from_records, own_ranges, plan
+from planner.agent import measurements_from_records, plan, records_as_arrays
 from planner.geometry import vec3
 from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
 from planner.node.swarm import Swarm
 from planner.randomness import CONTROL_DRAWS, control_rng
-
-#: Steps of own positions a planner keeps (the partition planes need the step of a peer's
-#: last record; for a peer silent for longer the plane is drawn from the current position).
-OWN_TRACK_STEPS = 5000
+from planner.step import OWN_TRACK_STEPS as OWN_TRACK_STEPS  # re-exported by planner.node
+from planner.step import DroneState, StepScene
 
 
 def build_view(config: NodeConfig) -> DelayedView:
@@ -86,6 +83,8 @@ class StepCore:
     """
 
     def __init__(self, config: NodeConfig, view: DelayedView, swarm: Swarm, step_log: StepLog | None = None) -> None:
+        import planner.node.warm  # noqa: F401  # the compiled planning step, loaded before the first step (not during it)
+
         self.config = config
         self.view = view
         self.swarm = swarm
@@ -97,19 +96,10 @@ class StepCore:
         self.state = est.initial_state((), self.planner.estimator)
         #: Per drone, the newest step fed to the estimator.
         self.used_steps = np.full(self.count, -1, dtype=np.int64)
-        #: The last step's displacement (m, ENU); zero after a step without a command.
-        self.prev_step_m = np.zeros(3)
-        #: This drone's own last ranges and LOS flags (the second source keep-out, planner.agent).
-        self.own_ranges: deque[tuple[float, bool]] = deque(maxlen=OWN_RANGE_WINDOW)
-        #: This drone loitered at its last planned step (planner.agent.must_loiter).
-        self.loitering = False
-        #: This drone's keep-out of its last planned step (centre, radius), planner.agent.plan.
-        self.last_keepout: tuple[np.ndarray, np.ndarray] | None = None
-        #: Each peer's last step from this drone's records of it (planner.agent.PeerDrift).
-        self.peer_drift = PeerDrift.empty((self.count,))
-        #: This drone's own positions by step (m, ENU), the last OWN_TRACK_STEPS: where it was
-        #: when each peer's last record was taken (the partition planes, planner.agent.plan).
-        self.own_track: dict[int, np.ndarray] = {}
+        #: What this drone carries from one planning step to the next (its last displacement, own
+        #: range window, loiter, keep-out, peers' drift, own track): planner.step.DroneState, the
+        #: same value the in-process simulator carries for each of its drones.
+        self.drone = DroneState.initial((), self.count)
         #: This drone's last own record.
         self.last_record: Record | None = None
         #: The value names of this drone's components beyond range and bearing (its record's
@@ -139,11 +129,10 @@ class StepCore:
         peers_in_s = now()
         view, rows, result = self.view_estimate_plan(k, own_m)
         if not send_setpoint(own_m, result):
-            self.prev_step_m = np.zeros(3)
+            self.drone = self.drone.without_step()
             return StepOutcome(record, view, rows, result, False, published_s, peers_in_s, now())
         sent_s = now()
         step = result.step
-        self.prev_step_m = np.asarray(step.displacement, dtype=float)
         active_mask = int(sum(1 << b for b, a in enumerate(np.asarray(step.active)) if a))
         state = self.state
         status = Status(
@@ -165,8 +154,20 @@ class StepCore:
         if self.step_log is not None:
             self.step_log.write_step(k, t_s, own_m, outcome.record, outcome.view, self.state, outcome.result, outcome.rows, timing)
 
+    @property
+    def prev_step_m(self) -> np.ndarray:
+        """The last step's displacement (m, ENU); zero after a step without a command."""
+        return self.drone.previous_step_m
+
+    @prev_step_m.setter
+    def prev_step_m(self, value: np.ndarray) -> None:
+        if np.any(np.asarray(value) != 0.0):
+            raise ValueError("prev_step_m: only a step without a command (zeros) is set from outside the planning step")
+        self.drone = self.drone.without_step()
+
     def own_record(self, k: int, t_s: float, own_m: np.ndarray, measurement: OwnMeasurement) -> Record:
-        """This drone's record of step ``k``, entered in its own view, range window and track."""
+        """This drone's record of step ``k``, entered in its own view (the planning step enters it
+        in the drone's range window and track)."""
         record = Record(
             self.config.uav,
             k,
@@ -182,8 +183,6 @@ class StepCore:
         )
         self.last_record = record
         self.view.add(record)
-        self.own_ranges.append((record.range_m, record.los))
-        self.track(k, own_m)
         return record
 
     def taken_over_record(self, k: int, t_s: float, position_m: np.ndarray) -> Record:
@@ -213,16 +212,15 @@ class StepCore:
         return MappingProxyType({name: float(values.get(name, nan)) for name in self.own_extra_value_names})
 
     def track(self, k: int, own_m: np.ndarray) -> None:
-        """Remember the own position of step k (the last OWN_TRACK_STEPS steps)."""
-        self.own_track[k] = np.array(own_m, dtype=float)
-        self.own_track.pop(k - OWN_TRACK_STEPS, None)
+        """Remember the own position (m, ENU) of a step k this drone does not plan (a pilot flies it)."""
+        self.drone = self.drone.tracked(k, np.asarray(own_m, dtype=float))
 
     def skip_control_draws(self, steps: int) -> None:
         """Advance the control stream past ``steps`` steps not planned (taken over, rejoined
         later), so the draws of a later step stay those of its step. The last planned step's
         keep-out is forgotten: the first step planned again is not rate-limited against it."""
         self.ctrl_rng.random(steps * CONTROL_DRAWS)
-        self.last_keepout = None
+        self.drone = self.drone.without_keepout()
 
     def view_estimate_plan(self, k: int, own_m: np.ndarray) -> tuple[Any, int, Any]:
         """Step k after the records are in: delayed view, source estimate (with the records
@@ -231,8 +229,7 @@ class StepCore:
         self.state, rows = self._estimate(view)
         self.used_steps = np.maximum(self.used_steps, view.saved_steps)
         result = self._plan(k, own_m, view)
-        self.loitering = bool(np.asarray(result.loiter))
-        self.last_keepout = (result.keepout_centre_m, result.keepout_m)
+        self.drone = result.state
         return view, rows, result
 
     def _estimate(self, view: Any) -> tuple[est.EstimatorState, int]:
@@ -248,34 +245,35 @@ class StepCore:
         return est.update(self.state, meas, self.planner.channel, self.planner.estimator, sensing.components), int(new.sum()) + len(late)
 
     def _plan(self, k: int, own_m: np.ndarray, view: Any) -> Any:
-        plan_view = PlanView.from_records(self.index, view.records, view.saved_steps, k, view.hops)
-        self.peer_drift = self.peer_drift.update(plan_view.positions_m, view.saved_steps, plan_view.valid)
-        plan_view = replace(plan_view, drift_m=self.peer_drift.drift_m)
+        """The planning step (planner.agent.plan) of step k from the view, the own record of the step
+        and the drone's carried state."""
+        positions, valid, los = records_as_arrays(view.records)
         # Peers whose planner left the liveliness view (a partition, not distance): kept apart
         # by the bisector planes of the step of their last record (planner.agent.plan).
         left = self.swarm.left
-        lost = np.array([j + 1 in left and plan_view.valid[j] for j in range(self.count)], dtype=bool)
-        own_then = None
-        if lost.any():
-            own_then = np.array([self.own_track.get(int(view.saved_steps[j]), own_m) for j in range(self.count)], dtype=float)
-        uniforms = self.ctrl_rng.random(CONTROL_DRAWS)
-        own = own_ranges(
-            np.array([r for r, _ in self.own_ranges], dtype=float), np.array([los for _, los in self.own_ranges], dtype=bool), self.planner.channel
-        )
-        return plan(
-            self.planner,
-            own_m,
-            self.prev_step_m,
-            plan_view,
-            self.state,
-            uniforms,
+        lost = np.array([j + 1 in left and valid[j] for j in range(self.count)], dtype=bool)
+        record = self.last_record
+        if record is None:
+            raise RuntimeError("StepCore._plan: no own record of the step")
+        state = self.state
+        scene = StepScene(
             step_index=k,
-            own_ranges=own,
-            loitering=self.loitering,
-            last_keepout=self.last_keepout,
-            lost_contact=lost if own_then is not None else None,
-            own_then_m=own_then,
+            own_index=np.array(self.index),
+            own_position_m=np.asarray(own_m, dtype=float),
+            own_range_m=np.array(record.range_m, dtype=float),
+            own_los=np.array(record.los),
+            view_positions_m=positions,
+            view_valid=valid,
+            view_los=los,
+            saved_steps=np.where(valid, np.asarray(view.saved_steps), -1),
+            hops=np.asarray(view.hops),
+            estimate_m=np.asarray(state.estimate_m, dtype=float),
+            information=np.asarray(state.information, dtype=float),
+            observable=np.asarray(state.observable),
+            perturbation_uniforms=self.ctrl_rng.random(CONTROL_DRAWS),
+            lost_contact=lost,
         )
+        return plan(self.planner, scene, self.drone)
 
     def rebuild(self, first: int, rows_by_drone: Mapping[int, Sequence[dict[str, Any]]]) -> dict[int, list[tuple[int, np.ndarray, float, bool]]]:
         """A rejoining planner's estimator, own-range window, own track and used steps, from
@@ -285,9 +283,7 @@ class StepCore:
         self.state, done = replay_step_logs(
             self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator, self.planner.sensing
         )
-        for step, pos, rng, los in done.get(self.index, []):
-            self.own_ranges.append((rng, los))
-            self.track(step, pos)
+        self.drone = self.drone.replayed(done.get(self.index, []))
         for j, steps in done.items():
             if steps:
                 self.used_steps[j] = steps[-1][0]

@@ -7,8 +7,10 @@ newest payload measurement not older than a bound; the peers' records of step k 
 until a deadline inside the step, never a barrier; the setpoint is a short trajectory towards
 the planned position, re-sent at ≥ 4 Hz of mission time until the next step replaces it, so a
 late step never leaves the vehicle without a setpoint. A lost vehicle link (no heartbeat for
-2 s) is reported; the planner keeps publishing its last record flagged stale, and resumes (back
-into GUIDED/OFFBOARD) when the heartbeat returns."""
+2 s) is reported; the planner keeps publishing its last record flagged stale and sends no
+setpoint; when the heartbeat returns it flies on if the vehicle is still in GUIDED/OFFBOARD,
+and takes it as taken over (the one rule, planner/node/takeover.py) if it is armed in any other
+mode."""
 
 from __future__ import annotations
 
@@ -197,7 +199,7 @@ class RealtimeDriver:
             return skip, 0
         if self.resume_needed and self.link_down_since is None:
             try:
-                self._resume()
+                self._resume(k)
             except LinkError as exc:
                 log.error("uav %d: resuming failed (%s); retrying next step", self.uav, exc)
                 self.resume_needed = True
@@ -328,10 +330,13 @@ class RealtimeDriver:
     def _enter_guided(self, hold_m: np.ndarray) -> None:
         """Back into the guided mode holding ``hold_m`` (m, ENU) with the setpoint stream until
         the step's trajectory; a mode that needs setpoints flowing first (PX4 OFFBOARD) gets
-        the stream before the mode change."""
+        the stream for :data:`STREAM_BEFORE_GUIDED_S` (mission s) before the mode change."""
         link = self.io.require_link()
         if self.io.profile.guided_needs_setpoint_stream:
             link.set_stream(lambda _t: (hold_m, None))
+            wall = self.io.clock.wall
+            since = wall()
+            self.io.wait(lambda: wall() - since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, self.config.step_timeout_s, "setpoint stream")
             link.set_mode(self.io.guided_mode)
         else:
             link.set_mode(self.io.guided_mode)
@@ -371,8 +376,13 @@ class RealtimeDriver:
             self.link_down_since = None
             self.resume_needed = True
 
-    def _resume(self) -> None:
-        """After a link loss: back into GUIDED/OFFBOARD (the stream is already running)."""
+    def _resume(self, k: int) -> None:
+        """After a link loss, at step ``k``: a vehicle still in GUIDED/OFFBOARD flies on (its
+        stream, paused while the link was lost, goes on); one armed in another mode is taken
+        over from step ``k`` (:meth:`TakeoverWatch.found_after_link_loss`: the planner cannot
+        tell a failsafe's mode change during the loss from a pilot's, and takes neither), and
+        one taken over before the loss stays so; both wait for ``fimnav handback``. A disarmed
+        vehicle is refused (NodeError). No mode is changed here."""
         link = self.io.require_link()
         self.resume_needed = False
         self.io.wait(lambda: link.telemetry.custom_mode is not None, self.config.step_timeout_s, "heartbeat after the link loss")
@@ -383,24 +393,13 @@ class RealtimeDriver:
             )
         # The autopilot may have rebooted (stream rates gone): ask for the streams again.
         self.preflight.request_streams()
-        mode = self.io.guided_mode
-        if not link.in_mode(mode):
-            log.warning("uav %d: vehicle in %s after the link loss; switching back to %s", self.uav, link.mode_name(), mode)
-            pos = link.telemetry.position_enu_m
-            if not link.streaming and pos is not None:
-                # The failsafe's mode change, heard when the link came back, ended the stream:
-                # a hold where the vehicle is (PX4 enters OFFBOARD only with a stream running).
-                hold = pos.astype(float)
-                link.set_stream(lambda _t: (hold, None))
-                if self.io.profile.guided_needs_setpoint_stream:
-                    wall = self.io.clock.wall
-                    since = wall()
-                    self.io.wait(
-                        lambda: wall() - since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, self.config.step_timeout_s, "setpoint stream"
-                    )
-            link.set_mode(mode)
+        if self.takeover.active:
+            log.warning("uav %d: link back, the vehicle in %s: still taken over, left to the pilot until fimnav handback", self.uav, link.mode_name())
+            return
+        if self.takeover.found_after_link_loss(k):
+            return
         link.left_guided = False
-        log.info("uav %d: resumed in %s", self.uav, mode)
+        log.info("uav %d: resumed in %s", self.uav, self.io.guided_mode)
 
     # -- after the last step ----------------------------------------------------------------
     def _end(self) -> dict[str, Any]:

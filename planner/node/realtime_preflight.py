@@ -153,10 +153,8 @@ class RealtimePreflight:
         above = np.array([pos[0], pos[1], max(climb_to, float(pos[2]))])
         link.set_stream(lambda _t: (above, None))
         stream_since = wall()
-        self.io.wait(lambda: wall() - stream_since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, t, "setpoint stream before OFFBOARD")
-        guided = self.io.guided_mode
-        if not link.in_mode(guided):
-            link.set_mode(guided)
+        self._wait_linked(lambda: wall() - stream_since >= STREAM_BEFORE_GUIDED_S / self.config.speedup, t, "setpoint stream before OFFBOARD")
+        self._guided_for_takeoff()
         if not link.telemetry.armed:
             link.arm()
         self._wait_linked(lambda: self._z() >= climb_to - climb_tol, t, f"take-off to {climb_to:g} m")
@@ -165,13 +163,24 @@ class RealtimePreflight:
         """ArduPilot: GUIDED, arm, NAV_TAKEOFF (its altitude is above home); no setpoint until
         the take-off altitude is reached (a setpoint would end the take-off)."""
         link = self.io.require_link()
-        guided = self.io.guided_mode
-        if not link.in_mode(guided):
-            link.set_mode(guided)
+        self._guided_for_takeoff()
         if not link.telemetry.armed:
             link.arm()
             link.takeoff(climb_to - link.home_z_m())
             self._wait_linked(lambda: self._z() >= climb_to - climb_tol, self.config.preflight_timeout_s, f"take-off to {climb_to:g} m")
+
+    def _guided_for_takeoff(self) -> None:
+        """Switch a disarmed vehicle to the guided mode for its take-off. A vehicle armed in
+        another mode by now was armed in the guided mode at the start (:meth:`run`) and a pilot
+        has taken it over during the waits since (readiness, clock, the PX4 stream): the one
+        rule, no mode change (:class:`_PilotTookOver`)."""
+        link = self.io.require_link()
+        guided = self.io.guided_mode
+        if link.in_mode(guided):
+            return
+        if link.telemetry.armed and self.takeover.found_at_start("start"):
+            raise _PilotTookOver
+        link.set_mode(guided)
 
     def _check_origin(self) -> None:
         """The vehicle's EKF origin, logged; NodeError when there is none, or when local

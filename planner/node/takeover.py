@@ -5,7 +5,9 @@ it back on its own: only ``fimnav handback`` does.
 The one rule holds on every path a planner starts by (a start, a rejoin, a restart by the
 launch; lockstep and real time): a vehicle found armed in any mode but the guided one is a
 pilot's from the planner's first moment (:meth:`TakeoverWatch.found_at_start`), and so is one
-whose take-over the launch says is in force (``fimnav plan --taken-over``)."""
+whose take-over the launch says is in force (``fimnav plan --taken-over``). So is one found
+so when its link returns after a loss (:meth:`TakeoverWatch.found_after_link_loss`): a
+failsafe's mode change during the loss looks like a pilot's, and the planner takes neither."""
 
 from __future__ import annotations
 
@@ -92,27 +94,49 @@ class TakeoverWatch:
         pilot = link.telemetry.armed and not link.in_mode(want)
         if not (pilot or self.in_force):
             return False
-        link.set_stream(None)
-        link.left_guided = False
-        self.current = {"step": None, "mode": now, "at_start": where}
-        self.takeovers.append(dict(self.current))
-        if not link.in_mode(want):
-            self.mode_changes.append(now)
-            self._reported_mode = now
         why = (
             f"the vehicle is {'armed' if link.telemetry.armed else 'disarmed'} in {now} and the launch restarted this planner while a pilot flew it"
             if not pilot
             else f"the vehicle is armed in {now}, not {want}: a pilot or a ground station flies it"
         )
+        self._take({"step": None, "mode": now, "at_start": where}, f"at {where}: {why}")
+        return True
+
+    def found_after_link_loss(self, k: int) -> bool:
+        """The one rule when the vehicle link returns at step ``k`` after a loss: a vehicle
+        found armed in another mode than the guided one was switched while the link was down,
+        by a pilot, a ground station or its own failsafe, which the planner cannot tell apart.
+        It is taken over from step ``k`` as at a start (:meth:`found_at_start`: no mode change,
+        no setpoint, its position published flagged taken over, until ``fimnav handback``;
+        True, logged once); False: in the guided mode (or disarmed, which the driver refuses),
+        flown on."""
+        link = self.io.require_link()
+        want = self.io.guided_mode
+        now = link.mode_name()
+        if not link.telemetry.armed or link.in_mode(want):
+            return False
+        why = f"the vehicle is armed in {now}, not {want}: a pilot, a ground station or its failsafe changed the mode while the link was down"
+        self._take({"step": k, "mode": now, "reason": "after link loss"}, f"at step {k} after the link loss: {why}")
+        return True
+
+    def _take(self, entry: dict[str, Any], why: str) -> None:
+        """A take-over found (not seen happen): the stream ends, ``entry`` is recorded and the
+        operator told once, with ``why`` and the hand-back command."""
+        link = self.io.require_link()
+        link.set_stream(None)
+        link.left_guided = False
+        self.current = entry
+        self.takeovers.append(dict(entry))
+        if not link.in_mode(self.io.guided_mode):
+            self.mode_changes.append(entry["mode"])
+            self._reported_mode = entry["mode"]
         log.warning(
-            "uav %d: taken over at %s: %s; not changing its mode, not commanding it; publishing its position without "
+            "uav %d: taken over %s; not changing its mode, not commanding it; publishing its position without "
             "measurements; hand it back with: fimnav handback MISSION --uav %d",
             self.uav,
-            where,
             why,
             self.uav,
         )
-        return True
 
     def still_taken_over(self, k: int, enter_guided: Callable[[np.ndarray], None]) -> bool:
         """Whether the pilot still flies the drone at step ``k``: taken over and not handed

@@ -45,7 +45,8 @@ def start_vehicle(procs: list[Proc], mission: Path, tlog: Path, *extra: str, sys
 
 class UdpRelay:
     """Forward UDP between a planner (which sends to :attr:`port`) and a vehicle's port, in a
-    thread; :attr:`cut` drops everything in both directions (a lost radio link)."""
+    thread; :attr:`cut` drops everything in both directions (a lost radio link);
+    :meth:`restore` ends a cut dropping what was sent before it too."""
 
     def __init__(self, vehicle_port: int) -> None:
         self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -56,12 +57,35 @@ class UdpRelay:
         self.vehicle = ("127.0.0.1", vehicle_port)
         self.client: tuple[str, int] | None = None
         self.cut = threading.Event()
+        self._restore = threading.Event()
+        self._restored = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
+    def restore(self, timeout_s: float = 5.0) -> None:
+        """End the cut. What either side sent before this call and the relay has not read yet
+        (a loaded machine may leave the relay's thread behind) is dropped, not forwarded late:
+        a vehicle's heartbeat from before a mode change never follows the change."""
+        self._restored.clear()
+        self._restore.set()
+        assert self._restored.wait(timeout_s), "the relay did not restore the link"
+
+    def _drain(self) -> None:
+        for s in (self.front, self.back):
+            while select.select([s], [], [], 0.0)[0]:
+                try:
+                    s.recvfrom(65536)
+                except OSError:
+                    break
+
     def _run(self) -> None:
         while not self._stop.is_set():
+            if self._restore.is_set():
+                self._drain()
+                self.cut.clear()
+                self._restore.clear()
+                self._restored.set()
             ready, _, _ = select.select([self.front, self.back], [], [], 0.1)
             for s in ready:
                 try:

@@ -5,7 +5,10 @@ vehicles, docs/in-the-field.md).
 - A planner started beside an airborne vehicle a ground station holds (ArduPilot LOITER, PX4
   POSCTL), in real time: it changes no mode and sends no setpoint; it publishes the drone's
   position flagged taken over until ``fimnav handback``; then it flies the mission to its end.
-- A lockstep planner restarted (``--rejoin``) while its drone is taken over: the same.
+- A planner restarted (``--rejoin``) while its drone is taken over, in lockstep and in real time
+  (``--rejoin --start-at``, as ``fimnav launch --realtime --on-failure restart`` starts it): the same.
+- A real-time planner whose link returns (a UDP relay cut, then restored) after a ground station
+  switched the vehicle to the pilot's hold meanwhile: the same, from the step the link returned.
 - ``fimnav plan`` stopped by SIGINT or SIGTERM mid-mission: it tells the vehicle the
   mission's ``on_stop`` and the vehicle confirms it (its .tlog's last heartbeats), exit 130/143.
 
@@ -24,7 +27,7 @@ from typing import Any
 
 import pytest
 
-from tests.external.helpers import SwarmPeer, handback, start_vehicle, write_mission
+from tests.external.helpers import SwarmPeer, UdpRelay, handback, start_vehicle, write_mission
 from tests.external.test_takeover import LockstepHub
 from tests.support.proc import Proc, fimnav, with_default_interrupt
 from tests.support.wait import wait_for
@@ -111,24 +114,28 @@ def assert_untouched_until_handback(tlog: Path, flavour: str, handback_unix: flo
     assert any(kind == "setpoint" for t, kind, v in events if t > t_back), "no setpoint after the hand-back"
 
 
-@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
-def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+@pytest.mark.parametrize(("flavour", "path"), [("ardupilot", "start"), ("px4", "start"), ("ardupilot", "rejoin"), ("px4", "rejoin")])
+def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str, path: str) -> None:
     """Real time: the vehicle boots airborne, a ground station switches it to its pilot hold,
-    then ``fimnav plan`` starts on it. The planner says it is taken over at its start, changes
-    no mode, sends no setpoint, publishes the drone's position flagged taken over; after
-    ``fimnav handback`` it flies the mission to the end."""
-    steps = 14
+    then ``fimnav plan`` starts on it: as a new planner (``start``) or as a restarted one
+    rejoining the mission's step grid under way (``rejoin``: ``--rejoin --start-at``, as
+    ``fimnav launch --realtime --on-failure restart`` starts it). The planner says it is taken
+    over at its start, changes no mode, sends no setpoint, publishes the drone's position
+    flagged taken over; after ``fimnav handback`` it flies the mission to the end."""
+    steps = 40  # 8 s at x5: the hand-back command starts up within it on a loaded machine (14 steps, 2.8 s, did not)
     mission = write_mission(tmp_path / "m.yaml", "pilotheld", [[10.0, 20.0, 8.0]], steps, "hold")
     tlog = tmp_path / "v.tlog"
     vehicle, port = start_vehicle(procs, mission, tlog, "--speedup", str(SPEEDUP), "--flavour", flavour, "--airborne")
     ground_station_sets(port, flavour)
     peer = SwarmPeer("pilotheld", 1, {1: 75.0}, mode="router")
     try:
+        # A rejoining planner joins a grid whose step 0 was 1 s (5 steps at x5) ago.
+        rejoin = ["--rejoin", "--start-at", f"{time.time() - 1.0:.3f}"] if path == "rejoin" else []
         plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
-                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl")))
+                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{port}", "--log", str(tmp_path / "p.jsonl"), *rejoin))
         procs.append(plan)
         name = PILOT_MODE[flavour][2]
-        plan.expect(rf"taken over at start: the vehicle is armed in {name}", 30.0, stream="err")
+        plan.expect(rf"taken over at {path}: the vehicle is armed in {name}", 30.0, stream="err")
         wait_for(lambda: sum(1 for r in peer.snapshot() if r.sender == 1 and r.taken_over) >= 3, 30.0, "three taken-over records",
                  procs=[plan])
         handback_unix = time.time()
@@ -142,7 +149,8 @@ def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Pat
     assert "airborne in" not in plan.err and "Traceback" not in plan.err, plan.err[-2000:]
     summary = json.loads(plan.out.strip().splitlines()[-1])
     (take,) = summary["taken_over"]
-    assert take["mode"] == PILOT_MODE[flavour][2] and take["at_start"] == "start" and take["step"] == 0, take
+    assert take["mode"] == PILOT_MODE[flavour][2] and take["at_start"] == path, take
+    assert take["step"] == 0 if path == "start" else take["step"] >= 5, take
     assert take["handed_back_step"] >= 3 and summary["end"]["confirmed"], summary
     held = [r for r in records if r.sender == 1 and r.taken_over]
     assert held and all(math.isnan(r.range_m) for r in held)
@@ -216,6 +224,57 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
     (take,) = summary["taken_over"]
     assert take["at_start"] == "rejoin" and take["step"] == 7 and take["mode"] == PILOT_MODE[flavour][2], take
     assert all(records[j].taken_over for j in range(7, take["handed_back_step"])), "a step without its taken-over record"
+    vehicle.stop()
+    assert_untouched_until_handback(tlog, flavour, handback_unix)
+
+
+@pytest.mark.slow  # 12-18 s each (the 2 s loss threshold, the hand-back's start-up, the mission's end); default run: tests/node/test_link_return_node.py, tests/external/test_setpoint_race.py
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_a_vehicle_found_in_a_pilots_mode_when_the_link_returns_is_left_to_the_pilot(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
+    """Real time through a UDP relay: the planner flies; the relay is cut (a radio link gone
+    both ways); while it is cut a ground station connected to the vehicle directly switches it
+    to the pilot's hold (the PX4 vehicle had left OFFBOARD for its offboard-loss hold already);
+    the relay is restored. The planner cannot tell the pilot's mode from a failsafe's: it
+    takes the drone as taken over from the step the link returned ("after link loss"),
+    changes no mode and sends no setpoint (the vehicle's .tlog) until ``fimnav handback``;
+    then it flies the mission to its end."""
+    steps = 50  # ~10 steps flown, 10 lost, 10-20 taken over (the hand-back's start-up under load), the rest to spare
+    mission = write_mission(tmp_path / "m.yaml", "linkback", [[10.0, 20.0, 8.0]], steps, "hold")
+    tlog = tmp_path / "v.tlog"
+    # (the simulated ArduPilot boots airborne in GUIDED, which the planner flies as it is; the
+    # PX4 one boots in its hold, so it is taken off by the planner)
+    vehicle, port = start_vehicle(procs, mission, tlog, "--speedup", str(SPEEDUP), "--flavour", flavour,
+                                  *(["--airborne"] if flavour == "ardupilot" else []))
+    relay = UdpRelay(port)
+    peer = SwarmPeer("linkback", 1, {1: 75.0}, mode="router")
+    name = PILOT_MODE[flavour][2]
+    try:
+        plan = Proc(fimnav("plan", "--mission", str(mission), "--uav", "1", "--speedup", str(SPEEDUP), "--zenoh-connect", peer.endpoint,
+                           "--preflight-timeout", "60", "--mavlink", f"udpout:127.0.0.1:{relay.port}", "--log", str(tmp_path / "p.jsonl")))
+        procs.append(plan)
+        plan.expect(r"ready at the start position", 60.0, stream="err")
+        wait_for(lambda: sum(1 for r in peer.snapshot() if r.sender == 1) >= 3, 20.0, "three records of the planner", procs=[plan],
+                 interval_s=0.02)
+        relay.cut.set()
+        plan.expect(r"vehicle link lost", 10.0, stream="err")
+        ground_station_sets(port, flavour)  # directly to the vehicle, while the planner's link is cut
+        relay.restore()
+        taken = int(plan.expect(rf"taken over at step (\d+) after the link loss: the vehicle is armed in {name}", 20.0, stream="err").group(1))
+        wait_for(lambda: sum(1 for r in peer.snapshot() if r.sender == 1 and r.taken_over and r.step > taken) >= 2, 20.0,
+                 "two more records flagged taken over", procs=[plan], interval_s=0.02)
+        handback_unix = time.time()
+        r = handback(mission, 1, "--zenoh-connect", peer.endpoint)
+        assert r.returncode == 0, r.stdout + r.stderr
+        back = int(plan.expect(r"handed back at step (\d+)", 20.0, stream="err").group(1))
+        assert plan.wait(60.0) == 0, plan.tail()
+    finally:
+        peer.close()
+        relay.close()
+    assert "Traceback" not in plan.err and "switching back" not in plan.err, plan.err[-2000:]
+    summary = json.loads(plan.out.strip().splitlines()[-1])
+    assert summary["taken_over"] == [{"step": taken, "mode": name, "reason": "after link loss", "handed_back_step": back}], summary
+    assert len(summary["link_losses"]) == 1 and summary["end"]["confirmed"], summary
+    print(f"\n{flavour}: taken over at step {taken} after the link loss, handed back at step {back} of {steps}")
     vehicle.stop()
     assert_untouched_until_handback(tlog, flavour, handback_unix)
 

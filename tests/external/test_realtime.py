@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.external.helpers import SwarmPeer, UdpRelay, read_tlog, start_vehicle, write_mission
+from tests.external.helpers import SwarmPeer, UdpRelay, handback, read_tlog, start_vehicle, write_mission
 from tests.support.proc import Proc, fimnav
 from tests.support.wait import wait_for
 
@@ -124,13 +124,15 @@ def test_mixed_fleet_ardupilot_and_px4_full_sequence(tmp_path: Path, procs: list
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
 def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
     """The radio link is cut mid-mission (a UDP relay stops forwarding): the planner notices
-    within 3 s, publishes its last record flagged stale, and when the link returns resumes
-    (PX4: its offboard-loss failsafe switched to AUTO.LOITER meanwhile; the planner goes back
-    to OFFBOARD) and finishes the mission; end of mission 'hold' confirmed."""
+    within 3 s, publishes its last record flagged stale, sends no setpoint, and when the link
+    returns: ArduPilot still in GUIDED, the planner resumes; PX4, whose offboard-loss failsafe
+    switched to AUTO.LOITER meanwhile, is taken over (the planner cannot tell the failsafe's
+    mode change from a pilot's) until ``fimnav handback``, then flown on. The mission is
+    finished; end of mission 'hold' confirmed."""
     mission = write_mission(tmp_path / "m.yaml", "loss", [[10.0, 20.0, 8.0]], 60, "hold")
     vehicle, port = start_vehicle(procs, mission, tmp_path / "v.tlog", "--speedup", str(SPEEDUP), "--flavour", flavour)
     relay = UdpRelay(port)
-    peer = SwarmPeer("loss", 1, {1: 80.0})
+    peer = SwarmPeer("loss", 1, {1: 80.0}, mode="router")
     try:
         planner = Proc(plan_argv(mission, 1, peer, "--mavlink", f"udpout:127.0.0.1:{relay.port}"))
         procs.append(planner)
@@ -143,7 +145,13 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
         wait_for(lambda: any(r.stale for r in peer.snapshot()), 10.0, "a record marked stale", procs=[planner],
                  interval_s=0.02)
         relay.cut.clear()
-        planner.expect(r"resumed in (OFFBOARD|GUIDED)", 30.0, "err")
+        if flavour == "px4":
+            planner.expect(r"taken over at step \d+ after the link loss: the vehicle is armed in AUTO.LOITER", 30.0, "err")
+            r = handback(mission, 1, "--zenoh-connect", peer.endpoint)
+            assert r.returncode == 0, r.stdout + r.stderr
+            planner.expect(r"handed back at step \d+: in OFFBOARD", 20.0, "err")
+        else:
+            planner.expect(r"resumed in GUIDED", 30.0, "err")
         assert planner.wait(60.0) == 0, planner.tail()
         records = peer.snapshot()
     finally:
@@ -164,7 +172,9 @@ def test_link_loss_is_reported_records_go_stale_and_the_planner_resumes(tmp_path
     if flavour == "px4":
         assert s["end"]["mode"] == "AUTO.LOITER"
         assert "Failsafe: offboard lost, holding" in t.texts  # the vehicle's own failsafe
-        i = t.modes.index((PX4_LOITER, True))  # ... then the planner took it back
+        (take,) = s["taken_over"]
+        assert take["mode"] == "AUTO.LOITER" and take["reason"] == "after link loss" and take["handed_back_step"] > take["step"], take
+        i = t.modes.index((PX4_LOITER, True))  # ... then the hand-back
         assert (PX4_OFFBOARD, True) in t.modes[i:]
         assert t.modes[-1] == (PX4_LOITER, True)
     else:

@@ -19,9 +19,10 @@ from comms.latency import DelayedView
 from comms.messages import Done, Message, MessageKind, Record, Status, Tick
 from missions.format.loader import load_mission
 from planner import estimator as est
-from planner.agent import PlanView, own_ranges, plan
+from planner.agent import plan, records_as_arrays
 from planner.node import NodeError, NodeOptions, PlannerNode
 from planner.randomness import CONTROL_DRAWS, control_rng
+from planner.step import DroneState, StepScene
 from tests.external.helpers import write_mission
 from tests.node.fakes import FakeLink, FakeSession
 
@@ -82,7 +83,9 @@ def make_node(tmp_path: Path, flavour: str = "ardupilot", step_timeout_s: float 
     mission = load_mission(write_mission(tmp_path / "m.yaml", "lockfake", STARTS, STEPS, "hold"))
     link = FakeLink(np.array(STARTS[0]), wall=lambda: 0.0, flavour=flavour, mode="GUIDED" if flavour == "ardupilot" else "OFFBOARD")
     swarm = ScriptedSwarm(mission, link, **script)
-    options = NodeOptions(uav=1, mavlink="fake:1", lockstep=True, step_timeout_s=step_timeout_s, preflight_timeout_s=10.0, log_path=tmp_path / "planner_1.jsonl")
+    options = NodeOptions(
+        uav=1, mavlink="fake:1", lockstep=True, step_timeout_s=step_timeout_s, preflight_timeout_s=10.0, log_path=tmp_path / "planner_1.jsonl"
+    )
     node = PlannerNode(mission, options, link_factory=lambda conn, sysid: link, session_factory=lambda settings: swarm.session)
     return node, swarm, mission
 
@@ -105,10 +108,24 @@ def reference_plan_step0(mission: Any, own_record: Record, peer_record: Record) 
     )
     state = est.update(est.initial_state((), config.estimator), meas, config.channel, config.estimator)
     uniforms = control_rng(mission.seed, 0, 0).random(CONTROL_DRAWS)
-    own_evidence = own_ranges(np.array([own_record.range_m]), np.array([own_record.los]), config.channel)
-    own = np.array(own_record.position_m)
-    view0 = PlanView.from_records(0, v.records, v.saved_steps, 0, v.hops)
-    return plan(config, own, np.zeros(3), view0, state, uniforms, step_index=0, own_ranges=own_evidence), state
+    positions, valid, los = records_as_arrays(v.records)
+    scene = StepScene(
+        0,
+        np.array(0),
+        np.array(own_record.position_m),
+        np.array(own_record.range_m),
+        np.array(own_record.los),
+        positions,
+        valid,
+        los,
+        np.where(valid, v.saved_steps, -1),
+        np.asarray(v.hops),
+        state.estimate_m,
+        state.information,
+        np.asarray(state.observable),
+        uniforms,
+    )
+    return plan(config, scene, DroneState.initial((), 2)), state
 
 
 @pytest.mark.parametrize("flavour", ["ardupilot", "px4"])

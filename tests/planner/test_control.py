@@ -19,8 +19,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from comms.faults import FaultBuffer, FaultModel
-from planner import FimStatus, Limits, control_step, distance_to_boxes, hop_counts, update_saved_steps
+from planner import FimStatus, Limits, distance_to_boxes, hop_counts, update_saved_steps
 from planner.network import NEVER
+from tests.planner.stepping import control_step_of
 
 LIM = Limits()  # the paper's case study: d_U*=1, d_S*=50, d_O*=5, 0.5-1 m/step, 50°, z in [2, 25]
 NO_BOX = np.zeros((0, 3))
@@ -63,7 +64,7 @@ def one_step(
     n = peers.shape[0]
     age = np.zeros(n) if age is None else np.asarray(age, dtype=float)
     keepout = limits.d_source_m if keepout is None else keepout
-    return control_step(
+    return control_step_of(
         np.asarray(p, dtype=float), np.asarray(prev, dtype=float), np.asarray(grad, dtype=float), int(status),
         peers, np.ones(n, bool), age, np.asarray(source, dtype=float), keepout, boxes[0], boxes[1], limits,
         np.asarray(uniforms, dtype=float), xi=xi, perturbation_rad=perturbation_rad,
@@ -260,10 +261,10 @@ def test_batched_step_equals_loop(rng):
     src = np.array([0.0, 60.0, 10.0])
     boxes = (np.array([[-5.0, 20.0, 0.0]]), np.array([[5.0, 30.0, 20.0]]))
     uni = rng.random((S, N, 2))
-    r = control_step(p, prev, grad, status, peers, mask, age, src, 50.0, *boxes, LIM, uni)
+    r = control_step_of(p, prev, grad, status, peers, mask, age, src, 50.0, *boxes, LIM, uni)
     for s in range(S):
         for i in range(N):
-            one = control_step(p[s, i], prev[s, i], grad[s, i], status[s, i], peers[s, i], mask[s, i], age[s, i], src, 50.0, *boxes, LIM, uni[s, i])
+            one = control_step_of(p[s, i], prev[s, i], grad[s, i], status[s, i], peers[s, i], mask[s, i], age[s, i], src, 50.0, *boxes, LIM, uni[s, i])
             np.testing.assert_allclose(r.next_position[s, i], one.next_position, atol=1e-12)
             np.testing.assert_array_equal(r.active[s, i], one.active)
 
@@ -271,23 +272,10 @@ def test_batched_step_equals_loop(rng):
 # ---------------------------------------------------------------- closed-loop safety
 
 
-def simulate(
-    scenario: str, activation: str, seeds: int, steps: int, d_hop_m: float | None = None, h_max: int = 2, extra_delay_steps: int = 0
-) -> dict[str, float]:
-    """Drones pushed by a constant attractive gradient (unit vector to a target), all stepping at
-    once. Each sees the others' current positions (``d_hop_m=None``) or, through the delayed
-    view of planner.network (disk graph of radius d_hop, h_max hops, memory buffer), their
-    positions of step ℓ = k − h + 1 with age h − 1. With ``extra_delay_steps`` D > 0 each record
-    is also late by a uniform 0..D steps (comms.faults, the injected delay of the fault grid;
-    its own seeded stream per seed and receiver), and a peer whose first records have not
-    arrived is kept clear of at its start position, aged k (as planner.agent.plan does).
-    Returns the worst margin of every safety distance over all steps and seeds (negative =
-    violated)."""
-    limits = replace(LIM, activation=activation)
-    rng = np.random.default_rng([ord(c) for c in scenario + activation] + [int(d_hop_m or 0)])
+def _scenario(scenario: str, rng: np.random.Generator, seeds: int, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Start positions (seeds, N, 3), targets, source and boxes of a scenario of :func:`simulate`."""
     src = FAR_SOURCE
     boxes = (NO_BOX, NO_BOX)
-    N = 4
     centre = np.array([0.0, 0.0, 12.0])
     ang = np.linspace(0, 2 * np.pi, N, endpoint=False)[None] + rng.uniform(-0.3, 0.3, (seeds, N))
     ring = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], -1)
@@ -313,6 +301,25 @@ def simulate(
         target = p + np.where(np.arange(N)[:, None] % 2 == 0, [30.0, 0.0, 500.0], [-30.0, 0.0, -500.0])
     else:
         raise ValueError(scenario)
+    return p, target, src, boxes
+
+
+def simulate(
+    scenario: str, activation: str, seeds: int, steps: int, d_hop_m: float | None = None, h_max: int = 2, extra_delay_steps: int = 0
+) -> dict[str, float]:
+    """Drones pushed by a constant attractive gradient (unit vector to a target), all stepping at
+    once. Each sees the others' current positions (``d_hop_m=None``) or, through the delayed
+    view of planner.network (disk graph of radius d_hop, h_max hops, memory buffer), their
+    positions of step ℓ = k − h + 1 with age h − 1. With ``extra_delay_steps`` D > 0 each record
+    is also late by a uniform 0..D steps (comms.faults, the injected delay of the fault grid;
+    its own seeded stream per seed and receiver), and a peer whose first records have not
+    arrived is kept clear of at its start position, aged k (as planner.agent.plan does).
+    Returns the worst margin of every safety distance over all steps and seeds (negative =
+    violated)."""
+    limits = replace(LIM, activation=activation)
+    rng = np.random.default_rng([ord(c) for c in scenario + activation] + [int(d_hop_m or 0)])
+    N = 4
+    p, target, src, boxes = _scenario(scenario, rng, seeds, N)
     prev = np.zeros_like(p)
     trajectory = [p.copy()]
     saved = np.full((seeds, N, N), NEVER)
@@ -350,7 +357,7 @@ def simulate(
         age = np.where(mask, k - known_step, 0).astype(float)
         to_target = p - target  # ∇C of a cost growing away from the target
         grad = to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.zeros((seeds, N), np.int8), peers, mask, age, src, limits.d_source_m, *boxes, limits, rng.random((seeds, N, 2)))
+        r = control_step_of(p, prev, grad, np.zeros((seeds, N), np.int8), peers, mask, age, src, limits.d_source_m, *boxes, limits, rng.random((seeds, N, 2)))
         assert np.isfinite(r.next_position).all()
         prev, p = r.displacement, r.next_position
         trajectory.append(p.copy())
@@ -433,7 +440,7 @@ def test_two_drones_drawn_head_on_where_the_keep_out_meets_the_ceiling_keep_ever
     for _ in range(40):
         to_target = target - p
         grad = -to_target / np.linalg.norm(to_target, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.full(2, int(FimStatus.OK)), p[::-1, None, :], np.ones((2, 1), bool), np.zeros((2, 1)),
+        r = control_step_of(p, prev, grad, np.full(2, int(FimStatus.OK)), p[::-1, None, :], np.ones((2, 1), bool), np.zeros((2, 1)),
                          np.broadcast_to(src, (2, 3)), np.full(2, LIM.d_source_m), NO_BOX, NO_BOX, LIM, np.full((2, 2), 0.5),
                          source_exact=True)
         prev, p = r.displacement, r.next_position
@@ -515,7 +522,7 @@ def test_a_drone_pressed_into_the_corner_of_keep_out_building_and_ceiling_keeps_
         g = rng.normal(size=(seeds, 3))
         toward = (p - corner) / np.linalg.norm(p - corner, axis=-1, keepdims=True)
         grad = 0.6 * toward + 0.4 * g / np.linalg.norm(g, axis=-1, keepdims=True)
-        r = control_step(p, prev, grad, np.full(seeds, int(FimStatus.OK)), np.zeros((seeds, 1, 3)), np.zeros((seeds, 1), bool),
+        r = control_step_of(p, prev, grad, np.full(seeds, int(FimStatus.OK)), np.zeros((seeds, 1, 3)), np.zeros((seeds, 1), bool),
                          np.zeros((seeds, 1)), np.broadcast_to(src, (seeds, 3)), np.full(seeds, LIM.d_source_m), bmin, bmax, LIM,
                          rng.random((seeds, 2)), source_exact=True)
         prev, p = r.displacement, r.next_position

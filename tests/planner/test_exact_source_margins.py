@@ -14,8 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from planner import FimStatus, Limits, control_step
+from planner import FimStatus, Limits
 from planner.control import altitude_activation_margin_m, source_activation_margin_m
+from tests.planner.stepping import control_step_of
 
 LIM = Limits()  # the paper's section V values: 0.5-1 m/step, 50° per step, z in [2, 25] m
 NO_BOX = np.zeros((0, 3))
@@ -26,7 +27,7 @@ def _fly(p0: np.ndarray, grad_of, exact: bool, steps: int = 120) -> np.ndarray:
     """Positions (steps + 1, 3) of one drone following ``grad_of(p)`` under the safe rule."""
     p, prev, out = p0.astype(float), np.zeros(3), [p0.astype(float)]
     for _ in range(steps):
-        r = control_step(
+        r = control_step_of(
             p, prev, grad_of(p), int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0),
             SOURCE, LIM.d_source_m, NO_BOX, NO_BOX, LIM, np.array([0.5, 0.5]), source_exact=exact,
         )

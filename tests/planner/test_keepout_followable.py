@@ -1,5 +1,5 @@
 """The source keep-out a drone plans with, step to step (planner.agent.followable_keepout_m) and
-while it loiters (planner.agent._status_and_keepout).
+while it loiters (planner.agent.plan).
 
 An uncertain estimate (3σ ≥ d_S*, the keep-out's inflation capped) wanders by metres a step;
 its keep-out's boundary may advance on a drone by at most the turn buffer b per step, the most
@@ -13,14 +13,13 @@ positions), and the rule's own statement of which radius applies where.
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
-from planner import FimStatus, Limits
-from planner.agent import OWN_RANGE_WINDOW, SOURCE_INFLATION_MIN_M, _status_and_keepout, followable_keepout_m, own_ranges, source_keepout_m
+from planner import Limits
+from planner.agent import OWN_RANGE_WINDOW, SOURCE_INFLATION_MIN_M, followable_keepout_m, own_ranges, plan, source_keepout_m
 from planner.params import Channel
+from tests.planner.stepping import drone_state, planner_config, step_scene
 
 LIM = Limits()  # the paper's: d_S* = 50 m, 0.5-1 m/step, 50° per step
 CHANNEL = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=np.radians(10.0))
@@ -85,13 +84,14 @@ def test_batched_rows_are_limited_one_by_one(rng: np.random.Generator) -> None:
 
 
 def _keepout_while_loitering(distance_to_estimate_m: float, sigma_m: float, loitering: bool | None = None) -> tuple[float, bool]:
-    own = own_ranges(np.full(OWN_RANGE_WINDOW, 40.0), np.ones(OWN_RANGE_WINDOW, bool), CHANNEL)  # source within reach
+    """The keep-out and loiter of a lone ranging drone's planning step whose own last ranges
+    (ten, LOS) are all 40 m: the source within reach."""
     x = np.array([0.0, 0.0, 20.0])
     p_hat = x + np.array([distance_to_estimate_m, 0.0, 0.0])
-    estimate = SimpleNamespace(estimate_m=p_hat, information=np.eye(3) / sigma_m**2, observable=np.array(True))
-    cost = SimpleNamespace(status=np.array(np.int8(FimStatus.OK)))
-    _, keepout, loiter = _status_and_keepout(cost, x, p_hat, estimate, LIM, oracle=False, own=own, loitering=loitering)  # type: ignore[arg-type]
-    return float(keepout), bool(loiter)
+    scene = step_scene(0, x[None], [True], estimate_m=p_hat, information=np.eye(3) / sigma_m**2, own_range_m=40.0)
+    state = drone_state(1, previous_step_m=[1.0, 0.0, 0.0], ranges_m=np.full(OWN_RANGE_WINDOW - 1, 40.0), loitering=bool(loitering))
+    r = plan(planner_config([True], [False], LIM, channel=CHANNEL), scene, state)
+    return float(r.keepout_m), bool(r.loiter)
 
 
 def test_a_loitering_drone_drops_only_a_contradicted_keep_out_and_only_from_inside() -> None:

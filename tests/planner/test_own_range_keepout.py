@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from planner import FimStatus, Limits, control_step
+from planner import FimStatus, Limits
 from planner.agent import (
     OWN_RANGE_CONTRADICTION_SIGMAS,
     OWN_RANGE_RELEASE_SIGMAS,
@@ -41,6 +41,7 @@ from planner.agent import (
 )
 from planner.control import source_activation_margin_m
 from planner.params import Channel
+from tests.planner.stepping import control_step_of
 
 DATA = Path(__file__).parent / "data" / "ranging_nlos_A_trial39_drone9.npz"
 CHANNEL = Channel(gamma=2.0, sigma_ratio_los=1.7, sigma_ratio_nlos=3.2, sigma_bearing_rad=np.radians(10.0))
@@ -137,7 +138,7 @@ def test_a_loitering_drone_stays_in_place(rng: np.random.Generator) -> None:
     start = p.copy()
     reach = np.zeros(n)
     for _ in range(30):
-        r = control_step(p, prev, loiter_gradient(prev), np.zeros(n, np.int8), np.zeros((n, 0, 3)), np.zeros((n, 0), bool),
+        r = control_step_of(p, prev, loiter_gradient(prev), np.zeros(n, np.int8), np.zeros((n, 0, 3)), np.zeros((n, 0), bool),
                          np.zeros((n, 0)), np.full((n, 3), 1e4), np.full(n, 50.0), NO_BOX, NO_BOX, LIM, rng.random((n, 2)))
         prev, p = r.displacement, r.next_position
         reach = np.maximum(reach, np.linalg.norm(p - start, axis=-1))
@@ -172,7 +173,7 @@ def _replay(rule_on: bool, seed: int, start_step: int = 325) -> float:
         grad = (p - est[k]) / np.linalg.norm(p - est[k])
         if rule_on and must_loiter(LIM, sigma[k], True, np.linalg.norm(p - est[k]), own_ranges(window, np.zeros(window.shape, bool), CHANNEL)):
             grad = loiter_gradient(prev)
-        r = control_step(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est[k],
+        r = control_step_of(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est[k],
                          keepout, NO_BOX, NO_BOX, LIM, np.array([0.5, 0.5]))
         prev = r.displacement
         p = r.next_position
@@ -223,7 +224,7 @@ def _creep(hysteresis: bool, seed: int, steps: int = 400) -> float:
         own = own_ranges(window, np.zeros(window.shape, bool), CHANNEL)
         loiter = bool(must_loiter(LIM, 45.0, True, np.linalg.norm(p - est), own, loitering if hysteresis else None))
         grad = loiter_gradient(prev) if loiter else (p - src) / d
-        r = control_step(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est,
+        r = control_step_of(p, prev, grad, int(FimStatus.OK), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), est,
                          source_keepout_m(LIM, 45.0), NO_BOX, NO_BOX, LIM, np.array([0.5, 0.5]))
         prev, p, loitering = r.displacement, r.next_position, loiter
         closest = min(closest, float(np.linalg.norm(p - src)))

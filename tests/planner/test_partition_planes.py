@@ -13,8 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner import FimStatus, Limits, control_step
-from planner.control import lost_contact_planes
+from planner import FimStatus, Limits
+from planner import kernels as K
+from planner.control import SOURCE, UAV, lost_contact_planes
+from tests.planner.stepping import NO_BOX, control_step_of
 
 LIM = Limits(d_uav_m=2.0, d_source_m=50.0, z_min_m=2.0, z_max_m=25.0)
 STEPS = 60
@@ -58,7 +60,7 @@ def fly(seed: int, planes_rule: bool) -> float:
             age = np.where(cross, 0.0, age)
         elif cut:
             mask = mask & ~cross  # the hop rule: peers not heard are taken to be out of range
-        r = control_step(
+        r = control_step_of(
             p,
             prev,
             grad,
@@ -94,35 +96,38 @@ def test_ignoring_unheard_peers_lets_the_halves_collide() -> None:
     assert min(fly(seed, planes_rule=False) for seed in range(3)) < LIM.d_uav_m
 
 
+def envelope(p, prev, need, peers, planes, strict, loose, hard, source, keepout):  # type: ignore[no-untyped-def]
+    """The safety filter's envelope search alone (:func:`planner.kernels.envelope_batch`) for one
+    drone whose limited step (``prev`` again) failed, without a loiter certificate: (step, margins)."""
+    f = np.ascontiguousarray
+    step, margins, _ = K.envelope_batch(
+        f(p), f(prev), f(prev), True, f(need), np.full(4, np.inf), f(peers), f(planes), f(strict), f(loose), f(hard), f(source), keepout,
+        NO_BOX, NO_BOX, LIM.kernel_array,
+    )
+    return step, margins
+
+
 def squeeze(plane: bool) -> tuple[float, float, float]:
     """One drone at (0, 0, 10) flying +x (it cannot stop or turn back in one step), its source
     keep-out just behind it on −y (source (0, −50, 10)) and a peer's row just ahead on +y that
     requires a step toward −y of about 5 cm: no step keeps both. Returns the chosen step's
     source distance, its signed distance past the peer's plane (y − y_plane, ≤ 0 on the drone's
     side) and its distance to the peer's point (m)."""
-    from planner.control import SOURCE, _Clearances, _envelope_search
-
-    p = np.array([[0.0, 0.0, 10.0]])
-    prev = np.array([[LIM.step_max_m, 0.0, 0.0]])
+    p = np.array([0.0, 0.0, 10.0])
+    prev = np.array([LIM.step_max_m, 0.0, 0.0])
     tb = LIM.turn_buffer_m
-    source = np.array([[0.0, -50.0, 10.0]])
+    source = np.array([0.0, -50.0, 10.0])
     y_peer = 5.0
     now = y_peer + (0.5 * LIM.d_uav_m if plane else 0.0)  # the row's distance now
-    clear = _Clearances(
-        peers=np.array([[[0.0, y_peer, 10.0]]]),
-        # A step must come about 5 cm nearer −y (a point row gains dx²/(2·5 m) ≤ 10 cm sideways).
-        peer_required=np.array([[now + (0.05 if plane else 0.15)]]),
-        source=source,
-        source_required=np.array([50.0 + tb - 0.02]),  # hard keep-out: come no nearer than 2 cm
-        obstacle_required=LIM.d_obstacle_m,
-        planes=np.array([[[0.0, -1.0, 0.0]]]) if plane else None,
-        d_uav_m=LIM.d_uav_m,
-    )
-    need = np.zeros((1, 4))
-    need[0, SOURCE] = -tb + 0.02
-    step, _, _ = _envelope_search(p, prev, prev, np.array([True]), need, clear, np.zeros((0, 3)), np.zeros((0, 3)), LIM, clear, clear)
-    end = p[0] + step[0]
-    return float(np.linalg.norm(end - source[0])), float(end[1] - y_peer), float(np.linalg.norm(end - clear.peers[0, 0]))
+    # A step must come about 5 cm nearer −y (a point row gains dx²/(2·5 m) ≤ 10 cm sideways).
+    required = np.array([now + (0.05 if plane else 0.15)])
+    planes = np.array([[0.0, -1.0, 0.0]]) if plane else np.zeros((1, 3))
+    need = np.zeros(4)
+    need[SOURCE] = -tb + 0.02  # hard keep-out (keep-out 50 m − 2 cm plus b): come no nearer than 2 cm
+    peer = np.array([[0.0, y_peer, 10.0]])
+    step, _ = envelope(p, prev, need, peer, planes, required, required, required, source, 50.0 - 0.02)
+    end = p + step
+    return float(np.linalg.norm(end - source)), float(end[1] - y_peer), float(np.linalg.norm(end - peer[0]))
 
 
 def test_a_squeezed_drone_keeps_the_source_keep_out_and_gives_up_only_the_plane_buffer() -> None:
@@ -147,38 +152,28 @@ def test_a_squeezed_drone_inside_a_peers_reachable_ball_comes_no_nearer_its_reco
     squeezed drone comes no nearer the peer's record, not even down to d_U* + v_max Δt: it gives
     the source keep-out up instead. Outside the ball, the same squeeze keeps the keep-out and
     approaches the record (the test above)."""
-    from planner.control import SOURCE, UAV, _Clearances, _envelope_search
-
     tb = LIM.turn_buffer_m
-    p = np.array([[0.0, 0.0, 10.0]])
-    prev = np.array([[LIM.step_max_m, 0.0, 0.0]])  # flying +x: every step has dx > 0
-    source = np.array([[20.0, -50.0, 10.0]])
-    d_source = float(np.linalg.norm(p[0] - source[0]))
+    p = np.array([0.0, 0.0, 10.0])
+    prev = np.array([LIM.step_max_m, 0.0, 0.0])  # flying +x: every step has dx > 0
+    source = np.array([20.0, -50.0, 10.0])
+    d_source = float(np.linalg.norm(p - source))
     # The keep-out is 1 cm in deficit: no step may bring the drone nearer the source, which asks
     # for dy >= 0.4 dx, toward the record at (3, 5): every such step comes nearer it.
     record = np.array([3.0, 5.0, 10.0])
-    d_record = float(np.linalg.norm(p[0] - record))
+    d_record = float(np.linalg.norm(p - record))
     assert d_record > LIM.d_uav_m + LIM.step_max_m  # the record clearance alone would allow it
-    need = np.zeros((1, 4))
-    need[0, SOURCE] = -0.01 - tb
-    strict = _Clearances(
-        peers=record[None, None],
-        peer_required=np.array([[LIM.d_uav_m + 4.0 * LIM.step_max_m + 2.0 * tb]]),  # a record 3 steps old
-        source=source,
-        source_required=np.array([d_source + 0.01 + tb]),
-        obstacle_required=LIM.d_obstacle_m,
-        d_uav_m=LIM.d_uav_m,
-    )
+    need = np.zeros(4)
+    need[SOURCE] = -0.01 - tb
+    strict = np.array([LIM.d_uav_m + 4.0 * LIM.step_max_m + 2.0 * tb])  # a record 3 steps old
 
     def pick(hard_required: float) -> np.ndarray:
-        hard = _Clearances(record[None, None], np.array([[hard_required]]), source, strict.source_required, LIM.d_obstacle_m, None, LIM.d_uav_m)
-        step, margins, _ = _envelope_search(p, prev, prev, np.array([True]), need, strict, np.zeros((0, 3)), np.zeros((0, 3)), LIM, strict, hard)
-        assert margins[0, UAV] < 0.0  # the peer's strict requirement is not met: a relaxed tier
-        return p[0] + step[0]
+        step, margins = envelope(p, prev, need, record[None], np.zeros((1, 3)), strict, strict, np.array([hard_required]), source, d_source + 0.01)
+        assert margins[UAV] < 0.0  # the peer's strict requirement is not met: a relaxed tier
+        return p + step
 
     inside = pick(d_record)  # inside the ball: the hard requirement is the distance now
     assert np.linalg.norm(inside - record) >= d_record - 1e-9
-    assert np.linalg.norm(inside - source[0]) < d_source  # the keep-out gave way
+    assert np.linalg.norm(inside - source) < d_source  # the keep-out gave way
     outside = pick(d_record - 0.5)  # outside: the ball itself may shrink to d_U* + v_max Δt
-    assert np.linalg.norm(outside - source[0]) >= d_source - 1e-9
+    assert np.linalg.norm(outside - source) >= d_source - 1e-9
     assert LIM.d_uav_m + LIM.step_max_m <= np.linalg.norm(outside - record) < d_record

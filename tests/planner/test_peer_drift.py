@@ -1,5 +1,6 @@
-"""A peer's drift from a drone's records of it (planner.agent.PeerDrift) and the filter's
-preference for steps that keep clear of a peer's dead-reckoned position.
+"""A peer's drift from a drone's records of it (the carried state's ``drift_m``,
+planner.step.DroneState, updated by planner.agent.plan) and the filter's preference for steps
+that keep clear of a peer's dead-reckoned position.
 
 References: a peer flying a known straight track (its drift is its velocity per step, whatever
 records are lost), hand-computed distances to the dead-reckoned position, and two drones flying
@@ -10,9 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from planner import FimStatus, Limits, control_step
-from planner.agent import DRIFT_MAX_GAP_STEPS, PeerDrift
-from planner.control import _Clearances, _dead_reckoning_kept
+from planner import FimStatus, Limits
+from planner import kernels as K
+from planner.agent import DRIFT_MAX_GAP_STEPS, plan
+from planner.step import DroneState
+from tests.planner.stepping import control_step_of, planner_config, step_scene
 
 LIM = Limits()  # d_U* = 1 m, 0.5-1 m per step
 FAR_SOURCE = np.array([0.0, 1e5, 10.0])
@@ -23,73 +26,76 @@ def track(step: int) -> np.ndarray:
     return np.array([10.0, 5.0, 12.0]) + step * VELOCITY
 
 
+def drifts(saved_steps: list[int]) -> list[np.ndarray]:
+    """Drone 0's drift of drone 1 (m per step) after each of its planning steps k = 0, 1, ...,
+    holding at step k drone 1's record of step ``saved_steps[k]`` (from its straight track)."""
+    config = planner_config([True, True], [False, False])
+    state = DroneState.initial((), 2)
+    out = []
+    for k, saved in enumerate(saved_steps):
+        view = np.stack([np.array([0.0, -40.0, 10.0]), track(saved)])
+        scene = step_scene(0, view, [True, True], step_index=k, saved_steps=[k, saved], estimate_m=FAR_SOURCE, observable=False)
+        state = plan(config, scene, state).state
+        out.append(state.drift_m[1].copy())
+    return out
+
+
 def test_drift_is_the_peers_step_whatever_records_are_lost() -> None:
-    drift = PeerDrift.empty((2,))
-    # Row 0: records of steps 0, 1, 3 (2 lost), 3 again (nothing new), 6; row 1: never heard.
-    seen = []
-    for saved in (0, 1, 3, 3, 6):
-        drift = drift.update(np.stack([track(saved), np.full(3, np.nan)]), np.array([saved, -1]), np.array([True, False]))
-        seen.append(drift.drift_m.copy())
+    # Records of steps 0, 1, 3 (2 lost), 3 again (nothing new), 6.
+    seen = drifts([0, 1, 3, 3, 6])
     assert np.isnan(seen[0]).all()  # one record: no drift yet
     for d in seen[1:]:
-        np.testing.assert_allclose(d[0], VELOCITY, atol=1e-12)
-        assert np.isnan(d[1]).all()
-    assert drift.saved_steps.tolist() == [6, -1]
-    np.testing.assert_array_equal(drift.positions_m[0], track(6))
+        np.testing.assert_allclose(d, VELOCITY, atol=1e-12)
 
 
 def test_a_gap_longer_than_the_limit_gives_no_drift() -> None:
-    drift = PeerDrift.empty((1,))
-    drift = drift.update(track(0)[None], np.array([0]), np.array([True]))
-    drift = drift.update(track(1)[None], np.array([1]), np.array([True]))
     far = 1 + DRIFT_MAX_GAP_STEPS + 1
-    drift = drift.update(track(far)[None], np.array([far]), np.array([True]))
-    assert np.isnan(drift.drift_m).all()
-    drift = drift.update(track(far + 2)[None], np.array([far + 2]), np.array([True]))
-    np.testing.assert_allclose(drift.drift_m[0], VELOCITY, atol=1e-12)
+    seen = drifts([0, 1, far, far + 2])
+    np.testing.assert_allclose(seen[1], VELOCITY, atol=1e-12)
+    assert np.isnan(seen[2]).all()
+    np.testing.assert_allclose(seen[3], VELOCITY, atol=1e-12)
 
 
 def test_steps_nearer_the_dead_reckoned_peer_are_left_out() -> None:
     # Drone at the origin; the peer's record (age 3) is at (-3, 1.8, 0) and it flies +x at
     # 1 m per step: dead-reckoned at (0, 1.8, 0) now and (1, 1.8, 0) after the step.
-    p = np.zeros((1, 3))
-    now, nxt = np.array([[[0.0, 1.8, 0.0]]]), np.array([[[1.0, 1.8, 0.0]]])
-    cand = np.array([[[1.0, -0.3, 0.0], [1.0, 0.3, 0.0], [0.7, 0.7, 0.0], [0.0, -1.0, 0.0]]])
-    hard = _Clearances(
-        np.array([[[-3.0, 1.8, 0.0]]]), np.array([3.5]), FAR_SOURCE[None], np.array([0.0]), 0.0, None, 1.0, now, nxt
-    )
-    kept = _dead_reckoning_kept(p, cand, hard, LIM)
-    assert kept is not None
+    p = np.zeros(3)
+    now, nxt = np.array([[0.0, 1.8, 0.0]]), np.array([[1.0, 1.8, 0.0]])
+    cand = np.array([[1.0, -0.3, 0.0], [1.0, 0.3, 0.0], [0.7, 0.7, 0.0], [0.0, -1.0, 0.0]])
+    kept, known = K.dead_reckoning_batch(p, cand, now, nxt, LIM.kernel_array)
+    assert known
     # |(1, -0.3) - (1, 1.8)| = 2.1 >= 1.8; |(1, 0.3) - (1, 1.8)| = 1.5; |(0.7, 0.7) - (1, 1.8)| = 1.14;
     # |(0, -1) - (1, 1.8)| = 2.97.
-    assert kept[0].tolist() == [True, False, False, True]
+    assert kept.tolist() == [True, False, False, True]
     # Every one of them keeps "not nearer the record": that rule alone does not tell them apart.
-    record = hard.peers[0, 0]
-    assert (np.linalg.norm(cand[0] - record, axis=-1) >= np.linalg.norm(record)).all()
-    # A peer with no drift known, or none inside its reachable ball: nothing to prefer.
-    unknown = _Clearances(hard.peers, hard.peer_required, hard.source, hard.source_required, 0.0, None, 1.0, now * np.nan, nxt * np.nan)
-    assert _dead_reckoning_kept(p, cand, unknown, LIM) is None
+    record = np.array([-3.0, 1.8, 0.0])
+    assert (np.linalg.norm(cand - record, axis=-1) >= np.linalg.norm(record)).all()
+    # A peer with no drift known (not inside its reachable ball): nothing to prefer.
+    assert not K.dead_reckoning_batch(p, cand, now * np.nan, nxt * np.nan, LIM.kernel_array)[1]
 
 
 def _corridor(use_drift: bool, steps: int = 30, delay: int = 3, gap: float = 1.8, z: float = 24.5) -> np.ndarray:
     """Two drones flying +x side by side ``gap`` apart between two walls 6 m off each, each
-    pulled toward the other, each knowing the other's position ``delay`` steps late. Returns the
-    distance between them after each step (m) where both steps were filtered."""
+    pulled toward the other, each knowing the other's position ``delay`` steps late. Drone 0's
+    last step is 0.01 rad off the corridor's axis, toward its wall: exactly symmetric, both fly
+    straight and nothing happens (any asymmetry from −1e-15 to −0.01 rad gives the same
+    outcome). Returns the distance between them after each step (m) where both steps were
+    filtered."""
     bmin = np.array([[-100.0, -56.0, 0.0], [-100.0, gap + 6.0, 0.0]])
     bmax = np.array([[300.0, -6.0, 40.0], [300.0, gap + 56.0, 40.0]])
     hist = [np.array([[float(k - delay), 0.0, z], [float(k - delay), gap, z]]) for k in range(delay + 1)]
-    prev = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    drift = PeerDrift.empty((2, 2))
+    prev = np.array([[np.cos(-0.01), np.sin(-0.01), 0.0], [1.0, 0.0, 0.0]])
     mask = ~np.eye(2, dtype=bool)
     out = []
     for k in range(delay, delay + steps):
         p, record = hist[k], hist[k - delay]
         peers = np.stack([record, record])
-        drift = drift.update(peers, np.full((2, 2), k - delay), np.ones((2, 2), dtype=bool))
+        # Each peer's last step from its two newest records (one step apart).
+        drift = np.stack([record - hist[k - delay - 1], record - hist[k - delay - 1]]) if k > delay else np.full((2, 2, 3), np.nan)
         lateral = p[::-1] - p
         lateral[:, [0, 2]] = 0.0
         desired = np.array([1.0, 0.0, 0.2]) + 0.6 * lateral / np.linalg.norm(lateral, axis=1, keepdims=True)
-        r = control_step(
+        r = control_step_of(
             p,
             prev,
             -desired,
@@ -103,7 +109,7 @@ def _corridor(use_drift: bool, steps: int = 30, delay: int = 3, gap: float = 1.8
             bmax,
             LIM,
             np.full((2, 2), 0.5),
-            peer_drift_m=drift.drift_m if use_drift else None,
+            peer_drift_m=drift if use_drift else None,
         )
         prev = np.asarray(r.displacement)
         hist.append(p + prev)

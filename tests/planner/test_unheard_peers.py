@@ -12,15 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from types import SimpleNamespace
-
-from planner.agent import PlanView, plan
-from planner.config import PlannerConfig
-from planner.estimator import EstimatorConfig
-from planner.params import Channel, Limits
+from planner.agent import plan
+from planner.params import Limits
+from tests.planner.stepping import drone_state, planner_config, step_scene
 
 LIM = Limits()  # d_U* = 1 m, 0.5-1 m per step, 50° per step
-NO_BOX = np.zeros((0, 3))
 
 
 def step_towards_unheard_peer(step_index: int, with_start: bool) -> tuple[float, float]:
@@ -30,27 +26,19 @@ def step_towards_unheard_peer(step_index: int, with_start: bool) -> tuple[float,
     now, after the step), m."""
     own = np.array([0.0, 0.0, 10.0])
     start = np.array([[0.0, 0.0, 10.0], [2.5, 1.5, 10.0]])
-    config = PlannerConfig(
-        channel=Channel(),
-        limits=LIM,
-        criterion="A",
-        component_masks={"range": np.array([True, True]), "bearing": np.array([False, False])},
-        boxes_min_m=NO_BOX,
-        boxes_max_m=NO_BOX,
-        d_hop_m=100.0,
-        start_positions_m=start if with_start else None,
-        estimator=EstimatorConfig(),
+    config = planner_config([True, True], [False, False], LIM, start_positions_m=start if with_start else None)
+    scene = step_scene(
+        0,
+        np.array([own, [0.0, 0.0, 0.0]]),  # no record of drone 1: its row is unused
+        [True, False],
+        step_index=step_index,
+        view_los=[True, False],
+        hops=[0, 1],  # drone 1 is a neighbour (it is within d_hop), just not heard yet
+        estimate_m=[0.0, 500.0, 2.0],
+        information=np.zeros((3, 3)),
+        observable=False,
     )
-    view = PlanView(
-        own_mask=np.array([True, False]),
-        positions_m=np.array([own, [0.0, 0.0, 0.0]]),  # no record of drone 1: its row is unused
-        valid=np.array([True, False]),
-        los=np.array([True, False]),
-        age_steps=np.array([0, 0]),
-        hops=np.array([0, 1]),  # drone 1 is a neighbour (it is within d_hop), just not heard yet
-    )
-    estimate = SimpleNamespace(estimate_m=np.array([0.0, 500.0, 2.0]), information=np.zeros((3, 3)), observable=np.array(False))
-    r = plan(config, own, np.array([1.0, 0.0, 0.0]), view, estimate, np.array([0.5, 0.5]), step_index=step_index)
+    r = plan(config, scene, drone_state(2, previous_step_m=[1.0, 0.0, 0.0]))
     return float(np.linalg.norm(own - start[1])), float(np.linalg.norm(r.step.next_position - start[1]))
 
 
