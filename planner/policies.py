@@ -226,7 +226,17 @@ def _steered(
     view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
     value, grad = np.zeros(batch), np.array(np.broadcast_to(gradient, batch + (3,)), dtype=float)  # writable: the kernel's signature
     # The cost given (True): the kernel takes the policy's gradient instead of the planner's.
-    K.plan_batch(_kernel_scene(scene, p_hat, batch, n), view_los, roles, old, tuple(kconfig), new, out, (value.reshape(-1), grad.reshape(-1, 3), status.reshape(-1)), True)
+    K.plan_batch(
+        _kernel_scene(scene, p_hat, batch, n),
+        view_los,
+        roles,
+        old,
+        tuple(kconfig),
+        new,
+        out,
+        (value.reshape(-1), grad.reshape(-1, 3), status.reshape(-1)),
+        True,
+    )
     step = StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
     cg = CostGradient(np.zeros(batch), gradient, status)
     return PlanResult(step, cg, kept[..., 0], np.asarray(p_hat), flags[..., 7], DroneState.from_kernel_arrays(new, batch))
