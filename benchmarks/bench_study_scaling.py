@@ -12,7 +12,11 @@ is the command's and its pool workers' (``RUSAGE_CHILDREN``). The three summarie
 
 Usage::
 
-    python benchmarks/bench_study_scaling.py [--mission paper/joint] [--trials 100] [--steps 550] [--rounds 3]
+    python benchmarks/bench_study_scaling.py [--mission paper/joint] [--trials 100] [--steps 550] [--rounds 3] [--warm]
+
+``--warm``: before the rounds, one untimed study of two steps on the cluster (two chunks: both
+workers import fimnav and load its compiled kernels once, as a long-lived cluster has), its
+wall and CPU printed apart; without it the first cluster round pays that start-up.
 """
 
 from __future__ import annotations
@@ -88,6 +92,7 @@ def main() -> int:
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--steps", type=int, default=550)
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--warm", action="store_true", help="an untimed two-step study on the cluster before the rounds")
     args = parser.parse_args()
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
     address, cluster = start_cluster(env)
@@ -102,6 +107,10 @@ def main() -> int:
     loads = [os.getloadavg()[0]]
     try:
         with tempfile.TemporaryDirectory() as tmp:
+            if args.warm:
+                argv = [sys.executable, "-m", "missions", "montecarlo", args.mission, "--trials", str(args.trials), "--steps", "2"]
+                wall, cpu = run([*argv, "--no-figures", "--out", str(Path(tmp) / "warm"), "--cluster", address], env, cluster)
+                print(f"warm-up (untimed in the table): the cluster's first study, 2 steps: wall {wall:.1f} s, CPU {cpu:.1f} s", flush=True)
             for r in range(args.rounds):
                 for n in names[r % 3 :] + names[: r % 3]:
                     out = Path(tmp) / f"{names.index(n)}-{r}"
@@ -114,6 +123,8 @@ def main() -> int:
                     print(f"round {r + 1}: {n}: wall {wall:.1f} s, CPU {cpu:.1f} s, load {loads[-1]:.1f}", flush=True)
             reference = untimed(Path(tmp) / "0-0" / "summary.json")
             for d in Path(tmp).iterdir():
+                if d.name == "warm":
+                    continue
                 if untimed(d / "summary.json") != reference:
                     raise SystemExit(f"bench_study_scaling: {d.name}'s summary differs from the one-worker run's")
     finally:
@@ -136,6 +147,7 @@ def main() -> int:
     # Two workers on two free cores: each does half the CPU work at once.
     print(f"\nspeed-up two free cores would give (2 x CPU of 1 worker / CPU of 2): {2 * cpu_one / statistics.median(cpus[names[1]]):.2f} x")
     print(f"\nDask cluster over --jobs 2 (wall, medians): {statistics.median(walls[names[2]]) / two - 1:+.1%}")
+    print(f"Dask cluster over --jobs 2 (CPU, medians): {statistics.median(cpus[names[2]]) / statistics.median(cpus[names[1]]) - 1:+.1%}")
     print("the three summaries are equal (but wall times)")
     return 0
 
