@@ -7,12 +7,12 @@ A drone's *role* (paper sec. II-B) says which measurement *components* it takes:
 * :data:`ROLES`, the role table: the mission schema's role names (``missions/format/schema.py``),
   the payload's and the planner's (κ, β) flags (``vehicle_sim/payload.py``,
   :class:`planner.config.PlannerConfig`), the wire format's role bits (``comms/messages.py``).
-* :data:`RANGE` and :data:`BEARING`, the measurement components, each with its measurement
-  simulation (eqs. 3-5, used by :mod:`planner.observation`) and its normalised residual (the
-  estimator's likelihood, used by :mod:`planner.estimator.robust`). Their Fisher information
-  terms and gradients (eqs. 10-14) are compiled (:mod:`planner.kernels`, used by
-  :mod:`planner.fim` and the planning step); a further component brings its own
-  (:class:`SensingComponent`'s ``fim_vectors``, ``fim_row_weights``, ``cost_gradient_terms``).
+* :data:`RANGE` and :data:`BEARING`, the measurement components, each with its Fisher
+  information term and its gradient (eqs. 10-14) in numpy (the reference the compiled kernels
+  of :mod:`planner.kernels` are tested against, and the terms :mod:`planner.radio.unknown_power`
+  extends), its measurement simulation (eqs. 3-5, used by :mod:`planner.observation`) and its
+  normalised residual (the estimator's likelihood, used by :mod:`planner.estimator.robust`).
+  The planning step itself uses the compiled terms.
 
 Notation (mission ENU frame, metres, radians): drone at p, source p0, r = p0 − p, d = ‖r‖,
 ρ = √(r_x² + r_y²), b = (−r_y, r_x, 0) = ∇φ·ρ², v = (−r_x r_z, −r_y r_z, ρ²) = ∇θ·d²ρ:
@@ -164,9 +164,7 @@ class SensingComponent:
     ``fim_row_count`` rank-one terms w u uᵀ to the Fisher information J of the source position
     (u: a row vector, (..., 3), w: its weight, both per drone). Everything that loops over
     components (:mod:`planner.fim`, :mod:`planner.observation`, :mod:`planner.estimator`)
-    calls the methods below, in the order of :data:`COMPONENTS`. The Fisher information methods
-    (``fim_vectors``, ``fim_row_weights``, ``cost_gradient_terms``) are those of a component
-    beyond range and bearing, whose terms :mod:`planner.kernels` computes.
+    calls the methods below, in the order of :data:`COMPONENTS`.
 
     Class attributes:
         name: the component's name (the key of its mask, e.g. ``"range"``).
@@ -235,6 +233,31 @@ class RangeModel(SensingComponent):
         """(d̂,) of :meth:`simulate`."""
         return (self.simulate(d, los, channel, uniforms),)
 
+    def fim_vectors(self, geom: LinkGeometry) -> FloatArray:
+        """u = r (ranging direction times d)."""
+        return geom.r[..., None, :]
+
+    @staticmethod
+    def _inv_s0sq(los_w: FloatArray, channel: Channel) -> FloatArray:
+        """q/σ_r0,LOS² + (1 − q)/σ_r0,NLOS² of the LOS weight q, m⁻²."""
+        return los_w / channel.sigma_r0_los**2 + (1.0 - los_w) / channel.sigma_r0_nlos**2
+
+    def fim_row_weights(self, geom: LinkGeometry, mask: ArrayLike, los_w: FloatArray, channel: Channel) -> FloatArray:
+        """κ A_r/d² (A_r a aᵀ = (A_r/d²) r rᵀ), m⁻⁴."""
+        inv_s0sq = self._inv_s0sq(los_w, channel)
+        w = np.asarray(mask, dtype=bool) * self.fim_weight(geom.d, geom.d2, inv_s0sq, channel.gamma) / geom.d2
+        return np.broadcast_to(w, np.broadcast_shapes(np.shape(w), geom.d.shape))[..., None]
+
+    def cost_gradient_terms(
+        self, geom: LinkGeometry, q: FloatArray, MV: FloatArray, mask: ArrayLike, los_w: FloatArray, channel: Channel, los_trace: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """κ :meth:`cost_gradient` and κ :meth:`los_trace`."""
+        inv_s0sq = self._inv_s0sq(los_w, channel)
+        g_r = self.cost_gradient(geom.r, geom.d, geom.d2, q[..., 0], MV[..., 0, :], inv_s0sq, channel.gamma)
+        use_r = np.asarray(mask, dtype=bool)[..., None]
+        tr = use_r[..., 0] * self.los_trace(geom.d, geom.d2, q[..., 0], channel) if los_trace else None
+        return use_r * g_r, tr
+
     def std_m(self, d: ArrayLike, los: ArrayLike, channel: Channel) -> FloatArray:
         """σ_r = σ_r0 d^(γ/2) of eq. 5 (m), with σ_r0 for LOS or NLOS per link."""
         s0 = channel.sigma_r0(los)
@@ -246,6 +269,24 @@ class RangeModel(SensingComponent):
 
         z = ndtri(np.clip(uniforms[..., :1], 1e-300, None))[..., 0]
         return d + self.std_m(d, los, channel) * z
+
+    def fim_weight(self, d: FloatArray, d2: FloatArray, inv_s0sq: FloatArray, gamma: float) -> FloatArray:
+        """A_r = d^−γ/σ_r0² + γ²/(2d²) (eq. 12 with the variance term), m⁻²: J_r = A_r a aᵀ
+        = (A_r/d²) r rᵀ. ``inv_s0sq``: 1/σ_r0² (LOS/NLOS mix by the LOS weight)."""
+        return d ** (-gamma) * inv_s0sq + gamma * gamma / (2.0 * d2)
+
+    def cost_gradient(
+        self, r: FloatArray, d: FloatArray, d2: FloatArray, q_r: FloatArray, Mr: FloatArray, inv_s0sq: FloatArray, gamma: float
+    ) -> FloatArray:
+        """∂ tr(M J_r)/∂r (..., 3) for J_r = h(d) r rᵀ, h = d^−γ/(σ_r0² d²) + γ²/(2d⁴):
+        (h'(d)/d)(rᵀMr) r + 2h M r (eq. 14's own term). ``q_r`` = rᵀMr, ``Mr`` = M r."""
+        h = d ** (-gamma) * inv_s0sq / d2 + gamma * gamma / (2.0 * d2 * d2)
+        dh = (-gamma - 2.0) * d ** (-gamma - 3.0) * inv_s0sq - 2.0 * gamma * gamma / (d2 * d2 * d)
+        return (dh / d * q_r)[..., None] * r + 2.0 * h[..., None] * Mr
+
+    def los_trace(self, d: FloatArray, d2: FloatArray, q_r: FloatArray, channel: Channel) -> FloatArray:
+        """tr(M (J_r,LOS − J_r,NLOS)) = d^−γ (1/σ_r0,LOS² − 1/σ_r0,NLOS²)/d² · rᵀMr."""
+        return d ** (-channel.gamma) * (1.0 / channel.sigma_r0_los**2 - 1.0 / channel.sigma_r0_nlos**2) / d2 * q_r
 
     def normalised_residual(self, z: FloatArray, d: FloatArray, inv_sr: FloatArray) -> FloatArray:
         """e = (d̂ − d)/σ_r, the estimator's normalised range residual (σ_r: 1/``inv_sr``, m)."""
@@ -272,6 +313,33 @@ class BearingModel(SensingComponent):
         """(φ̂, θ̂) of :meth:`simulate`."""
         return self.simulate(phi, theta, los, channel, uniforms)
 
+    def fim_vectors(self, geom: LinkGeometry) -> FloatArray:
+        """u = b = (−r_y, r_x, 0) (∇φ·ρ²) and v = (−r_x r_z, −r_y r_z, ρ²) (∇θ·d²ρ)."""
+        r = geom.r
+        rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+        u = np.empty(r.shape[:-1] + (2, 3))
+        u[..., 0, 0] = -ry
+        u[..., 0, 1] = rx
+        u[..., 0, 2] = 0.0
+        u[..., 1, 0] = -rx * rz
+        u[..., 1, 1] = -ry * rz
+        u[..., 1, 2] = geom.rho2
+        return u
+
+    def fim_row_weights(self, geom: LinkGeometry, mask: ArrayLike, los_w: FloatArray, channel: Channel) -> FloatArray:
+        """:meth:`fim_weights` with ``bearing_los`` = β q."""
+        w_b, w_v = self.fim_weights(geom.rho2, geom.d2, np.asarray(mask, dtype=bool) * los_w, channel)
+        shape = np.broadcast_shapes(np.shape(w_b), np.shape(w_v), geom.d.shape)
+        return np.stack((np.broadcast_to(w_b, shape), np.broadcast_to(w_v, shape)), axis=-1)
+
+    def cost_gradient_terms(
+        self, geom: LinkGeometry, q: FloatArray, MV: FloatArray, mask: ArrayLike, los_w: FloatArray, channel: Channel, los_trace: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """β q ∂ tr(M (J_az + J_el))/∂r of :meth:`cost_gradient`, and β tr(M (J_az + J_el))."""
+        g_b, tr_b = self.cost_gradient(geom.r, geom.rho2, geom.d2, q[..., 0], q[..., 1], MV[..., 0, :], MV[..., 1, :], channel)
+        has = np.asarray(mask, dtype=bool)
+        return (has * los_w)[..., None] * g_b, has * tr_b if los_trace else None
+
     def simulate(self, phi: FloatArray, theta: FloatArray, los: BoolArray, channel: Channel, uniforms: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
         from scipy.special import ndtri  # imported here: the planner node never simulates
@@ -283,6 +351,40 @@ class BearingModel(SensingComponent):
         az_out = -np.pi + 2.0 * np.pi * uniforms[..., 3]
         el_out = -0.5 * np.pi + np.pi * uniforms[..., 4]
         return np.where(los, az_los, az_out), np.where(los, el_los, el_out)
+
+    def fim_weights(self, rho2: FloatArray, d2: FloatArray, bearing_los: FloatArray, channel: Channel) -> tuple[FloatArray, FloatArray]:
+        """Weights of b bᵀ and v vᵀ in J (eqs. 10-11, Cartesian form), m⁻⁴ and m⁻⁶:
+        ∇φ∇φᵀ/σ_b² = b bᵀ/(σ_b² ρ⁴), ∇θ∇θᵀ/σ_b² = v vᵀ/(σ_b² d⁴ ρ²), times ``bearing_los``
+        = β p (an NLOS bearing carries no information; a LOS weight q gives q)."""
+        w_b = bearing_los / (channel.sigma_bearing_rad**2 * rho2)
+        return w_b / rho2, w_b / (d2 * d2)
+
+    def cost_gradient(
+        self, r: FloatArray, rho2: FloatArray, d2: FloatArray, q_b: FloatArray, q_v: FloatArray, Mb: FloatArray, Mv: FloatArray, channel: Channel
+    ) -> tuple[FloatArray, FloatArray]:
+        """∂ tr(M (J_az + J_el))/∂r (..., 3) of the azimuth term w b bᵀ, w = 1/(σ_b² ρ⁴)
+        (∂b/∂r = R, Rᵀx = (x_y, −x_x, 0)), and of the elevation term c² v vᵀ/σ_b², c = 1/(d² ρ)
+        (∂v/∂r = [[−r_z, 0, −r_x], [0, −r_z, −r_y], [2r_x, 2r_y, 0]]); and the trace
+        tr(M (J_az + J_el)) (the LOS weight's term). ``q_b``, ``q_v`` = bᵀMb, vᵀMv; ``Mb``,
+        ``Mv`` = M b, M v."""
+        rx, ry, rz = r[..., 0], r[..., 1], r[..., 2]
+        sb2 = channel.sigma_bearing_rad**2
+        w_az = 1.0 / (sb2 * rho2 * rho2)
+        horiz = r.copy()
+        horiz[..., 2] = 0.0
+        RtMb = np.empty_like(r)
+        RtMb[..., 0] = Mb[..., 1]
+        RtMb[..., 1] = -Mb[..., 0]
+        RtMb[..., 2] = 0.0
+        g_az = 2.0 * w_az[..., None] * RtMb - (4.0 * w_az * q_b / rho2)[..., None] * horiz
+        c2 = 1.0 / (d2 * d2 * rho2)
+        VtMv = np.empty_like(r)
+        VtMv[..., 0] = -rz * Mv[..., 0] + 2.0 * rx * Mv[..., 2]
+        VtMv[..., 1] = -rz * Mv[..., 1] + 2.0 * ry * Mv[..., 2]
+        VtMv[..., 2] = -rx * Mv[..., 0] - ry * Mv[..., 1]
+        grad_c2 = -2.0 * c2[..., None] * (2.0 * r / d2[..., None] + horiz / rho2[..., None])
+        g_el = (2.0 * c2[..., None] * VtMv + q_v[..., None] * grad_c2) / sb2
+        return g_az + g_el, w_az * q_b + c2 * q_v / sb2
 
     def normalised_residuals(
         self, za: FloatArray, ze: FloatArray, rx: FloatArray, ry: FloatArray, rz: FloatArray, rho: FloatArray, inv_sb: float

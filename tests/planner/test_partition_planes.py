@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from planner.control import kernel_limits
 from planner import FimStatus, Limits
 from planner import kernels as K
 from planner.control import SOURCE, UAV, lost_contact_planes
@@ -102,7 +103,7 @@ def envelope(p, prev, need, peers, planes, strict, loose, hard, source, keepout)
     f = np.ascontiguousarray
     step, margins, _ = K.envelope_batch(
         f(p), f(prev), f(prev), True, f(need), np.full(4, np.inf), f(peers), f(planes), f(strict), f(loose), f(hard), f(source), keepout,
-        NO_BOX, NO_BOX, LIM.kernel_array,
+        NO_BOX, NO_BOX, kernel_limits(LIM),
     )
     return step, margins
 

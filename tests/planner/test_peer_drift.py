@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.control import kernel_limits
 from planner import FimStatus, Limits
 from planner import kernels as K
 from planner.agent import DRIFT_MAX_GAP_STEPS, plan
@@ -62,7 +63,7 @@ def test_steps_nearer_the_dead_reckoned_peer_are_left_out() -> None:
     p = np.zeros(3)
     now, nxt = np.array([[0.0, 1.8, 0.0]]), np.array([[1.0, 1.8, 0.0]])
     cand = np.array([[1.0, -0.3, 0.0], [1.0, 0.3, 0.0], [0.7, 0.7, 0.0], [0.0, -1.0, 0.0]])
-    kept, known = K.dead_reckoning_batch(p, cand, now, nxt, LIM.kernel_array)
+    kept, known = K.dead_reckoning_batch(p, cand, now, nxt, kernel_limits(LIM))
     assert known
     # |(1, -0.3) - (1, 1.8)| = 2.1 >= 1.8; |(1, 0.3) - (1, 1.8)| = 1.5; |(0.7, 0.7) - (1, 1.8)| = 1.14;
     # |(0, -1) - (1, 1.8)| = 2.97.
@@ -71,7 +72,7 @@ def test_steps_nearer_the_dead_reckoned_peer_are_left_out() -> None:
     record = np.array([-3.0, 1.8, 0.0])
     assert (np.linalg.norm(cand - record, axis=-1) >= np.linalg.norm(record)).all()
     # A peer with no drift known (not inside its reachable ball): nothing to prefer.
-    assert not K.dead_reckoning_batch(p, cand, now * np.nan, nxt * np.nan, LIM.kernel_array)[1]
+    assert not K.dead_reckoning_batch(p, cand, now * np.nan, nxt * np.nan, kernel_limits(LIM))[1]
 
 
 def _corridor(use_drift: bool, steps: int = 30, delay: int = 3, gap: float = 1.8, z: float = 24.5) -> np.ndarray:
