@@ -11,8 +11,9 @@ other), then rewrites the tables between the markers
     ...
     <!-- END regenerate.py: NAME -->
 
-in ``docs/case-study.md`` (``case-study``), ``docs/distributed.md`` (``fault-table``) and
-``docs/reliability.md`` (``fault-grid``), and copies the figures into ``docs/figures/``.
+in ``docs/case-study.md`` (``case-study``, and ``policies``: the navigation policies compared),
+``docs/distributed.md`` (``fault-table``) and ``docs/reliability.md`` (``fault-grid``), and
+copies the figures into ``docs/figures/``.
 ``--only NAME`` (repeatable) runs and rewrites just those blocks. Each table states the command, the commit it was
 measured at and the package versions. The runs are deterministic for a given mission seed, so
 the same commit gives the same tables; a tree with uncommitted changes is stamped as such.
@@ -69,6 +70,10 @@ GRID_SETTINGS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 GRID_TRIALS = 100
 
+#: The policy comparison of docs/case-study.md: Fig. 3's missions under every navigation policy
+#: (planner/policies.py), each mission's criterion, with the optimum; trials per run.
+POLICY_TRIALS = 20
+
 FAMILIES = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
 
 
@@ -92,6 +97,10 @@ class Command:
     #: The results directory of the same runs without faults, whose baselines this command
     #: reads instead of simulating them again (``--baselines``; the same numbers).
     baselines: Path | None = None
+    #: ``--policy`` (None: each mission's)
+    policy: str | None = None
+    #: ``--optimum``
+    optimum: bool = False
 
     @property
     def args(self) -> tuple[str, ...]:
@@ -105,6 +114,8 @@ class Command:
             *(["--jobs", str(self.jobs)] if self.jobs is not None else []),
             *([] if self.figures else ["--no-figures"]),
             *(a for kv in self.sets for a in ("--set", kv)),
+            *(["--policy", self.policy] if self.policy else []),
+            *(["--optimum"] if self.optimum else []),
         )
 
     def argv(self) -> list[str]:
@@ -129,6 +140,8 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
         sets = (f"comms.faults.loss={loss:g}", f"comms.faults.extra_delay_steps={delay}")
         cmds[name] = Command(name, ("paper/heterogeneous",), out / name, trials=trials or FAULT_TRIALS, steps=steps, figures=False, sets=sets,
                              baselines=first if loss or delay else None)  # fmt: skip
+    cmds["policies"] = Command("policies", tuple(f"paper/{n}" for n in FIG3_NAMES), out / "policies", trials=trials or POLICY_TRIALS, steps=steps,
+                               jobs=jobs, policy="all", optimum=True)  # fmt: skip
     for g, (_, sets) in enumerate(GRID_SETTINGS):
         cmds[f"grid-{g}"] = Command(f"grid-{g}", paper, out / f"grid-{g}", "both", None, trials or GRID_TRIALS, steps, jobs, False, sets,
                                     out / "grid-0" if sets else None)  # fmt: skip
@@ -136,7 +149,7 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
 
 
 #: Which commands each docs block is made from.
-BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",)}
+BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",), "policies": ("policies",)}
 
 
 def stamp() -> str:
@@ -171,14 +184,16 @@ def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
     from missions.format.loader import parse_overrides
     from missions.study.montecarlo import expand_runs, run_study, study_size
     from missions.study.results import write_results
+    from planner.policies import POLICIES
 
     print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
     if cmd.out.exists():
         shutil.rmtree(cmd.out)
     try:
-        specs = expand_runs(cmd.missions, parse_overrides(list(cmd.sets)), cmd.criterion, cmd.activation, cmd.trials, cmd.steps)
+        policies = None if cmd.policy is None else (list(POLICIES) if cmd.policy == "all" else cmd.policy.split(","))
+        specs = expand_runs(cmd.missions, parse_overrides(list(cmd.sets)), cmd.criterion, cmd.activation, cmd.trials, cmd.steps, policies)
         with tqdm(total=study_size(specs, cmd.baselines), unit="trial-step", desc=cmd.name, file=sys.stderr, disable=None) as bar:
-            study = run_study(specs, baselines=cmd.baselines, workers=cmd.jobs or 1, progress=bar.update,
+            study = run_study(specs, baselines=cmd.baselines, workers=cmd.jobs or 1, progress=bar.update, optimum=cmd.optimum,
                               warn=lambda why: bar.write(f"regenerate: --baselines: {why}", file=sys.stderr))  # fmt: skip
         summaries = write_results(study.results, cmd.out, command=["fimnav", *cmd.argv()], figures=cmd.figures,
                                   penalties=study.penalties, extras=study.extras)  # fmt: skip
@@ -376,6 +391,32 @@ def fault_grid(per_setting: Sequence[Sequence[dict[str, Any]]]) -> list[str]:
     return lines
 
 
+def policy_comparison(runs: Sequence[dict[str, Any]]) -> list[str]:
+    """The policy table (final mean PEB, 95 % interval, ratio to the planner's, violations) and
+    per mission how many times the planner's final PEB each baseline's is, and the optimum's."""
+    from missions.study.comparison import policy_table
+
+    labels = dict(CASE_STUDY_RUNS)
+    lines = policy_table(runs, labels)
+    head = runs[0]
+    lines += ["", f"{head['trials']} trials × {head['steps']} steps × {head['drones']} drones per run; violating drone-steps "
+              "over inter-drone, source, obstacle, altitude and turn-rate distances, the speed family apart (a static drone "
+              "holds still, below v_min, at every step).", ""]
+    by: dict[str, dict[str, dict[str, Any]]] = {}
+    for r in runs:
+        by.setdefault(r["mission_id"], {})[r.get("policy", "fim")] = r
+    for mission, pols in by.items():
+        fim = pols.get("fim")
+        if not fim or not fim["final_peb_mean_m"]:
+            continue
+        ratios = ", ".join(f"{p} {pols[p]['final_peb_mean_m'] / fim['final_peb_mean_m']:.2f} ×" for p in ("static", "orbit", "random", "centralized")
+                           if p in pols and pols[p]["final_peb_mean_m"])  # fmt: skip
+        opt = fim.get("final_peb_over_optimum")
+        lines.append(f"- {labels.get(mission, mission)}, {fim['criterion']}: final mean PEB of each baseline over the planner's: {ratios}"
+                     + (f"; the planner ends at {opt:.2f} × the optimal placement's {num(fim['optimum']['peb_m'])} m." if opt else "."))
+    return lines
+
+
 def _signed(x: float) -> str:
     return f"{x:+.2f}".replace("-", "−")
 
@@ -432,6 +473,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "fault-table" in blocks:
         faults = fault_table([(loss, delay, summaries[f"faults-loss{loss:g}-delay{delay}"][0]) for loss, delay in FAULT_SETTINGS])
         out_blocks["fault-table"] = provenance([c for n, c in cmds.items() if n.startswith("faults-")], when) + faults
+    if "policies" in blocks:
+        out_blocks["policies"] = provenance([cmds["policies"]], when) + policy_comparison(summaries["policies"])
     if "fault-grid" in blocks:
         grid = fault_grid([summaries[f"grid-{g}"] for g in range(len(GRID_SETTINGS))])
         out_blocks["fault-grid"] = provenance([c for n, c in cmds.items() if n.startswith("grid-")], when) + grid
@@ -440,7 +483,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not full:
         raise SystemExit("regenerate: docs/ quote the full size; rerun without --trials/--steps, or pass --no-docs")
-    files = {"case-study": DOCS / "case-study.md", "fault-table": DOCS / "distributed.md", "fault-grid": DOCS / "reliability.md"}
+    files = {
+        "case-study": DOCS / "case-study.md",
+        "fault-table": DOCS / "distributed.md",
+        "fault-grid": DOCS / "reliability.md",
+        "policies": DOCS / "case-study.md",
+    }
     for name, body in out_blocks.items():
         replace_block(files[name], name, body)
     if "case-study" in blocks:
@@ -448,6 +496,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         shutil.copyfile(cmds["fig3"].out / "figures" / "peb.png", figures / "case-study-fig3.png")
         for run_id in TRAJECTORY_RUNS:
             shutil.copyfile(cmds["case-study"].out / "figures" / f"trajectories_{run_id}.png", figures / f"trajectories_{run_id}.png")
+    if "policies" in blocks:
+        for name in FIG3_NAMES:
+            shutil.copyfile(cmds["policies"].out / "figures" / f"policies_paper_{name}_A.png", DOCS / "figures" / f"policies_paper_{name}_A.png")
     print(f"\nregenerate: {', '.join(str(files[b].relative_to(REPO)) for b in out_blocks)} rewritten ({when})")
     return 0
 

@@ -22,6 +22,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cli.vehicle",
     "missions.cli.check",
     "missions.cli.montecarlo",
+    "missions.cli.sweep",
     "missions.cli.optimum",
     "missions.cli.plan",
     "missions.cli.payload",

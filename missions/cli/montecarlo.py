@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from comms.errors import UsageError
+from missions.cli.study_args import add_executor_args, add_policy_arg, chunking, open_executor, policies, positive
 from missions.runtime.rundir import make_results_dir
 
 if TYPE_CHECKING:
@@ -42,7 +42,8 @@ def register(subparsers: Any) -> None:
         "--oracle-estimate", action="store_true", help="plan with the true source position (the paper's assumption) instead of each drone's estimate"
     )
     p.add_argument("--out", type=Path, default=None, help="results directory (default: results/montecarlo-<time>)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes sharing the runs' trials (default 1)")
+    add_policy_arg(p)
+    add_executor_args(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument(
         "--optimum",
@@ -69,11 +70,6 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _positive(name: str, value: int | None) -> None:
-    if value is not None and value < 1:
-        raise UsageError(f"--{name}: expected a positive integer, found {value}")
-
-
 def run(args: argparse.Namespace) -> int:
     """Load every mission, run every (mission, criterion, activation), write the results."""
     import functools
@@ -84,14 +80,17 @@ def run(args: argparse.Namespace) -> int:
     from missions.study.montecarlo import expand_runs, run_study, study_size
     from missions.study.results import write_results
 
-    _positive("trials", args.trials)
-    _positive("steps", args.steps)
-    _positive("jobs", args.jobs)
-    specs = expand_runs(args.missions, parse_overrides(args.overrides), args.criterion, args.activation, args.trials, args.steps)
-    out = make_results_dir(args.out or Path("results") / time.strftime("montecarlo-%Y%m%d-%H%M%S"))
+    positive("trials", args.trials)
+    positive("steps", args.steps)
+    positive("jobs", args.jobs)
+    chunks = chunking(args)
+    specs = expand_runs(args.missions, parse_overrides(args.overrides), args.criterion, args.activation, args.trials, args.steps, policies(args))
     t0 = time.perf_counter()
     total = study_size(specs, args.baselines, args.oracle_estimate)
-    with contextlib.ExitStack() as stack, tqdm(total=total, unit="trial-step", desc="montecarlo", file=sys.stderr, disable=None) as bar:
+    with contextlib.ExitStack() as stack:
+        executor = open_executor(args, stack, lambda line: print(line, file=sys.stderr))
+        out = make_results_dir(args.out or Path("results") / time.strftime("montecarlo-%Y%m%d-%H%M%S"))
+        bar = stack.enter_context(tqdm(total=total, unit="trial-step", desc="montecarlo", file=sys.stderr, disable=None))
         watch = None
         if args.view:
             from missions.launch.liveview import ViewServer, require_rerun
@@ -105,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
             oracle_estimate=args.oracle_estimate,
             baselines=args.baselines,
             optimum=args.optimum,
-            workers=args.jobs,
+            executor=executor,
+            **chunks,
             progress=bar.update,
             watch=watch,
             warn=lambda why: bar.write(f"montecarlo: --baselines: {why}", file=sys.stderr),

@@ -27,7 +27,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from comms.errors import UsageError
-from missions.format.schema import Mission
+from missions.format.schema import Mission, Start
 
 #: Mission files larger than this are refused (a mission is a few kilobytes).
 MAX_FILE_BYTES: int = 1 << 20
@@ -561,7 +561,22 @@ def _apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], file: s
 
     for key, value in overrides.items():
         merge(out, str(key).split("."), value, ())
+    _one_formation(out, paths)
     return out
+
+
+def _one_formation(data: dict[str, Any], paths: Sequence[tuple[str | int, ...]]) -> None:
+    """A start formation set by an override (``--set drones.start.rows.spacing_m=4``) replaces
+    the file's other one (``drones.start.ellipse``): a start has exactly one
+    (:attr:`missions.format.schema.Start.FORMATIONS`); two set by overrides stay, and fail."""
+    drones = data.get("drones")
+    start = drones.get("start") if isinstance(drones, dict) else None
+    if not isinstance(start, dict) or {("drones",), ("drones", "start")} & set(paths):
+        return  # no start, or all of it from an override
+    chosen = {str(p[2]) for p in paths if len(p) >= 3 and p[:2] == ("drones", "start")} & set(Start.FORMATIONS)
+    if chosen:
+        for name in set(Start.FORMATIONS) - chosen:
+            start.pop(name, None)
 
 
 # --- error messages ------------------------------------------------------------------------

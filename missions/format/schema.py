@@ -23,7 +23,7 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +46,7 @@ from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+from planner.policies import POLICIES
 from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only
@@ -67,6 +68,12 @@ if TYPE_CHECKING:
     Role = str
 else:
     Role = Literal[ROLE_NAMES]  # validated against the table; the JSON Schema's enum is ROLES
+
+#: The navigation policies (:data:`planner.policies.POLICIES`).
+if TYPE_CHECKING:
+    PolicyField = str
+else:
+    PolicyField = Literal[POLICIES]
 
 # --- scalar and vector types -------------------------------------------------------------
 # Numbers are strict: YAML ``"10"`` (a string) or ``true`` is not a number. An int is a valid
@@ -197,24 +204,75 @@ class Ellipse(_Section):
         return center + offsets
 
 
-class Start(_Section):
-    """Initial positions: exactly one of ``positions_m`` (explicit) or ``ellipse``."""
+class Rows(_Section):
+    """A start formation that scales with the swarm: rows of ``per_row`` drones ``spacing_m``
+    apart, the first row centred on ``center_m``, each next row ``spacing_m`` further in the
+    direction ``back_deg`` (behind the first, away from the source), all at the height of the
+    centre. Any number of drones is at least ``spacing_m`` from each other (the paper's
+    ellipse crowds its ends below d_U* beyond about 40 drones).
 
-    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}]})
+    Drone i (1-based) is in row r = ⌊(i − 1) / per_row⌋ and place c = (i − 1) mod per_row of the
+    n_r drones of its row; its position is ``center + s (c − (n_r − 1)/2) a + s r b``, with s
+    the spacing, b the unit vector at azimuth ``back_deg`` (from east towards north) and a = b
+    turned 90° clockwise (for the default b = north, a = east).
+    """
+
+    center_m: Vec3 = Field((0.0, 150.0, 8.0), description="Centre [x, y, z] of the first row (m, ENU).")
+    spacing_m: Float = Field(5.0, gt=0.0, description="Distance between neighbours in a row and between rows (m).")
+    per_row: Int = Field(10, ge=1, le=MAX_DRONES, description="Drones in a row (the last row may hold fewer).")
+    back_deg: Float = Field(
+        90.0, ge=-360.0, le=360.0, description="Azimuth of the direction the rows stack in, from east towards north (deg; 90: north)."
+    )
+
+    def positions_m(self, count: int) -> NDArray[np.float64]:
+        """Start positions of ``count`` drones, shape (count, 3), metres ENU, drone 1 first."""
+        i = np.arange(count)
+        row, place = i // self.per_row, i % self.per_row
+        in_row = np.minimum(self.per_row, count - row * self.per_row)
+        b = math.radians(self.back_deg)
+        back = np.array([math.cos(b), math.sin(b), 0.0])
+        across = np.array([math.sin(b), -math.cos(b), 0.0])
+        lateral = self.spacing_m * (place - (in_row - 1) / 2.0)
+        return np.asarray(self.center_m, dtype=float) + lateral[:, None] * across + (self.spacing_m * row)[:, None] * back
+
+
+class Start(_Section):
+    """Initial positions: exactly one of ``positions_m`` (explicit), ``ellipse`` (the paper's)
+    or ``rows`` (a formation for any number of drones)."""
+
+    model_config = ConfigDict(json_schema_extra={"oneOf": [{"required": ["positions_m"]}, {"required": ["ellipse"]}, {"required": ["rows"]}]})
+
+    #: The keys of which a start has exactly one. An override (``--set``) of one of them
+    #: replaces the mission file's (:func:`missions.format.loader.load_mission`).
+    FORMATIONS: ClassVar[tuple[str, ...]] = ("positions_m", "ellipse", "rows")
 
     positions_m: tuple[Vec3, ...] | None = Field(None, description="Explicit start positions, one [x, y, z] per drone (m, ENU), drone 1 first.")
     ellipse: Ellipse | None = Field(None, description="Start on the paper's XZ-plane ellipse.")
+    rows: Rows | None = Field(None, description="Start in rows behind a centre, for any number of drones (size sweeps).")
 
     @model_validator(mode="after")
     def _exactly_one(self) -> Start:
-        if (self.positions_m is None) == (self.ellipse is None):
-            both = "both" if self.positions_m is not None else "neither"
-            raise fail("", "exactly one of 'positions_m' or 'ellipse'", both)
+        given = [name for name in self.FORMATIONS if getattr(self, name) is not None]
+        if len(given) != 1:
+            found = " and ".join(repr(g) for g in given) if given else "none of them"
+            raise fail("", "exactly one of 'positions_m', 'ellipse' or 'rows'", found)
         return self
+
+    def positions_for(self, count: int) -> NDArray[np.float64]:
+        """Start positions of ``count`` drones, shape (count, 3), metres ENU (a new array)."""
+        if self.positions_m is not None:
+            return np.array(self.positions_m, dtype=float).reshape(count, 3)
+        formation = self.ellipse or self.rows
+        if formation is None:  # pragma: no cover - excluded by _exactly_one
+            raise RuntimeError("Start has no formation")
+        return formation.positions_m(count)
 
 
 def _expand_roles(data: Any) -> Any:
-    """Accept one role string for every drone; expand it to a list of ``count`` roles."""
+    """Accept one role string for every drone, or ``{cycle: [roles]}`` repeated in order;
+    expand either to a list of ``count`` roles."""
+    if isinstance(data, dict) and isinstance(data.get("roles"), dict):
+        data = {**data, "roles": _cycle_roles(data["roles"], data.get("count"))}
     if isinstance(data, dict) and isinstance(data.get("roles"), str):
         role = data["roles"]
         if role not in ROLES:
@@ -227,6 +285,20 @@ def _expand_roles(data: Any) -> Any:
     return data
 
 
+def _cycle_roles(spec: dict[Any, Any], count: Any) -> list[str]:
+    """``{cycle: [r1, r2, ...]}``: drone i gets r_((i − 1) mod len) (``count`` roles)."""
+    cycle = spec.get("cycle")
+    if set(spec) != {"cycle"} or not isinstance(cycle, list) or not cycle:
+        raise fail("roles", "a role, a list of roles, or {cycle: [a non-empty list of roles]}", f"a mapping {spec!r}"[:120])
+    for j, role in enumerate(cycle):
+        if role not in ROLES:
+            names = ", ".join(repr(name) for name in ROLES)
+            raise fail(f"roles.cycle[{j}]", f"one of {names}", repr(role))
+    if not (isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_DRONES):
+        count = len(cycle)
+    return [cycle[i % len(cycle)] for i in range(count)]
+
+
 RolesField = Annotated[
     tuple[Role, ...],
     WithJsonSchema(
@@ -234,6 +306,13 @@ RolesField = Annotated[
             "anyOf": [
                 {"enum": list(ROLES), "description": "One role for every drone."},
                 {"type": "array", "items": {"enum": list(ROLES)}, "description": "One role per drone."},
+                {
+                    "type": "object",
+                    "properties": {"cycle": {"type": "array", "items": {"enum": list(ROLES)}, "minItems": 1}},
+                    "required": ["cycle"],
+                    "additionalProperties": False,
+                    "description": "Roles repeated in this order, drone 1 first, for any drones.count.",
+                },
             ]
         }
     ),
@@ -273,12 +352,7 @@ class Drones(_Section):
 
     def start_positions_m(self) -> NDArray[np.float64]:
         """Start positions p_i^(0), shape (count, 3), metres ENU, drone 1 first (a new array)."""
-        if self.start.positions_m is not None:
-            return np.array(self.start.positions_m, dtype=float).reshape(self.count, 3)
-        ellipse = self.start.ellipse
-        if ellipse is None:  # pragma: no cover - excluded by Start._exactly_one
-            raise RuntimeError("Start has neither positions_m nor ellipse")
-        return ellipse.positions_m(self.count)
+        return self.start.positions_for(self.count)
 
     def ranging_mask(self) -> NDArray[np.bool_]:
         """κ_j of eq. (10): True where drone j's role measures range (:data:`planner.sensing.ROLES`), shape (count,)."""
@@ -716,6 +790,11 @@ class Mission(_Section):
     steps: Int = Field(550, ge=1, le=10_000_000, description="Number of steps K.")
     trials: Int = Field(100, ge=1, le=1_000_000, description="Monte Carlo trials M.")
     criterion: Literal["A", "D"] = Field("A", description="Design criterion of eq. (6).")
+    policy: PolicyField = Field(
+        "fim",
+        description="How the drones navigate: 'fim' (the paper's planner) or a baseline ('static', 'orbit', 'random', "
+        "'centralized'; fimnav montecarlo and sweep only).",
+    )
     origin: OriginSpec = OriginSpec()
     drones: Drones
     source: Source
@@ -885,10 +964,11 @@ class Mission(_Section):
             a, b = np.unravel_index(int(np.argmin(dist)), dist.shape)
             if dist[a, b] < c.d_uav_m:
                 i, j = int(min(a, b)), int(max(a, b))
+                hint = " (a swarm too large for the ellipse starts in rows: drones.start.rows, --set drones.start.rows={})"
                 raise fail(
                     where(j),
                     f"start positions at least d_uav_m = {c.d_uav_m:g} m apart",
-                    f"drones {i + 1} and {j + 1} {dist[i, j]:.3g} m apart",
+                    f"drones {i + 1} and {j + 1} {dist[i, j]:.3g} m apart" + (hint if self.drones.start.ellipse is not None else ""),
                 )
 
         source0 = self.source.position_at(0.0)

@@ -116,6 +116,10 @@ def _check_options(mission: Mission, vehicles_per_process: int, on_failure: str,
             "comms.faults.partition_start_step: a partition is simulated by fimnav montecarlo; the planner "
             "processes of fimnav launch are partitioned by cutting their network (docs/distributed.md, Partitions)"
         )
+    if mission.policy != "fim":
+        raise UsageError(
+            f"policy: {mission.policy!r} is a baseline of fimnav montecarlo and fimnav sweep; the planner processes of fimnav launch fly 'fim'"
+        )
     if realtime:
         for i in range(mission.drones.count):
             v = mission.vehicles.for_drone(i)

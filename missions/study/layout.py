@@ -15,11 +15,13 @@ PENALTY_REFERENCE = "penalty_reference.npz"
 
 
 def run_name(result: SimulationResult) -> str:
-    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper]``."""
+    """Directory and legend name of a run: ``<mission id>_<criterion>[_paper][_<policy>]``."""
     return spec_name(result.spec)
 
 
 def spec_name(spec: RunSpec) -> str:
-    """:func:`run_name` of the run of ``spec``."""
+    """:func:`run_name` of the run of ``spec``: ``<mission id>_<criterion>``, then ``_paper``
+    with the paper's activation rule and ``_<policy>`` with a baseline policy."""
     suffix = "_paper" if spec.mission.constraints.activation == "paper" else ""
-    return f"{spec.mission.id}_{spec.criterion}{suffix}"
+    policy = spec.mission.policy
+    return f"{spec.mission.id}_{spec.criterion}{suffix}" + ("" if policy == "fim" else f"_{policy}")

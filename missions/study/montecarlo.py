@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -27,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 
 from missions.format.loader import load_mission
-from missions.study.executors import MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
+from missions.study.executors import MAX_CHUNKS, MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
 from missions.study.results import PENALTY_REFERENCE, spec_name
 from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
 from planner.params import Criterion
@@ -53,9 +53,10 @@ def expand_runs(
     activation: Literal["safe", "paper", "both"] | None = None,
     trials: int | None = None,
     steps: int | None = None,
+    policies: Sequence[str] | None = None,
 ) -> list[RunSpec]:
     """The runs of a study: every mission (a file or a shipped mission's name) × activation
-    rule × criterion, in that order, with ``overrides`` (``--set``) applied.
+    rule × criterion × policy, in that order, with ``overrides`` (``--set``) applied.
 
     Args:
         missions: mission files or names (``paper/joint``).
@@ -63,6 +64,8 @@ def expand_runs(
         criterion: "A", "D", "both", or None for each mission's own.
         activation: constraint activation rule "safe", "paper", "both", or None for the mission's.
         trials, steps: M and K of every run; None: each mission's.
+        policies: navigation policies (:data:`planner.policies.POLICIES`), or None for each
+            mission's.
 
     Raises:
         UsageError: a mission or an override is invalid (one message naming it).
@@ -77,8 +80,11 @@ def expand_runs(
             mission = load_mission(path, ov)
             criteria: tuple[Criterion, ...] = ("A", "D") if criterion == "both" else (criterion or mission.criterion,)
             for crit in criteria:
-                m = mission if crit == mission.criterion else load_mission(path, {**ov, "criterion": crit})
-                specs.append(RunSpec(m, crit, trials or m.trials, steps or m.steps))
+                for policy in policies or (mission.policy,):
+                    changes = {"criterion": crit, "policy": policy}
+                    same = crit == mission.criterion and policy == mission.policy
+                    m = mission if same else load_mission(path, {**ov, **changes})
+                    specs.append(RunSpec(m, crit, trials or m.trials, steps or m.steps))
     return specs
 
 
@@ -108,6 +114,7 @@ def run_study(
     workers: int = 1,
     executor: ChunkExecutor | None = None,
     chunk_trials: int = MIN_CHUNK_TRIALS,
+    max_chunks: int = MAX_CHUNKS,
     progress: Callable[[int], object] | None = None,
     watch: Watch | None = None,
     warn: Callable[[str], None] | None = None,
@@ -125,8 +132,9 @@ def run_study(
         workers: processes on this machine (:func:`missions.study.executors.local_executor`)
             when no ``executor`` is given.
         executor: where the chunks run (:class:`missions.study.executors.ChunkExecutor`).
-        chunk_trials: the fewest trials in a chunk (:func:`missions.study.executors.chunk_bounds`);
-            with injected faults it sets the batches, and so the rounding, of a run's trials.
+        chunk_trials, max_chunks: the fewest trials in a chunk and the most chunks of a run
+            (:func:`missions.study.executors.chunk_bounds`); with injected faults they set the
+            batches, and so the rounding, of a run's trials.
         progress: called with the number of trial-steps just done (all runs and baselines:
             ``sum(trials × steps)`` in all, see :func:`study_size`).
         watch: the live view of each run's first trial (not of the baselines).
@@ -135,45 +143,115 @@ def run_study(
     Returns:
         The :class:`Study`: the results, the same whatever the executor and number of workers.
     """
-    known = {i: known_baseline(baselines, s, oracle_estimate, warn) for i, s in enumerate(specs) if s.mission.comms.faults.enabled}
-    clean = [dataclasses.replace(specs[i], mission=without_faults(specs[i].mission)) for i, ref in known.items() if ref is None]
-    runs = [*specs, *clean]
-    chunks: list[Chunk] = []
-    owner: list[int] = []
-    for r, spec in enumerate(runs):
-        for first, count in chunk_bounds(spec.trials, chunk_trials):
-            part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
-            chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and r < len(specs) else None))
-            owner.append(r)
-    parts: list[list[SimulationResult]] = [[] for _ in runs]
-    merged: list[SimulationResult | None] = [None] * len(runs)
-    for r, result in zip(owner, (executor or local_executor(workers)).map(chunks, progress)):
-        parts[r].append(result)
-        if sum(p.spec.trials for p in parts[r]) == runs[r].trials:
-            merged[r] = merge_chunks(runs[r], parts[r])
-            parts[r] = []
-    done = [m for m in merged if m is not None]
-    if len(done) != len(runs):
-        raise RuntimeError(f"run_study: the executor returned {len(done)} of {len(runs)} runs")
-    results, simulated = done[: len(specs)], iter(done[len(specs) :])
-    penalties: list[dict[str, float | None] | None] = [
-        fault_penalty(r.spec.mission, r, next(simulated) if known[i] is None else known[i]) if i in known else None for i, r in enumerate(results)
-    ]
-    extras: list[dict[str, Any] | None] = [None] * len(results)
+    results: list[SimulationResult | None] = [None] * len(specs)
+    penalties: list[dict[str, float | None] | None] = [None] * len(specs)
+    for done in iter_study(
+        specs,
+        oracle_estimate=oracle_estimate,
+        baselines=baselines,
+        workers=workers,
+        executor=executor,
+        chunk_trials=chunk_trials,
+        max_chunks=max_chunks,
+        progress=progress,
+        watch=watch,
+        warn=warn,
+    ):
+        results[done.index], penalties[done.index] = done.result, done.penalty
+    finished = [r for r in results if r is not None]
+    if len(finished) != len(specs):
+        raise RuntimeError(f"run_study: the executor returned {len(finished)} of {len(specs)} runs")
+    extras: list[dict[str, Any] | None] = [None] * len(finished)
     if optimum:
         from missions.study.optimum import run_optimum_summary
 
-        extras = [run_optimum_summary(r) for r in results]
-    return Study(results, penalties, extras)
+        placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
+        extras = [run_optimum_summary(r, known=placements) for r in finished]
+    return Study(finished, penalties, extras)
 
 
-def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False) -> int:
+@dataclass(frozen=True)
+class RunDone:
+    """One run of a study, as :func:`iter_study` yields it.
+
+    Attributes:
+        index: the run's place in the specs.
+        result: its :class:`SimulationResult` (all its trials, merged).
+        penalty: with injected faults, its PEB penalty against the same run without them
+            (:func:`missions.study.simulator.fault_penalty`); else None.
+    """
+
+    index: int
+    result: SimulationResult
+    penalty: dict[str, float | None] | None
+
+
+def iter_study(
+    specs: Sequence[RunSpec],
+    *,
+    oracle_estimate: bool = False,
+    baselines: Path | None = None,
+    workers: int = 1,
+    executor: ChunkExecutor | None = None,
+    chunk_trials: int = MIN_CHUNK_TRIALS,
+    max_chunks: int = MAX_CHUNKS,
+    progress: Callable[[int], object] | None = None,
+    watch: Watch | None = None,
+    warn: Callable[[str], None] | None = None,
+    penalties: bool = True,
+) -> Iterator[RunDone]:
+    """:func:`run_study`'s runs one at a time, each as soon as its chunks (and, with injected
+    faults, its fault-free baseline's) are done, in the order of ``specs``: a caller that
+    writes each run away holds one run in memory, not the study (``fimnav sweep``). The chunks
+    of a run's baseline follow the run's own on the executor. Arguments as :func:`run_study`;
+    ``penalties=False``: no baseline is simulated or read, every penalty is None (then
+    :func:`study_size` with ``penalties=False`` is the progress total). Leaving the iteration
+    early stops the executor's work."""
+    faulty = [i for i, s in enumerate(specs) if s.mission.comms.faults.enabled] if penalties else []
+    known = {i: known_baseline(baselines, specs[i], oracle_estimate, warn) for i in faulty}
+    runs: list[RunSpec] = []
+    #: for each entry of ``runs``: the spec it is (index), or the baseline of which spec (−1 − index)
+    role: list[int] = []
+    for i, spec in enumerate(specs):
+        runs.append(spec)
+        role.append(i)
+        if i in known and known[i] is None:
+            runs.append(dataclasses.replace(spec, mission=without_faults(spec.mission)))
+            role.append(-1 - i)
+    chunks: list[Chunk] = []
+    owner: list[int] = []
+    for r, spec in enumerate(runs):
+        for first, count in chunk_bounds(spec.trials, chunk_trials, max_chunks):
+            part = dataclasses.replace(spec, first_trial=spec.first_trial + first, trials=count)
+            chunks.append(Chunk(part, oracle_estimate, watch if first == 0 and role[r] >= 0 else None))
+            owner.append(r)
+    parts: list[list[SimulationResult]] = [[] for _ in runs]
+    waiting: dict[int, SimulationResult] = {}  # a run with faults whose baseline is still running
+    for r, result in zip(owner, (executor or local_executor(workers)).map(chunks, progress)):
+        parts[r].append(result)
+        if sum(p.spec.trials for p in parts[r]) < runs[r].trials:
+            continue
+        merged = merge_chunks(runs[r], parts[r])
+        parts[r] = []
+        i = role[r]
+        if i >= 0 and i in known and known[i] is None:
+            waiting[i] = merged
+        elif i >= 0:
+            reference = known.get(i)
+            yield RunDone(i, merged, fault_penalty(merged.spec.mission, merged, reference) if reference is not None else None)
+        else:
+            run = waiting.pop(-1 - i)
+            yield RunDone(-1 - i, run, fault_penalty(run.spec.mission, run, merged))
+
+
+def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False, penalties: bool = True) -> int:
     """Trial-steps :func:`run_study` reports through ``progress`` for ``specs``: every run's,
-    and the fault-free baseline's of each run with faults that ``baselines`` does not hold."""
+    and (with ``penalties``) the fault-free baseline's of each run with faults that
+    ``baselines`` does not hold."""
     total = 0
     for spec in specs:
         total += spec.trials * spec.steps
-        if spec.mission.comms.faults.enabled and known_baseline(baselines, spec, oracle_estimate, None) is None:
+        if penalties and spec.mission.comms.faults.enabled and known_baseline(baselines, spec, oracle_estimate, None) is None:
             total += spec.trials * spec.steps
     return total
 

@@ -7,6 +7,8 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
       figures/peb.png           mean PEB vs step, every run, log scale (Fig. 3; missions.study.figures)
       figures/estimate_error.png   median source estimate error vs step, every run, log scale
       figures/trajectories_<run>.png   trial 0: 3-D and top view, obstacles, source, start/end (Fig. 2)
+      figures/policies_<run>.png   a mission run under several policies (--policy): mean PEB
+                                vs step per policy, the optimum's as a line (missions.study.comparison)
       runs/<run>/mission.yaml   the mission as run (defaults filled, overrides applied)
       runs/<run>/peb.csv        per step: mean PEB, p10, p90, singular fraction, estimate error
       runs/<run>/trajectories.csv   trial 0: every drone's position, estimate and PEB per step
@@ -20,7 +22,7 @@ Layout of one results directory (``fimnav montecarlo`` and ``fimnav launch``)::
                                 OUT``; missions.study.simulator.PenaltyReference)
 
 ``<run>`` is ``<mission id>_<criterion>`` (with ``_paper`` when the paper's activation rule
-was used).
+was used, and ``_<policy>`` under a baseline policy).
 """
 
 from __future__ import annotations
@@ -42,12 +44,14 @@ from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, Simulati
 __all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
 
 
-def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The summary of one run (JSON-ready): final PEB and estimate error, safety counts, time.
+def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None, with_penalty: bool = True) -> dict[str, Any]:
+    """The summary of one run (JSON-ready): final PEB (mean, its 95 % interval over trials,
+    percentiles) and estimate error, safety counts, time.
 
     A run with injected comms faults (``comms.faults``) also gets ``"faults"``: the PEB penalty
     against the same mission without faults (:func:`missions.study.simulator.fault_penalty`), given
-    as ``penalty`` or else computed here (a fault-free simulation of the same trials and steps).
+    as ``penalty`` or else computed here (a fault-free simulation of the same trials and steps);
+    not with ``with_penalty=False`` (``fimnav sweep``: its cells compare with each other).
     """
     spec = result.spec
     stats = result.peb_stats()
@@ -58,6 +62,7 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
         "run": run_name(result),
         "mission_id": m.id,
         "criterion": spec.criterion,
+        "policy": m.policy,
         "activation": m.constraints.activation,
         "trials": spec.trials,
         "steps": spec.steps,
@@ -65,6 +70,7 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
         "seed": m.seed,
         "oracle_estimate": bool(result.extra.get("oracle_estimate", 0.0)),
         "final_peb_mean_m": _num(stats["mean"][-1]),
+        "final_peb_ci95_m": final_peb_interval(result),
         "final_peb_p10_m": _num(stats["p10"][-1]),
         "final_peb_p90_m": _num(stats["p90"][-1]),
         "final_singular_fraction": _num(stats["singular_fraction"][-1]),
@@ -80,7 +86,25 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None) -
         "loiter_steps": int(result.loiter.sum()),
         "runtime_s": round(result.runtime_s, 3),
         "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
-    } | _faults(result, penalty)
+    } | (_faults(result, penalty) if with_penalty else {})
+
+
+def final_peb_interval(result: SimulationResult, level: float = 0.95) -> list[float] | None:
+    """The ``level`` confidence interval (m) of the final mean PEB (eq. 18, last step): per
+    trial the mean over its drones' finite views, then Student's t over the trials,
+    mean ± t_(1+level)/2, M−1 · s / √M. None below two trials with a finite mean (a trial
+    whose every final view is singular is left out, as in the mean)."""
+    from scipy.special import stdtrit  # t quantile, as scipy.stats.t.ppf (importing scipy.stats costs ~1 s a study)
+
+    peb = result.peb_m[-1]  # (M, N)
+    finite = np.isfinite(peb)
+    count = finite.sum(-1)
+    per_trial = np.where(finite, peb, 0.0).sum(-1)[count > 0] / count[count > 0]
+    if per_trial.size < 2:
+        return None
+    mean = float(per_trial.mean())
+    half = float(stdtrit(per_trial.size - 1, 0.5 + level / 2.0) * per_trial.std(ddof=1) / np.sqrt(per_trial.size))
+    return [mean - half, mean + half]
 
 
 #: At most this many violating (trial, drone) pairs are listed per family in a summary.
@@ -133,9 +157,12 @@ def _num(x: float) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write ``runs/<run>/`` for one run; return its summary (``penalty``: see :func:`summarize`;
-    ``extra``: entries added to the summary, e.g. the optimum of ``fimnav montecarlo --optimum``)."""
+def write_run(
+    result: SimulationResult, out: Path, penalty: dict[str, Any] | None = None, extra: dict[str, Any] | None = None, with_penalty: bool = True
+) -> dict[str, Any]:
+    """Write ``runs/<run>/`` for one run; return its summary (``penalty``, ``with_penalty``: see
+    :func:`summarize`; ``extra``: entries added to the summary, e.g. the optimum of ``fimnav
+    montecarlo --optimum``)."""
     run_dir = out / "runs" / run_name(result)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "mission.yaml").write_text(mission_to_yaml(result.spec.mission))
@@ -171,7 +198,7 @@ def write_run(result: SimulationResult, out: Path, penalty: dict[str, Any] | Non
     write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
     if not result.spec.mission.comms.faults.enabled:
         PenaltyReference.of(result).save(run_dir / PENALTY_REFERENCE)
-    summary = summarize(result, penalty) | (extra or {})
+    summary = summarize(result, penalty, with_penalty) | (extra or {})
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -213,4 +240,7 @@ def write_results(
             from missions.study.figures import write_figures  # matplotlib only when figures are wanted
 
             write_figures(results, out / "figures")
+            from missions.study.comparison import write_policy_figures
+
+            write_policy_figures(results, exs, out / "figures")
     return summaries

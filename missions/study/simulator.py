@@ -37,13 +37,13 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.format.schema import Faults, Mission
 from planner import estimator as est
-from planner.agent import plan
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
 from planner.geometry import distance_to_boxes, line_of_sight
 from planner.network import hop_counts, update_saved_steps
 from planner.observation import observe_from_uniforms
 from planner.params import Criterion, Limits
+from planner.policies import RANDOM_WALK_DRAWS, RANDOM_WALK_STREAM, policy_planner
 from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_STREAM, presampled_uniforms
 from planner.sensing import SENSING, SensingTable
 from planner.step import DroneState, StepScene
@@ -293,12 +293,17 @@ class _Simulation:
         self.drone = DroneState.initial((M, N), N)
         self.own_index = np.broadcast_to(np.arange(N), (M, N))
         self.ages = np.empty((K, M, N, N), dtype=np.int16)
+        # The mission's navigation policy (planner.policies): its planning step (the planner's
+        # for 'fim' and 'centralized') and, for 'centralized', every record at once (_view).
+        self.policy = mission.policy
+        walk = presampled_uniforms(mission.seed, M, N, K, RANDOM_WALK_STREAM, RANDOM_WALK_DRAWS, first) if self.policy == "random" else None
+        self.plan_step = policy_planner(self.policy, walk)
 
     def step(self, k: int, observer: Callable[[SimStep], None] | None) -> None:
         """Step k of every drone of every trial, in the order of the module doc."""
         src = self.sources[k]
         self._record(k, src)
-        view = self._delayed_view(k)
+        view = self._delayed_view(k) if self.policy != "centralized" else self._instant_view(k)
         self._estimate(k, src, view)
         step = self._plan(k, src, view)
         self._accuracy(k, src, view, observer)
@@ -322,6 +327,16 @@ class _Simulation:
         have = saved >= 0
         self.ages[k] = np.where(have, k - saved, -1)
         return _View(cut, hops, saved, have, _gather(self.positions, saved), _gather(self.rec_los, saved))
+
+    def _instant_view(self, k: int) -> _View:
+        """2'. The centralized policy's view: every drone's record of step k, at once (no hop
+        latency, no hop limit, no comms fault), every peer a neighbour."""
+        M, N = self.pos.shape[:2]
+        saved = np.full((M, N, N), k, dtype=np.int64)
+        self.saved = saved
+        self.ages[k] = 0
+        hops = np.broadcast_to(1 - np.eye(N, dtype=np.int64), (M, N, N)).copy()
+        return _View(None, hops, saved, saved >= 0, _gather(self.positions, saved), _gather(self.rec_los, saved))
 
     def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
         """3. Estimator: records new to each drone."""
@@ -367,7 +382,7 @@ class _Simulation:
             lost_contact=None if view.cut is None else np.broadcast_to(view.cut, (M, N, N)),
         )
         oracle = src if self.oracle_estimate else None
-        planned = plan(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow())
+        planned = self.plan_step(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow())
         self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular

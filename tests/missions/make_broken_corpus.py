@@ -103,8 +103,8 @@ case("role_count_mismatch", "3 roles for 4 drones", "drones.roles", "4 roles", "
 case("positions_count_mismatch", "5 drones, 4 positions", "drones.start.positions_m", "5 positions", "4 positions",
      sub("  count: 4\n  roles: [ranging, bearing, joint, ranging]", "  count: 5\n  roles: joint"))
 case("count_zero", "no drones", "drones.count", "greater than or equal to 1", "0", sub("  count: 4", "  count: 0"))
-case("both_start_forms", "positions and ellipse together", "drones.start", "exactly one of 'positions_m' or 'ellipse'",
-     "both", sub("  start:\n", "  start:\n    ellipse: {center_m: [0.0, 150.0, 8.0], radius_x_m: 20.0, radius_z_m: 5.0}\n"))
+case("both_start_forms", "positions and ellipse together", "drones.start", "exactly one of 'positions_m', 'ellipse' or 'rows'",
+     "'positions_m' and 'ellipse'", sub("  start:\n", "  start:\n    ellipse: {center_m: [0.0, 150.0, 8.0], radius_x_m: 20.0, radius_z_m: 5.0}\n"))
 case("vector_wrong_length", "a 2D source position", "source.position_m", "3 numbers [x, y, z]", "2 items",
      sub("  position_m: [0.0, 0.0, 2.0]", "  position_m: [0.0, 0.0]"))
 case("nan_value", "a NaN bearing std", "channel.sigma_bearing_deg", "a finite number", "nan",
