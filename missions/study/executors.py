@@ -15,8 +15,11 @@ machine). Another (a cluster's) plugs in behind the same method.
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Protocol
@@ -112,8 +115,8 @@ class InProcess:
 
 @dataclass(frozen=True)
 class LocalPool:
-    """Chunks in ``workers`` processes on this machine (``multiprocessing``), a chunk at a time
-    each; progress when a chunk is done."""
+    """Chunks in ``workers`` processes on this machine (``multiprocessing``, forked), a chunk at a
+    time each; progress when a chunk is done."""
 
     workers: int
 
@@ -121,29 +124,44 @@ class LocalPool:
         """See :meth:`ChunkExecutor.map`."""
         if not chunks:
             return
-        # A Pool, not a ProcessPoolExecutor: leaving on an error, a signal or Ctrl-C terminates
-        # the workers instead of waiting for the queued chunks. After the last result the
-        # workers are told to finish and joined (close, join) before the terminate of the
-        # ``finally``: terminating them earlier could find one blocked on the task queue's lock,
-        # which the terminating pool holds, and wait for it forever.
-        # The pool starts with Ctrl-C, SIGTERM and SIGHUP held back (signals_deferred):
-        # interrupted while multiprocessing forks its workers, the command would lose the
-        # signal (raised in a fork hook, where Python ignores it) or leave behind a worker it
-        # had not yet recorded.
-        # A signal held back is raised when the deferral ends, with the pool already in hand.
-        pool = None
+        # A ProcessPoolExecutor fed a window of workers + 1 chunks, its results taken in order.
+        # Leaving early (an error, a signal, Ctrl-C) kills the workers at once and then shuts the
+        # executor down: its manager thread sees them gone and ends. (multiprocessing.Pool's
+        # terminate could wait forever on its task queue's lock, held by an idle worker blocked
+        # reading the queue.)
+        # The workers are forked at the first submit, with Ctrl-C, SIGTERM and SIGHUP held back
+        # (signals_deferred): interrupted while it forks, the command would lose the signal
+        # (raised in a fork hook, where Python ignores it) or leave behind a worker it had not
+        # yet recorded. A signal held back is raised when the deferral ends.
+        workers = min(self.workers, len(chunks))
+        pending: deque[tuple[Chunk, Future[SimulationResult]]] = deque()
+        pool: ProcessPoolExecutor | None = None
+        done = False
         try:
             with signals_deferred():
-                pool = multiprocessing.Pool(min(self.workers, len(chunks)), initializer=worker_defaults)
-            for chunk, result in zip(chunks, pool.imap(simulate_chunk, chunks)):
+                pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=worker_defaults)
+                pending.append((chunks[0], pool.submit(simulate_chunk, chunks[0])))
+            ahead = iter(chunks[1:])
+            for chunk in itertools.islice(ahead, workers):
+                pending.append((chunk, pool.submit(simulate_chunk, chunk)))
+            while pending:
+                chunk, future = pending.popleft()
+                result = future.result()
+                for more in itertools.islice(ahead, 1):
+                    pending.append((more, pool.submit(simulate_chunk, more)))
                 if progress is not None:
                     progress(chunk.trial_steps)
                 yield result
-            pool.close()
-            pool.join()
+            done = True
         finally:
             if pool is not None:
-                pool.terminate()
+                if not done:
+                    for _, future in pending:
+                        future.cancel()
+                    # No public way to stop running workers before Python 3.14 (kill_workers).
+                    for process in list((getattr(pool, "_processes", None) or {}).values()):
+                        process.kill()
+                pool.shutdown(wait=True, cancel_futures=True)
 
 
 def local_executor(workers: int) -> ChunkExecutor:
