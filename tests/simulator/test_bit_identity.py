@@ -3,8 +3,8 @@
 planner's and the estimator's behaviour. The reference was recorded on the compiled core
 (planner/kernels.py, planner/estimator/kernels/) by ``python -m tests.simulator.reference_runs``;
 that the compiled core computes what the numpy code it replaced (commit 48f7e03) computed is
-guarded open loop, call by call, by ``test_estimator_open_loop.py`` (the estimator, against the
-numpy estimator vendored in tests/reference_numpy/). A closed-loop recording cannot carry that
+guarded open loop, call by call, by ``test_open_loop_vs_numpy.py`` (the estimator and the
+planning step, against the numpy code vendored in tests/reference_numpy/). A closed-loop recording cannot carry that
 equality: the compiled kernels and numpy round differently (numpy's SIMD sums and SVML
 functions), and the closed loop turns last-bit differences into discrete decisions.
 

@@ -1,5 +1,5 @@
 """The numpy estimator of commit 48f7e03, before the compiled core: the TEST-ONLY reference of
-:mod:`planner.estimator` (``tests/simulator/test_estimator_open_loop.py`` runs both on the same
+:mod:`planner.estimator` (``tests/simulator/test_open_loop_vs_numpy.py`` runs both on the same
 records and compares them call by call). Never imported by production code.
 
 Vendored verbatim from ``git show 48f7e03:planner/estimator/<module>.py`` (the modules

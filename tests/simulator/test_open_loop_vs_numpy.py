@@ -1,13 +1,18 @@
-"""The compiled estimator (:mod:`planner.estimator`) against the numpy estimator it replaced
-(commit 48f7e03, vendored test-only as :mod:`tests.reference_numpy.estimator`), call by call,
-open loop, on the reference runs of ``test_bit_identity.py`` (every paper mission × A/D × with
-and without faults, ``tests/simulator/reference_runs.py``).
+"""The compiled core against the numpy code it replaced (commit 48f7e03, vendored test-only in
+:mod:`tests.reference_numpy`), call by call, open loop, on the reference runs of
+``test_bit_identity.py`` (every paper mission × A/D × with and without faults,
+``tests/simulator/reference_runs.py``): the estimator (:mod:`planner.estimator` against
+:mod:`tests.reference_numpy.estimator`) and the planning step (:func:`planner.agent.plan`
+against :mod:`tests.reference_numpy.planner`'s ``plan``).
 
 Open loop: the drones are put where ``tests/data/simulator_reference.npz`` has them at every
 step (its 40 recorded steps); at each step the in-process simulator measures, hears (delays,
 loss, partition and late records included) and builds the records new to each drone there, and
-both estimators take the same records, each carrying its own state (batch (trials, drones)).
-After every call:
+both estimators take the same records, each carrying its own state (batch (trials, drones));
+then both planners plan from the same view and the same estimator state, each carrying its
+own state (the compiled :class:`planner.step.DroneState`; for numpy what 48f7e03's simulator
+carried: the last step, the peers' drift, loitering, the last keep-out). After every call of
+the estimator:
 
 * the discrete outputs are identical: ``observable``, ``initialised``, ``suspect``,
   ``angles_used``, ``measurement_count``, and the range memory's cells (which cells are taken and
@@ -24,7 +29,7 @@ next call, so that each listed departure is one call's, not an accumulation.
 
 What departs, and why (floating-point order: numpy's SIMD sums and AVX-512 SVML logarithms
 against the compiled loops; measured on this machine on the recorded trajectories,
-``python -m tests.simulator.test_estimator_open_loop`` prints each departure): 196 (call,
+``python -m tests.simulator.test_open_loop_vs_numpy`` prints each departure): 196 (call,
 trial, drone) departures of the 24 × 40 × 2 × 10 = 19200, all in elements that have used only
 ranges so far (asserted): in ``ranging_los``, ``ranging_nlos``, ``dynamic_source``, and one
 ``heterogeneous`` drone that had heard only ranges at call 0; bearing and joint stay within
@@ -45,8 +50,13 @@ ranges so far (asserted): in ``ranging_los``, ``ranging_nlos``, ``dynamic_source
   of the two distances; in the second, cell 17's radius is 0.93 m, so the range opens a new
   cell instead of joining cell 21). The discrete outputs of the state never differ.
 
-The whole grid runs in the default suite: 24 cases, 6-11 s in one process at load 8 (the numpy
-estimator about 80 % of it), split over the workers.
+The planning step: at every step of every run the planned next positions agree within
+1e-9 m (measured: at most 9.2e-13 m) and the decisions are identical (``singular``,
+``filtered``, ``loiter``, the active constraint families): no departure.
+
+The default run takes half the grid (:data:`DEFAULT_RUNS`: every mission, A with faults and D
+without; about 10 s of CPU at load 5, the numpy estimator and planner most of it); the other
+half is marked ``slow`` (the whole grid: about 21 s of CPU).
 """
 
 from __future__ import annotations
@@ -69,6 +79,7 @@ from planner.estimator.memory import RangeMemory
 from planner.params import Channel
 from planner.sensing import SENSING, SensingComponent
 from tests.reference_numpy import estimator as nest
+from tests.reference_numpy.planner import agent as nplan
 from tests.simulator.conftest import paper_mission
 from tests.simulator.reference_runs import FAULTS, REFERENCE, STEPS, TRIALS, run_names
 
@@ -84,7 +95,7 @@ FLAGS = ("observable", "initialised", "suspect", "angles_used", "measurement_cou
 
 #: Where the estimates depart from numpy's by more than 1e-9 m, as measured: run → (calls
 #: that depart, number of (call, trial, drone) departures, the largest |Δx| in m rounded up).
-#: ``python -m tests.simulator.test_estimator_open_loop`` prints each departure.
+#: ``python -m tests.simulator.test_open_loop_vs_numpy`` prints each departure.
 DEPARTURES: dict[str, tuple[tuple[int, ...], int, float]] = {
     "ranging_los_A_nofault": ((4, 14, 24), 30, 3.7e-6),
     "ranging_los_A_faults": ((0, 1, 3, 4, 9, 14, 39), 21, 9.3e-6),
@@ -159,6 +170,12 @@ class OpenLoop:
     information: list[tuple[int, int, int, float]] = field(default_factory=list)
     #: (call, trial, drone, difference) of the score statistic beyond its tolerance.
     consistency: list[tuple[int, int, int, float]] = field(default_factory=list)
+    #: max over the batch of the planned next positions' difference per step, m.
+    plan_diff_m: list[float] = field(default_factory=list)
+    #: (step, trial, drone) → |Δp|, m, where the planned next positions differ by more than TOL_M.
+    plan_departures: dict[tuple[int, int, int], float] = field(default_factory=dict)
+    #: (step, decision, trial, drone, ...) where a discrete decision of the planning step differs.
+    plan_mismatches: list[tuple[Any, ...]] = field(default_factory=list)
     max_info_rel: float = 0.0
     max_consistency: float = 0.0
     #: the estimator's re-check period (EstimatorConfig.recheck_every), calls.
@@ -232,6 +249,71 @@ class _Twin:
         return bool((diff > TOL_M).any() or cells_differ.any())
 
 
+class _NumpyPlanner:
+    """The planning step of commit 48f7e03's simulator (``missions/simulator.py`` ``_plan``
+    there), on the vendored numpy planner: what each drone carried from one step to the next
+    then (its last step, its peers' drift, loitering, its last keep-out)."""
+
+    def __init__(self, sim: _Simulation) -> None:
+        M, N = sim.pos.shape[:2]
+        self.sim = sim
+        self.prev_step = np.zeros((M, N, 3))
+        self.drift = nplan.PeerDrift.empty((M, N, N))
+        self.loitering: np.ndarray | None = None
+        self.last_keepout: tuple[np.ndarray, np.ndarray] | None = None
+        self.eye = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
+
+    def plan(self, k: int, view: Any) -> Any:
+        """Step k of every drone from ``view`` (the simulator's delayed view) and the
+        simulator's estimator state; returns the numpy planner's PlanResult."""
+        sim = self.sim
+        lo = max(0, k - nplan.OWN_RANGE_WINDOW + 1)
+        own = nplan.own_ranges(np.moveaxis(sim.rec_range[lo : k + 1], 0, -1), np.moveaxis(sim.rec_los[lo : k + 1], 0, -1), sim.channel)
+        self.drift = self.drift.update(view.positions_m, view.saved, view.have)
+        ages = np.where(view.have, k - view.saved, 0)
+        plan_view = nplan.PlanView(self.eye, view.positions_m, view.have, view.los, ages, view.hops, self.drift.drift_m)
+        M, N = sim.pos.shape[:2]
+        own_then = sim.positions[np.maximum(view.saved, 0), np.arange(M)[:, None, None], np.arange(N)[None, :, None]]
+        planned = nplan.plan(
+            sim.config,
+            sim.pos,
+            self.prev_step,
+            plan_view,
+            sim.state,
+            sim.ctrl_u[k],
+            step_index=k,
+            oracle_slow=sim.spec.mission.source_is_slow(),
+            own_ranges=own,
+            loitering=self.loitering,
+            last_keepout=self.last_keepout,
+            lost_contact=view.cut,
+            own_then_m=None if view.cut is None else own_then,
+        )
+        # Copies: the keep-out centre is a view of the estimate, which the compiled estimator's
+        # next update overwrites in place (the simulator's overwrite=True).
+        self.prev_step = np.array(planned.step.displacement)
+        self.loitering = np.array(planned.loiter)
+        self.last_keepout = (np.array(planned.keepout_centre_m), np.array(planned.keepout_m))
+        return planned
+
+
+def _compare_plans(out: OpenLoop, k: int, step: Any, loiter: np.ndarray, theirs: Any) -> None:
+    """Record how step k's planned steps differ (next positions, m; discrete decisions)."""
+    ts = theirs.step
+    diff = np.linalg.norm(step.next_position - ts.next_position, axis=-1)
+    out.plan_diff_m.append(float(diff.max()))
+    for m, i in np.argwhere(diff > TOL_M):
+        out.plan_departures[(k, int(m), int(i))] = float(diff[m, i])
+    for name, a, b in (
+        ("singular", step.singular, ts.singular),
+        ("filtered", step.filtered, ts.filtered),
+        ("loiter", loiter, theirs.loiter),
+        ("active", step.active, ts.active),
+    ):
+        for idx in np.argwhere(np.asarray(a) != np.asarray(b)):
+            out.plan_mismatches.append((k, name, *(int(v) for v in idx)))
+
+
 def open_loop(key: str, positions_m: np.ndarray) -> OpenLoop:
     """Run the reference run ``key`` open loop on the recorded trajectory ``positions_m``
     (K+1, M, N, 3), both estimators side by side (module doc); the planning step is not run
@@ -240,13 +322,18 @@ def open_loop(key: str, positions_m: np.ndarray) -> OpenLoop:
     sim = _Simulation(RunSpec(paper_mission(name, **FAULTS[fault]), crit, TRIALS, STEPS), None, False, False, SENSING)
     out = OpenLoop(key, recheck_every=sim.estimator_config.recheck_every)
     twin = _Twin(sim.estimator_config, sim.pos.shape[:2], out)
+    numpy_planner = _NumpyPlanner(sim)
     module = simulator.est
     simulator.est = twin  # type: ignore[assignment]
     try:
         for k in range(STEPS):
             src = sim.sources[k]
             sim._record(k, src)
-            sim._estimate(k, src, sim._delayed_view(k))
+            view = sim._delayed_view(k)
+            sim._estimate(k, src, view)
+            step = sim._plan(k, src, view)
+            theirs = numpy_planner.plan(k, view)
+            _compare_plans(out, k, step, sim.loiter[k], theirs)
             sim.pos = positions_m[k + 1].copy()
             sim.positions[k + 1] = positions_m[k + 1]
     finally:
@@ -261,8 +348,13 @@ def reference() -> dict[str, np.ndarray]:
         return {key: data[key] for key in data.files if key.endswith("/positions_m")}
 
 
-@pytest.mark.parametrize("key", run_names())
-def test_the_compiled_estimator_is_numpys_call_by_call(reference: dict[str, np.ndarray], key: str) -> None:
+#: The default run's half of the grid: every mission, A with faults and D without (the other
+#: half is marked slow: ``pytest -m slow tests/simulator/test_open_loop_vs_numpy.py``).
+DEFAULT_RUNS = tuple(key for key in run_names() if key.endswith(("_A_faults", "_D_nofault")))
+
+
+@pytest.mark.parametrize("key", [key if key in DEFAULT_RUNS else pytest.param(key, marks=pytest.mark.slow) for key in run_names()])
+def test_the_compiled_core_is_numpys_call_by_call(reference: dict[str, np.ndarray], key: str) -> None:
     found = open_loop(key, reference[f"{key}/positions_m"])
     assert found.flag_mismatches == [], f"{key}: discrete outputs differ (call, field, trial, drone): {found.flag_mismatches[:10]}"
     assert found.memory_flips == MEMORY_FLIPS.get(key, set()), (
@@ -285,6 +377,15 @@ def test_the_compiled_estimator_is_numpys_call_by_call(reference: dict[str, np.n
     assert found.consistency == [], f"{key}: score statistic beyond its tolerance at (call, trial, drone, |Δ|): {found.consistency[:10]}"
     # Not vacuous: numpy's estimator ran every call and produced estimates the compiled one met.
     assert len(found.max_diff_m) == STEPS
+    # The planning step of the same run: at every step the compiled planner.agent.plan and
+    # 48f7e03's numpy plan (each its own carried state; the same view and estimator state)
+    # plan within 1e-9 m with the same decisions.
+    assert len(found.plan_diff_m) == STEPS
+    worst = max(found.plan_diff_m)
+    assert not found.plan_departures, (
+        f"{key}: planned positions differ by up to {worst:.2e} m at (step, trial, drone) {sorted(found.plan_departures)[:10]}"
+    )
+    assert found.plan_mismatches == [], f"{key}: decisions differ (step, decision, trial, drone[, family]): {found.plan_mismatches[:10]}"
 
 
 def test_production_code_never_imports_the_test_references() -> None:
@@ -322,7 +423,8 @@ def _measure() -> None:
             print(
                 f"{key:26s} max|Δx| {max(found.max_diff_m):.1e} m, departures {len(found.departures)}, "
                 f"memory flips {sorted(found.memory_flips)}, flags {len(found.flag_mismatches)}, info rel {found.max_info_rel:.1e}, score {found.max_consistency:.1e}, "
-                f"numpy {found.numpy_s:.2f} s, compiled {found.compiled_s:.2f} s"
+                f"numpy {found.numpy_s:.2f} s, compiled {found.compiled_s:.2f} s; plan max|Δp| {max(found.plan_diff_m):.1e} m, "
+                f"departures {len(found.plan_departures)}, decisions {found.plan_mismatches[:5]}"
             )
             for c, d in sorted(found.departures.items()):
                 print(f"    {c}: {d.diff_m:.2e} m, PEB {d.peb_m:.2e} m, observable {d.observable}, ranges only {d.ranges_only}")
