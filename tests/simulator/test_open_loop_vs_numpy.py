@@ -67,7 +67,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -76,7 +76,7 @@ import missions.study.simulator as simulator
 from missions.study.simulator import RunSpec, _Simulation
 from planner import estimator as cest
 from planner.estimator.memory import RangeMemory
-from planner.params import Channel
+from planner.params import Channel, Criterion
 from planner.sensing import SENSING, SensingComponent
 from tests.reference_numpy import estimator as nest
 from tests.reference_numpy.planner import agent as nplan
@@ -209,7 +209,8 @@ class _Twin:
         t0 = time.perf_counter()
         compiled = cest.update(state, measurements, channel, config, components, overwrite=overwrite)
         t1 = time.perf_counter()
-        self.numpy = nest.update(self.numpy, measurements, channel, self.numpy_config, components)
+        # The same records (numpy's Measurements has the same fields as the compiled one's).
+        self.numpy = nest.update(self.numpy, cast(Any, measurements), channel, self.numpy_config, components)
         self.out.compiled_s += t1 - t0
         self.out.numpy_s += time.perf_counter() - t1
         departed = self._compare(compiled, self.numpy)
@@ -316,10 +317,11 @@ def _compare_plans(out: OpenLoop, k: int, step: Any, loiter: np.ndarray, theirs:
 
 def open_loop(key: str, positions_m: np.ndarray) -> OpenLoop:
     """Run the reference run ``key`` open loop on the recorded trajectory ``positions_m``
-    (K+1, M, N, 3), both estimators side by side (module doc); the planning step is not run
-    (the drones go where the recording has them)."""
+    (K+1, M, N, 3), both estimators and both planning steps side by side (module doc); the
+    drones go where the recording has them, whatever they planned."""
     name, crit, fault = key.rsplit("_", 2)
-    sim = _Simulation(RunSpec(paper_mission(name, **FAULTS[fault]), crit, TRIALS, STEPS), None, False, False, SENSING)
+    criterion = cast(Criterion, crit)
+    sim = _Simulation(RunSpec(paper_mission(name, **FAULTS[fault]), criterion, TRIALS, STEPS), None, False, False, SENSING)
     out = OpenLoop(key, recheck_every=sim.estimator_config.recheck_every)
     twin = _Twin(sim.estimator_config, sim.pos.shape[:2], out)
     numpy_planner = _NumpyPlanner(sim)
