@@ -1,12 +1,16 @@
 """The recorded reference of the in-process simulator: reduced runs of every paper mission,
-A and D, with and without faults, recorded with the numpy planner (commit 48f7e03). A
-structural change of the code must replan every recorded step within 1e-9 m
-(``test_bit_identity.py``, :func:`replay`).
+A and D, with and without faults, recorded on the compiled core (the planning kernels of
+planner/kernels.py and the estimator's of planner/estimator/kernels/). A structural change of
+the code must replan every recorded step within 1e-9 m (``test_bit_identity.py``,
+:func:`replay`). The equality of the compiled estimator and planning step with the numpy
+code they replaced (commit 48f7e03) is guarded open loop on these recorded trajectories, call by call
+(``test_open_loop_vs_numpy.py``).
 
     python -m tests.simulator.reference_runs      # rewrite tests/data/simulator_reference.npz
 
 Rewrite the reference only for a change that is meant to change the planner's behaviour, and
-say so in that commit.
+say so in that commit; then measure the open-loop comparison again on the new trajectories
+(``python -m tests.simulator.test_open_loop_vs_numpy`` prints what its table lists).
 """
 
 from __future__ import annotations
