@@ -69,19 +69,26 @@ class UnknownPowerSettings:
         offset_prior_sigma_db: σ of the weak zero-mean prior on the power offset, dB.
         min_ranges: ranges in the window before the joint estimate starts.
         max_halvings: step halvings per scoring iteration.
+        range_cells: cells of ranges that left the window, kept by where they were taken (their
+            exact likelihood up to the spread within a cell: a linearised prior cannot hold the
+            curved likelihood of the height of a source seen from drones nearly level with it).
+        cell_radius: a range joins a cell of its LOS class within this fraction of the cell's
+            mean range; when every cell is taken, the nearest one.
     """
 
     window_rows: int = 500
-    iterations: int = 2
+    iterations: int = 1
     init_iterations: int = 25
     recheck_every: int = 5
     recheck_nll_drop: float = 1.0
     offset_prior_sigma_db: float = 20.0
     min_ranges: int = 5
     max_halvings: int = 8
+    range_cells: int = 256
+    cell_radius: float = 0.02
 
     def __post_init__(self) -> None:
-        for name in ("window_rows", "iterations", "init_iterations", "min_ranges", "max_halvings"):
+        for name in ("window_rows", "iterations", "init_iterations", "min_ranges", "max_halvings", "range_cells"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"UnknownPowerSettings.{name}: expected an integer >= 1, found {v!r}")
@@ -109,7 +116,9 @@ class PowerEstimatorState:
         rows_position_m (..., W, 3), rows_range_m, rows_azimuth_rad, rows_elevation_rad (..., W),
         rows_los (..., W) bool, rows_weight (..., W) (0: empty slot): the window.
         head: (...) the next slot to write.
-        prior_information (..., 4, 4), prior_vector (..., 4): the marginalised rows.
+        prior_information (..., 4, 4), prior_vector (..., 4): the marginalised bearings.
+        cell_position_sum (..., C, 3), cell_weight, cell_range_sum, cell_square_sum (..., C),
+        cell_los (..., C): the range cells (Σ w p, Σ w, Σ w d̂, Σ w d̂², the LOS class).
         calls: :func:`update` calls so far.
     """
 
@@ -130,6 +139,11 @@ class PowerEstimatorState:
     head: NDArray[np.int64]
     prior_information: FloatArray
     prior_vector: FloatArray
+    cell_position_sum: FloatArray
+    cell_weight: FloatArray
+    cell_range_sum: FloatArray
+    cell_square_sum: FloatArray
+    cell_los: BoolArray
     calls: int = 0
 
     @property
@@ -160,6 +174,11 @@ def initial_state(batch: tuple[int, ...], config: est.EstimatorConfig, settings:
         head=np.zeros(batch, dtype=np.int64),
         prior_information=np.zeros(batch + (4, 4)),
         prior_vector=np.zeros(batch + (4,)),
+        cell_position_sum=np.zeros(batch + (settings.range_cells, 3)),
+        cell_weight=np.zeros(batch + (settings.range_cells,)),
+        cell_range_sum=np.zeros(batch + (settings.range_cells,)),
+        cell_square_sum=np.zeros(batch + (settings.range_cells,)),
+        cell_los=np.zeros(batch + (settings.range_cells,), dtype=bool),
     )
 
 
@@ -173,9 +192,22 @@ class _Rows:
     elevation: FloatArray
     los: BoolArray
     weight: FloatArray
+    #: The weighted mean of the squared ranges Σ w d̂²/Σ w of a range cell (B, L); None: d̂².
+    range_sq: FloatArray | None = None
 
     def take(self, idx: NDArray[np.int64]) -> _Rows:
-        return _Rows(self.position[idx], self.range_m[idx], self.azimuth[idx], self.elevation[idx], self.los[idx], self.weight[idx])
+        sq = None if self.range_sq is None else self.range_sq[idx]
+        return _Rows(self.position[idx], self.range_m[idx], self.azimuth[idx], self.elevation[idx], self.los[idx], self.weight[idx], sq)
+
+    def joined(self, other: _Rows) -> _Rows:
+        """These rows and ``other``'s, side by side (B, L + L')."""
+
+        def sq(r: _Rows) -> FloatArray:
+            return r.range_m * r.range_m if r.range_sq is None else r.range_sq
+
+        fields = ("position", "range_m", "azimuth", "elevation", "los", "weight")
+        a = [np.concatenate([getattr(self, f), getattr(other, f)], axis=1) for f in fields]
+        return _Rows(*a, np.concatenate([sq(self), sq(other)], axis=1))
 
 
 def _evaluate(
@@ -192,11 +224,24 @@ def _evaluate(
     has_r = np.isfinite(rows.range_m) & (w > 0.0)
     wr = np.where(has_r, w, 0.0)
     z = np.where(has_r, rows.range_m, 0.0)
+    z2 = z * z if rows.range_sq is None else np.where(has_r, rows.range_sq, 0.0)
     s = np.exp(x[:, None, 3]) * d
     inv = np.where(rows.los, 1.0 / channel.sigma_r0_los**2, 1.0 / channel.sigma_r0_nlos**2)
-    v = s**gamma / inv
-    e = z - s
-    f = 0.5 * (wr * (e * e / v + np.log(v))).sum(-1)
+    v = (s * s if gamma == 2.0 else s**gamma) / inv
+    # Σ w (d̂ − s)² = w (mean d̂² − 2 s mean d̂ + s²): a raw range or a cell of ranges (w = Σ w).
+    q = z2 - 2.0 * s * z + s * s
+    f = 0.5 * (wr * (q / v + np.log(v))).sum(-1)
+    g = np.zeros((B, 4))
+    F = np.zeros((B, 4, 4))
+    if derivatives:
+        # Ranges: ∇s = (s r/d², s); ∂(−ℓ)/∂s = −e/v + (γ/2s)(1 − e²/v); A_r(s) = s^−γ/σ² + γ²/(2s²).
+        grad_s = np.concatenate([(s / d2)[..., None] * r, s[..., None]], axis=-1)
+        ds = (s - z) / v + 0.5 * gamma / s * (1.0 - q / v)
+        a = 1.0 / v + 0.5 * gamma * gamma / (s * s)  # s^−γ/σ_r0² = 1/v
+        g += ((wr * ds)[:, None, :] @ grad_s)[:, 0]
+        F += np.swapaxes(grad_s * (wr * a)[..., None], 1, 2) @ grad_s
+    if not (np.isfinite(rows.azimuth) | np.isfinite(rows.elevation)).any():
+        return f, g, F
     # Bearings: LOS ones at full weight, NLOS ones at nlos_bearing_weight.
     bw = w * np.where(rows.los, 1.0, nlos_bearing_weight) / channel.sigma_bearing_rad**2
     has_az = np.isfinite(rows.azimuth) & (bw > 0.0)
@@ -207,16 +252,8 @@ def _evaluate(
     e_el = np.where(has_el, np.where(has_el, rows.elevation, 0.0) - np.arctan2(r[..., 2], rho), 0.0)
     wa, we = np.where(has_az, bw, 0.0), np.where(has_el, bw, 0.0)
     f = f + 0.5 * (wa * e_az * e_az + we * e_el * e_el).sum(-1)
-    g = np.zeros((B, 4))
-    F = np.zeros((B, 4, 4))
     if not derivatives:
         return f, g, F
-    # Ranges: ∇s = (s r/d², s); ∂(−ℓ)/∂s = −e/v + (γ/2s)(1 − e²/v); A_r(s) = s^−γ/σ² + γ²/(2s²).
-    grad_s = np.concatenate([(s / d2)[..., None] * r, s[..., None]], axis=-1)
-    ds = -e / v + 0.5 * gamma / s * (1.0 - e * e / v)
-    a = inv * s ** (-gamma) + 0.5 * gamma * gamma / (s * s)
-    g += ((wr * ds)[:, None, :] @ grad_s)[:, 0]
-    F += np.swapaxes(grad_s * (wr * a)[..., None], 1, 2) @ grad_s
     # Bearings: ∇φ = (−r_y, r_x, 0)/ρ², ∇θ = (−r_x r_z, −r_y r_z, ρ²)/(d² ρ).
     zero = np.zeros_like(rho)
     gphi = np.stack([-r[..., 1] / rho2, r[..., 0] / rho2, zero], axis=-1)
@@ -255,10 +292,13 @@ class _Problem:
 def _scoring(problem: _Problem, x: FloatArray, iterations: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``iterations`` Fisher-scoring steps with step halving from x (B, 4); the position is
     projected into the search box and a position step capped at half the mean distance to the
-    window's records, an offset step at 1. Returns (x, cost, information at x)."""
+    window's records, an offset step at 1. Returns (x, cost at x, the information at the last
+    iterate before x: one evaluation less per call, and the next call starts there)."""
     settings, config = problem.settings, problem.config
-    f, g, F = problem.evaluate(x, True)
+    f = np.zeros(x.shape[0])
+    F = np.zeros(x.shape + (4,))
     for _ in range(iterations):
+        f, g, F = problem.evaluate(x, True)
         scale = np.einsum("bii->b", F)[:, None, None]
         H = F + 1e-10 * (scale + 1e-30) * np.eye(4)
         try:
@@ -289,8 +329,7 @@ def _scoring(problem: _Problem, x: FloatArray, iterations: int) -> tuple[FloatAr
             if accepted.all():
                 break
             t[todo] *= 0.5
-        x = new_x
-        f, g, F = problem.evaluate(x, True)
+        x, f = new_x, new_f
     return x, f, F
 
 
@@ -305,12 +344,63 @@ def _start_offset(x_known: FloatArray, rows: _Rows) -> FloatArray:
     return np.where(np.isfinite(out), out, 0.0)
 
 
+@dataclass
+class _Cells:
+    """The range cells of B elements (flat batch, C cells; mutable while a call builds them)."""
+
+    position_sum: FloatArray  # (B, C, 3)
+    weight: FloatArray  # (B, C)
+    range_sum: FloatArray
+    square_sum: FloatArray
+    los: BoolArray
+
+    def rows(self) -> _Rows:
+        """The cells as rows: at their mean position, of their mean range and mean squared range."""
+        n = np.maximum(self.weight, 1e-300)
+        full = self.weight > 0.0
+        nan = np.full(self.weight.shape, np.nan)
+        return _Rows(
+            self.position_sum / n[..., None],
+            np.where(full, self.range_sum / n, np.nan),
+            nan,
+            nan,
+            self.los,
+            self.weight,
+            np.where(full, self.square_sum / n, np.nan),
+        )
+
+    def add(self, position: FloatArray, range_m: FloatArray, los: BoolArray, weight: FloatArray, radius: float) -> None:
+        """One range per element (B,) (weight 0 or a NaN range: none) into its cell: the nearest
+        cell of its LOS class within ``radius`` × that cell's mean range, else an empty cell, else
+        the nearest cell of its class (of any class if there is none)."""
+        have = np.isfinite(range_m) & (weight > 0.0) & np.isfinite(position).all(-1)
+        if not have.any():
+            return
+        n = np.maximum(self.weight, 1e-300)
+        full = self.weight > 0.0
+        centre = self.position_sum / n[..., None]
+        dist = np.where(full, np.linalg.norm(centre - position[:, None, :], axis=-1), np.inf)
+        same = full & (self.los == los[:, None])
+        near = np.where(same & (dist <= radius * self.range_sum / n), dist, np.inf)
+        empty = ~full
+        nearest = np.where(same.any(-1), np.where(same, dist, np.inf).argmin(-1), dist.argmin(-1))
+        cell = np.where(np.isfinite(near.min(-1)), near.argmin(-1), np.where(empty.any(-1), empty.argmax(-1), nearest))
+        b = np.flatnonzero(have)
+        c = cell[b]
+        w = weight[b]
+        self.position_sum[b, c] += w[:, None] * position[b]
+        self.weight[b, c] += w
+        self.range_sum[b, c] += w * range_m[b]
+        self.square_sum[b, c] += w * range_m[b] ** 2
+        self.los[b, c] = los[b]
+
+
 def _insert(
     state: PowerEstimatorState, meas: est.Measurements, channel: Channel, config: est.EstimatorConfig, settings: UnknownPowerSettings
-) -> tuple[_Rows, FloatArray, FloatArray, NDArray[np.int64]]:
-    """The window (flat batch) after forgetting and the new records, the prior (Λ, η) with the
-    rows they pushed out marginalised at the current estimate (elements not ready drop them),
-    and the new heads."""
+) -> tuple[_Rows, _Cells, FloatArray, FloatArray, NDArray[np.int64]]:
+    """The window (flat batch) after forgetting and the new records; the rows they pushed out:
+    ranges into the range cells, bearings into the prior (Λ, η) linearised at the current
+    estimate (elements not ready drop their bearings); the new heads."""
     B = int(np.prod(state.ready.shape, dtype=np.int64))
     W = settings.window_rows
     lam = config.forgetting
@@ -324,10 +414,18 @@ def _insert(
     )
     lam_p = state.prior_information.reshape(B, 4, 4) * lam
     eta = state.prior_vector.reshape(B, 4) * lam
+    C = settings.range_cells
+    cells = _Cells(
+        state.cell_position_sum.reshape(B, C, 3) * lam,
+        state.cell_weight.reshape(B, C) * lam,
+        state.cell_range_sum.reshape(B, C) * lam,
+        state.cell_square_sum.reshape(B, C) * lam,
+        state.cell_los.reshape(B, C).copy(),
+    )
     head = state.head.reshape(B).copy()
     M = meas.count
     if M == 0:
-        return rows, lam_p, eta, head
+        return rows, cells, lam_p, eta, head
     pos = np.asarray(meas.positions_m, dtype=float).reshape(B, M, 3)
     rng = np.asarray(meas.range_m, dtype=float).reshape(B, M)
     az = np.asarray(meas.azimuth_rad, dtype=float).reshape(B, M)
@@ -337,22 +435,31 @@ def _insert(
     slot = (head[:, None] + rank) % W
     b_idx, m_idx = np.nonzero(valid)
     s_idx = slot[b_idx, m_idx]
-    # Rows pushed out: marginalised at the current estimate where the joint one is ready.
-    ready = state.ready.reshape(B)
-    leaving = (rows.weight[b_idx, s_idx] > 0.0) & ready[b_idx]
+    # Rows pushed out: ranges into the cells (in arrival order), bearings into the prior.
+    leaving = rows.weight[b_idx, s_idx] > 0.0
     if leaving.any():
-        lb, ls = b_idx[leaving], s_idx[leaving]
-        L = np.zeros((B, W), dtype=bool)
-        L[lb, ls] = True
-        sub = np.flatnonzero(L.any(-1))
-        out_rows = rows.take(sub)
-        out_rows = _Rows(
-            out_rows.position, out_rows.range_m, out_rows.azimuth, out_rows.elevation, out_rows.los, np.where(L[sub], out_rows.weight, 0.0)
-        )
-        x = state.x.reshape(B, 4)[sub]
-        _, g, F = _evaluate(x, out_rows, channel, config.nlos_bearing_weight, True)
-        lam_p[sub] += F
-        eta[sub] += (F @ x[..., None])[..., 0] - g
+        lb, lm, ls = b_idx[leaving], m_idx[leaving], s_idx[leaving]
+        for col in np.unique(lm):  # one row per element at a time: a cell may take several
+            at = lm == col
+            bb, ss = lb[at], ls[at]
+            vec = np.zeros((B, 3))
+            rng_c = np.full(B, np.nan)
+            los_c = np.zeros(B, dtype=bool)
+            w_c = np.zeros(B)
+            vec[bb], rng_c[bb], los_c[bb], w_c[bb] = rows.position[bb, ss], rows.range_m[bb, ss], rows.los[bb, ss], rows.weight[bb, ss]
+            cells.add(vec, rng_c, los_c, w_c, settings.cell_radius)
+        ready = state.ready.reshape(B)
+        bearing = ready[lb] & (np.isfinite(rows.azimuth[lb, ls]) | np.isfinite(rows.elevation[lb, ls]))
+        if bearing.any():
+            L = np.zeros((B, W), dtype=bool)
+            L[lb[bearing], ls[bearing]] = True
+            sub = np.flatnonzero(L.any(-1))
+            o = rows.take(sub)
+            out_rows = _Rows(o.position, np.full(o.range_m.shape, np.nan), o.azimuth, o.elevation, o.los, np.where(L[sub], o.weight, 0.0))
+            x = state.x.reshape(B, 4)[sub]
+            _, g, F = _evaluate(x, out_rows, channel, config.nlos_bearing_weight, True)
+            lam_p[sub] += F
+            eta[sub] += (F @ x[..., None])[..., 0] - g
     rows.position[b_idx, s_idx] = pos[b_idx, m_idx]
     rows.range_m[b_idx, s_idx] = rng[b_idx, m_idx]
     rows.azimuth[b_idx, s_idx] = az[b_idx, m_idx]
@@ -360,7 +467,7 @@ def _insert(
     rows.los[b_idx, s_idx] = np.asarray(meas.los, dtype=bool).reshape(B, M)[b_idx, m_idx]
     rows.weight[b_idx, s_idx] = 1.0
     head = (head + valid.sum(-1)) % W
-    return rows, lam_p, eta, head
+    return rows, cells, lam_p, eta, head
 
 
 def update(
@@ -384,7 +491,7 @@ def update(
     batch = state.ready.shape
     B = int(np.prod(batch, dtype=np.int64))
     W = settings.window_rows
-    rows, lam_p, eta, head = _insert(state, meas, channel, config, settings)
+    rows, cells, lam_p, eta, head = _insert(state, meas, channel, config, settings)
     sigma_b = settings.offset_prior_sigma_db * LN10_OVER_10 / channel.gamma
     b_prior = np.zeros((4, 4))
     b_prior[3, 3] = 1.0 / sigma_b**2
@@ -399,6 +506,11 @@ def update(
         rows.los[:, :width],
         rows.weight[:, :width],
     )
+    taken = np.flatnonzero((cells.weight > 0.0).any(0))
+    if taken.size:  # the range cells in use, as rows after the window's
+        c = int(taken[-1]) + 1
+        kept = _Cells(cells.position_sum[:, :c], cells.weight[:, :c], cells.range_sum[:, :c], cells.square_sum[:, :c], cells.los[:, :c])
+        view = view.joined(kept.rows())
     problem = _Problem(view, lam_p + b_prior, eta, channel, config, settings)
 
     x = state.x.reshape(B, 4).copy()
@@ -452,6 +564,11 @@ def update(
         head=head.reshape(batch),
         prior_information=lam_p.reshape(batch + (4, 4)),
         prior_vector=eta.reshape(batch + (4,)),
+        cell_position_sum=cells.position_sum.reshape(batch + (settings.range_cells, 3)),
+        cell_weight=cells.weight.reshape(batch + (settings.range_cells,)),
+        cell_range_sum=cells.range_sum.reshape(batch + (settings.range_cells,)),
+        cell_square_sum=cells.square_sum.reshape(batch + (settings.range_cells,)),
+        cell_los=cells.los.reshape(batch + (settings.range_cells,)),
         calls=calls,
     )
 
