@@ -13,7 +13,6 @@ import pytest
 
 from missions.format.loader import load_mission
 from missions.study.simulator import RunSpec, simulate
-
 from tests.support.launch import PAPER, Launch, read_trajectories
 
 pytestmark = pytest.mark.integration
@@ -38,10 +37,10 @@ def test_lockstep_launch_with_unknown_power_reports_the_offset(tmp_path: Path, l
         "60",
     )
     launches.append(run)
-    code, stdout, stderr = run.wait()
+    code, _stdout, stderr = run.wait()
     assert code == 0, stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())["runs"][0]
-    assert summary["violations"] == {k: 0 for k in summary["violations"]}
+    assert summary["violations"] == dict.fromkeys(summary["violations"], 0)
     block = summary["source_power"]
     assert block["model"] == "unknown" and block["true_offset_db"] == 6.0
     assert block["final_offset_estimated_fraction"] == 1.0 and np.isfinite(block["final_offset_mean_db"])

@@ -84,8 +84,8 @@ def test_simulator_recovers_the_offset_with_the_power_unknown() -> None:
     step 120), the estimate error falls below a tenth of its start, no constraint is violated,
     and the summary reports the estimated offset; with the power known the same swarm's final
     estimate is several times worse (the ranges are biased) and reports no offset."""
-    m, result = _run("unknown", 6.0)
-    assert result.violations() == {k: 0 for k in result.violations()}
+    _m, result = _run("unknown", 6.0)
+    assert result.violations() == dict.fromkeys(result.violations(), 0)
     assert result.power_offset_db is not None
     final = result.power_offset_db[-1]
     assert np.isfinite(final).all()
@@ -107,6 +107,6 @@ def test_power_unknown_with_a_nominal_source_reports_zero() -> None:
     """The true power is the nominal one: the offset estimates end near 0 dB, the PEB (of the
     Schur complement) is finite for every drone, no violation."""
     _, result = _run("unknown", 0.0, trials=2, steps=100)
-    assert result.violations() == {k: 0 for k in result.violations()}
+    assert result.violations() == dict.fromkeys(result.violations(), 0)
     assert np.abs(result.power_offset_db[-1]).max() < 2.0
     assert np.isfinite(result.peb_m[-1]).all()
