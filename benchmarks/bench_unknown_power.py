@@ -58,7 +58,6 @@ def _costs(power: str, trials: int, warm: int, repeat: int) -> tuple[float, floa
     before = sim.state
     sim._estimate(k, sim.sources[k], view)
     after = sim.state
-    M, N = sim.pos.shape[:2]
     scene = StepScene(
         step_index=k,
         own_index=sim.own_index,
