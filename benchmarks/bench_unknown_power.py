@@ -73,9 +73,10 @@ def _costs(power: str, trials: int, warm: int, repeat: int) -> tuple[float, floa
         information=after.information,
         observable=after.observable,
         perturbation_uniforms=sim.ctrl_u[k],
-        power_offset=pw.planning_offset(after),
     )
     one = StepScene(**{f.name: _first(getattr(scene, f.name)) for f in dataclasses.fields(StepScene)})
+    offset = pw.planning_offset(after)
+    offset_one = None if offset is None else offset[0, 0]
     drone_one = type(sim.drone).from_kernel_arrays([a[:1] for a in sim.drone.kernel_arrays()], ())
     new = sim.saved >= 0  # every record the views hold, as one call's rows (10 per drone)
     from planner import estimator as est
@@ -91,9 +92,9 @@ def _costs(power: str, trials: int, warm: int, repeat: int) -> tuple[float, floa
     state_one = _first_state(before)
     config = sim.config
     return (
-        _median_ms(lambda: plan(config, scene, sim.drone), repeat),
+        _median_ms(lambda: plan(config, scene, sim.drone, power_offset=offset), repeat),
         _median_ms(lambda: pw.update_source(before, meas, config), repeat),
-        _median_ms(lambda: plan(config, one, drone_one), 5 * repeat),
+        _median_ms(lambda: plan(config, one, drone_one, power_offset=offset_one), 5 * repeat),
         _median_ms(lambda: pw.update_source(state_one, meas_one, config), 5 * repeat),
     )
 

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
-from planner.radio.power_estimator import UnknownPowerSettings
+from planner.radio.power_settings import UnknownPowerSettings
 from planner.sensing import BEARING, RANGE, SENSING, SensingTable, extra_masks
 
 

@@ -54,9 +54,6 @@ class StepScene:
         perturbation_uniforms: (..., 2) uniforms in [0, 1) for the singular fallback.
         lost_contact: (..., N) bool, the peers the drone lost contact with by a network fault (a
             partition, their planner gone from the liveliness view); None: none.
-        power_offset: (...) the estimated power offset b̂ of the source (dimensionless,
-            :mod:`planner.radio.power_estimator`) the planning cost is evaluated at when the
-            power is unknown; None: the power is known.
     """
 
     step_index: int
@@ -74,7 +71,6 @@ class StepScene:
     observable: BoolArray
     perturbation_uniforms: FloatArray
     lost_contact: BoolArray | None = None
-    power_offset: FloatArray | None = None
 
     @property
     def batch(self) -> tuple[int, ...]:

@@ -46,7 +46,7 @@ from comms.geodesy import DEFAULT_ORIGIN_ALT_M, DEFAULT_ORIGIN_LAT_DEG, DEFAULT_
 from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
-from planner.radio.power_estimator import UnknownPowerSettings
+from planner.radio.power_settings import UnknownPowerSettings
 from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only

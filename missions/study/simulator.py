@@ -377,10 +377,10 @@ class _Simulation:
             observable=self.state.observable,
             perturbation_uniforms=self.ctrl_u[k],
             lost_contact=None if view.cut is None else np.broadcast_to(view.cut, (M, N, N)),
-            power_offset=power.planning_offset(self.state),
         )
         oracle = src if self.oracle_estimate else None
-        planned = plan(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow())
+        offset = power.planning_offset(self.state)  # None with the power known
+        planned = plan(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow(), power_offset=offset)
         self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular

@@ -273,9 +273,8 @@ class StepCore:
             observable=np.asarray(state.observable),
             perturbation_uniforms=self.ctrl_rng.random(CONTROL_DRAWS),
             lost_contact=lost,
-            power_offset=power.planning_offset(state),
         )
-        return plan(self.planner, scene, self.drone)
+        return plan(self.planner, scene, self.drone, power_offset=power.planning_offset(state))
 
     def rebuild(self, first: int, rows_by_drone: Mapping[int, Sequence[dict[str, Any]]]) -> dict[int, list[tuple[int, np.ndarray, float, bool]]]:
         """A rejoining planner's estimator, own-range window, own track and used steps, from

@@ -4,9 +4,9 @@ offset, :mod:`planner.radio.unknown_power`), with its analytic gradient w.r.t. t
 position (eq. 14).
 
 The same policy as the known-power cost of :func:`planner.agent.plan` (the own link's predicted
-line of sight q, :func:`planner.agent.own_los_weight`: J₄ = J₄,peers + q J₄,own,LOS + (1 − q)
+line of sight q, :func:`planner.agent.own_los_weight`, passed in: J₄ = J₄,peers + q J₄,own,LOS + (1 − q)
 J₄,own,NLOS and its gradient's term in ∇q), evaluated at the estimate p̂0 and the estimated
-offset b̂ (:attr:`planner.step.StepScene.power_offset`). The cost is given to the compiled step
+offset b̂ (the ``power_offset`` of :func:`planner.agent.plan`). The cost is given to the compiled step
 (:func:`planner.kernels.plan_batch` with a given cost), which does everything else as with a
 known power. Pure numpy (a different model, not a second implementation of the compiled one).
 """
@@ -14,9 +14,10 @@ known power. Pure numpy (a different model, not a second implementation of the c
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from planner.config import PlannerConfig
 from planner.fim import CostGradient
@@ -26,29 +27,31 @@ from planner.step import StepScene
 FloatArray = NDArray[np.float64]
 
 
-def scene_offset(scene: StepScene) -> FloatArray:
-    """b̂ of the scene (...), 0 where it gives none."""
-    b = scene.power_offset
-    if b is None:
-        return np.zeros(scene.batch)
-    b = np.asarray(b, dtype=float)
-    return np.broadcast_to(np.where(np.isfinite(b), b, 0.0), scene.batch)
+#: The own link's predicted line of sight (q, ∇q) of :func:`planner.agent.own_los_weight`.
+LosWeight = Callable[..., tuple[FloatArray, FloatArray]]
 
 
-def corrected_scene(scene: StepScene) -> StepScene:
+def offset_or_zero(offset: ArrayLike | None, batch: tuple[int, ...]) -> FloatArray:
+    """b̂ (``batch``), 0 where it is NaN or not given."""
+    if offset is None:
+        return np.zeros(batch)
+    b = np.asarray(offset, dtype=float)
+    return np.broadcast_to(np.where(np.isfinite(b), b, 0.0), batch)
+
+
+def corrected_scene(scene: StepScene, offset: ArrayLike | None) -> StepScene:
     """The scene with the drone's own range divided by e^b̂ (the range of a source of the
     assumed power, as the own-range policies of :func:`planner.agent.plan` read it)."""
-    if scene.power_offset is None:
+    if offset is None:
         return scene
-    rng = np.asarray(scene.own_range_m, dtype=float) * np.exp(-scene_offset(scene))
+    rng = np.asarray(scene.own_range_m, dtype=float) * np.exp(-offset_or_zero(offset, scene.batch))
     return dataclasses.replace(scene, own_range_m=rng)
 
 
-def unknown_power_cost(config: PlannerConfig, scene: StepScene, p_hat: FloatArray) -> CostGradient:
-    """C(J_eq) of eq. 6 at ``p_hat`` (..., 3) over the drone's view and its gradient w.r.t. its
-    own position, with the power unknown (module doc)."""
-    from planner.agent import own_los_weight  # the module planner.agent imports this one
-
+def unknown_power_cost(config: PlannerConfig, scene: StepScene, p_hat: FloatArray, offset: ArrayLike | None, los_weight: LosWeight) -> CostGradient:
+    """C(J_eq) of eq. 6 at ``p_hat`` (..., 3) and the power offset ``offset`` (...) over the
+    drone's view and its gradient w.r.t. its own position, with the power unknown (module doc);
+    ``los_weight``: :func:`planner.agent.own_los_weight`."""
     own = scene.own_mask
     valid = np.asarray(scene.view_valid, dtype=bool)
     ranging, bearing = np.asarray(config.ranging, dtype=bool), np.asarray(config.bearing, dtype=bool)
@@ -57,7 +60,7 @@ def unknown_power_cost(config: PlannerConfig, scene: StepScene, p_hat: FloatArra
     extra_view = {name: mask & valid for name, mask in extra.items()}
     own_extra = {name: mask[index] for name, mask in extra.items()}
     view_los = np.asarray(scene.view_los, dtype=bool)
-    b = scene_offset(scene)
+    b = offset_or_zero(offset, scene.batch)
     components = config.sensing.components
     if np.size(config.boxes_min_m) == 0:
         q = np.ones(scene.batch)
@@ -65,7 +68,7 @@ def unknown_power_cost(config: PlannerConfig, scene: StepScene, p_hat: FloatArra
         plan_los = (view_los | own).astype(float)
     else:
         measured = (view_los & own).any(-1)
-        q, grad_q = own_los_weight(scene.own_position_m, p_hat, config.boxes_min_m, config.boxes_max_m, measured_los=measured)
+        q, grad_q = los_weight(scene.own_position_m, p_hat, config.boxes_min_m, config.boxes_max_m, measured_los=measured)
         plan_los = np.where(own, q[..., None], view_los.astype(float))
     J4 = fisher_information_unknown_power(
         p_hat, scene.view_positions_m, ranging & valid, bearing & valid, plan_los, config.channel, b, extra_view, components
@@ -86,4 +89,4 @@ def unknown_power_cost(config: PlannerConfig, scene: StepScene, p_hat: FloatArra
     )
 
 
-__all__ = ["corrected_scene", "scene_offset", "unknown_power_cost"]
+__all__ = ["LosWeight", "corrected_scene", "offset_or_zero", "unknown_power_cost"]
