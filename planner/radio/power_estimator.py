@@ -331,13 +331,14 @@ class _Cells:
             np.where(full, self.square_sum / n, np.nan),
         )
 
-    def add(self, position: FloatArray, range_m: FloatArray, los: BoolArray, weight: FloatArray, radius: float) -> None:
+    def add(self, position: FloatArray, range_m: FloatArray, los: BoolArray, weight: FloatArray, radius: float) -> BoolArray:
         """One range per element (B,) (weight 0 or a NaN range: none) into its cell: the nearest
-        cell of its LOS class within ``radius`` × that cell's mean range, else an empty cell, else
-        the nearest cell of its class (of any class if there is none)."""
+        cell of its LOS class within ``radius`` × that cell's mean range, else an empty cell.
+        Returns (B,) the ranges no cell took (every cell taken and none near: a range merged
+        into a distant cell would be read at the wrong place)."""
         have = np.isfinite(range_m) & (weight > 0.0) & np.isfinite(position).all(-1)
         if not have.any():
-            return
+            return have
         n = np.maximum(self.weight, 1e-300)
         full = self.weight > 0.0
         centre = self.position_sum / n[..., None]
@@ -345,9 +346,10 @@ class _Cells:
         same = full & (self.los == los[:, None])
         near = np.where(same & (dist <= radius * self.range_sum / n), dist, np.inf)
         empty = ~full
-        nearest = np.where(same.any(-1), np.where(same, dist, np.inf).argmin(-1), dist.argmin(-1))
-        cell = np.where(np.isfinite(near.min(-1)), near.argmin(-1), np.where(empty.any(-1), empty.argmax(-1), nearest))
-        b = np.flatnonzero(have)
+        found = np.isfinite(near.min(-1))
+        cell = np.where(found, near.argmin(-1), empty.argmax(-1))
+        left = have & ~found & ~empty.any(-1)
+        b = np.flatnonzero(have & ~left)
         c = cell[b]
         w = weight[b]
         self.position_sum[b, c] += w[:, None] * position[b]
@@ -355,6 +357,7 @@ class _Cells:
         self.range_sum[b, c] += w * range_m[b]
         self.square_sum[b, c] += w * range_m[b] ** 2
         self.los[b, c] = los[b]
+        return left
 
 
 def _insert(
@@ -397,10 +400,13 @@ def _insert(
     slot = (head[:, None] + rank) % W
     b_idx, m_idx = np.nonzero(valid)
     s_idx = slot[b_idx, m_idx]
-    # Rows pushed out: ranges into the cells (in arrival order), bearings into the prior.
+    # Rows pushed out: ranges into the cells (in arrival order), bearings and the ranges no cell
+    # took into the prior.
     leaving = rows.weight[b_idx, s_idx] > 0.0
     if leaving.any():
         lb, lm, ls = b_idx[leaving], m_idx[leaving], s_idx[leaving]
+        linear = np.isfinite(rows.azimuth[lb, ls]) | np.isfinite(rows.elevation[lb, ls])  # in the prior
+        uncelled = np.zeros(lb.shape, dtype=bool)  # ranges no cell took
         for col in np.unique(lm):  # one row per element at a time: a cell may take several
             at = lm == col
             bb, ss = lb[at], ls[at]
@@ -409,15 +415,19 @@ def _insert(
             los_c = np.zeros(B, dtype=bool)
             w_c = np.zeros(B)
             vec[bb], rng_c[bb], los_c[bb], w_c[bb] = rows.position[bb, ss], rows.range_m[bb, ss], rows.los[bb, ss], rows.weight[bb, ss]
-            cells.add(vec, rng_c, los_c, w_c, settings.cell_radius)
+            left = cells.add(vec, rng_c, los_c, w_c, settings.cell_radius)
+            uncelled[at] = left[bb]
         ready = state.ready.reshape(B)
-        bearing = ready[lb] & (np.isfinite(rows.azimuth[lb, ls]) | np.isfinite(rows.elevation[lb, ls]))
-        if bearing.any():
+        prior = ready[lb] & (linear | uncelled)
+        if prior.any():
             L = np.zeros((B, W), dtype=bool)
-            L[lb[bearing], ls[bearing]] = True
+            L[lb[prior], ls[prior]] = True
+            R = np.zeros((B, W), dtype=bool)  # the ranges that go into the prior
+            R[lb[prior & uncelled], ls[prior & uncelled]] = True
             sub = np.flatnonzero(L.any(-1))
             o = rows.take(sub)
-            out_rows = _Rows(o.position, np.full(o.range_m.shape, np.nan), o.azimuth, o.elevation, o.los, np.where(L[sub], o.weight, 0.0))
+            out_range = np.where(R[sub], o.range_m, np.nan)
+            out_rows = _Rows(o.position, out_range, o.azimuth, o.elevation, o.los, np.where(L[sub], o.weight, 0.0))
             x = state.x.reshape(B, 4)[sub]
             _, g, F = _evaluate(x, out_rows, channel, config.nlos_bearing_weight, True)
             lam_p[sub] += F

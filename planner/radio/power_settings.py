@@ -20,9 +20,11 @@ class UnknownPowerSettings:
         max_halvings: step halvings per scoring iteration.
         range_cells: cells of ranges that left the window, kept by where they were taken (their
             exact likelihood up to the spread within a cell: a linearised prior cannot hold the
-            curved likelihood of the height of a source seen from drones nearly level with it).
+            curved likelihood of the height of a source seen from drones nearly level with it);
+            once every cell is taken, a range no cell is near joins the linearised prior (by
+            then the estimate has settled).
         cell_radius: a range joins a cell of its LOS class within this fraction of the cell's
-            mean range; when every cell is taken, the nearest one.
+            mean range.
     """
 
     window_rows: int = 500
@@ -34,7 +36,7 @@ class UnknownPowerSettings:
     min_ranges: int = 5
     max_halvings: int = 8
     range_cells: int = 256
-    cell_radius: float = 0.02
+    cell_radius: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("window_rows", "iterations", "init_iterations", "min_ranges", "max_halvings", "range_cells"):
