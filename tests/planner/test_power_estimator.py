@@ -168,3 +168,27 @@ def test_settings_reject_bad_values() -> None:
         power.UnknownPowerSettings(window_rows=0)
     with pytest.raises(ValueError, match="offset_prior_sigma_db"):
         power.UnknownPowerSettings(offset_prior_sigma_db=0.0)
+
+
+def test_a_range_is_never_merged_into_a_distant_cell() -> None:
+    """A range joins a cell of its class within 5 % of the cell's range, else an empty cell; with
+    every cell taken and none near, no cell takes it (the caller puts it in the linearised
+    prior) and the cells are unchanged."""
+    from planner.radio.power_estimator import _Cells
+
+    cells = _Cells(np.zeros((1, 2, 3)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2), dtype=bool))
+    los, w = np.array([True]), np.ones(1)
+
+    def add(x: float, rng_m: float) -> bool:
+        return bool(cells.add(np.array([[x, 0.0, 0.0]]), np.array([rng_m]), los, w, 0.05)[0])
+
+    assert not add(0.0, 100.0) and not add(4.0, 104.0)  # 4 m from a cell at 100 m: the same cell
+    assert cells.weight[0].tolist() == [2.0, 0.0]
+    assert not add(30.0, 90.0)  # far: the empty cell
+    assert cells.weight[0].tolist() == [2.0, 1.0]
+    before = (cells.position_sum.copy(), cells.range_sum.copy(), cells.square_sum.copy())
+    assert add(-60.0, 150.0)  # far from both, none empty: left out
+    assert cells.weight[0].tolist() == [2.0, 1.0]
+    assert all(np.array_equal(a, b) for a, b in zip(before, (cells.position_sum, cells.range_sum, cells.square_sum), strict=True))
+    np.testing.assert_allclose(cells.range_sum[0], [204.0, 90.0])
+    np.testing.assert_allclose(cells.square_sum[0], [100.0**2 + 104.0**2, 90.0**2])
