@@ -281,7 +281,10 @@ class _Simulation:
         # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
         self.faults = FaultBuffer(fault_model, mission.seed, range(first, first + M), range(N), N, comms.h_max) if fault_model is not None else None
         self.used = np.full((M, N, N), -1, dtype=np.int64)
-        self.state = power.initial_source_state((M, N), config, self.estimator_config)
+        unknown = self.unknown_power = config.unknown_power
+        self.state: power.SourceEstimatorState = (
+            est.initial_state((M, N), self.estimator_config) if unknown is None else power.initial_state((M, N), self.estimator_config, unknown)
+        )
         #: The true source's power offset b (planner.radio.power_estimator; 0: the nominal power).
         self.true_offset = power.offset_of_power_db(mission.source.power_offset_db, self.channel.gamma)
         self.offsets_db = np.full((K, M, N), np.nan) if config.unknown_power is not None else None
@@ -350,9 +353,13 @@ class _Simulation:
         if self.faults is not None:
             late = self.faults.late_steps
             meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
-        self.state = power.update_source(self.state, meas, self.config, self.estimator_config)
-        if self.offsets_db is not None and isinstance(self.state, power.PowerEstimatorState):
-            self.offsets_db[k] = self.state.offset_db
+        if not isinstance(self.state, power.PowerEstimatorState):
+            self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components)
+        elif self.unknown_power is not None:  # the source's power unknown (planner.radio)
+            joint = power.update(self.state, meas, self.channel, self.estimator_config, self.unknown_power, self.components)
+            self.state = joint
+            if self.offsets_db is not None:
+                self.offsets_db[k] = joint.offset_db
         self.estimates[k] = self.state.estimate_m
         self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
         self.observable[k] = self.state.observable
