@@ -55,6 +55,7 @@ from planner.control import StepResult, kernel_limits
 from planner.fim import CostGradient, cost_gradient, fisher_information
 from planner.geometry import as_boxes
 from planner.params import Channel, Criterion, Limits
+from planner.radio.power_planning import corrected_scene, unknown_power_cost
 from planner.sensing import COMPONENTS, SensingComponent
 from planner.step import OWN_RANGE_WINDOW as OWN_RANGE_WINDOW  # re-exported: the window lives with the carried state
 from planner.step import DroneState, StepScene
@@ -486,7 +487,13 @@ class PlanResult:
 
 
 def plan(
-    config: PlannerConfig, scene: StepScene, state: DroneState, *, oracle_source: ArrayLike | None = None, oracle_slow: bool = True
+    config: PlannerConfig,
+    scene: StepScene,
+    state: DroneState,
+    *,
+    oracle_source: ArrayLike | None = None,
+    oracle_slow: bool = True,
+    power_offset: ArrayLike | None = None,
 ) -> PlanResult:
     """Drone i's planning step from its step inputs and carried state (eqs. 6, 10-17).
 
@@ -502,6 +509,10 @@ def plan(
         oracle_slow: the oracle source moves less than b per step
             (:meth:`missions.format.schema.Mission.source_is_slow`): its constraint then acts within
             v_max Δt + b (:func:`planner.control.source_activation_margin_m` with ``exact``).
+        power_offset: with the source's power unknown (``config.unknown_power``), the drone's
+            estimate b̂ (...) of its offset (:mod:`planner.radio.power_estimator`; NaN or None: 0):
+            the cost is that of the Schur complement at (p̂0, b̂) and the own ranges are read as
+            e^−b̂ d̂ (:mod:`planner.radio.power_planning`).
 
     The policies (docs/control.md): the own link's predicted line of sight in the planning FIM
     (:func:`own_los_weight`); the keep-out about the estimate (:func:`source_keepout_m`, rate
@@ -516,6 +527,8 @@ def plan(
     peers' drift (dead reckoning in the safety filter) before the step, its keep-out, loiter and
     step after it.
     """
+    if config.unknown_power is not None:  # the own ranges as of the assumed power (planner.radio)
+        scene = corrected_scene(scene, power_offset)
     batch = scene.batch
     p_hat = (
         np.asarray(scene.estimate_m, dtype=float) if oracle_source is None else np.broadcast_to(np.asarray(oracle_source, dtype=float), batch + (3,))
@@ -532,10 +545,15 @@ def plan(
     roles = (K.contiguous(config.ranging, bool), K.contiguous(config.bearing, bool), config.criterion == "D")
     view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
     value, grad, status = np.empty(batch), np.empty(batch + (3,)), np.empty(batch, dtype=np.int8)
-    given = bool(config.extra_masks)
+    given = bool(config.extra_masks) or config.unknown_power is not None
     if given:
-        # Components beyond range and bearing: the cost here, each adding its own terms.
-        cg = _scene_cost(config, scene, scene.own_mask, p_hat)
+        # Components beyond range and bearing: the cost here, each adding its own terms; an
+        # unknown power: the cost of the 4 × 4 information's Schur complement (planner.radio).
+        cg = (
+            _scene_cost(config, scene, scene.own_mask, p_hat)
+            if config.unknown_power is None
+            else unknown_power_cost(config, scene, p_hat, power_offset, own_los_weight)
+        )
         value[...], grad[...], status[...] = cg.value, cg.gradient, cg.status
     K.plan_batch(kscene, view_los, roles, old, kconfig, new, out, (value.reshape(-1), grad.reshape(-1, 3), status.reshape(-1)), given)
     cg = CostGradient(value, grad, status)

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
+from planner.radio.power_settings import UnknownPowerSettings
 from planner.sensing import BEARING, RANGE, SENSING, SensingTable, extra_masks
 
 
@@ -36,6 +37,11 @@ class PlannerConfig:
         xi: the projected-gradient step ξ of eq. 10; None: the controller's default.
         perturbation_rad: the random perturbation of the singular-FIM fallback, rad.
         sensing: the role table and component registry the masks refer to.
+        unknown_power: the source's transmit power is unknown (mission ``source.power:
+            unknown``): the estimator estimates it jointly with the position
+            (:mod:`planner.radio.power_estimator`) and the planning cost is eq. 6 on the Schur
+            complement of the 4 × 4 information (:mod:`planner.radio.power_planning`); None: the
+            power is known (the paper's model).
 
     Raises:
         ValueError: ``component_masks`` does not name exactly the components of ``sensing``.
@@ -53,6 +59,7 @@ class PlannerConfig:
     xi: float | None = None
     perturbation_rad: float = math.radians(20.0)
     sensing: SensingTable = SENSING
+    unknown_power: UnknownPowerSettings | None = None
 
     def __post_init__(self) -> None:
         expected = [c.name for c in self.sensing.components]

@@ -194,6 +194,7 @@ def _steered(
     aim: Callable[..., tuple[FloatArray, float | None]],
     oracle_source: ArrayLike | None = None,
     oracle_slow: bool = True,
+    power_offset: ArrayLike | None = None,
 ) -> Any:
     """:func:`planner.agent.plan` with the cost gradient of ``aim`` (``orbit``, ``random``):
     the same planning kernel after the cost (:func:`planner.kernels.plan_batch`: the FIM status
@@ -205,8 +206,10 @@ def _steered(
     from planner.agent import PlanResult, _kernel_config, _kernel_scene, estimate_sigma_m, source_keepout_m
     from planner.control import StepResult
     from planner.fim import CostGradient
+    from planner.radio.power_planning import corrected_scene
     from planner.step import DroneState
 
+    scene = corrected_scene(scene, power_offset)  # the own range of a source of the assumed power
     batch = scene.batch
     n = np.shape(scene.view_valid)[-1]
     p = np.asarray(scene.own_position_m, dtype=float)

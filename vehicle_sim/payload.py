@@ -50,6 +50,9 @@ class PayloadWorld:
         boxes_min_m, boxes_max_m: obstacle boxes, (B, 3) each.
         channel: the RSS channel.
         seed: mission seed. trial: trial index (0 for a distributed run).
+        power_offset_db: the source's reference power above the nominal one the drones assume
+            (dB, mission ``source.power_offset_db``): its ranges read short (positive) or long
+            (:func:`planner.radio.power_offset.offset_ranges`).
     """
 
     source_position_m: tuple[float, float, float]
@@ -59,6 +62,7 @@ class PayloadWorld:
     channel: Channel
     seed: int
     trial: int = 0
+    power_offset_db: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.boxes_min_m) != len(self.boxes_max_m):
@@ -256,13 +260,20 @@ class Payload:
             self._rng,
             *extra,
         )
+        range_m = float(np.asarray(obs.range_m).reshape(-1)[0])
+        if self.world.power_offset_db != 0.0:
+            from planner.radio.power_offset import offset_of_power_db, offset_ranges  # plain numpy
+
+            gamma = self.world.channel.gamma
+            distance = float(np.linalg.norm(self.world.source_at(time_s) - p))
+            range_m = float(offset_ranges(np.array(range_m), np.array(distance), offset_of_power_db(self.world.power_offset_db, gamma), gamma))
         return Measurement(
             drone=self.drone,
             sysid=self.sysid,
             step=int(step),
             t_s=float(time_s),
             position_enu_m=(float(p[0]), float(p[1]), float(p[2])),
-            range_m=_nan_to_none(float(np.asarray(obs.range_m).reshape(-1)[0])),
+            range_m=_nan_to_none(range_m),
             azimuth_rad=_nan_to_none(float(np.asarray(obs.azimuth_rad).reshape(-1)[0])),
             elevation_rad=_nan_to_none(float(np.asarray(obs.elevation_rad).reshape(-1)[0])),
             los=bool(np.asarray(obs.los).reshape(-1)[0]),

@@ -116,6 +116,9 @@ def summary(mission: Any, file: str) -> str:
     motion = "static" if src.is_static else f"moving {_v(src.velocity_mps)} m/s, at end {_v(src.position_at(m.duration_s))} m"
     dist = np.linalg.norm(starts - src.position_at(0.0), axis=-1)
     lines.append(f"source     {_v(src.position_m)} m, {motion}; {dist.min():.1f}..{dist.max():.1f} m from the starts")
+    if src.power != "known" or src.power_offset_db != 0.0:
+        power = "unknown (estimated with the position)" if src.power == "unknown" else "known (nominal assumed)"
+        lines.append(f"           power {power}; true offset {src.power_offset_db:+g} dB (simulation)")
     if m.obstacles:
         lines.append(f"obstacles  {len(m.obstacles)}:")
         lines.extend(

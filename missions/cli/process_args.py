@@ -58,4 +58,5 @@ def payload_world(mission: Mission) -> PayloadWorld:
         boxes_max_m=tuple(vec3(row) for row in maxs),
         channel=mission.channel.to_planner(),
         seed=int(mission.seed),
+        power_offset_db=float(mission.source.power_offset_db),
     )

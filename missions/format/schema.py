@@ -47,6 +47,7 @@ from planner.config import PlannerConfig
 from planner.estimator import EstimatorConfig
 from planner.params import Channel, Criterion, Limits
 from planner.policies import POLICIES
+from planner.radio.power_settings import UnknownPowerSettings
 from planner.sensing import ROLE_NAMES, SENSING, SensingTable, role_masks
 
 if TYPE_CHECKING:  # pragma: no cover - types only
@@ -385,6 +386,20 @@ class Source(_Section):
     velocity_mps: Vec3 = Field((0.0, 0.0, 0.0), description="Constant source velocity (m/s, ENU).")
     search_box: SearchBox | None = Field(
         None, description="Region the source is known to lie in (the estimator's bounds); absent: fence, any height."
+    )
+    power: Literal["known", "unknown"] = Field(
+        "known",
+        description="The source's transmit power as the drones know it: known (the paper's model: ranges from received power "
+        "with the nominal reference power) or unknown (a nuisance parameter: the estimator estimates the power offset jointly "
+        "with the position and the planning cost is eq. 6 on the position's information with the offset unknown).",
+    )
+    power_offset_db: Float = Field(
+        0.0,
+        ge=-60.0,
+        le=60.0,
+        description="Simulation only: the true source's reference power above the nominal one the drones assume (dB; "
+        "positive: a stronger source, whose ranges read short). With power known the planner assumes the nominal power "
+        "(biased); with power unknown it estimates the offset.",
     )
 
     @model_validator(mode="after")
@@ -879,6 +894,7 @@ class Mission(_Section):
             xi=self.controller.xi,
             perturbation_rad=self.controller.random_perturbation_rad,
             sensing=sensing,
+            unknown_power=UnknownPowerSettings() if self.source.power == "unknown" else None,
         )
 
     def vehicle_config(self, drone: int, **overrides: Any) -> VehicleConfig:

@@ -22,6 +22,7 @@ from missions.launch.collect import Collected
 from missions.launch.view_peb import peb_of_view
 from missions.study.simulator import MAVLINK_KINEMATIC_TOL, RunSpec, SimulationResult, safety_margins
 from planner.config import PlannerConfig
+from planner.radio.power_offset import offset_of_power_db
 
 #: Step logs by (step, drone id): each a planner's JSON step log entry.
 StepLogs = dict[tuple[int, int], dict[str, Any]]
@@ -142,8 +143,11 @@ class _StepArrays:
         self.peb = np.full((K, 1, n), np.inf)
         self.active = np.zeros((K, 4), dtype=np.int64)
 
-    def fill(self, steps: PlannerSteps, recs: dict[tuple[int, int], Record], sources: np.ndarray, config: PlannerConfig) -> None:
-        """Enter every planner step within 0..K−1 (its view's PEB at that step's source)."""
+    def fill(
+        self, steps: PlannerSteps, recs: dict[tuple[int, int], Record], sources: np.ndarray, config: PlannerConfig, true_offset: float = 0.0
+    ) -> None:
+        """Enter every planner step within 0..K−1 (its view's PEB at that step's source, of
+        the source's power offset ``true_offset``, :func:`missions.launch.view_peb.peb_of_view`)."""
         K = self.peb.shape[0]
         for (k, j), (est_m, obs, sing, filt, saved, act, loiter) in steps.items():
             if not 0 <= k < K:
@@ -154,7 +158,7 @@ class _StepArrays:
             self.filtered[k, 0, j - 1] = filt
             self.loiter[k, 0, j - 1] = loiter
             self.ages[k, 0, j - 1] = [k - s if s >= 0 else -1 for s in saved]
-            self.peb[k, 0, j - 1] = peb_of_view(config, saved, recs, sources[k])
+            self.peb[k, 0, j - 1] = peb_of_view(config, saved, recs, sources[k], true_offset)
             self.active[k] += np.asarray(act, dtype=np.int64)
 
     def hold_taken_over(self, taken: np.ndarray, steps: PlannerSteps) -> None:
@@ -228,7 +232,8 @@ def launch_result(
     positions = _positions(recs, logs, n, K)
     steps = _planner_steps(collected.status, logs)
     arrays = _StepArrays(n, K)
-    arrays.fill(steps, recs, sources, planner_config)
+    true_offset = offset_of_power_db(m.source.power_offset_db, planner_config.channel.gamma)
+    arrays.fill(steps, recs, sources, planner_config, true_offset)
     # A drone a pilot flies (taken over) has no planner step, and its displacements are no command.
     taken = _taken_over_steps(collected.records, logs, n, K)
     arrays.hold_taken_over(taken, steps)
@@ -267,4 +272,16 @@ def launch_result(
         record_ages=arrays.ages,
         runtime_s=runtime_s,
         extra={"distributed": 1.0, "dropped_messages": float(collected.dropped), "missing_drone_steps": float(missing[:K].sum())},
+        power_offset_db=_offsets(logs, n, K) if planner_config.unknown_power is not None else None,
     )
+
+
+def _offsets(logs: StepLogs, n: int, K: int) -> np.ndarray:
+    """Shape (K, 1, n): each planner's estimate of the source's power offset (dB) at each step,
+    from its step log (NaN: none), with the power unknown."""
+    out = np.full((K, 1, n), np.nan)
+    for (k, j), e in logs.items():
+        value = e.get("power_offset_db")
+        if 0 <= k < K and value is not None:
+            out[k, 0, j - 1] = value
+    return out

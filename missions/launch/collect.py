@@ -15,6 +15,7 @@ from comms.messages import Done, MessageError, Record, Status, decode
 from missions.format.schema import Mission
 from missions.launch.view_peb import peb_of_view
 from planner.config import PlannerConfig
+from planner.radio.power_offset import offset_of_power_db
 
 #: What was heard of step k: each drone's record and status (None: not heard), and the records
 #: the statuses' views name, by (step, drone id).
@@ -38,6 +39,8 @@ class SwarmListener:
     def __init__(self, mission: Mission, planner_config: PlannerConfig) -> None:
         self.mission = mission
         self._planner_config = planner_config
+        #: The source's power offset b (planner.radio.power_offset) of the views' PEB.
+        self._true_offset = offset_of_power_db(mission.source.power_offset_db, planner_config.channel.gamma)
         self.collected = Collected()
         self.ready: set[int] = set()  # real time: drones that reported ready at their start
         #: Drone id → (step, taken over) of its newest record heard.
@@ -118,6 +121,6 @@ class SwarmListener:
             if st is None:
                 continue
             errs.append(float(np.linalg.norm(np.asarray(st.estimate_m) - src)))
-            pebs.append(peb_of_view(self._planner_config, st.saved_steps, recs, src))
+            pebs.append(peb_of_view(self._planner_config, st.saved_steps, recs, src, self._true_offset))
         finite = [p for p in pebs if np.isfinite(p)]
         return (float(np.mean(finite)) if finite else float("inf")), (float(np.mean(errs)) if errs else float("nan"))

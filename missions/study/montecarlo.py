@@ -272,7 +272,7 @@ def merge_chunks(spec: RunSpec, parts: Sequence[SimulationResult]) -> Simulation
         first += p.spec.trials
     if first != spec.first_trial + spec.trials:
         raise ValueError(f"merge_chunks: {spec.label}: the chunks hold {first - spec.first_trial} trials, the run {spec.trials}")
-    rules = {*TRIAL_AXIS_FIELDS, "spec", "source_m", "margins_m", "active", "runtime_s", "extra"}
+    rules = {*TRIAL_AXIS_FIELDS, "spec", "source_m", "margins_m", "active", "runtime_s", "extra", "power_offset_db"}
     unknown = sorted({f.name for f in dataclasses.fields(SimulationResult)} - rules)
     if unknown:
         raise ValueError(f"merge_chunks: no rule to merge SimulationResult.{', '.join(unknown)}")
@@ -291,6 +291,9 @@ def merge_chunks(spec: RunSpec, parts: Sequence[SimulationResult]) -> Simulation
         margins_m={name: np.concatenate([p.margins_m[name] for p in parts], axis=1) for name in head.margins_m},
         active=np.sum([p.active for p in parts], axis=0),
         runtime_s=sum(p.runtime_s for p in parts),
+        power_offset_db=None
+        if head.power_offset_db is None
+        else np.concatenate([p.power_offset_db for p in parts if p.power_offset_db is not None], axis=1),
         extra=extra,
         **joined,
     )

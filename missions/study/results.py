@@ -58,35 +58,39 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None, w
     final_err = result.estimate_error_m[-1]
     m = spec.mission
     drone_steps = spec.trials * spec.steps * m.drones.count
-    return {
-        "run": run_name(result),
-        "mission_id": m.id,
-        "criterion": spec.criterion,
-        "policy": m.policy,
-        "activation": m.constraints.activation,
-        "trials": spec.trials,
-        "steps": spec.steps,
-        "drones": m.drones.count,
-        "seed": m.seed,
-        "oracle_estimate": bool(result.extra.get("oracle_estimate", 0.0)),
-        "final_peb_mean_m": _num(stats["mean"][-1]),
-        "final_peb_ci95_m": final_peb_interval(result),
-        "final_peb_p10_m": _num(stats["p10"][-1]),
-        "final_peb_p90_m": _num(stats["p90"][-1]),
-        "final_singular_fraction": _num(stats["singular_fraction"][-1]),
-        "initial_peb_mean_m": _num(stats["mean"][0]),
-        "final_estimate_error_mean_m": _num(final_err.mean()),
-        "final_estimate_error_median_m": _num(np.median(final_err)),
-        "violations": result.violations(),
-        "violation_families": list(SAFETY_FAMILIES),
-        "violating_drones": violating_drones(result),
-        "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
-        "singular_fallback_steps": int(result.singular_fallback.sum()),
-        "safety_filter_steps": int(result.filtered.sum()),
-        "loiter_steps": int(result.loiter.sum()),
-        "runtime_s": round(result.runtime_s, 3),
-        "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
-    } | (_faults(result, penalty) if with_penalty else {})
+    return (
+        {
+            "run": run_name(result),
+            "mission_id": m.id,
+            "criterion": spec.criterion,
+            "policy": m.policy,
+            "activation": m.constraints.activation,
+            "trials": spec.trials,
+            "steps": spec.steps,
+            "drones": m.drones.count,
+            "seed": m.seed,
+            "oracle_estimate": bool(result.extra.get("oracle_estimate", 0.0)),
+            "final_peb_mean_m": _num(stats["mean"][-1]),
+            "final_peb_ci95_m": final_peb_interval(result),
+            "final_peb_p10_m": _num(stats["p10"][-1]),
+            "final_peb_p90_m": _num(stats["p90"][-1]),
+            "final_singular_fraction": _num(stats["singular_fraction"][-1]),
+            "initial_peb_mean_m": _num(stats["mean"][0]),
+            "final_estimate_error_mean_m": _num(final_err.mean()),
+            "final_estimate_error_median_m": _num(np.median(final_err)),
+            "violations": result.violations(),
+            "violation_families": list(SAFETY_FAMILIES),
+            "violating_drones": violating_drones(result),
+            "worst_margins_m": {k: _num(v.min()) for k, v in result.margins_m.items()},
+            "singular_fallback_steps": int(result.singular_fallback.sum()),
+            "safety_filter_steps": int(result.filtered.sum()),
+            "loiter_steps": int(result.loiter.sum()),
+            "runtime_s": round(result.runtime_s, 3),
+            "drone_steps_per_s": round(drone_steps / max(result.runtime_s, 1e-9), 1),
+        }
+        | (_faults(result, penalty) if with_penalty else {})
+        | _source_power(result)
+    )
 
 
 def final_peb_interval(result: SimulationResult, level: float = 0.95) -> list[float] | None:
@@ -141,6 +145,23 @@ def violating_drones(result: SimulationResult) -> dict[str, list[dict[str, Any]]
             pairs.append(entry)
         out[family] = sorted(pairs, key=lambda d: d["worst_margin_m"])[:MAX_VIOLATING_DRONES]
     return out
+
+
+def _source_power(result: SimulationResult) -> dict[str, Any]:
+    """``{"source_power": ...}`` for a run with the power unknown or a true power offset: the
+    model, the true offset (dB above the nominal power) and, with the power unknown, the drones'
+    final estimates of it (mean, RMSE about the truth, dB; the fraction of drones with one)."""
+    source = result.spec.mission.source
+    if source.power == "known" and source.power_offset_db == 0.0:
+        return {}
+    out: dict[str, Any] = {"model": source.power, "true_offset_db": source.power_offset_db}
+    if result.power_offset_db is not None:
+        final = result.power_offset_db[-1]
+        have = np.isfinite(final)
+        out["final_offset_estimated_fraction"] = _num(have.mean())
+        out["final_offset_mean_db"] = _num(final[have].mean()) if have.any() else None
+        out["final_offset_rmse_db"] = _num(np.sqrt(((final[have] - source.power_offset_db) ** 2).mean())) if have.any() else None
+    return {"source_power": out}
 
 
 def _faults(result: SimulationResult, penalty: dict[str, Any] | None) -> dict[str, Any]:

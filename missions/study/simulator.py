@@ -44,6 +44,8 @@ from planner.network import hop_counts, update_saved_steps
 from planner.observation import observe_from_uniforms
 from planner.params import Criterion, Limits
 from planner.policies import RANDOM_WALK_DRAWS, RANDOM_WALK_STREAM, policy_planner
+from planner.radio import power_estimator as power
+from planner.radio.unknown_power import fisher_information_unknown_power, position_error_bound_unknown_power
 from planner.randomness import CONTROL_DRAWS, CONTROL_STREAM, MEASUREMENT_STREAM, presampled_uniforms
 from planner.sensing import SENSING, SensingTable
 from planner.step import DroneState, StepScene
@@ -105,6 +107,9 @@ class SimulationResult:
             and its estimate gave no direction to trust (:func:`planner.agent.must_loiter`).
         record_ages: age k − ℓ of every record drone i held of peer j, (K, M, N, N); −1 if none.
         runtime_s: wall time of the run (s).
+        power_offset_db: with the source's power unknown (``source.power: unknown``), each
+            drone's estimate of the source's power above the nominal one, (K, M, N), dB (NaN:
+            not estimated yet, or no drone of its view ranges); None with the power known.
     """
 
     spec: RunSpec
@@ -122,6 +127,7 @@ class SimulationResult:
     record_ages: NDArray[np.int16]
     runtime_s: float
     extra: dict[str, float] = field(default_factory=dict)
+    power_offset_db: FloatArray | None = None
 
     def violations(self) -> dict[str, int]:
         """Number of (step, trial, drone) with a negative margin, per safety family."""
@@ -275,7 +281,13 @@ class _Simulation:
         # Injected faults: receiver i of trial m draws from its own stream, as a planner node does.
         self.faults = FaultBuffer(fault_model, mission.seed, range(first, first + M), range(N), N, comms.h_max) if fault_model is not None else None
         self.used = np.full((M, N, N), -1, dtype=np.int64)
-        self.state = est.initial_state((M, N), self.estimator_config)
+        unknown = self.unknown_power = config.unknown_power
+        self.state: power.SourceEstimatorState = (
+            est.initial_state((M, N), self.estimator_config) if unknown is None else power.initial_state((M, N), self.estimator_config, unknown)
+        )
+        #: The true source's power offset b (planner.radio.power_estimator; 0: the nominal power).
+        self.true_offset = power.offset_of_power_db(mission.source.power_offset_db, self.channel.gamma)
+        self.offsets_db = np.full((K, M, N), np.nan) if config.unknown_power is not None else None
         self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
         self.rng_view = np.broadcast_to(self.ranging, (M, N, N))
         self.brg_view = np.broadcast_to(self.bearing, (M, N, N))
@@ -313,7 +325,8 @@ class _Simulation:
         """1. Own record: position, LOS and measurement at step k."""
         los = line_of_sight(self.pos, src, self.bmin, self.bmax)
         obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
-        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = obs.range_m, obs.azimuth_rad, obs.elevation_rad, obs.los
+        rng = power.offset_ranges(obs.range_m, np.linalg.norm(src - self.pos, axis=-1), self.true_offset, self.channel.gamma)
+        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = rng, obs.azimuth_rad, obs.elevation_rad, obs.los
         for name, values in self.rec_extra.items():
             values[k] = obs.values[name]
 
@@ -355,7 +368,13 @@ class _Simulation:
         if self.faults is not None:
             late = self.faults.late_steps
             meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
-        self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components, overwrite=True)
+        if not isinstance(self.state, power.PowerEstimatorState):
+            self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components, overwrite=True)
+        elif self.unknown_power is not None:  # the source's power unknown (planner.radio)
+            joint = power.update(self.state, meas, self.channel, self.estimator_config, self.unknown_power, self.components)
+            self.state = joint
+            if self.offsets_db is not None:
+                self.offsets_db[k] = joint.offset_db
         self.estimates[k] = self.state.estimate_m
         self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
         self.observable[k] = self.state.observable
@@ -382,7 +401,10 @@ class _Simulation:
             lost_contact=None if view.cut is None else np.broadcast_to(view.cut, (M, N, N)),
         )
         oracle = src if self.oracle_estimate else None
-        planned = self.plan_step(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow())
+        offset = power.planning_offset(self.state)  # None with the power known
+        planned = self.plan_step(
+            self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow(), power_offset=offset
+        )
         self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular
@@ -394,10 +416,16 @@ class _Simulation:
     def _accuracy(self, k: int, src: FloatArray, view: _View, observer: Callable[[SimStep], None] | None) -> None:
         """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
         extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
-        J_true = fisher_information(
-            src, view.positions_m, self.rng_view & view.have, self.brg_view & view.have, view.los, self.channel, extra_view, self.components
-        )
-        self.peb[k] = position_error_bound(J_true)[0]
+        rng, brg = self.rng_view & view.have, self.brg_view & view.have
+        if self.offsets_db is None and self.true_offset == 0.0:
+            J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
+            self.peb[k] = position_error_bound(J_true)[0]
+        else:
+            # The true channel's information (offset b); with the power unknown, its Schur complement.
+            J4 = fisher_information_unknown_power(
+                src, view.positions_m, rng, brg, view.los, self.channel, self.true_offset, extra_view, self.components
+            )
+            self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else position_error_bound(J4[..., :3, :3])[0]
         if observer is not None:
             observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
 
@@ -431,6 +459,7 @@ class _Simulation:
             record_ages=self.ages,
             runtime_s=time.perf_counter() - t0,
             extra=_extra(self.oracle_estimate, self.float32_positions, self.faults),
+            power_offset_db=self.offsets_db,
         )
 
 

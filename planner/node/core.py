@@ -22,6 +22,7 @@ from planner.geometry import vec3
 from planner.node.config import NodeConfig
 from planner.node.steplog import StepLog, replay_step_logs
 from planner.node.swarm import Swarm
+from planner.radio import power_estimator as power
 from planner.randomness import CONTROL_DRAWS, control_rng
 from planner.step import OWN_TRACK_STEPS as OWN_TRACK_STEPS  # re-exported by planner.node
 from planner.step import DroneState, StepScene
@@ -93,7 +94,8 @@ class StepCore:
         self.index = config.drone_index
         self.count = config.drone_count
         self.ctrl_rng = control_rng(config.seed, 0, self.index)
-        self.state = est.initial_state((), self.planner.estimator)
+        #: The source estimator's state (the joint one of planner.radio with the power unknown).
+        self.state: power.SourceEstimatorState = power.initial_source_state((), self.planner)
         est.warm_up(self.planner.estimator)  # the compiled estimator loaded before the first step
         #: Per drone, the newest step fed to the estimator.
         self.used_steps = np.full(self.count, -1, dtype=np.int64)
@@ -233,7 +235,7 @@ class StepCore:
         self.drone = result.state
         return view, rows, result
 
-    def _estimate(self, view: Any) -> tuple[est.EstimatorState, int]:
+    def _estimate(self, view: Any) -> tuple[power.SourceEstimatorState, int]:
         """Feed the estimator the view's records new since :attr:`used_steps` (one row per
         drone, in drone order) and then the peers' records that arrived late, after a newer one
         (``view.late_records``: old evidence about the source is still evidence), in the
@@ -243,7 +245,7 @@ class StepCore:
         fed = [rec if rec is not None and new[j] else None for j, rec in enumerate(view.records)] + list(late)
         sensing = self.planner.sensing
         meas = measurements_from_records(fed, sensing.extra_value_names)
-        return est.update(self.state, meas, self.planner.channel, self.planner.estimator, sensing.components), int(new.sum()) + len(late)
+        return power.update_source(self.state, meas, self.planner), int(new.sum()) + len(late)
 
     def _plan(self, k: int, own_m: np.ndarray, view: Any) -> Any:
         """The planning step (planner.agent.plan) of step k from the view, the own record of the step
@@ -274,7 +276,7 @@ class StepCore:
             perturbation_uniforms=self.ctrl_rng.random(CONTROL_DRAWS),
             lost_contact=lost,
         )
-        return plan(self.planner, scene, self.drone)
+        return plan(self.planner, scene, self.drone, power_offset=power.planning_offset(state))
 
     def rebuild(self, first: int, rows_by_drone: Mapping[int, Sequence[dict[str, Any]]]) -> dict[int, list[tuple[int, np.ndarray, float, bool]]]:
         """A rejoining planner's estimator, own-range window, own track and used steps, from
@@ -282,7 +284,14 @@ class StepCore:
         before ``first`` (:func:`~planner.node.steplog.replay_step_logs`). Returns the replayed
         steps per drone index."""
         self.state, done = replay_step_logs(
-            self.state, rows_by_drone, self.count, first, self.planner.channel, self.planner.estimator, self.planner.sensing
+            self.state,
+            rows_by_drone,
+            self.count,
+            first,
+            self.planner.channel,
+            self.planner.estimator,
+            self.planner.sensing,
+            lambda state, meas: power.update_source(state, meas, self.planner),
         )
         self.drone = self.drone.replayed(done.get(self.index, []))
         for j, steps in done.items():

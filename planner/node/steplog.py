@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -18,14 +18,15 @@ from planner.sensing import SENSING, SensingTable
 
 
 def replay_step_logs(
-    state: est.EstimatorState,
+    state: Any,
     rows_by_drone: Mapping[int, Sequence[dict[str, Any]]],
     n: int,
     first: int,
     channel: Channel,
     config: est.EstimatorConfig,
     sensing: SensingTable = SENSING,
-) -> tuple[est.EstimatorState, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
+    update: Callable[[Any, est.Measurements], Any] | None = None,
+) -> tuple[Any, dict[int, list[tuple[int, np.ndarray, float, bool]]]]:
     """Feed the records of the steps before ``first`` found in step logs to the estimator, step
     by step in order (eqs. 3-5 measurements at the logged positions, m, ENU): a rejoining
     planner's own log (its predecessor's), and its peers' logs when they are at hand (a launch
@@ -37,6 +38,8 @@ def replay_step_logs(
         n: drones in the mission. first: the first step not to replay.
         sensing: the table of the values beyond range and bearing a row's measurement may
             carry (``extra_values``) and of the components the estimator takes them for.
+        update: the estimator's call (state, records) -> state; None:
+            :func:`planner.estimator.update` with ``channel``, ``config`` and ``sensing``.
 
     Returns:
         The updated state and, per drone index, its replayed steps as (step, position m,
@@ -66,7 +69,7 @@ def replay_step_logs(
                     extra[name][j] = nan if value is None else value
             done[j].append((step, pos[j].copy(), float(rng[j]), bool(los[j])))
         meas = est.Measurements(positions_m=pos, range_m=rng, azimuth_rad=az, elevation_rad=el, los=los, extra_values=extra)
-        state = est.update(state, meas, channel, config, sensing.components)
+        state = est.update(state, meas, channel, config, sensing.components) if update is None else update(state, meas)
     return state, done
 
 
@@ -138,6 +141,9 @@ class StepLog:
             "loiter": bool(np.asarray(result.loiter)),
             "timing": {name: round(v, 6) for name, v in timing.items()},
         }
+        offset_db = getattr(state, "offset_db", None)  # the source's power unknown (planner.radio.power_estimator)
+        if offset_db is not None:
+            entry["power_offset_db"] = _num(float(offset_db))
         if record.extra_values:  # the values of components beyond range and bearing, if any
             entry["measurement"]["extra_values"] = {name: _num(v) for name, v in record.extra_values.items()}
         self._file.write(json.dumps(entry) + "\n")

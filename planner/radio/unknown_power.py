@@ -3,7 +3,8 @@ complement, the PEB, the A/D costs with analytic gradients, and the joint estima
 
 The paper assumes the source's power known (footnote to eq. 5). A ranging drone turns received
 power into distance through the log-distance model: d̂ = 10^{(P_0 − P)/(10γ)}. If the
-source's reference power is P_0 + ΔP instead of the assumed P_0, every range is scaled by the
+source's reference power is P_0 − ΔP instead of the assumed P_0 (ΔP dB weaker: a stronger source
+has ΔP < 0), every range is scaled by the
 same factor κ = 10^{ΔP/(10γ)} = e^b: the source looks like one at the distance s = e^b d of
 known power. In the paper's model (eqs. 3, 5) the range then is
 
@@ -35,7 +36,9 @@ w u uᵀ then contributes ∂ tr(M₄ w u uᵀ)/∂r = (w'(d)/d)(uᵀM₄u) r + 
 The exponent may be unknown too (the estimator's option): a drone that assumes γ_a where the
 channel has γ sees s = e^b d^ν with ν = γ/γ_a, a fifth parameter (∂s/∂ν = s ln d).
 
-Frame: mission ENU, metres; b dimensionless (ΔP in dB = 10γ b/ln 10). Pure numpy.
+Frame: mission ENU, metres; b dimensionless (ΔP in dB = 10γ b/ln 10, the source that much weaker than
+assumed; :mod:`planner.radio.power_offset` counts the other way, the power above the assumed one).
+Pure numpy.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ _NO_OFFSET_INFORMATION: float = 1e-15
 
 
 def offset_db(b: ArrayLike, gamma: float) -> FloatArray:
-    """ΔP (dB) of a power offset b: ΔP = 10 γ b/ln 10."""
+    """ΔP (dB) of a power offset b: ΔP = 10 γ b/ln 10, by how much the source is weaker than assumed."""
     return np.asarray(b, dtype=float) * (10.0 * gamma / math.log(10.0))
 
 

@@ -233,7 +233,7 @@ def test_estimator_is_efficient_and_unbiased_against_synthetic_truth() -> None:
 
 
 def test_estimator_recovers_an_offset_and_an_exponent() -> None:
-    """Ranges from a source 3 dB stronger than assumed and a channel of exponent 2.4 read by
+    """Ranges from a source 3 dB weaker than assumed (ranges read long) and a channel of exponent 2.4 read by
     drones that assume 2.0: the estimate of b (ΔP = 10γ b/ln 10) and ν = γ/γ_assumed."""
     rng = np.random.default_rng(9)
     n = 40
