@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from missions.cli.process_args import setup_logging, zenoh_settings
     from missions.format.loader import load_mission, parse_overrides
     from missions.launch.forkspawn import watch_launcher
+    from missions.runtime.signals import signals_deferred
     from planner.node import NodeOptions, PlannerNode
 
     setup_logging(args.log_level, f"plan[{args.uav}]")
@@ -142,6 +143,14 @@ def run(args: argparse.Namespace) -> int:
         rejoin=args.rejoin,
         tlog_path=args.tlog,
     )
+    # The compiled kernels load (from numba's cache, or compiled once after an install) before
+    # the node starts, with Ctrl-C, SIGTERM and SIGHUP held back: a signal in the middle of
+    # numba's compiler would be raised inside its LLVM callback (a traceback, the load cut
+    # short). A signal that came meanwhile stops the command as soon as they are in. (Started
+    # by `fimnav launch`, the fork server has loaded them already.)
+    with signals_deferred():
+        import planner.node.warm
+        import planner.node.warm_estimator  # noqa: F401
     summary = PlannerNode(mission, options, taken_over=args.taken_over).run()
     print(json.dumps(summary), flush=True)
     return 0
