@@ -106,6 +106,11 @@ def swarm_of(run: Launch, planners: int) -> dict[int, ProcInfo]:
     """The launcher's descendants once the mission flies: ``planners`` planners, the vehicles'
     process and the planners' fork server (and multiprocessing's resource tracker)."""
     wait_for(lambda: steps_logged(run.out) >= 2, 90.0, "the mission to fly two steps")
+
+    def planners_up() -> bool:  # a forked planner shows its own command line a moment after the fork
+        return sum(" plan " in p.cmdline for p in descendants(run.proc.pid).values()) == planners
+
+    wait_for(planners_up, 30.0, f"{planners} planner processes")
     tree = descendants(run.proc.pid)
     kinds = [p.cmdline for p in tree.values()]
     assert sum(" plan " in c for c in kinds) == planners, kinds
