@@ -155,9 +155,7 @@ class LocalPool:
             done = True
         finally:
             if pool is not None:
-                if not done:
-                    for _, future in pending:
-                        future.cancel()
+                if not done:  # (shutdown's cancel_futures cancels the chunks not started)
                     # No public way to stop running workers before Python 3.14 (kill_workers).
                     for process in list((getattr(pool, "_processes", None) or {}).values()):
                         process.kill()
