@@ -22,10 +22,12 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from missions.runtime.signals import signals_deferred, worker_defaults
-from missions.study.simulator import RunSpec, SimStep, SimulationResult, simulate
+
+if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where a chunk runs
+    from missions.study.simulator import RunSpec, SimStep, SimulationResult
 
 #: Fewest trials in a chunk: the simulator steps a chunk's trials together, one numpy call for
 #: all of them, so a short chunk costs more per trial (paper/joint, 100 trials × 60 steps, one
@@ -39,7 +41,7 @@ MAX_CHUNKS: int = 4
 #: (:class:`missions.study.simulator.SimStep`; it sees that chunk's first trial as trial 0).
 #: It runs in the executor's process, so it must be picklable (a module-level function or a
 #: ``functools.partial`` of one).
-Watch = Callable[[RunSpec], AbstractContextManager[Callable[[SimStep], None]]]
+Watch = Callable[["RunSpec"], AbstractContextManager[Callable[["SimStep"], None]]]
 
 
 def chunk_bounds(trials: int, min_trials: int = MIN_CHUNK_TRIALS, max_chunks: int = MAX_CHUNKS) -> list[tuple[int, int]]:
@@ -82,6 +84,8 @@ class Chunk:
 
 def simulate_chunk(chunk: Chunk, progress: Callable[[int], object] | None = None) -> SimulationResult:
     """Simulate one chunk (in any process); ``progress(n)``: n more trial-steps done."""
+    from missions.study.simulator import simulate
+
     trials = chunk.spec.trials
 
     def step_progress(steps: int) -> None:

@@ -6,11 +6,12 @@ the run), in WGS-84 longitude, latitude and altitude above mean sea level (the m
 origin's altitude plus the ENU height, as the planner's setpoints use it,
 :class:`comms.geodesy.MissionFrame`). KML lines are ``absolute`` altitude, extruded to the
 ground; GeoJSON positions are (longitude, latitude, altitude m) as RFC 7946 orders them.
-Written with fastkml and geojson.
+Written as text (KML 2.2 and JSON).
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, TypedDict
 
@@ -65,43 +66,52 @@ def flight_features(result: SimulationResult) -> list[Feature]:
     return [f for f in out if len(f["lonlatalt"]) >= (2 if f["kind"] == "trajectory" else 1)]
 
 
+def _xml_text(text: str) -> str:
+    """``text`` as XML character data (``&``, ``<``, ``>`` escaped)."""
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def _kml_coordinates(lonlatalt: NDArray[np.float64]) -> str:
+    """KML's ``lon,lat,alt`` tuples, space separated, each number as Python's shortest repr
+    (the float read back is the float written)."""
+    return " ".join(f"{lon!r},{lat!r},{alt!r}" for lon, lat, alt in lonlatalt.astype(float).tolist())
+
+
 def write_kml(features: list[Feature], name: str, path: Path) -> None:
-    """The run's flight (:func:`flight_features`) as KML (fastkml) named ``name``: a folder of
-    trajectories, one of estimates, the source."""
-    from fastkml import geometry as kg
-    from fastkml import kml
-    from fastkml.containers import Document, Folder
-    from fastkml.enums import AltitudeMode
-    from fastkml.features import Placemark
-    from pygeoif import geometry as geo
-
-    from planner.geometry import vec3
-
-    folders: dict[str, list[Placemark]] = {"trajectory": [], "estimate": [], "source": []}
-    for f in features:
-        c = [vec3(row) for row in f["lonlatalt"]]
-        g: kg.LineString | kg.Point
-        if f["kind"] == "trajectory":
-            g = kg.LineString(altitude_mode=AltitudeMode.absolute, extrude=True, geometry=geo.LineString(c))
-        else:
-            g = kg.Point(altitude_mode=AltitudeMode.absolute, geometry=geo.Point(*c[0]))
-        folders[f["kind"]].append(Placemark(name=f["name"], kml_geometry=g))
+    """The run's flight (:func:`flight_features`) as KML 2.2 named ``name``: a folder of
+    trajectories (``LineString``, ``absolute`` altitude, extruded to the ground), one of
+    estimates, the source (``Point``). Written as text: a KML library costs a study more time
+    than its whole results directory (tests/missions/test_exports.py reads it back with
+    fastkml)."""
     names = {"trajectory": "trajectories", "estimate": "source estimates (last step)", "source": "source (true)"}
-    doc = Document(name=name, features=[Folder(name=names[k], features=v) for k, v in folders.items()])
-    path.write_text(kml.KML(features=[doc]).to_string(prettyprint=True))
+    folders: dict[str, list[str]] = {kind: [] for kind in names}
+    for f in features:
+        coords = _kml_coordinates(f["lonlatalt"] if f["kind"] == "trajectory" else f["lonlatalt"][:1])
+        tag = "LineString" if f["kind"] == "trajectory" else "Point"
+        extrude = "\n          <extrude>1</extrude>" if tag == "LineString" else ""
+        folders[f["kind"]].append(
+            f"      <Placemark>\n        <name>{_xml_text(f['name'])}</name>\n        <{tag}>{extrude}\n"
+            f"          <altitudeMode>absolute</altitudeMode>\n          <coordinates>{coords}</coordinates>\n"
+            f"        </{tag}>\n      </Placemark>\n"
+        )
+    body = "".join(f"    <Folder>\n      <name>{_xml_text(names[kind])}</name>\n{''.join(marks)}    </Folder>\n" for kind, marks in folders.items())
+    path.write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<kml xmlns="http://www.opengis.net/kml/2.2">\n  <Document>\n'
+        f"    <name>{_xml_text(name)}</name>\n{body}  </Document>\n</kml>\n"
+    )
 
 
 def write_geojson(features: list[Feature], path: Path) -> None:
-    """The run's flight (:func:`flight_features`) as a GeoJSON FeatureCollection (geojson)."""
-    import geojson
-
+    """The run's flight (:func:`flight_features`) as an RFC 7946 GeoJSON FeatureCollection:
+    (longitude, latitude, altitude m) to 9 decimals (0.1 mm of a degree)."""
     feats = []
     for f in features:
-        c = [tuple(map(float, row)) for row in f["lonlatalt"]]
-        # 9 decimals of a degree (0.1 mm): the library rounds to 6 (11 cm) by default.
-        g = geojson.LineString(c, precision=9) if f["kind"] == "trajectory" else geojson.Point(c[0], precision=9)
-        feats.append(geojson.Feature(geometry=g, properties={"kind": f["kind"], "name": f["name"], "drone": f["drone"], "role": f["role"]}))
-    path.write_text(geojson.dumps(geojson.FeatureCollection(feats), indent=1))
+        c = [[round(v, 9) for v in row] for row in f["lonlatalt"].astype(float).tolist()]
+        geometry = {"type": "LineString", "coordinates": c} if f["kind"] == "trajectory" else {"type": "Point", "coordinates": c[0]}
+        feats.append(
+            {"type": "Feature", "geometry": geometry, "properties": {"kind": f["kind"], "name": f["name"], "drone": f["drone"], "role": f["role"]}}
+        )
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}, indent=1))
 
 
 def write_exports(result: SimulationResult, run_dir: Path) -> None:

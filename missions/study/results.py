@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import platform
 from collections.abc import Sequence
 from pathlib import Path
@@ -93,12 +94,71 @@ def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None, w
     )
 
 
+def _incomplete_beta(x: float, a: float, b: float) -> float:
+    """The regularized incomplete beta function I_x(a, b), 0 ≤ x ≤ 1, a, b > 0: Lentz's
+    continued fraction (Numerical Recipes §6.4), on the side of the symmetry
+    I_x(a, b) = 1 − I_(1−x)(b, a) where it converges fast."""
+    if x <= 0.0 or x >= 1.0:
+        return 0.0 if x <= 0.0 else 1.0
+    if x > (a + 1.0) / (a + b + 2.0):
+        return 1.0 - _incomplete_beta(1.0 - x, b, a)
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)) / a
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    f = d
+    for m in range(1, 100_000):
+        for numerator in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)), -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):
+            d = 1.0 + numerator * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + numerator / c
+            c = c if abs(c) > tiny else tiny
+            f *= c * d
+        if abs(c * d - 1.0) < 1e-16:
+            break
+    return front * f
+
+
+def student_t_quantile(p: float, dof: float) -> float:
+    """The ``p`` quantile of Student's t with ``dof`` degrees of freedom (0.5 < p < 1), as
+    ``scipy.stats.t.ppf`` (tests/missions/test_results_stats.py checks it against scipy: 1e-10
+    relative up to 10⁴ degrees of freedom, trials of a run). t solves P(0 < T < t) = ½ I_(t²/(ν+t²))(½, ν/2) =
+    p − ½ for p ≤ 0.75, and P(T > t) = ½ I_(ν/(ν+t²))(ν/2, ½) = 1 − p above (each side where
+    its right-hand side is exact), by bisection on a bracket then Newton steps with the t
+    density. No scipy: importing it costs a study more than writing its results."""
+    if not (0.5 < p < 1.0) or not dof > 0:
+        raise ValueError(f"student_t_quantile: expected 0.5 < p < 1 and dof > 0, found p={p}, dof={dof}")
+    nu = float(dof)
+    central = p <= 0.75
+    target = p - 0.5 if central else 1.0 - p
+
+    def excess(t: float) -> float:  # > 0: t too small
+        if central:
+            return target - 0.5 * _incomplete_beta(t * t / (nu + t * t), 0.5, nu / 2.0)
+        return 0.5 * _incomplete_beta(nu / (nu + t * t), nu / 2.0, 0.5) - target
+
+    log_norm = math.lgamma((nu + 1.0) / 2.0) - math.lgamma(nu / 2.0) - 0.5 * math.log(nu * math.pi)
+    lo, hi = 0.0, 1.0
+    while excess(hi) > 0.0:
+        lo, hi = hi, 2.0 * hi
+    t = 0.5 * (lo + hi)
+    for _ in range(200):
+        e = excess(t)
+        lo, hi = (t, hi) if e > 0.0 else (lo, t)
+        density = math.exp(log_norm - (nu + 1.0) / 2.0 * math.log1p(t * t / nu))
+        step = t + e / density
+        new = step if lo < step < hi else 0.5 * (lo + hi)
+        if abs(new - t) <= 1e-15 * abs(t) or hi - lo <= 1e-15 * hi:
+            return new
+        t = new
+    return t
+
+
 def final_peb_interval(result: SimulationResult, level: float = 0.95) -> list[float] | None:
     """The ``level`` confidence interval (m) of the final mean PEB (eq. 18, last step): per
     trial the mean over its drones' finite views, then Student's t over the trials,
     mean ± t_(1+level)/2, M−1 · s / √M. None below two trials with a finite mean (a trial
     whose every final view is singular is left out, as in the mean)."""
-    from scipy.special import stdtrit  # t quantile, as scipy.stats.t.ppf (importing scipy.stats costs ~1 s a study)
 
     peb = result.peb_m[-1]  # (M, N)
     finite = np.isfinite(peb)
@@ -107,7 +167,7 @@ def final_peb_interval(result: SimulationResult, level: float = 0.95) -> list[fl
     if per_trial.size < 2:
         return None
     mean = float(per_trial.mean())
-    half = float(stdtrit(per_trial.size - 1, 0.5 + level / 2.0) * per_trial.std(ddof=1) / np.sqrt(per_trial.size))
+    half = float(student_t_quantile(0.5 + level / 2.0, per_trial.size - 1) * per_trial.std(ddof=1) / np.sqrt(per_trial.size))
     return [mean - half, mean + half]
 
 
