@@ -114,7 +114,16 @@ def assert_untouched_until_handback(tlog: Path, flavour: str, handback_unix: flo
     assert any(kind == "setpoint" for t, kind, v in events if t > t_back), "no setpoint after the hand-back"
 
 
-@pytest.mark.parametrize(("flavour", "path"), [("ardupilot", "start"), ("px4", "start"), ("ardupilot", "rejoin"), ("px4", "rejoin")])
+# Default run: one flavour per path (11-15 s each, real time); the other two in the slow run.
+@pytest.mark.parametrize(
+    ("flavour", "path"),
+    [
+        ("ardupilot", "start"),
+        pytest.param("px4", "start", marks=pytest.mark.slow),
+        pytest.param("ardupilot", "rejoin", marks=pytest.mark.slow),
+        ("px4", "rejoin"),
+    ],
+)
 def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str, path: str) -> None:
     """Real time: the vehicle boots airborne, a ground station switches it to its pilot hold,
     then ``fimnav plan`` starts on it: as a new planner (``start``) or as a restarted one
@@ -161,7 +170,7 @@ def test_a_planner_started_beside_a_pilot_held_drone_takes_nothing(tmp_path: Pat
     assert_untouched_until_handback(tlog, flavour, handback_unix)
 
 
-@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+@pytest.mark.parametrize("flavour", ["ardupilot", pytest.param("px4", marks=pytest.mark.slow)])  # PX4's lockstep restart: slow run (7 s)
 def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
     """Lockstep: the planner flies 4 steps, a ground station takes the drone (pilot hold), the
     planner sees it at step 4 and is killed (SIGKILL) at step 6; ``fimnav plan --rejoin`` on the

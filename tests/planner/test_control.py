@@ -93,7 +93,7 @@ limits_st = st.builds(
 # ---------------------------------------------------------------- limits on random inputs
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), limits=limits_st, n_peers=st.integers(0, 5), with_prev=st.booleans(), singular=st.booleans())
 def test_step_respects_kinematic_limits_and_altitude_box(seed, limits, n_peers, with_prev, singular):
     rng = np.random.default_rng(seed)
@@ -127,7 +127,7 @@ def test_step_respects_kinematic_limits_and_altitude_box(seed, limits, n_peers, 
 # ---------------------------------------------------------------- descent without constraints
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), activation=st.sampled_from(["safe", "paper"]), with_prev=st.booleans())
 def test_unconstrained_step_is_normalised_steepest_descent(seed, activation, with_prev):
     rng = np.random.default_rng(seed)
