@@ -11,7 +11,8 @@ other), then rewrites the tables between the markers
     ...
     <!-- END regenerate.py: NAME -->
 
-in ``docs/case-study.md`` (``case-study``, and ``policies``: the navigation policies compared),
+in ``docs/case-study.md`` (``case-study``; ``policies``: the navigation policies compared;
+``power``: the cost of not knowing the transmit power),
 ``docs/distributed.md`` (``fault-table``) and ``docs/reliability.md`` (``fault-grid``), and
 copies the figures into ``docs/figures/``.
 ``--only NAME`` (repeatable) runs and rewrites just those blocks. Each table states the command, the commit it was
@@ -73,6 +74,12 @@ GRID_TRIALS = 100
 #: The policy comparison of docs/case-study.md: Fig. 3's missions under every navigation policy
 #: (planner/policies.py), each mission's criterion, with the optimum; trials per run.
 POLICY_TRIALS = 20
+
+#: The cost of not knowing the transmit power (docs/case-study.md): the paper missions whose
+#: drones range (bearings do not depend on the power), A and D, with the power known and with
+#: it unknown (``source.power=unknown``), the same trials; trials per run.
+POWER_NAMES = ("ranging_los", "ranging_nlos", "joint", "heterogeneous")
+POWER_TRIALS = 20
 
 FAMILIES = ("uav", "source", "obstacle", "altitude", "speed", "turn_rate")
 
@@ -142,6 +149,10 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
                              baselines=first if loss or delay else None)  # fmt: skip
     cmds["policies"] = Command("policies", tuple(f"paper/{n}" for n in FIG3_NAMES), out / "policies", trials=trials or POLICY_TRIALS, steps=steps,
                                jobs=jobs, policy="all", optimum=True)  # fmt: skip
+    power = tuple(f"paper/{n}" for n in POWER_NAMES)
+    cmds["power-known"] = Command("power-known", power, out / "power-known", "both", None, trials or POWER_TRIALS, steps, jobs, False)
+    cmds["power-unknown"] = Command("power-unknown", power, out / "power-unknown", "both", None, trials or POWER_TRIALS, steps, jobs, False,
+                                    ("source.power=unknown",))  # fmt: skip
     for g, (_, sets) in enumerate(GRID_SETTINGS):
         cmds[f"grid-{g}"] = Command(f"grid-{g}", paper, out / f"grid-{g}", "both", None, trials or GRID_TRIALS, steps, jobs, False, sets,
                                     out / "grid-0" if sets else None)  # fmt: skip
@@ -149,7 +160,7 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
 
 
 #: Which commands each docs block is made from.
-BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",), "policies": ("policies",)}
+BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",), "policies": ("policies",), "power": ("power-",)}
 
 
 def stamp() -> str:
@@ -417,6 +428,37 @@ def policy_comparison(runs: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def power_table(known: Sequence[dict[str, Any]], unknown: Sequence[dict[str, Any]]) -> list[str]:
+    """Per mission and criterion: the final mean PEB with the power known and unknown (eq. 18 of
+    J, and of its Schur complement), their ratio, violations, the median final estimate errors
+    and the drones' final power-offset estimates."""
+    by_known = {r["run"]: r for r in known}
+    lines = [
+        "| mission | criterion | final PEB, power known [m] | final PEB, power unknown [m] | ratio | violations (known / unknown) "
+        "| final estimate error, known / unknown [m] (median) | final offset estimate [dB] (mean, RMSE about 0) |",
+        "|---|---|---:|---:|---:|---|---|---|",
+    ]
+    ratios = []
+    for u in unknown:
+        k = by_known.get(u["run"])
+        if k is None:
+            continue
+        ratio = u["final_peb_mean_m"] / k["final_peb_mean_m"] if u["final_peb_mean_m"] and k["final_peb_mean_m"] else None
+        if ratio is not None:
+            ratios.append(ratio)
+        sp = u.get("source_power", {})
+        offset = "—" if sp.get("final_offset_mean_db") is None else f"{sp['final_offset_mean_db']:+.2f}, {sp['final_offset_rmse_db']:.2f}"
+        lines.append(
+            f"| paper/{u['mission_id'].removeprefix('paper_')} | {u['criterion']} | {num(k['final_peb_mean_m'])} | {num(u['final_peb_mean_m'])} | "
+            f"{'—' if ratio is None else f'{ratio:.2f}'} | {sum(k['violations'].values())} / {sum(u['violations'].values())} | "
+            f"{num(k['final_estimate_error_median_m'])} / {num(u['final_estimate_error_median_m'])} | {offset} |"
+        )
+    head = unknown[0]
+    lines += ["", f"{head['trials']} trials × {head['steps']} steps × {head['drones']} drones per run"
+              + (f"; power unknown over power known, final mean PEB: {min(ratios):.2f}-{max(ratios):.2f} ×." if ratios else ".")]
+    return lines
+
+
 def _signed(x: float) -> str:
     return f"{x:+.2f}".replace("-", "−")
 
@@ -475,6 +517,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         out_blocks["fault-table"] = provenance([c for n, c in cmds.items() if n.startswith("faults-")], when) + faults
     if "policies" in blocks:
         out_blocks["policies"] = provenance([cmds["policies"]], when) + policy_comparison(summaries["policies"])
+    if "power" in blocks:
+        out_blocks["power"] = provenance([cmds["power-known"], cmds["power-unknown"]], when) + power_table(
+            summaries["power-known"], summaries["power-unknown"]
+        )
     if "fault-grid" in blocks:
         grid = fault_grid([summaries[f"grid-{g}"] for g in range(len(GRID_SETTINGS))])
         out_blocks["fault-grid"] = provenance([c for n, c in cmds.items() if n.startswith("grid-")], when) + grid
@@ -488,6 +534,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "fault-table": DOCS / "distributed.md",
         "fault-grid": DOCS / "reliability.md",
         "policies": DOCS / "case-study.md",
+        "power": DOCS / "case-study.md",
     }
     for name, body in out_blocks.items():
         replace_block(files[name], name, body)
