@@ -160,7 +160,13 @@ def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figure
 
 
 #: Which commands each docs block is made from.
-BLOCKS = {"case-study": ("case-study", "fig3"), "fault-table": ("faults-",), "fault-grid": ("grid-",), "policies": ("policies",), "power": ("power-",)}
+BLOCKS = {
+    "case-study": ("case-study", "fig3"),
+    "fault-table": ("faults-",),
+    "fault-grid": ("grid-",),
+    "policies": ("policies",),
+    "power": ("power-",),
+}
 
 
 def stamp() -> str:
