@@ -51,7 +51,7 @@ import stat
 import subprocess
 import sys
 import threading
-from collections.abc import Mapping, MutableMapping, Sequence
+from collections.abc import Callable, Mapping, MutableMapping, Sequence
 from multiprocessing import reduction
 from pathlib import Path
 from typing import Any
@@ -286,14 +286,30 @@ class ForkServer:
                 else:
                     os.environ[name] = value
 
-    def wait_ready(self, timeout_s: float = 120.0) -> None:
+    def wait_ready(self, timeout_s: float = 120.0, notice: Callable[[str], None] | None = None, notice_after_s: float = 3.0) -> None:
         """Wait until the fork server has imported :data:`PRELOAD` (it forks a child only then):
         fork a child that exits at once and wait for it. The planners' start time (real time)
         is fixed after this, as the preload loads the compiled planning step (seconds, and
-        once after an install the time to compile it)."""
-        child = self.ctx.Process(target=int)
-        child.start()
-        child.join(timeout_s)
+        once after an install the time to compile it). ``notice``: told once, in one line, when
+        the wait passes ``notice_after_s`` seconds (the kernels being compiled)."""
+        # (Process.start itself blocks until the server forks, after its preload: a timer tells.)
+        timer = None
+        if notice is not None:
+            timer = threading.Timer(
+                notice_after_s,
+                notice,
+                ("compiling the planning and estimation kernels into numba's cache: once after an install, "
+                 "about a minute on two cores (later launches load them in a second)",),
+            )  # fmt: skip
+            timer.daemon = True
+            timer.start()
+        try:
+            child = self.ctx.Process(target=int)
+            child.start()
+            child.join(timeout_s)
+        finally:
+            if timer is not None:
+                timer.cancel()
 
     def close(self) -> None:
         """End the fork server and multiprocessing's resource tracker (started with it) and wait

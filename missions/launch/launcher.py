@@ -351,9 +351,10 @@ class Launcher:
         ports = self.processes.vehicle_ports(vehicle_children, self.preflight_timeout_s)
         if self.realtime and self.gcs_endpoint is not None:
             self._start_gcs(self.gcs_endpoint, ports)
+        if self.processes.forks is not None:
+            # The planners' modules and kernels loaded (compiled, the first time): they start at once.
+            self.processes.forks.wait_ready(notice=self.notice)
         if self.realtime:
-            if self.processes.forks is not None:
-                self.processes.forks.wait_ready()  # the planners' modules and kernels loaded: they start at once
             # On the UNIX grid of multiples of Δt/speed-up: the simulated payloads measure
             # just before each point of it (vehicle_sim.bridge).
             dtw = m.dt_s / self.speedup

@@ -69,3 +69,30 @@ def test_the_preload_loads_the_compiled_estimator() -> None:
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert int(done.stdout) >= 1, done.stdout
+
+
+def test_a_slow_preload_is_announced_once_and_a_quick_one_not(tmp_path: Path) -> None:
+    # A 2 s preload (a cold kernel cache takes a minute) against a 0.5 s notice threshold, then
+    # the same server again, ready at once: one line the first time, none the second.
+    (tmp_path / "slow_preload.py").write_text("import time\ntime.sleep(2.0)\n")
+    done = run_python(
+        """
+        import missions.launch.forkspawn as fs
+        fs.PRELOAD = ("slow_preload",)
+        server = fs.ForkServer()
+        server.warm_up()
+        lines = []
+        server.wait_ready(notice=lines.append, notice_after_s=0.5)
+        print(len(lines))
+        print(lines[0] if lines else "")
+        again = []
+        server.wait_ready(notice=again.append, notice_after_s=0.5)
+        print(len(again))
+        server.close()
+        """,
+        tmp_path,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    first, line, second = done.stdout.splitlines()
+    assert first == "1" and "compiling the planning and estimation kernels" in line and "once after an install" in line, done.stdout
+    assert second == "0", done.stdout
