@@ -110,3 +110,27 @@ def test_power_unknown_with_a_nominal_source_reports_zero() -> None:
     assert result.violations() == dict.fromkeys(result.violations(), 0)
     assert np.abs(result.power_offset_db[-1]).max() < 2.0
     assert np.isfinite(result.peb_m[-1]).all()
+
+
+@pytest.mark.slow  # 6 s: the joint estimator over 3 trials x 200 steps
+def test_a_moving_source_of_unknown_power_is_followed() -> None:
+    """paper/dynamic_source (the source drifts 0.05 m/s east) 4 dB weaker than nominal: with the
+    power unknown the drones recover the offset (every final estimate within 2 dB, their mean
+    within 0.5 dB; seen -3.9 dB, worst 1.5 dB off) and follow the moving source to a final error
+    under a twentieth of the start's, with no violation; with the power known (and so wrong)
+    the same swarm ends at least four times farther off (seen 16 m against 116 m)."""
+
+    def run(power: str) -> tuple:
+        m = load_mission(PAPER / "dynamic_source.yaml", {"source.power": power, "source.power_offset_db": -4.0})
+        return m, simulate(RunSpec(m, "A", 3, 200))
+
+    m, unknown = run("unknown")
+    assert np.linalg.norm(unknown.source_m[-1] - unknown.source_m[0]) == pytest.approx(0.05 * 200 * m.dt_s, rel=1e-9)
+    assert unknown.violations() == dict.fromkeys(unknown.violations(), 0)
+    final = unknown.power_offset_db[-1]
+    assert np.isfinite(final).all() and np.abs(final + 4.0).max() < 2.0 and abs(final.mean() + 4.0) < 0.5
+    err = unknown.estimate_error_m
+    assert err[-1].mean() < err[0].mean() / 20.0
+    _, known = run("known")
+    assert known.violations() == dict.fromkeys(known.violations(), 0)
+    assert known.estimate_error_m[-1].mean() > 4.0 * err[-1].mean()
