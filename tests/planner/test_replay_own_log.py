@@ -83,3 +83,53 @@ def test_a_rejoining_planner_rebuilds_its_estimator_from_its_log(tmp_path: Path)
     both, done = replay_step_logs(est.initial_state((), config), {0: logged, 2: peer}, 3, STEPS, channel, config)
     assert [d[0] for d in done[2]] == list(range(STEPS))
     assert np.linalg.det(both.information) > np.linalg.det(state.information)
+
+
+def test_a_rejoining_planner_with_the_power_unknown_rebuilds_the_joint_estimate(tmp_path: Path) -> None:
+    """The same with ``source.power: unknown`` and a source 5 dB stronger than nominal (its
+    ranges read e^b times the distance, b = −5 ln 10 / (10 γ)): three ranging drones circle it at
+    60, 90 and 130 m (unequal distances make the offset observable); the rebuilt joint state
+    (position and power offset) is the predecessor's bit for bit, its offset is within 1.5 dB
+    of the truth and its position within three of its position error bounds (synthetic truth)."""
+    from planner.radio import power_estimator as power
+    from planner.radio.power_offset import offset_of_power_db, offset_ranges
+
+    mission = load_mission("paper/ranging_los", {"drones.count": 3, "source.power": "unknown"})
+    planner = mission.planner_config("A")
+    channel, config = planner.channel, planner.estimator
+    b = offset_of_power_db(5.0, channel.gamma)
+    rng = np.random.default_rng(5)
+    logs: dict[int, list[dict]] = {j: [] for j in range(3)}
+    for k in range(STEPS):
+        a = 2.0 * math.pi * k / STEPS
+        for j, radius in enumerate((60.0, 90.0, 130.0)):
+            p = SOURCE + np.array([radius * math.cos(a + j), radius * math.sin(a + j), 16.0 + 3.0 * j])
+            obs = observe_from_uniforms(SOURCE, p[None], np.array([True]), np.array([False]), np.array([True]), channel, rng.random((1, 5)))
+            r = offset_ranges(obs.range_m, np.array([np.linalg.norm(p - SOURCE)]), b, channel.gamma)
+            logs[j].append({"step": k, "t_s": float(k), "position_m": p.tolist(),
+                            "measurement": {"range_m": _num(float(r[0])), "azimuth_rad": None, "elevation_rad": None, "los": True},
+                            "estimate_m": [0.0, 0.0, 0.0]})  # fmt: skip
+    for j, rows in logs.items():
+        (tmp_path / f"planner_{j + 1}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    logged = {j: read_step_log(tmp_path / f"planner_{j + 1}.jsonl") for j in range(3)}
+
+    def update(state, meas):
+        return power.update_source(state, meas, planner)
+
+    rebuilt, done = replay_step_logs(power.initial_source_state((), planner), logged, 3, STEPS, channel, config, update=update)
+    assert all([d[0] for d in done[j]] == list(range(STEPS)) for j in range(3))
+    assert isinstance(rebuilt, power.PowerEstimatorState) and bool(rebuilt.observable)
+
+    ref = power.initial_source_state((), planner)
+    for k in range(STEPS):
+        pos = np.array([logs[j][k]["position_m"] for j in range(3)])
+        ranges = np.array([logs[j][k]["measurement"]["range_m"] for j in range(3)], dtype=float)
+        nan3 = np.full(3, np.nan)
+        ref = update(ref, est.Measurements(positions_m=pos, range_m=ranges, azimuth_rad=nan3, elevation_rad=nan3, los=np.ones(3, dtype=bool)))
+    np.testing.assert_array_equal(rebuilt.estimate_m, ref.estimate_m)
+    np.testing.assert_array_equal(rebuilt.offset_db, ref.offset_db)
+    assert abs(float(rebuilt.offset_db) - 5.0) < 1.5, float(rebuilt.offset_db)
+    # Within 3 of its position error bounds (of J_eq, the power unknown; a ring above the source:
+    # weak in height).
+    bound = math.sqrt(float(np.trace(np.linalg.inv(rebuilt.information))))
+    assert np.linalg.norm(rebuilt.estimate_m - SOURCE) < 3.0 * bound, (rebuilt.estimate_m, bound)
