@@ -111,7 +111,8 @@ def write_geojson(features: list[Feature], path: Path) -> None:
         feats.append(
             {"type": "Feature", "geometry": geometry, "properties": {"kind": f["kind"], "name": f["name"], "drone": f["drone"], "role": f["role"]}}
         )
-    path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}, indent=1))
+    # One feature per line (json's C encoder: an indented dump takes its Python one, 20 x slower).
+    path.write_text('{"type": "FeatureCollection", "features": [\n' + ",\n".join(json.dumps(f) for f in feats) + "\n]}\n")
 
 
 def write_exports(result: SimulationResult, run_dir: Path) -> None:

@@ -252,6 +252,7 @@ def write_run(
     with (run_dir / "peb.csv").open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["step", "peb_mean_m", "peb_p10_m", "peb_p90_m", "singular_fraction", "estimate_error_mean_m", "estimate_error_median_m"])
+        err_mean, err_median = err.mean(axis=1), np.median(err, axis=1)
         for k in range(len(stats["mean"])):
             w.writerow(
                 [
@@ -260,8 +261,8 @@ def write_run(
                     _fmt(stats["p10"][k]),
                     _fmt(stats["p90"][k]),
                     _fmt(stats["singular_fraction"][k]),
-                    _fmt(err[k].mean()),
-                    _fmt(np.median(err[k])),
+                    _fmt(err_mean[k]),
+                    _fmt(err_median[k]),
                 ]
             )
     roles = result.spec.mission.drones.roles
