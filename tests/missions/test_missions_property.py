@@ -56,7 +56,7 @@ def validator() -> Any:
     return jsonschema.Draft202012Validator(mission_json_schema())
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=30, deadline=None)
 @given(missions())
 def test_round_trip_and_schema(validator: Any, doc: dict[str, Any]) -> None:
     m = loads_mission(yaml.safe_dump(doc))
