@@ -4,7 +4,7 @@
     python docs/regenerate.py --trials 5 --steps 100 --out /tmp/quick --no-docs   # a quick look
 
 It runs the studies that the docs name, as ``fimnav montecarlo`` commands, through the same
-library call (:func:`missions.study.montecarlo.run_study`, in this process, one study after the
+library call (:func:`missions.study.montecarlo.write_study`, in this process, one study after the
 other), then rewrites the tables between the markers
 
     <!-- BEGIN regenerate.py: NAME -->
@@ -193,14 +193,14 @@ STAMP_FILE = "regenerate-stamp.txt"
 
 def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
     """Run one study in this process (the library call ``fimnav montecarlo`` makes,
-    :func:`missions.study.montecarlo.run_study`), write its results directory; return its run
+    :func:`missions.study.montecarlo.write_study`), write its results directory; return its run
     summaries (the directory also records ``when``, the commit and versions it ran at)."""
     from tqdm import tqdm
 
     from comms.errors import FimnavError
     from missions.format.loader import parse_overrides
-    from missions.study.montecarlo import expand_runs, run_study, study_size
-    from missions.study.results import write_results
+    from missions.study.executors import local_executor
+    from missions.study.montecarlo import expand_runs, study_size, write_study
     from planner.policies import POLICIES
 
     print(f"$ {cmd.shown()} --out {cmd.out}", flush=True)
@@ -210,10 +210,9 @@ def run_command(cmd: Command, when: str) -> list[dict[str, Any]]:
         policies = None if cmd.policy is None else (list(POLICIES) if cmd.policy == "all" else cmd.policy.split(","))
         specs = expand_runs(cmd.missions, parse_overrides(list(cmd.sets)), cmd.criterion, cmd.activation, cmd.trials, cmd.steps, policies)
         with tqdm(total=study_size(specs, cmd.baselines), unit="trial-step", desc=cmd.name, file=sys.stderr, disable=None) as bar:
-            study = run_study(specs, baselines=cmd.baselines, workers=cmd.jobs or 1, progress=bar.update, optimum=cmd.optimum,
-                              warn=lambda why: bar.write(f"regenerate: --baselines: {why}", file=sys.stderr))  # fmt: skip
-        summaries = write_results(study.results, cmd.out, command=["fimnav", *cmd.argv()], figures=cmd.figures,
-                                  penalties=study.penalties, extras=study.extras)  # fmt: skip
+            summaries = write_study(specs, cmd.out, command=["fimnav", *cmd.argv()], figures=cmd.figures, optimum=cmd.optimum,
+                                    baselines=cmd.baselines, executor=local_executor(cmd.jobs or 1), progress=bar.update,
+                                    warn=lambda why: bar.write(f"regenerate: --baselines: {why}", file=sys.stderr))  # fmt: skip
     except FimnavError as exc:
         raise SystemExit(f"regenerate: {cmd.shown()}: {exc}") from None
     (cmd.out / STAMP_FILE).write_text(when + "\n")

@@ -77,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from missions.format.loader import parse_overrides
-    from missions.study.montecarlo import expand_runs, run_study, study_size
-    from missions.study.results import write_results
+    from missions.study.montecarlo import expand_runs, study_size, write_study
 
     positive("trials", args.trials)
     positive("steps", args.steps)
@@ -99,25 +98,21 @@ def run(args: argparse.Namespace) -> int:
             server = stack.enter_context(ViewServer(web_port=args.view_port))
             watch = functools.partial(_watch_run, str(server.grpc_url), str(out / "view"))
             bar.write(f"live view: {server.browser_url}", file=sys.stderr)
-        study = run_study(
+        # Each run's directory is written as soon as the run is done (one run in memory).
+        summaries = write_study(
             specs,
+            out,
+            command=["fimnav", "montecarlo", *sys.argv[2:]],
+            figures=not args.no_figures,
+            optimum=args.optimum,
             oracle_estimate=args.oracle_estimate,
             baselines=args.baselines,
-            optimum=args.optimum,
             executor=executor,
             **chunks,
             progress=bar.update,
             watch=watch,
             warn=lambda why: bar.write(f"montecarlo: --baselines: {why}", file=sys.stderr),
         )
-    summaries = write_results(
-        study.results,
-        out,
-        command=["fimnav", "montecarlo", *sys.argv[2:]],
-        figures=not args.no_figures,
-        penalties=study.penalties,
-        extras=study.extras,
-    )
     print_table(summaries, args.optimum)
     print(f"results: {out}  (wall {time.perf_counter() - t0:.1f} s)")
     return 0

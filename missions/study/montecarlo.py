@@ -28,7 +28,7 @@ import numpy as np
 
 from missions.format.loader import load_mission
 from missions.study.executors import MAX_CHUNKS, MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
-from missions.study.results import PENALTY_REFERENCE, spec_name
+from missions.study.results import PENALTY_REFERENCE, ResultsWriter, spec_name
 from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
 from planner.params import Criterion
 
@@ -168,6 +168,56 @@ def run_study(
         placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
         extras = [run_optimum_summary(r, known=placements) for r in finished]
     return Study(finished, penalties, extras)
+
+
+def write_study(
+    specs: Sequence[RunSpec],
+    out: Path,
+    *,
+    command: Sequence[str] = (),
+    figures: bool = True,
+    optimum: bool = False,
+    oracle_estimate: bool = False,
+    baselines: Path | None = None,
+    executor: ChunkExecutor | None = None,
+    chunk_trials: int = MIN_CHUNK_TRIALS,
+    max_chunks: int = MAX_CHUNKS,
+    progress: Callable[[int], object] | None = None,
+    watch: Watch | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """:func:`run_study` written into results directory ``out`` run by run (``fimnav
+    montecarlo``): each run's directory as soon as the run is done
+    (:class:`missions.study.results.ResultsWriter`), so the study holds one run in memory (and
+    what its figures read of the others), not all of them; then ``summary.json`` and the
+    figures. The same files as :func:`missions.study.results.write_results` of the study.
+    Arguments as :func:`run_study`; returns the runs' summaries."""
+    writer = ResultsWriter(out, command, figures)
+    placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
+    expected = 0
+    for done in iter_study(
+        specs,
+        oracle_estimate=oracle_estimate,
+        baselines=baselines,
+        executor=executor,
+        chunk_trials=chunk_trials,
+        max_chunks=max_chunks,
+        progress=progress,
+        watch=watch,
+        warn=warn,
+    ):
+        if done.index != expected:  # iter_study yields the runs in the order of the specs
+            raise RuntimeError(f"write_study: run {done.index} came before run {expected}")
+        expected += 1
+        extra = None
+        if optimum:
+            from missions.study.optimum import run_optimum_summary
+
+            extra = run_optimum_summary(done.result, known=placements)
+        writer.add(done.result, done.penalty, extra)
+    if expected != len(specs):
+        raise RuntimeError(f"write_study: the executor returned {expected} of {len(specs)} runs")
+    return writer.close()
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ was used, and ``_<policy>`` under a baseline policy).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import platform
@@ -42,7 +43,17 @@ from missions.runtime.rundir import make_results_dir, writing
 from missions.study.layout import PENALTY_REFERENCE, run_name, spec_name
 from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, SimulationResult, fault_penalty
 
-__all__ = ["PENALTY_REFERENCE", "run_name", "spec_name", "summarize", "violating_drones", "write_results", "write_run"]
+__all__ = [
+    "PENALTY_REFERENCE",
+    "ResultsWriter",
+    "figure_view",
+    "run_name",
+    "spec_name",
+    "summarize",
+    "violating_drones",
+    "write_results",
+    "write_run",
+]
 
 
 def summarize(result: SimulationResult, penalty: dict[str, Any] | None = None, with_penalty: bool = True) -> dict[str, Any]:
@@ -289,6 +300,74 @@ def _fmt(x: float) -> str:
     return f"{float(x):.10g}"
 
 
+def figure_view(result: SimulationResult) -> SimulationResult:
+    """What a run's figures read, for a writer that keeps every run of a study until its
+    figures: every trial's PEB and estimate error (the per-step curves) and the first trial of
+    everything else (its trajectories); the other trials' positions, estimates, margins and
+    record ages (most of a run's memory) are left out. Not for summaries: its margins are empty
+    and its other per-trial arrays hold the first trial only."""
+    first = slice(0, 1)
+    return dataclasses.replace(
+        result,
+        positions_m=result.positions_m[:, first].copy(),
+        estimates_m=result.estimates_m[:, first].copy(),
+        observable=result.observable[:, first].copy(),
+        margins_m={},
+        singular_fallback=result.singular_fallback[:, first].copy(),
+        filtered=result.filtered[:, first].copy(),
+        loiter=result.loiter[:, first].copy(),
+        record_ages=result.record_ages[:, first].copy(),
+    )
+
+
+class ResultsWriter:
+    """Writes a results directory run by run, so a study holds one run in memory at a time:
+    :meth:`add` writes ``runs/<run>/`` as soon as a run is done (and keeps its summary and, for
+    the figures, its :func:`figure_view`); :meth:`close` writes ``summary.json`` and the figures.
+    The only writer of ``summary.json`` (and of ``runs/<run>/summary.json``).
+
+    Raises:
+        UsageError: ``out`` cannot be made or written (:mod:`missions.runtime.rundir`).
+    """
+
+    def __init__(self, out: Path, command: Sequence[str] = (), figures: bool = True) -> None:
+        self.out = make_results_dir(out)
+        self.command = list(command)
+        self.figures = figures
+        self.summaries: list[dict[str, Any]] = []
+        self.kept: list[SimulationResult] = []
+        self.extras: list[dict[str, Any] | None] = []
+
+    def add(self, result: SimulationResult, penalty: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write one run (``penalty``, ``extra``: see :func:`write_run`); return its summary."""
+        with writing(self.out):
+            summary = write_run(result, self.out, penalty, extra)
+        self.summaries.append(summary)
+        self.extras.append(extra)
+        if self.figures:
+            self.kept.append(figure_view(result))
+        return summary
+
+    def close(self) -> list[dict[str, Any]]:
+        """Write ``summary.json`` (every run added, in order) and the figures; return the summaries."""
+        with writing(self.out):
+            doc = {
+                "command": self.command,
+                "python": platform.python_version(),
+                "numpy": np.__version__,
+                "runs": self.summaries,
+            }
+            (self.out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
+            if self.figures:
+                from missions.study.figures import write_figures  # matplotlib only when figures are wanted
+
+                write_figures(self.kept, self.out / "figures")
+                from missions.study.comparison import write_policy_figures
+
+                write_policy_figures(self.kept, self.extras, self.out / "figures")
+        return self.summaries
+
+
 def write_results(
     results: Sequence[SimulationResult],
     out: Path,
@@ -297,32 +376,18 @@ def write_results(
     penalties: Sequence[dict[str, Any] | None] | None = None,
     extras: Sequence[dict[str, Any] | None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Write the whole results directory for one or several runs; return the summaries.
+    """Write the whole results directory for one or several runs (:class:`ResultsWriter`);
+    return the summaries.
 
     ``penalties``: per run, its fault penalty if already computed (see :func:`summarize`).
     ``extras``: per run, entries added to its summary (see :func:`write_run`).
-    The only writer of ``summary.json`` (and of ``runs/<run>/summary.json``).
 
     Raises:
         UsageError: ``out`` cannot be made or written (:mod:`missions.runtime.rundir`).
     """
-    make_results_dir(out)
     pens = list(penalties) if penalties is not None else [None] * len(results)
     exs = list(extras) if extras is not None else [None] * len(results)
-    with writing(out):
-        summaries = [write_run(r, out, p, e) for r, p, e in zip(results, pens, exs, strict=True)]
-        doc = {
-            "command": list(command),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "runs": summaries,
-        }
-        (out / "summary.json").write_text(json.dumps(doc, indent=2) + "\n")
-        if figures:
-            from missions.study.figures import write_figures  # matplotlib only when figures are wanted
-
-            write_figures(results, out / "figures")
-            from missions.study.comparison import write_policy_figures
-
-            write_policy_figures(results, exs, out / "figures")
-    return summaries
+    writer = ResultsWriter(out, command, figures)
+    for r, p, e in zip(results, pens, exs, strict=True):
+        writer.add(r, p, e)
+    return writer.close()

@@ -163,3 +163,36 @@ def test_the_live_view_watches_each_runs_first_trial_in_the_worker(tmp_path: Pat
         assert sorted(drones) == list(range(spec.steps))
         for k in range(spec.steps):
             np.testing.assert_allclose(np.asarray(drones[k]), result.positions_m[k, 0], atol=1e-4)
+
+
+def test_write_study_writes_each_run_when_it_is_done_and_the_same_files_as_write_results(tmp_path: Path) -> None:
+    """write_study (fimnav montecarlo's path): a run's directory exists, with its summary, once
+    the next run has started (the study keeps one run in memory), and the results directory is
+    write_results' of run_study's results: the same summaries but for wall times, the same
+    per-run files, the same figure names."""
+    from missions.study.montecarlo import write_study
+    from missions.study.results import write_results
+
+    specs = expand_runs(["paper/joint", "paper/bearing"], {}, "A", None, 3, 8, None)
+    first = tmp_path / "streamed" / "runs" / "paper_joint_A" / "summary.json"
+    seen_at_second_run: list[bool] = []
+    done = [0]
+
+    def progress(n: int) -> None:
+        done[0] += n
+        if done[0] > specs[0].trials * specs[0].steps and not seen_at_second_run:
+            seen_at_second_run.append(first.exists())
+
+    streamed = write_study(specs, tmp_path / "streamed", progress=progress)
+    assert seen_at_second_run == [True]
+    study = run_study(specs)
+    whole = write_results(study.results, tmp_path / "whole", penalties=study.penalties, extras=study.extras)
+    assert [_untimed(s) for s in streamed] == [_untimed(s) for s in whole]
+    for run in ("paper_joint_A", "paper_bearing_A"):
+        a, b = tmp_path / "streamed" / "runs" / run, tmp_path / "whole" / "runs" / run
+        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+        for name in ("peb.csv", "trajectories.csv", "trajectories.kml", "trajectories.geojson", "mission.yaml"):
+            assert (a / name).read_bytes() == (b / name).read_bytes(), (run, name)
+    assert sorted(p.name for p in (tmp_path / "streamed" / "figures").iterdir()) == sorted(p.name for p in (tmp_path / "whole" / "figures").iterdir())
+    top = json.loads((tmp_path / "streamed" / "summary.json").read_text())
+    assert [r["run"] for r in top["runs"]] == ["paper_joint_A", "paper_bearing_A"]
