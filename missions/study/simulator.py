@@ -37,10 +37,10 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.format.schema import Faults, Mission
 from planner import estimator as est
+from planner import sim_kernels
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
-from planner.geometry import distance_to_boxes, line_of_sight
-from planner.network import hop_counts, update_saved_steps
+from planner.geometry import as_boxes, distance_to_boxes
 from planner.observation import observe_from_uniforms
 from planner.params import Criterion, Limits
 from planner.policies import RANDOM_WALK_DRAWS, RANDOM_WALK_STREAM, policy_planner
@@ -147,10 +147,19 @@ class SimulationResult:
 
 
 def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
-    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N)."""
+    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N) (the values of
+    the components beyond range and bearing; :func:`planner.sim_kernels.gather_view` gathers
+    the rest)."""
     m_idx = np.arange(saved.shape[0])[:, None, None]
     j_idx = np.arange(saved.shape[2])[None, None, :]
     return history[np.maximum(saved, 0), m_idx, j_idx]
+
+
+def _contiguous(a: FloatArray) -> FloatArray:
+    """``a`` as a C-contiguous, writeable float array (the form the kernels are compiled for)."""
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
 
 
 def _with_late_records(
@@ -244,7 +253,7 @@ class _Simulation:
         self.spec = spec
         self.config = config = mission.planner_config(spec.criterion, sensing)
         self.channel = config.channel
-        self.bmin, self.bmax = config.boxes_min_m, config.boxes_max_m
+        self.bmin, self.bmax = as_boxes(config.boxes_min_m, config.boxes_max_m)
         self.ranging, self.bearing = config.ranging, config.bearing
         self.extra_masks = config.extra_masks
         self.components = sensing.components
@@ -288,9 +297,12 @@ class _Simulation:
         #: The true source's power offset b (planner.radio.power_estimator; 0: the nominal power).
         self.true_offset = power.offset_of_power_db(mission.source.power_offset_db, self.channel.gamma)
         self.offsets_db = np.full((K, M, N), np.nan) if config.unknown_power is not None else None
-        self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
+        # What does not change from step to step: the sensing roles as every drone's view sees
+        # them, the links a partition cuts (the kernels' form), whether the source is slow.
         self.rng_view = np.broadcast_to(self.ranging, (M, N, N))
         self.brg_view = np.broadcast_to(self.bearing, (M, N, N))
+        self.no_cut = np.zeros((N, N), dtype=bool)
+        self.source_slow = mission.source_is_slow()
 
         self.estimates = np.empty((K, M, N, 3))
         self.est_err = np.empty((K, M, N))
@@ -323,10 +335,14 @@ class _Simulation:
 
     def _record(self, k: int, src: FloatArray) -> None:
         """1. Own record: position, LOS and measurement at step k."""
-        los = line_of_sight(self.pos, src, self.bmin, self.bmax)
-        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
-        rng = power.offset_ranges(obs.range_m, np.linalg.norm(src - self.pos, axis=-1), self.true_offset, self.channel.gamma)
-        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = rng, obs.azimuth_rad, obs.elevation_rad, obs.los
+        self.pos = pos = _contiguous(self.pos)
+        los = self.rec_los[k]
+        sim_kernels.line_of_sight(pos.reshape(-1, 3), _contiguous(src), self.bmin, self.bmax, los.reshape(-1))
+        obs = observe_from_uniforms(src, pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
+        rng = obs.range_m
+        if self.true_offset != 0.0:
+            rng = power.offset_ranges(rng, np.linalg.norm(src - pos, axis=-1), self.true_offset, self.channel.gamma)
+        self.rec_range[k], self.rec_az[k], self.rec_el[k] = rng, obs.azimuth_rad, obs.elevation_rad
         for name, values in self.rec_extra.items():
             values[k] = obs.values[name]
 
@@ -334,12 +350,22 @@ class _Simulation:
         """2. Delayed view (hop latency, memory buffer)."""
         comms, partition = self.comms, self.partition
         cut = self.partition_links if partition is not None and partition[0] <= k < partition[1] else None
-        hops = hop_counts(self.pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
-        saved = update_saved_steps(self.saved, hops, k, comms.h_max) if self.faults is None else self.faults.update(self.saved, hops, k)
+        hops = np.empty(self.saved.shape, dtype=np.int64)
+        sim_kernels.hop_counts(self.pos, comms.d_hop_m, comms.h_max + 1, self.no_cut if cut is None else cut, cut is not None, hops)
+        if self.faults is None:
+            saved = self.saved.copy()
+            sim_kernels.update_saved_steps(saved, hops, k, comms.h_max)
+        else:
+            saved = self.faults.update(self.saved, hops, k)
         self.saved = saved
-        have = saved >= 0
-        self.ages[k] = np.where(have, k - saved, -1)
-        return _View(cut, hops, saved, have, _gather(self.positions, saved), _gather(self.rec_los, saved))
+        return self._view(k, cut, hops, saved)
+
+    def _view(self, k: int, cut: NDArray[np.bool_] | None, hops: NDArray[np.int64], saved: NDArray[np.int64]) -> _View:
+        """The view of the records held at step k (``saved``), and their ages."""
+        have = np.empty(saved.shape, dtype=bool)
+        view_pos, view_los = np.empty(saved.shape + (3,)), np.empty(saved.shape, dtype=bool)
+        sim_kernels.gather_view(self.positions, self.rec_los, saved, k, view_pos, view_los, have, self.ages[k])
+        return _View(cut, hops, saved, have, view_pos, view_los)
 
     def _instant_view(self, k: int) -> _View:
         """2'. The centralized policy's view: every drone's record of step k, at once (no hop
@@ -347,23 +373,25 @@ class _Simulation:
         M, N = self.pos.shape[:2]
         saved = np.full((M, N, N), k, dtype=np.int64)
         self.saved = saved
-        self.ages[k] = 0
         hops = np.broadcast_to(1 - np.eye(N, dtype=np.int64), (M, N, N)).copy()
-        return _View(None, hops, saved, saved >= 0, _gather(self.positions, saved), _gather(self.rec_los, saved))
+        return self._view(k, None, hops, saved)
 
     def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
         """3. Estimator: records new to each drone."""
         saved = view.saved
-        new = saved > self.used
-        self.used = saved
-        nan = np.nan
+        new = saved > self.used if self.rec_extra else None
+        shape = saved.shape
+        positions, values, los = np.empty(shape + (3,)), np.empty((3,) + shape), np.empty(shape, dtype=bool)
+        sim_kernels.gather_new_records(
+            saved, self.used, view.positions_m, view.los, self.rec_range, self.rec_az, self.rec_el, positions, values[0], values[1], values[2], los
+        )
         meas = est.Measurements(
-            positions_m=np.where(new[..., None], view.positions_m, nan),
-            range_m=np.where(new, _gather(self.rec_range, saved), nan),
-            azimuth_rad=np.where(new, _gather(self.rec_az, saved), nan),
-            elevation_rad=np.where(new, _gather(self.rec_el, saved), nan),
-            los=view.los & new,
-            extra_values={name: np.where(new, _gather(values, saved), nan) for name, values in self.rec_extra.items()},
+            positions_m=positions,
+            range_m=values[0],
+            azimuth_rad=values[1],
+            elevation_rad=values[2],
+            los=los,
+            extra_values={name: np.where(new, _gather(rec, saved), np.nan) for name, rec in self.rec_extra.items()},
         )
         if self.faults is not None:
             late = self.faults.late_steps
@@ -402,9 +430,7 @@ class _Simulation:
         )
         oracle = src if self.oracle_estimate else None
         offset = power.planning_offset(self.state)  # None with the power known
-        planned = self.plan_step(
-            self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow(), power_offset=offset
-        )
+        planned = self.plan_step(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.source_slow, power_offset=offset)
         self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular
@@ -418,7 +444,9 @@ class _Simulation:
         extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
         rng, brg = self.rng_view & view.have, self.brg_view & view.have
         if self.offsets_db is None and self.true_offset == 0.0:
-            J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
+            # Every drone's view in the kernels' form: no broadcast copies of the source.
+            src_b = np.broadcast_to(src, view.have.shape[:-1] + (3,))
+            J_true = fisher_information(src_b, view.positions_m, rng, brg, view.los.astype(float), self.channel, extra_view, self.components)
             self.peb[k] = position_error_bound(J_true)[0]
         else:
             # The true channel's information (offset b); with the power unknown, its Schur complement.
@@ -739,18 +767,12 @@ def safety_margins(
         altitude box) and of step k itself (slack to the speed bounds and to the heading and
         tilt change limits). Negative is a violation.
     """
-    K = positions.shape[0] - 1
-    N = positions.shape[2]
-    eye = np.eye(N, dtype=bool)
     nxt = positions[1:]
     u = np.diff(positions, axis=0)
     out = {name: np.empty(nxt.shape[:-1]) for name in SAFETY_FAMILIES}
-    for k in range(K):  # chunked: the pairwise distances of all steps at once would be large
-        p = nxt[k]
-        diff = p[..., :, None, :] - p[..., None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        dist[..., eye] = np.inf
-        out["uav"][k] = dist.min(-1) - limits.d_uav_m
+    nearest = np.empty(nxt.shape[:-1])
+    sim_kernels.nearest_peer_distance(_contiguous(nxt), nearest)
+    out["uav"] = nearest - limits.d_uav_m
     out["source"] = np.linalg.norm(nxt - sources[1:, None, None, :], axis=-1) - limits.d_source_m
     out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
     out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])

@@ -1,0 +1,111 @@
+"""The simulator's bookkeeping kernels (planner/sim_kernels.py) against the numpy functions they
+stand in for: the same values, bit for bit (the simulator's runs must not change with them).
+
+Cases are built to hit the edges: drones exactly d_hop apart (integer coordinates, so the
+squared distances are exact), cut links, a hop limit, links that graze a box's face or run
+parallel to a slab, records never received (step −1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from missions.study.simulator import _gather
+from planner import sim_kernels
+from planner.geometry import line_of_sight
+from planner.network import hop_counts, update_saved_steps
+
+
+def _grid_positions(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Integer positions on a small grid: many pairs at exactly the hop radius."""
+    return rng.integers(0, 4, size=shape + (3,)).astype(float) * 10.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_hop_counts_and_saved_steps_equal_numpy(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    M, N = 7, 9
+    pos = _grid_positions(rng, (M, N))
+    blocked = rng.random((N, N)) < 0.2
+    blocked = blocked | blocked.T
+    deepest = 0
+    for d_hop in (10.0, 20.0, 30.0):
+        for max_hops, cut in ((None, None), (2, None), (3, blocked), (None, blocked)):
+            ref = hop_counts(pos, d_hop, max_hops=max_hops, blocked=cut)
+            got = np.empty((M, N, N), dtype=np.int64)
+            sim_kernels.hop_counts(
+                pos, d_hop, -1 if max_hops is None else max_hops, np.zeros((N, N), bool) if cut is None else cut, cut is not None, got
+            )
+            np.testing.assert_array_equal(got, ref)
+            deepest = max(deepest, int(ref.max()))
+            saved = rng.integers(-1, 12, size=(M, N, N)).astype(np.int64)
+            for h_max in (1, 2, 4):
+                want = update_saved_steps(saved, ref, 12, h_max)
+                mine = saved.copy()
+                sim_kernels.update_saved_steps(mine, got, 12, h_max)
+                np.testing.assert_array_equal(mine, want)
+    assert deepest >= 3  # multi-hop paths are exercised
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_line_of_sight_equals_numpy(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    bmin = rng.integers(-3, 3, size=(4, 3)).astype(float) * 10.0
+    bmax = bmin + rng.integers(1, 4, size=(4, 3)).astype(float) * 10.0
+    # Points on the grid of the boxes' corners: links along faces, parallel to slabs, through edges.
+    pts = rng.integers(-5, 6, size=(400, 3)).astype(float) * 10.0
+    pts[:100] += rng.normal(0.0, 3.0, size=(100, 3))
+    for src in (np.array([0.0, 0.0, 0.0]), np.array([10.0, -20.0, 30.0]), rng.normal(0.0, 30.0, 3)):
+        ref = line_of_sight(pts, src, bmin, bmax)
+        got = np.empty(len(pts), dtype=bool)
+        sim_kernels.line_of_sight(pts, src, bmin, bmax, got)
+        np.testing.assert_array_equal(got, ref)
+        assert ref.any() and not ref.all()
+    none = np.empty(len(pts), dtype=bool)
+    sim_kernels.line_of_sight(pts, src, np.zeros((0, 3)), np.zeros((0, 3)), none)
+    assert none.all()
+
+
+def test_gathers_equal_numpy() -> None:
+    rng = np.random.default_rng(3)
+    K, M, N = 12, 5, 6
+    positions = rng.normal(size=(K + 1, M, N, 3))
+    rec_los = rng.random((K, M, N)) < 0.5
+    rec = [rng.normal(size=(K, M, N)) for _ in range(3)]
+    saved = rng.integers(-1, K, size=(M, N, N)).astype(np.int64)
+    used = rng.integers(-1, K, size=(M, N, N)).astype(np.int64)
+    k = K - 1
+
+    view_pos, view_los = np.empty((M, N, N, 3)), np.empty((M, N, N), dtype=bool)
+    have, ages = np.empty((M, N, N), dtype=bool), np.empty((M, N, N), dtype=np.int16)
+    sim_kernels.gather_view(positions, rec_los, saved, k, view_pos, view_los, have, ages)
+    np.testing.assert_array_equal(view_pos, _gather(positions, saved))
+    np.testing.assert_array_equal(view_los, _gather(rec_los, saved))
+    np.testing.assert_array_equal(have, saved >= 0)
+    np.testing.assert_array_equal(ages, np.where(saved >= 0, k - saved, -1))
+
+    new = saved > used
+    outs = (np.empty((M, N, N, 3)), np.empty((M, N, N)), np.empty((M, N, N)), np.empty((M, N, N)), np.empty((M, N, N), dtype=bool))
+    mine = used.copy()
+    sim_kernels.gather_new_records(saved, mine, view_pos, view_los, *rec, *outs)
+    np.testing.assert_array_equal(mine, saved)
+    np.testing.assert_array_equal(outs[0], np.where(new[..., None], view_pos, np.nan))
+    for got, values in zip(outs[1:4], rec, strict=True):
+        np.testing.assert_array_equal(got, np.where(new, _gather(values, saved), np.nan))
+    np.testing.assert_array_equal(outs[4], view_los & new)
+    assert new.any() and not new.all()
+
+
+def test_nearest_peer_distance_equals_numpy() -> None:
+    rng = np.random.default_rng(4)
+    p = rng.normal(0.0, 50.0, size=(5, 4, 7, 3))
+    diff = p[..., :, None, :] - p[..., None, :, :]
+    dist = np.sqrt((diff * diff).sum(-1))
+    dist[..., np.eye(7, dtype=bool)] = np.inf
+    got = np.empty(p.shape[:-1])
+    sim_kernels.nearest_peer_distance(p, got)
+    np.testing.assert_array_equal(got, dist.min(-1))
+    alone = np.empty((2, 3, 1))
+    sim_kernels.nearest_peer_distance(p[:2, :3, :1].copy(), alone)
+    assert np.isinf(alone).all()
