@@ -213,4 +213,36 @@ def nearest_peer_distance(positions, out):  # pragma: no cover - compiled
                 out[k, m, i] = best
 
 
-__all__ = ["gather_new_records", "gather_view", "hop_counts", "line_of_sight", "nearest_peer_distance", "update_saved_steps"]
+#: Lower bound of λ_min/λ_max (4 det J / (tr J)³) above which :func:`position_error_bounds`
+#: takes J⁻¹'s trace from the cofactors: far from singular (1e-12) and ill-conditioned (1e-8)
+#: alike, and well conditioned enough (cond J ≤ 1e4) that the cofactors and the LU inverse of
+#: :func:`planner.fim.position_error_bound` agree to ~1e-12 relative.
+WELL_CONDITIONED_BOUND: float = 1e-4
+
+
+@njit(cache=True)
+def position_error_bounds(J, peb, checked):  # pragma: no cover - compiled
+    """PEB = sqrt(tr J⁻¹) (eq. 18, m) of the FIMs J (B, 3, 3) that are provably well conditioned.
+
+    For symmetric positive semi-definite J, λ_max ≤ tr J and λ_mid λ_max ≤ (tr J / 2)², so
+    λ_min/λ_max ≥ 4 det J / (tr J)³. Where that bound exceeds :data:`WELL_CONDITIONED_BOUND`,
+    ``peb[b]`` = sqrt((sum of the principal 2×2 minors) / det J) and ``checked[b]`` False; elsewhere
+    (near-singular, non-finite, not positive) ``checked[b]`` is True and ``peb[b]`` is left for
+    :func:`planner.fim.position_error_bound` (its eigenvalue check decides singular views).
+    """
+    for b in range(J.shape[0]):
+        a, bb, c = J[b, 0, 0], J[b, 0, 1], J[b, 0, 2]
+        d, e, f = J[b, 1, 1], J[b, 1, 2], J[b, 2, 2]
+        c00 = d * f - e * e
+        c11 = a * f - c * c
+        c22 = a * d - bb * bb
+        det = a * c00 - bb * (bb * f - c * e) + c * (bb * e - d * c)
+        tr = a + d + f
+        ok = (tr > 0.0) & (det > 0.0) & math.isfinite(tr) & math.isfinite(det)
+        ok = ok and 4.0 * det > WELL_CONDITIONED_BOUND * tr * tr * tr
+        if ok:
+            peb[b] = math.sqrt((c00 + c11 + c22) / det)
+        checked[b] = not ok
+
+
+__all__ = ["gather_new_records", "gather_view", "hop_counts", "line_of_sight", "nearest_peer_distance", "position_error_bounds", "update_saved_steps"]

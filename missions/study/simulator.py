@@ -162,6 +162,19 @@ def _contiguous(a: FloatArray) -> FloatArray:
     return np.array(a, dtype=np.float64, order="C")
 
 
+def _position_error_bound(fim: FloatArray) -> FloatArray:
+    """PEB (eq. 18, m) of FIMs (..., 3, 3), +inf where singular: from the cofactors where J is
+    provably well conditioned (:func:`planner.sim_kernels.position_error_bounds`), elsewhere
+    :func:`planner.fim.position_error_bound` (its eigenvalue check decides singular views)."""
+    J = _contiguous(fim).reshape(-1, 3, 3)
+    peb, checked = np.empty(J.shape[0]), np.empty(J.shape[0], dtype=bool)
+    sim_kernels.position_error_bounds(J, peb, checked)
+    if checked.any():
+        idx = np.flatnonzero(checked)
+        peb[idx] = position_error_bound(J[idx])[0]
+    return peb.reshape(fim.shape[:-2])
+
+
 def _with_late_records(
     meas: est.Measurements,
     late_steps: NDArray[np.int64],
@@ -447,13 +460,13 @@ class _Simulation:
             # Every drone's view in the kernels' form: no broadcast copies of the source.
             src_b = np.broadcast_to(src, view.have.shape[:-1] + (3,))
             J_true = fisher_information(src_b, view.positions_m, rng, brg, view.los.astype(float), self.channel, extra_view, self.components)
-            self.peb[k] = position_error_bound(J_true)[0]
+            self.peb[k] = _position_error_bound(J_true)
         else:
             # The true channel's information (offset b); with the power unknown, its Schur complement.
             J4 = fisher_information_unknown_power(
                 src, view.positions_m, rng, brg, view.los, self.channel, self.true_offset, extra_view, self.components
             )
-            self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else position_error_bound(J4[..., :3, :3])[0]
+            self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else _position_error_bound(J4[..., :3, :3])
         if observer is not None:
             observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
 

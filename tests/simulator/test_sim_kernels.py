@@ -109,3 +109,37 @@ def test_nearest_peer_distance_equals_numpy() -> None:
     alone = np.empty((2, 3, 1))
     sim_kernels.nearest_peer_distance(p[:2, :3, :1].copy(), alone)
     assert np.isinf(alone).all()
+
+
+def test_position_error_bounds_match_the_eigenvalue_checked_peb() -> None:
+    """The cofactor PEB where J is provably well conditioned equals planner.fim's (LU inverse,
+    eigenvalue health check) to 1e-12 relative; every other J is left to planner.fim, and
+    the simulator's PEB agrees everywhere, singular views included."""
+    from missions.study.simulator import _position_error_bound
+    from planner.fim import position_error_bound
+
+    rng = np.random.default_rng(5)
+    B = 3000
+    Q = np.linalg.qr(rng.normal(size=(B, 3, 3)))[0]
+    lam = 10.0 ** rng.uniform(-1.0, 2.0, size=(B, 3))
+    lam[: B // 2, 0] *= 10.0 ** rng.uniform(-16.0, -1.0, size=B // 2)
+    lam[:200, 0] = 0.0  # rank-deficient
+    J = np.ascontiguousarray(Q @ (lam[..., None] * np.swapaxes(Q, -1, -2)))
+    J = 0.5 * (J + np.swapaxes(J, -1, -2))
+    J[-3, 1, 1] = np.nan
+    J[-2, 0, 0] = np.inf
+    J[-1] = 0.0
+    want = position_error_bound(J)[0]
+    peb, checked = np.full(B, -1.0), np.empty(B, dtype=bool)
+    sim_kernels.position_error_bounds(J, peb, checked)
+    fast = ~checked
+    assert 0.2 * B < fast.sum() < 0.9 * B  # both branches taken
+    np.testing.assert_allclose(peb[fast], want[fast], rtol=1e-12, atol=0.0)
+    rcond = lam.min(-1) / lam.max(-1)
+    assert (rcond[fast] > sim_kernels.WELL_CONDITIONED_BOUND).all()  # the bound never lets a bad J through
+    assert checked[-3:].all() and checked[:200].all()
+    got = _position_error_bound(J.reshape(60, 50, 3, 3))
+    assert got.shape == (60, 50)
+    np.testing.assert_array_equal(np.isinf(got.reshape(-1)), np.isinf(want))
+    np.testing.assert_array_equal(got.reshape(-1)[checked], want[checked])
+    assert np.isinf(want).sum() > 200
