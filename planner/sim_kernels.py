@@ -104,7 +104,10 @@ def hop_counts(positions, d_hop_m, max_hops, blocked, use_blocked, hops):  # pra
             hops[m, i, i] = 0
             frontier[0] = i
             n_front = 1
+            n_reached = 1
             for h in range(1, limit + 1):
+                if n_reached == N:
+                    break
                 n_next = 0
                 for f in range(n_front):
                     r = frontier[f]
@@ -113,6 +116,7 @@ def hop_counts(positions, d_hop_m, max_hops, blocked, use_blocked, hops):  # pra
                             hops[m, i, j] = h
                             nxt[n_next] = j
                             n_next += 1
+                n_reached += n_next
                 if n_next == 0:
                     break
                 for f in range(n_next):

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.format.schema import Faults, Mission
 from planner import estimator as est
+from planner import kernels as K
 from planner import sim_kernels
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
@@ -417,7 +418,8 @@ class _Simulation:
             if self.offsets_db is not None:
                 self.offsets_db[k] = joint.offset_db
         self.estimates[k] = self.state.estimate_m
-        self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
+        err = self.state.estimate_m - src
+        self.est_err[k] = np.sqrt((err * err).sum(-1))
         self.observable[k] = self.state.observable
 
     def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
@@ -457,10 +459,24 @@ class _Simulation:
         extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
         rng, brg = self.rng_view & view.have, self.brg_view & view.have
         if self.offsets_db is None and self.true_offset == 0.0:
-            # Every drone's view in the kernels' form: no broadcast copies of the source.
-            src_b = np.broadcast_to(src, view.have.shape[:-1] + (3,))
-            J_true = fisher_information(src_b, view.positions_m, rng, brg, view.los.astype(float), self.channel, extra_view, self.components)
-            self.peb[k] = _position_error_bound(J_true)
+            if extra_view:
+                J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
+            else:  # range and bearing only: planner.fim.fisher_information's kernel, called directly
+                M, N = rng.shape[:2]
+                J_true = np.zeros((M * N, 3, 3))
+                src_b = np.empty((M * N, 3))
+                src_b[:] = src
+                los_w = view.los.reshape(M * N, N).astype(float)
+                K.fim_batch(
+                    src_b,
+                    view.positions_m.reshape(M * N, N, 3),
+                    rng.reshape(M * N, N),
+                    brg.reshape(M * N, N),
+                    los_w,
+                    self.channel.kernel_array,
+                    J_true,
+                )
+            self.peb[k] = _position_error_bound(J_true).reshape(self.peb.shape[1:])
         else:
             # The true channel's information (offset b); with the power unknown, its Schur complement.
             J4 = fisher_information_unknown_power(
