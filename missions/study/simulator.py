@@ -805,27 +805,34 @@ def safety_margins(
     out["source"] = np.linalg.norm(nxt - sources[1:, None, None, :], axis=-1) - limits.d_source_m
     out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
     out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
-    speed = np.linalg.norm(u, axis=-1)
+    speed = np.sqrt((u * u).sum(-1))
     out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + kinematic_tol
-    prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
-    out["turn_rate"] = _turn_margin(prev, u, limits, kinematic_tol) + KINEMATIC_TOL
+    out["turn_rate"] = _turn_margin(u, speed, limits, kinematic_tol) + KINEMATIC_TOL
     return out
 
 
-def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
-    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step.
+def _previous(x: FloatArray) -> FloatArray:
+    """The value of the step before, along the step axis (K, ...): zero before the first."""
+    return np.concatenate([np.zeros((1,) + x.shape[1:]), x[:-1]], axis=0)
+
+
+def _turn_margin(u: FloatArray, length: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
+    """Slack (rad) of the heading and tilt change limits of eq. 2 between each step u (K, ..., 3)
+    and the one before (a zero step before the first); +inf on the first step. ``length``: |u|.
 
     ``position_tol_m`` is the position uncertainty of the recorded trajectory (float32 over
     MAVLink): it becomes an angle tolerance of tol / (length of the shorter step), horizontal
-    length for the heading, whole length for the tilt.
+    length for the heading, whole length for the tilt. Each step's angles are computed once and
+    shifted by one step for the step before.
     """
-    has_prev = np.linalg.norm(prev, axis=-1) > 0.0
-    psi0, psi1 = np.arctan2(prev[..., 1], prev[..., 0]), np.arctan2(u[..., 1], u[..., 0])
-    th0 = np.arctan2(prev[..., 2], np.hypot(prev[..., 0], prev[..., 1]))
-    th1 = np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
+    has_prev = _previous(length) > 0.0
+    psi1 = np.arctan2(u[..., 1], u[..., 0])
+    rho1 = np.hypot(u[..., 0], u[..., 1])
+    th1 = np.arctan2(u[..., 2], rho1)
+    psi0, th0 = _previous(psi1), _previous(th1)
     dpsi = np.abs((psi1 - psi0 + np.pi) % (2.0 * np.pi) - np.pi)
-    rho = np.minimum(np.hypot(prev[..., 0], prev[..., 1]), np.hypot(u[..., 0], u[..., 1]))
-    length = np.minimum(np.linalg.norm(prev, axis=-1), np.linalg.norm(u, axis=-1))
+    rho = np.minimum(_previous(rho1), rho1)
+    length = np.minimum(_previous(length), length)
     # The heading of a vertical step is undefined: no heading limit applies across it.
     vertical = rho < max(1e-9, 100.0 * position_tol_m)
     dpsi = np.where(vertical, 0.0, dpsi)
