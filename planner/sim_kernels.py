@@ -217,6 +217,32 @@ def nearest_peer_distance(positions, out):  # pragma: no cover - compiled
                 out[k, m, i] = best
 
 
+@njit(cache=True)
+def same_views(saved, first):  # pragma: no cover - compiled
+    """For each drone's view, the first drone of its trial holding the same records.
+
+    saved (M, N, N) int64, the step of drone i's record of drone j (−1: none); first (M, N) int64
+    out: the smallest i' with ``saved[m, i'] == saved[m, i]`` (i itself when none before it).
+    Two such views hold the same records, so every quantity of the view (its FIM, its PEB) is
+    the same: a swarm within one hop of itself has one view per trial.
+    """
+    M, N = saved.shape[0], saved.shape[1]
+    for m in range(M):
+        for i in range(N):
+            first[m, i] = i
+            for r in range(i):
+                if first[m, r] != r:
+                    continue
+                same = True
+                for j in range(N):
+                    if saved[m, r, j] != saved[m, i, j]:
+                        same = False
+                        break
+                if same:
+                    first[m, i] = r
+                    break
+
+
 #: Lower bound of λ_min/λ_max (4 det J / (tr J)³) above which :func:`position_error_bounds`
 #: takes J⁻¹'s trace from the cofactors: far from singular (1e-12) and ill-conditioned (1e-8)
 #: alike, and well conditioned enough (cond J ≤ 1e4) that the cofactors and the LU inverse of
@@ -249,4 +275,13 @@ def position_error_bounds(J, peb, checked):  # pragma: no cover - compiled
         checked[b] = not ok
 
 
-__all__ = ["gather_new_records", "gather_view", "hop_counts", "line_of_sight", "nearest_peer_distance", "position_error_bounds", "update_saved_steps"]
+__all__ = [
+    "gather_new_records",
+    "gather_view",
+    "hop_counts",
+    "line_of_sight",
+    "nearest_peer_distance",
+    "position_error_bounds",
+    "same_views",
+    "update_saved_steps",
+]

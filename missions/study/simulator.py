@@ -458,25 +458,11 @@ class _Simulation:
         """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
         extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
         rng, brg = self.rng_view & view.have, self.brg_view & view.have
-        if self.offsets_db is None and self.true_offset == 0.0:
-            if extra_view:
-                J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
-            else:  # range and bearing only: planner.fim.fisher_information's kernel, called directly
-                M, N = rng.shape[:2]
-                J_true = np.zeros((M * N, 3, 3))
-                src_b = np.empty((M * N, 3))
-                src_b[:] = src
-                los_w = view.los.reshape(M * N, N).astype(float)
-                K.fim_batch(
-                    src_b,
-                    view.positions_m.reshape(M * N, N, 3),
-                    rng.reshape(M * N, N),
-                    brg.reshape(M * N, N),
-                    los_w,
-                    self.channel.kernel_array,
-                    J_true,
-                )
-            self.peb[k] = _position_error_bound(J_true).reshape(self.peb.shape[1:])
+        if self.offsets_db is None and self.true_offset == 0.0 and not extra_view:
+            self.peb[k] = self._view_pebs(src, view, rng, brg)
+        elif self.offsets_db is None and self.true_offset == 0.0:
+            J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
+            self.peb[k] = _position_error_bound(J_true)
         else:
             # The true channel's information (offset b); with the power unknown, its Schur complement.
             J4 = fisher_information_unknown_power(
@@ -485,6 +471,22 @@ class _Simulation:
             self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else _position_error_bound(J4[..., :3, :3])
         if observer is not None:
             observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
+
+    def _view_pebs(self, src: FloatArray, view: _View, rng: NDArray[np.bool_], brg: NDArray[np.bool_]) -> FloatArray:
+        """PEB (eq. 18, m) of every drone's view with range and bearing only, (M, N): the FIM
+        kernel of :func:`planner.fim.fisher_information` once per distinct view (the drones of a
+        trial holding the same records share it, :func:`planner.sim_kernels.same_views`)."""
+        M, N = rng.shape[:2]
+        first = np.empty((M, N), dtype=np.int64)
+        sim_kernels.same_views(view.saved, first)
+        flat = (first + (np.arange(M) * N)[:, None]).reshape(-1)
+        distinct = np.flatnonzero(flat == np.arange(M * N))
+        J = np.zeros((distinct.size, 3, 3))
+        src_b = np.empty((distinct.size, 3))
+        src_b[:] = src
+        rows = (view.positions_m.reshape(M * N, N, 3)[distinct], rng.reshape(M * N, N)[distinct], brg.reshape(M * N, N)[distinct])
+        K.fim_batch(src_b, *rows, view.los.reshape(M * N, N)[distinct].astype(float), self.channel.kernel_array, J)
+        return _position_error_bound(J)[np.searchsorted(distinct, flat)].reshape(M, N)
 
     def _move(self, k: int, step: StepResult) -> None:
         """The drones fly their steps: positions at step k + 1."""

@@ -143,3 +143,17 @@ def test_position_error_bounds_match_the_eigenvalue_checked_peb() -> None:
     np.testing.assert_array_equal(np.isinf(got.reshape(-1)), np.isinf(want))
     np.testing.assert_array_equal(got.reshape(-1)[checked], want[checked])
     assert np.isinf(want).sum() > 200
+
+
+def test_same_views_finds_the_first_drone_with_the_same_records() -> None:
+    rng = np.random.default_rng(6)
+    M, N = 40, 8
+    saved = rng.integers(3, 6, size=(M, N, N)).astype(np.int64)
+    saved[:, :, :5] = 4  # rows differ in their last three columns only: many repeats
+    first = np.empty((M, N), dtype=np.int64)
+    sim_kernels.same_views(saved, first)
+    for m in range(M):
+        for i in range(N):
+            want = next(r for r in range(N) if np.array_equal(saved[m, r], saved[m, i]))
+            assert first[m, i] == want
+    assert (first != np.arange(N)).any() and (first == np.arange(N)).any()
