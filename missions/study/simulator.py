@@ -393,7 +393,8 @@ class _Simulation:
     def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
         """3. Estimator: records new to each drone."""
         saved = view.saved
-        new = saved > self.used if self.rec_extra else None
+        new = saved > self.used
+        extra = {name: np.where(new, _gather(rec, saved), np.nan) for name, rec in self.rec_extra.items()}
         shape = saved.shape
         positions, values, los = np.empty(shape + (3,)), np.empty((3,) + shape), np.empty(shape, dtype=bool)
         sim_kernels.gather_new_records(
@@ -405,7 +406,7 @@ class _Simulation:
             azimuth_rad=values[1],
             elevation_rad=values[2],
             los=los,
-            extra_values={name: np.where(new, _gather(rec, saved), np.nan) for name, rec in self.rec_extra.items()},
+            extra_values=extra,
         )
         if self.faults is not None:
             late = self.faults.late_steps
