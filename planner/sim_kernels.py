@@ -200,6 +200,57 @@ def gather_new_records(
 
 
 @njit(cache=True)
+def late_record_count(late_steps):  # pragma: no cover - compiled
+    """The largest number of late records (steps ≥ 0) any drone receives: late_steps (W, M, N, N)
+    int64, the steps of the records first delivered after a newer one (−1 elsewhere)."""
+    W, M, N = late_steps.shape[0], late_steps.shape[1], late_steps.shape[2]
+    most = 0
+    for m in range(M):
+        for i in range(N):
+            count = 0
+            for w in range(W):
+                for j in range(N):
+                    count += late_steps[w, m, i, j] >= 0
+            most = max(most, count)
+    return most
+
+
+@njit(cache=True)
+def gather_late_records(
+    late_steps, positions, rec_range, rec_az, rec_el, rec_los, pos_out, range_out, az_out, el_out, los_out
+):  # pragma: no cover - compiled
+    """Each drone's late records, oldest window slot first, then by sender; NaN (False) after
+    them: late_steps (W, M, N, N) int64 (−1: none); positions (K+1, M, N, 3), rec_range, rec_az,
+    rec_el (K, M, N), rec_los (K, M, N) bool the records; outputs pos_out (M, N, L, 3),
+    range_out, az_out, el_out (M, N, L), los_out (M, N, L) bool, L ≥ :func:`late_record_count`.
+    """
+    W, M, N = late_steps.shape[0], late_steps.shape[1], late_steps.shape[2]
+    L = range_out.shape[2]
+    nan = np.nan
+    for m in range(M):
+        for i in range(N):
+            c = 0
+            for w in range(W):
+                for j in range(N):
+                    s = late_steps[w, m, i, j]
+                    if s >= 0:
+                        for a in range(3):
+                            pos_out[m, i, c, a] = positions[s, m, j, a]
+                        range_out[m, i, c] = rec_range[s, m, j]
+                        az_out[m, i, c] = rec_az[s, m, j]
+                        el_out[m, i, c] = rec_el[s, m, j]
+                        los_out[m, i, c] = rec_los[s, m, j]
+                        c += 1
+            for r in range(c, L):
+                for a in range(3):
+                    pos_out[m, i, r, a] = nan
+                range_out[m, i, r] = nan
+                az_out[m, i, r] = nan
+                el_out[m, i, r] = nan
+                los_out[m, i, r] = False
+
+
+@njit(cache=True)
 def nearest_peer_distance(positions, out):  # pragma: no cover - compiled
     """Distance (m) from each drone to its nearest peer, +inf alone: positions (K, M, N, 3),
     out (K, M, N); sqrt(Δx² + Δy² + Δz²), the sum in that order (as numpy's)."""
@@ -276,9 +327,11 @@ def position_error_bounds(J, peb, checked):  # pragma: no cover - compiled
 
 
 __all__ = [
+    "gather_late_records",
     "gather_new_records",
     "gather_view",
     "hop_counts",
+    "late_record_count",
     "line_of_sight",
     "nearest_peer_distance",
     "position_error_bounds",

@@ -408,9 +408,11 @@ class _Simulation:
             los=los,
             extra_values=extra,
         )
-        if self.faults is not None:
+        if self.faults is not None and self.rec_extra:
             late = self.faults.late_steps
             meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
+        elif self.faults is not None:
+            meas = self._with_late_records(meas)
         if not isinstance(self.state, power.PowerEstimatorState):
             self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components, overwrite=True)
         elif self.unknown_power is not None:  # the source's power unknown (planner.radio)
@@ -422,6 +424,25 @@ class _Simulation:
         err = self.state.estimate_m - src
         self.est_err[k] = np.sqrt((err * err).sum(-1))
         self.observable[k] = self.state.observable
+
+    def _with_late_records(self, meas: est.Measurements) -> est.Measurements:
+        """:func:`_with_late_records` with range and bearing only, in compiled loops."""
+        late = self.faults.late_steps if self.faults is not None else None
+        width = 0 if late is None else sim_kernels.late_record_count(late)
+        if late is None or width == 0:
+            return meas
+        M, N = late.shape[1:3]
+        positions, values, los = np.empty((M, N, width, 3)), np.empty((3, M, N, width)), np.empty((M, N, width), dtype=bool)
+        rec = (self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los)
+        sim_kernels.gather_late_records(late, *rec, positions, values[0], values[1], values[2], los)
+        return est.Measurements(
+            positions_m=np.concatenate([meas.positions_m, positions], axis=-2),
+            range_m=np.concatenate([meas.range_m, values[0]], axis=-1),
+            azimuth_rad=np.concatenate([meas.azimuth_rad, values[1]], axis=-1),
+            elevation_rad=np.concatenate([meas.elevation_rad, values[2]], axis=-1),
+            los=np.concatenate([meas.los, los], axis=-1),
+            extra_values=meas.extra_values,
+        )
 
     def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
         """4. Planning step from the view and each drone's carried state (shared with the planner

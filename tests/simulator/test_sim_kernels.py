@@ -157,3 +157,36 @@ def test_same_views_finds_the_first_drone_with_the_same_records() -> None:
             want = next(r for r in range(N) if np.array_equal(saved[m, r], saved[m, i]))
             assert first[m, i] == want
     assert (first != np.arange(N)).any() and (first == np.arange(N)).any()
+
+
+def test_late_records_equal_the_numpy_gather() -> None:
+    """The compiled late-record gather of the simulator against its numpy function."""
+    from types import SimpleNamespace
+
+    from missions.study.simulator import _Simulation, _with_late_records
+    from planner import estimator as est
+
+    rng = np.random.default_rng(7)
+    W, K, M, N = 4, 9, 6, 5
+    late = np.where(rng.random((W, M, N, N)) < 0.15, rng.integers(0, K, size=(W, M, N, N)), -1).astype(np.int64)
+    late[:, 0] = -1  # a trial without late records
+    rec = (
+        rng.normal(size=(K + 1, M, N, 3)),
+        rng.normal(size=(K, M, N)),
+        rng.normal(size=(K, M, N)),
+        rng.normal(size=(K, M, N)),
+        rng.random((K, M, N)) < 0.5,
+    )
+    meas = est.Measurements(
+        rng.normal(size=(M, N, N, 3)), rng.normal(size=(M, N, N)), rng.normal(size=(M, N, N)), rng.normal(size=(M, N, N)), rng.random((M, N, N)) < 0.5
+    )
+    want = _with_late_records(meas, late, *rec, {})
+    fake = SimpleNamespace(faults=SimpleNamespace(late_steps=late), positions=rec[0], rec_range=rec[1], rec_az=rec[2], rec_el=rec[3], rec_los=rec[4])
+    got = _Simulation._with_late_records(fake, meas)  # type: ignore[arg-type]
+    assert got.range_m.shape[-1] > N  # late records were appended
+    for name in ("positions_m", "range_m", "azimuth_rad", "elevation_rad", "los"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    none = SimpleNamespace(
+        faults=SimpleNamespace(late_steps=np.full_like(late, -1)), positions=rec[0], rec_range=rec[1], rec_az=rec[2], rec_el=rec[3], rec_los=rec[4]
+    )
+    assert _Simulation._with_late_records(none, meas) is meas  # type: ignore[arg-type]
