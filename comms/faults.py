@@ -54,6 +54,9 @@ IntArray = NDArray[np.int64]
 
 #: Uniform variates per (receiver, sender, step): loss, extra delay.
 FAULT_DRAWS: int = 2
+#: Steps of decisions drawn from each receiver's stream at once (the same variates, in the same
+#: order, as one draw per step: a generator fills an array in C order).
+DRAW_BLOCK_STEPS: int = 64
 #: "Ready step" of a lost record (never usable).
 _NEVER_READY: int = np.iinfo(np.int64).max // 4
 
@@ -124,6 +127,9 @@ class FaultBuffer:
         #: estimator (:meth:`late_records`).
         self.late_steps = np.full((self.window, *lead, count), NEVER, dtype=np.int64)
         self._next = 0
+        # The uniforms of steps _block_start.. (T, R, DRAW_BLOCK_STEPS, N, FAULT_DRAWS).
+        self._block = np.empty((len(trials), len(receivers), 0, count, FAULT_DRAWS))
+        self._block_start = 0
         #: Peer records decided so far, and how many of them were lost (own slots excluded).
         self.decided = 0
         self.lost = 0
@@ -131,7 +137,11 @@ class FaultBuffer:
     def _draw(self) -> None:
         """Decide the records of step ``self._next`` for every receiver and sender."""
         s = self._next
-        u = np.stack([np.stack([g.random((self.count, FAULT_DRAWS)) for g in row]) for row in self._rngs])
+        if s - self._block_start >= self._block.shape[2]:
+            shape = (DRAW_BLOCK_STEPS, self.count, FAULT_DRAWS)
+            self._block = np.stack([np.stack([g.random(shape) for g in row]) for row in self._rngs])
+            self._block_start = s
+        u = self._block[:, :, s - self._block_start]
         lost, delay = self.model.decide(u)
         own = np.arange(self.count)[None, None, :] == self._receivers[None, :, None]
         leaving = s - self.window

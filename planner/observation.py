@@ -102,11 +102,13 @@ def observe_from_uniforms(
         # Each component draws its variates from the uniform columns it owns
         # (planner.sensing); the normal quantiles are kept finite (Generator.random() can
         # return exactly 0).
-        has = np.broadcast_to(np.asarray(mask, dtype=bool), d.shape)
+        has = np.asarray(mask, dtype=bool)
+        if has.shape != d.shape:
+            has = np.broadcast_to(has, d.shape)
         drawn = component.simulate_values(d, phi, theta, los_b, channel, u)
         for name, value in zip(component.value_names, drawn, strict=True):
             values[name] = np.where(has, value, np.nan)
-    return Observation(values=MappingProxyType(values), los=np.broadcast_to(los_b, d.shape).copy())
+    return Observation(values=MappingProxyType(values), los=(los_b if los_b.shape == d.shape else np.broadcast_to(los_b, d.shape)).copy())
 
 
 def observe(

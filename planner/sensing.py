@@ -267,7 +267,7 @@ class RangeModel(SensingComponent):
         """d̂ (m) of true distances d (..., N), m, from the uniforms (..., N, 5) (eq. 3)."""
         from scipy.special import ndtri  # imported here: the planner node never simulates
 
-        z = ndtri(np.clip(uniforms[..., :1], 1e-300, None))[..., 0]
+        z = ndtri(np.maximum(uniforms[..., 0], 1e-300))
         return d + self.std_m(d, los, channel) * z
 
     def fim_weight(self, d: FloatArray, d2: FloatArray, inv_s0sq: FloatArray, gamma: float) -> FloatArray:
@@ -344,10 +344,11 @@ class BearingModel(SensingComponent):
         """(φ̂, θ̂) (rad) of true angles (..., N) from the uniforms (..., N, 5) (eq. 3)."""
         from scipy.special import ndtri  # imported here: the planner node never simulates
 
-        z = ndtri(np.clip(uniforms[..., 1:3], 1e-300, None))
+        z = ndtri(np.maximum(uniforms[..., 1:3], 1e-300))
         sb = channel.sigma_bearing_rad
-        az_los = np.angle(np.exp(1j * (phi + sb * z[..., 0])))
-        el_los = np.clip(theta + sb * z[..., 1], -0.5 * np.pi, 0.5 * np.pi)
+        unit = np.exp(1j * (phi + sb * z[..., 0]))
+        az_los = np.arctan2(unit.imag, unit.real)  # the angle of the unit vector: wrapped to (-π, π]
+        el_los = np.minimum(np.maximum(theta + sb * z[..., 1], -0.5 * np.pi), 0.5 * np.pi)
         az_out = -np.pi + 2.0 * np.pi * uniforms[..., 3]
         el_out = -0.5 * np.pi + np.pi * uniforms[..., 4]
         return np.where(los, az_los, az_out), np.where(los, el_los, el_out)

@@ -37,10 +37,11 @@ from numpy.typing import NDArray
 from comms.faults import FaultBuffer
 from missions.format.schema import Faults, Mission
 from planner import estimator as est
+from planner import kernels as K
+from planner import sim_kernels
 from planner.control import StepResult
 from planner.fim import fisher_information, position_error_bound
-from planner.geometry import distance_to_boxes, line_of_sight
-from planner.network import hop_counts, update_saved_steps
+from planner.geometry import as_boxes, distance_to_boxes
 from planner.observation import observe_from_uniforms
 from planner.params import Criterion, Limits
 from planner.policies import RANDOM_WALK_DRAWS, RANDOM_WALK_STREAM, policy_planner
@@ -147,10 +148,32 @@ class SimulationResult:
 
 
 def _gather(history: NDArray, saved: NDArray[np.int64]) -> NDArray:
-    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N)."""
+    """history[saved[m,i,j], m, j] for history (K, M, N, ...) and saved (M, N, N) (the values of
+    the components beyond range and bearing; :func:`planner.sim_kernels.gather_view` gathers
+    the rest)."""
     m_idx = np.arange(saved.shape[0])[:, None, None]
     j_idx = np.arange(saved.shape[2])[None, None, :]
     return history[np.maximum(saved, 0), m_idx, j_idx]
+
+
+def _contiguous(a: FloatArray) -> FloatArray:
+    """``a`` as a C-contiguous, writeable float array (the form the kernels are compiled for)."""
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
+
+
+def _position_error_bound(fim: FloatArray) -> FloatArray:
+    """PEB (eq. 18, m) of FIMs (..., 3, 3), +inf where singular: from the cofactors where J is
+    provably well conditioned (:func:`planner.sim_kernels.position_error_bounds`), elsewhere
+    :func:`planner.fim.position_error_bound` (its eigenvalue check decides singular views)."""
+    J = _contiguous(fim).reshape(-1, 3, 3)
+    peb, checked = np.empty(J.shape[0]), np.empty(J.shape[0], dtype=bool)
+    sim_kernels.position_error_bounds(J, peb, checked)
+    if checked.any():
+        idx = np.flatnonzero(checked)
+        peb[idx] = position_error_bound(J[idx])[0]
+    return peb.reshape(fim.shape[:-2])
 
 
 def _with_late_records(
@@ -244,7 +267,7 @@ class _Simulation:
         self.spec = spec
         self.config = config = mission.planner_config(spec.criterion, sensing)
         self.channel = config.channel
-        self.bmin, self.bmax = config.boxes_min_m, config.boxes_max_m
+        self.bmin, self.bmax = as_boxes(config.boxes_min_m, config.boxes_max_m)
         self.ranging, self.bearing = config.ranging, config.bearing
         self.extra_masks = config.extra_masks
         self.components = sensing.components
@@ -288,9 +311,12 @@ class _Simulation:
         #: The true source's power offset b (planner.radio.power_estimator; 0: the nominal power).
         self.true_offset = power.offset_of_power_db(mission.source.power_offset_db, self.channel.gamma)
         self.offsets_db = np.full((K, M, N), np.nan) if config.unknown_power is not None else None
-        self.eye_b = np.broadcast_to(np.eye(N, dtype=bool), (M, N, N))
+        # What does not change from step to step: the sensing roles as every drone's view sees
+        # them, the links a partition cuts (the kernels' form), whether the source is slow.
         self.rng_view = np.broadcast_to(self.ranging, (M, N, N))
         self.brg_view = np.broadcast_to(self.bearing, (M, N, N))
+        self.no_cut = np.zeros((N, N), dtype=bool)
+        self.source_slow = mission.source_is_slow()
 
         self.estimates = np.empty((K, M, N, 3))
         self.est_err = np.empty((K, M, N))
@@ -323,10 +349,14 @@ class _Simulation:
 
     def _record(self, k: int, src: FloatArray) -> None:
         """1. Own record: position, LOS and measurement at step k."""
-        los = line_of_sight(self.pos, src, self.bmin, self.bmax)
-        obs = observe_from_uniforms(src, self.pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
-        rng = power.offset_ranges(obs.range_m, np.linalg.norm(src - self.pos, axis=-1), self.true_offset, self.channel.gamma)
-        self.rec_range[k], self.rec_az[k], self.rec_el[k], self.rec_los[k] = rng, obs.azimuth_rad, obs.elevation_rad, obs.los
+        self.pos = pos = _contiguous(self.pos)
+        los = self.rec_los[k]
+        sim_kernels.line_of_sight(pos.reshape(-1, 3), _contiguous(src), self.bmin, self.bmax, los.reshape(-1))
+        obs = observe_from_uniforms(src, pos, self.ranging, self.bearing, los, self.channel, self.meas_u[k], self.extra_masks, self.components)
+        rng = obs.range_m
+        if self.true_offset != 0.0:
+            rng = power.offset_ranges(rng, np.linalg.norm(src - pos, axis=-1), self.true_offset, self.channel.gamma)
+        self.rec_range[k], self.rec_az[k], self.rec_el[k] = rng, obs.azimuth_rad, obs.elevation_rad
         for name, values in self.rec_extra.items():
             values[k] = obs.values[name]
 
@@ -334,12 +364,22 @@ class _Simulation:
         """2. Delayed view (hop latency, memory buffer)."""
         comms, partition = self.comms, self.partition
         cut = self.partition_links if partition is not None and partition[0] <= k < partition[1] else None
-        hops = hop_counts(self.pos, comms.d_hop_m, max_hops=comms.h_max + 1, blocked=cut)
-        saved = update_saved_steps(self.saved, hops, k, comms.h_max) if self.faults is None else self.faults.update(self.saved, hops, k)
+        hops = np.empty(self.saved.shape, dtype=np.int64)
+        sim_kernels.hop_counts(self.pos, comms.d_hop_m, comms.h_max + 1, self.no_cut if cut is None else cut, cut is not None, hops)
+        if self.faults is None:
+            saved = self.saved.copy()
+            sim_kernels.update_saved_steps(saved, hops, k, comms.h_max)
+        else:
+            saved = self.faults.update(self.saved, hops, k)
         self.saved = saved
-        have = saved >= 0
-        self.ages[k] = np.where(have, k - saved, -1)
-        return _View(cut, hops, saved, have, _gather(self.positions, saved), _gather(self.rec_los, saved))
+        return self._view(k, cut, hops, saved)
+
+    def _view(self, k: int, cut: NDArray[np.bool_] | None, hops: NDArray[np.int64], saved: NDArray[np.int64]) -> _View:
+        """The view of the records held at step k (``saved``), and their ages."""
+        have = np.empty(saved.shape, dtype=bool)
+        view_pos, view_los = np.empty(saved.shape + (3,)), np.empty(saved.shape, dtype=bool)
+        sim_kernels.gather_view(self.positions, self.rec_los, saved, k, view_pos, view_los, have, self.ages[k])
+        return _View(cut, hops, saved, have, view_pos, view_los)
 
     def _instant_view(self, k: int) -> _View:
         """2'. The centralized policy's view: every drone's record of step k, at once (no hop
@@ -347,27 +387,32 @@ class _Simulation:
         M, N = self.pos.shape[:2]
         saved = np.full((M, N, N), k, dtype=np.int64)
         self.saved = saved
-        self.ages[k] = 0
         hops = np.broadcast_to(1 - np.eye(N, dtype=np.int64), (M, N, N)).copy()
-        return _View(None, hops, saved, saved >= 0, _gather(self.positions, saved), _gather(self.rec_los, saved))
+        return self._view(k, None, hops, saved)
 
     def _estimate(self, k: int, src: FloatArray, view: _View) -> None:
         """3. Estimator: records new to each drone."""
         saved = view.saved
         new = saved > self.used
-        self.used = saved
-        nan = np.nan
-        meas = est.Measurements(
-            positions_m=np.where(new[..., None], view.positions_m, nan),
-            range_m=np.where(new, _gather(self.rec_range, saved), nan),
-            azimuth_rad=np.where(new, _gather(self.rec_az, saved), nan),
-            elevation_rad=np.where(new, _gather(self.rec_el, saved), nan),
-            los=view.los & new,
-            extra_values={name: np.where(new, _gather(values, saved), nan) for name, values in self.rec_extra.items()},
+        extra = {name: np.where(new, _gather(rec, saved), np.nan) for name, rec in self.rec_extra.items()}
+        shape = saved.shape
+        positions, values, los = np.empty(shape + (3,)), np.empty((3,) + shape), np.empty(shape, dtype=bool)
+        sim_kernels.gather_new_records(
+            saved, self.used, view.positions_m, view.los, self.rec_range, self.rec_az, self.rec_el, positions, values[0], values[1], values[2], los
         )
-        if self.faults is not None:
+        meas = est.Measurements(
+            positions_m=positions,
+            range_m=values[0],
+            azimuth_rad=values[1],
+            elevation_rad=values[2],
+            los=los,
+            extra_values=extra,
+        )
+        if self.faults is not None and self.rec_extra:
             late = self.faults.late_steps
             meas = _with_late_records(meas, late, self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los, self.rec_extra)
+        elif self.faults is not None:
+            meas = self._with_late_records(meas)
         if not isinstance(self.state, power.PowerEstimatorState):
             self.state = est.update(self.state, meas, self.channel, self.estimator_config, self.components, overwrite=True)
         elif self.unknown_power is not None:  # the source's power unknown (planner.radio)
@@ -376,8 +421,28 @@ class _Simulation:
             if self.offsets_db is not None:
                 self.offsets_db[k] = joint.offset_db
         self.estimates[k] = self.state.estimate_m
-        self.est_err[k] = np.linalg.norm(self.state.estimate_m - src, axis=-1)
+        err = self.state.estimate_m - src
+        self.est_err[k] = np.sqrt((err * err).sum(-1))
         self.observable[k] = self.state.observable
+
+    def _with_late_records(self, meas: est.Measurements) -> est.Measurements:
+        """:func:`_with_late_records` with range and bearing only, in compiled loops."""
+        late = self.faults.late_steps if self.faults is not None else None
+        width = 0 if late is None else sim_kernels.late_record_count(late)
+        if late is None or width == 0:
+            return meas
+        M, N = late.shape[1:3]
+        positions, values, los = np.empty((M, N, width, 3)), np.empty((3, M, N, width)), np.empty((M, N, width), dtype=bool)
+        rec = (self.positions, self.rec_range, self.rec_az, self.rec_el, self.rec_los)
+        sim_kernels.gather_late_records(late, *rec, positions, values[0], values[1], values[2], los)
+        return est.Measurements(
+            positions_m=np.concatenate([meas.positions_m, positions], axis=-2),
+            range_m=np.concatenate([meas.range_m, values[0]], axis=-1),
+            azimuth_rad=np.concatenate([meas.azimuth_rad, values[1]], axis=-1),
+            elevation_rad=np.concatenate([meas.elevation_rad, values[2]], axis=-1),
+            los=np.concatenate([meas.los, los], axis=-1),
+            extra_values=meas.extra_values,
+        )
 
     def _plan(self, k: int, src: FloatArray, view: _View) -> StepResult:
         """4. Planning step from the view and each drone's carried state (shared with the planner
@@ -402,9 +467,7 @@ class _Simulation:
         )
         oracle = src if self.oracle_estimate else None
         offset = power.planning_offset(self.state)  # None with the power known
-        planned = self.plan_step(
-            self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.spec.mission.source_is_slow(), power_offset=offset
-        )
+        planned = self.plan_step(self.config, scene, self.drone, oracle_source=oracle, oracle_slow=self.source_slow, power_offset=offset)
         self.drone = planned.state
         step = planned.step
         self.fallback[k] = step.singular
@@ -417,17 +480,35 @@ class _Simulation:
         """5. Accuracy at the true source with the positions known to each drone (eq. 18)."""
         extra_view = {name: mask & view.have for name, mask in self.extra_masks.items()}
         rng, brg = self.rng_view & view.have, self.brg_view & view.have
-        if self.offsets_db is None and self.true_offset == 0.0:
+        if self.offsets_db is None and self.true_offset == 0.0 and not extra_view:
+            self.peb[k] = self._view_pebs(src, view, rng, brg)
+        elif self.offsets_db is None and self.true_offset == 0.0:
             J_true = fisher_information(src, view.positions_m, rng, brg, view.los, self.channel, extra_view, self.components)
-            self.peb[k] = position_error_bound(J_true)[0]
+            self.peb[k] = _position_error_bound(J_true)
         else:
             # The true channel's information (offset b); with the power unknown, its Schur complement.
             J4 = fisher_information_unknown_power(
                 src, view.positions_m, rng, brg, view.los, self.channel, self.true_offset, extra_view, self.components
             )
-            self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else position_error_bound(J4[..., :3, :3])[0]
+            self.peb[k] = position_error_bound_unknown_power(J4)[0] if self.offsets_db is not None else _position_error_bound(J4[..., :3, :3])
         if observer is not None:
             observer(SimStep(k, self.positions[k], self.state.estimate_m, view.positions_m, view.have, view.los))
+
+    def _view_pebs(self, src: FloatArray, view: _View, rng: NDArray[np.bool_], brg: NDArray[np.bool_]) -> FloatArray:
+        """PEB (eq. 18, m) of every drone's view with range and bearing only, (M, N): the FIM
+        kernel of :func:`planner.fim.fisher_information` once per distinct view (the drones of a
+        trial holding the same records share it, :func:`planner.sim_kernels.same_views`)."""
+        M, N = rng.shape[:2]
+        first = np.empty((M, N), dtype=np.int64)
+        sim_kernels.same_views(view.saved, first)
+        flat = (first + (np.arange(M) * N)[:, None]).reshape(-1)
+        distinct = np.flatnonzero(flat == np.arange(M * N))
+        J = np.zeros((distinct.size, 3, 3))
+        src_b = np.empty((distinct.size, 3))
+        src_b[:] = src
+        rows = (view.positions_m.reshape(M * N, N, 3)[distinct], rng.reshape(M * N, N)[distinct], brg.reshape(M * N, N)[distinct])
+        K.fim_batch(src_b, *rows, view.los.reshape(M * N, N)[distinct].astype(float), self.channel.kernel_array, J)
+        return _position_error_bound(J)[np.searchsorted(distinct, flat)].reshape(M, N)
 
     def _move(self, k: int, step: StepResult) -> None:
         """The drones fly their steps: positions at step k + 1."""
@@ -739,42 +820,43 @@ def safety_margins(
         altitude box) and of step k itself (slack to the speed bounds and to the heading and
         tilt change limits). Negative is a violation.
     """
-    K = positions.shape[0] - 1
-    N = positions.shape[2]
-    eye = np.eye(N, dtype=bool)
     nxt = positions[1:]
     u = np.diff(positions, axis=0)
     out = {name: np.empty(nxt.shape[:-1]) for name in SAFETY_FAMILIES}
-    for k in range(K):  # chunked: the pairwise distances of all steps at once would be large
-        p = nxt[k]
-        diff = p[..., :, None, :] - p[..., None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        dist[..., eye] = np.inf
-        out["uav"][k] = dist.min(-1) - limits.d_uav_m
+    nearest = np.empty(nxt.shape[:-1])
+    sim_kernels.nearest_peer_distance(_contiguous(nxt), nearest)
+    out["uav"] = nearest - limits.d_uav_m
     out["source"] = np.linalg.norm(nxt - sources[1:, None, None, :], axis=-1) - limits.d_source_m
     out["obstacle"] = distance_to_boxes(nxt, boxes_min, boxes_max) - limits.d_obstacle_m
     out["altitude"] = np.minimum(nxt[..., 2] - limits.z_min_m, limits.z_max_m - nxt[..., 2])
-    speed = np.linalg.norm(u, axis=-1)
+    speed = np.sqrt((u * u).sum(-1))
     out["speed"] = np.minimum(speed - limits.step_min_m, limits.step_max_m - speed) + kinematic_tol
-    prev = np.concatenate([np.zeros((1,) + u.shape[1:]), u[:-1]], axis=0)
-    out["turn_rate"] = _turn_margin(prev, u, limits, kinematic_tol) + KINEMATIC_TOL
+    out["turn_rate"] = _turn_margin(u, speed, limits, kinematic_tol) + KINEMATIC_TOL
     return out
 
 
-def _turn_margin(prev: FloatArray, u: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
-    """Slack (rad) of the heading and tilt change limits of eq. 2; +inf on the first step.
+def _previous(x: FloatArray) -> FloatArray:
+    """The value of the step before, along the step axis (K, ...): zero before the first."""
+    return np.concatenate([np.zeros((1,) + x.shape[1:]), x[:-1]], axis=0)
+
+
+def _turn_margin(u: FloatArray, length: FloatArray, limits: Limits, position_tol_m: float = 0.0) -> FloatArray:
+    """Slack (rad) of the heading and tilt change limits of eq. 2 between each step u (K, ..., 3)
+    and the one before (a zero step before the first); +inf on the first step. ``length``: |u|.
 
     ``position_tol_m`` is the position uncertainty of the recorded trajectory (float32 over
     MAVLink): it becomes an angle tolerance of tol / (length of the shorter step), horizontal
-    length for the heading, whole length for the tilt.
+    length for the heading, whole length for the tilt. Each step's angles are computed once and
+    shifted by one step for the step before.
     """
-    has_prev = np.linalg.norm(prev, axis=-1) > 0.0
-    psi0, psi1 = np.arctan2(prev[..., 1], prev[..., 0]), np.arctan2(u[..., 1], u[..., 0])
-    th0 = np.arctan2(prev[..., 2], np.hypot(prev[..., 0], prev[..., 1]))
-    th1 = np.arctan2(u[..., 2], np.hypot(u[..., 0], u[..., 1]))
+    has_prev = _previous(length) > 0.0
+    psi1 = np.arctan2(u[..., 1], u[..., 0])
+    rho1 = np.hypot(u[..., 0], u[..., 1])
+    th1 = np.arctan2(u[..., 2], rho1)
+    psi0, th0 = _previous(psi1), _previous(th1)
     dpsi = np.abs((psi1 - psi0 + np.pi) % (2.0 * np.pi) - np.pi)
-    rho = np.minimum(np.hypot(prev[..., 0], prev[..., 1]), np.hypot(u[..., 0], u[..., 1]))
-    length = np.minimum(np.linalg.norm(prev, axis=-1), np.linalg.norm(u, axis=-1))
+    rho = np.minimum(_previous(rho1), rho1)
+    length = np.minimum(_previous(length), length)
     # The heading of a vertical step is undefined: no heading limit applies across it.
     vertical = rho < max(1e-9, 100.0 * position_tol_m)
     dpsi = np.where(vertical, 0.0, dpsi)
