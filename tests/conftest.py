@@ -4,7 +4,6 @@ launches it starts (:func:`launches`), all stopped at the end. (``MAVLINK20=1`` 
 
 from __future__ import annotations
 
-import importlib
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -16,19 +15,31 @@ from tests.support.proc import Proc
 from tests.support.wait import wait_for
 
 
+#: A two-step study with and without injected faults: loads (compiles, on a cold cache) the
+#: in-process simulator's kernels (planner.sim_kernels).
+WARM_SIMULATOR = """
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
+for sets in ({}, {"comms.faults.loss": 0.2, "comms.faults.extra_delay_steps": 1}):
+    simulate(RunSpec(load_mission("paper/heterogeneous", sets), "A", 1, 2))
+"""
+
+
 def pytest_configure(config: pytest.Config) -> None:
-    """Load the compiled planning and estimator kernels once, before any worker starts (the first
-    run after a clean clone compiles them into numba's on-disk cache): the workers and every
-    planner process a test starts then load them instead of each compiling them."""
+    """Load the compiled planning, estimator and simulator kernels once, before any worker
+    starts (the first run after a clean clone compiles them into numba's on-disk cache): the
+    workers and every planner process a test starts then load them instead of each compiling
+    them."""
     if not hasattr(config, "workerinput"):  # the controller, or a run without workers
-        # The two sets compile in two processes at once (on a cold cache about 30 s of CPU
-        # each: the two cores halve the wait), then load here from the cache.
+        # Two processes at once (on a cold cache about 30 s of CPU each: the two cores halve
+        # the wait): the planning kernels; the estimator's, then the simulator's (by then the
+        # planning kernels are in the cache).
         warm = ("planner.node.warm", "planner.node.warm_estimator")
-        compiling = [subprocess.Popen([sys.executable, "-c", f"import {m}"]) for m in warm]
-        for p in compiling:
-            p.wait()
-        for m in warm:  # also where a subprocess failed: the error shows here
-            importlib.import_module(m)
+        scripts = [f"import {warm[0]}", f"import {warm[1]}\n{WARM_SIMULATOR}"]
+        compiling = [subprocess.Popen([sys.executable, "-c", code]) for code in scripts]
+        for p, code in zip(compiling, scripts):
+            if p.wait() != 0:  # its error, raised here, stops the run
+                exec(code, {})
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
