@@ -327,20 +327,25 @@ def best_start(
 
 # --------------------------------------------------------------------------- insertion
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float) -> tuple[int, float, int]:
+def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, d2: np.ndarray) -> tuple[int, float, int]:
     """The occupied cell nearest to (px, py, pz) of σ_r0 ``sig`` and its squared distance
     ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and the nearest occupied
-    cell of any σ_r0 (0 if none). The first of equally near cells."""
-    best, bd, near, nd = 0, np.inf, 0, np.inf
+    cell of any σ_r0 (0 if none). The first of equally near cells. ``d2`` (2, ≥ nc) scratch:
+    the squared distances, inf for the cells left out, in a loop the compiler vectorises, then
+    the two minima."""
     pp = px * px + py * py + pz * pz
     for c in range(nc):
-        if mem[M_N, c] < EMPTY:
-            continue
-        d2 = nmax(mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp, 0.0)
-        if d2 < nd:
-            near, nd = c, d2
-        if mem[M_S0, c] == sig and d2 < bd:
-            best, bd = c, d2
+        v = mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp
+        v = 0.0 if v < 0.0 else v  # NaN kept
+        occupied = not mem[M_N, c] < EMPTY
+        d2[0, c] = v if occupied else np.inf
+        d2[1, c] = v if (occupied and mem[M_S0, c] == sig) else np.inf
+    best, bd, near, nd = 0, np.inf, 0, np.inf
+    for c in range(nc):
+        if d2[0, c] < nd:
+            near, nd = c, d2[0, c]
+        if d2[1, c] < bd:
+            best, bd = c, d2[1, c]
     return best, bd, near
 
 
@@ -403,7 +408,16 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def insert(
-    mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, iw: np.ndarray, backup: np.ndarray
+    mem: np.ndarray,
+    nc: int,
+    pos: np.ndarray,
+    rng: np.ndarray,
+    w: np.ndarray,
+    sig: np.ndarray,
+    rf: float,
+    iw: np.ndarray,
+    backup: np.ndarray,
+    sc: np.ndarray,
 ) -> int:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
@@ -411,7 +425,7 @@ def insert(
     they were before the call). Each cell's sums grow by the sum of its rows' terms, in row
     order. ``iw`` (5, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
     the number k of cells changed and iw[4, 1:k+1] which; ``backup`` (NM, M) their columns
-    before the call. Returns the new count of used cells."""
+    before the call; ``sc`` (≥ 2, C) float scratch. Returns the new count of used cells."""
     C, M = mem.shape[1], rng.shape[0]
     iw[4, 0] = 0
     if C == 0 or M == 0:
@@ -422,7 +436,7 @@ def insert(
         cell[m] = -1
         if not w[m] > 0.0:
             continue
-        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m])
+        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc)
         radius = rf * nmax(abs(mem[M_S1, best]) / mem[M_N, best], 1.0) if np.isfinite(d_same) else 0.0
         if d_same <= radius * radius:
             cell[m] = best
@@ -528,8 +542,9 @@ def insert_batch(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarra
     M = rng.shape[1]
     iw = np.zeros((5, max(2 * M, 1) + 1), dtype=np.int64)
     backup = np.zeros((NM, 2 * M))
+    sc = np.empty((2, mem.shape[2]))
     for e in range(mem.shape[0]):
-        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup)
+        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup, sc)
     return out
 
 

@@ -238,12 +238,12 @@ def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p
     (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
     positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed);
     returns the new count of used cells."""
-    _, _, iw, backup, cols = memory
+    _, sc, iw, backup, cols = memory
     pos, zr, ar, s0 = cols
     for m in range(nrows.shape[0]):
         pos[m, 0], pos[m, 1], pos[m, 2] = nrows[m, R_PX], nrows[m, R_PY], nrows[m, R_PZ]
         zr[m], ar[m], s0[m] = nrows[m, R_ZR], nrows[m, R_AR], nrows[m, R_S0]
-    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup)
+    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
