@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from planner.estimator.kernels.linalg import clip, eigh, nmax, solve3
+from planner.estimator.kernels.linalg import clip, eigh, nmax, solve3_in_place
 from planner.estimator.layout import (
     M_CC,
     M_CX,
@@ -233,25 +233,25 @@ def evaluate(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, 
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _polish_step(x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray) -> bool:
+def _polish_step(x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray, H: np.ndarray, step: np.ndarray) -> bool:
     """``cand``: the damped projected Fisher-scoring step from x (coordinates on the box face
     that the gradient pushes against held); returns whether it moves by more than
-    ``tolerance`` (m) (False if it is not finite)."""
-    H, gf, step = np.empty((3, 3)), np.empty(3), np.empty(3)
-    free = np.empty(3, dtype=np.bool_)
+    ``tolerance`` (m) (False if it is not finite). ``H`` (3, 3) and ``step`` (3,) scratch."""
+    free = 0  # bit i: coordinate i free
     for i in range(3):
         s = 0.0 if g[i] == 0.0 else (1.0 if g[i] > 0.0 else -1.0)
         if g[i] != g[i]:
             s = g[i]
-        free[i] = clip(x[i] - 1e-6 * s, p[P_LO + i], p[P_HI + i]) != x[i]
+        if clip(x[i] - 1e-6 * s, p[P_LO + i], p[P_HI + i]) != x[i]:
+            free |= 1 << i
     for i in range(3):
         for j in range(3):
-            H[i, j] = F[i, j] if (free[i] and free[j]) else 0.0
-        gf[i] = g[i] if free[i] else 0.0
+            H[i, j] = F[i, j] if ((free >> i) & (free >> j) & 1) else 0.0
+        step[i] = g[i] if (free >> i) & 1 else 0.0
     tr = H[0, 0] + H[1, 1] + H[2, 2]
     for i in range(3):
-        H[i, i] = H[i, i] + (mu * H[i, i] + 1e-9 * tr + 1e-12) + (0.0 if free[i] else 1.0)
-    solve3(H, gf, step)
+        H[i, i] = H[i, i] + (mu * H[i, i] + 1e-9 * tr + 1e-12) + (0.0 if (free >> i) & 1 else 1.0)
+    solve3_in_place(H, step)
     live, nan = False, False
     for i in range(3):
         cand[i] = clip(x[i] - step[i], p[P_LO + i], p[P_HI + i])
@@ -272,11 +272,12 @@ def polish(
     information at the candidate together; a rejected step re-uses those at x). Returns the
     cost at x and the cost where it started."""
     g, F, gc, Fc, cand = np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3)
+    H, step = np.empty((3, 3)), np.empty(3)
     cost = evaluate(mem, nc, x, gamma, np.bool_(True), sc, g, F)
     start = cost
     mu = 1e-3
     for _ in range(iterations):
-        live = _polish_step(x, g, F, mu, p, tolerance, cand)
+        live = _polish_step(x, g, F, mu, p, tolerance, cand, H, step)
         c_new = evaluate(mem, nc, cand, gamma, np.bool_(True), sc, gc, Fc) if live else nll(mem, nc, cand[0], cand[1], cand[2], gamma, sc)
         if np.isfinite(c_new) and c_new <= cost:
             x[0], x[1], x[2] = cand[0], cand[1], cand[2]

@@ -695,7 +695,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
         io[I_INIT] = 1
         flags[0] = flags[1] = True
     take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
-    mi[0] = km.used_cells(mo) if mo.shape[1] > 0 else 0
+    mi[0] = km.used_cells(mo) if (take or (due and before)) and mo.shape[1] > 0 else 0  # read by those two only
     mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p) if take else mi[0]
     mi[2] = take
     if due and before:
