@@ -411,6 +411,7 @@ def lm_iterations(
     cb,
     buf: np.ndarray,
     out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    scratch: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
     """Levenberg-Marquardt (Fisher scoring) iterations of the robust cost plus the prior
     ½xᵀΛx − ηᵀx from x (3,), in place; ``schedule`` = (fresh, initialised before, n) with n the
@@ -418,15 +419,14 @@ def lm_iterations(
     evaluation at x on entry (cost ``first_cost``) and at the last iterate x_lin on exit. A
     step is kept only if the cost does not increase (then μ shrinks by 3, else grows by 4).
     ``out`` = (g, H, F, x_lin): gradient (prior included), scoring matrix (prior included) and
-    Fisher information (prior excluded) at x_lin, and x_lin."""
+    Fisher information (prior excluded) at x_lin, and x_lin. ``scratch`` = (3,), two (3, 3), (3,)."""
     ev, xg, xh, counts = work
     g, H, F, x_lin = out
     fresh, before, n_el = schedule
     tukey, ml = p[P_TUKEY] != 0.0, p[P_ML] != 0.0
     mu = p[P_LM_DAMP]
     cost_ev = first_cost
-    cand = np.empty(3)
-    scratch = (np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    cand, Hd, Hinv, step = scratch
     for it in range(n_el):
         rd = redescend(tukey, it, fresh, before, n_el)
         if it > 0:
@@ -435,7 +435,7 @@ def lm_iterations(
         accumulate(ev, np.int64(0), K, xg, xh, g, H, F)
         add_prior(x, lam, eta, g, H)
         cost = cost_ev + prior_cost(x, lam, eta)
-        _lm_step(x, g, H, mu, ev, K, counts, p, cand, scratch)
+        _lm_step(x, g, H, mu, ev, K, counts, p, cand, (Hd, Hinv, step))
         c_new = cost_at(cand, rows, K, xz, xa, p, p[P_HUBER], rd, ml, ev, not ml, cb, buf) + prior_cost(cand, lam, eta)
         if np.isfinite(c_new) and c_new <= cost:
             x[0], x[1], x[2] = cand[0], cand[1], cand[2]
