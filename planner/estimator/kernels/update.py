@@ -625,32 +625,34 @@ def _advance_range_window(
 ) -> None:
     """The new ranges join the range window ``rwo`` (weights times λ); the oldest rows (the
     invalid ones first) leave it and join the re-check's squared-range summary, each weighted
-    at this call's estimate. ``scratch`` = (range rows, scales, pool of 2 (R + M) rows)."""
+    at this call's estimate. ``scratch`` = (range rows, scales, pool of ≥ M rows: the rows
+    leaving). One pass per validity over the window then the new rows, each row written once
+    to where it goes."""
     R, M = rw.shape[0], nraw.shape[0]
     rrows, scale, pool = scratch
-    for k in range(R):
-        for j in range(NRW):
-            rwo[k, j] = rw[k, j]
-        rwo[k, RW_W] = rw[k, RW_W] * p[P_LAMBDA]
+    lam = p[P_LAMBDA]
+    k = 0
+    for valid in (False, True):  # invalid rows first, stable: the first M leave
+        for i in range(R + M):
+            old = i < R
+            m = i - R
+            w = rw[i, RW_W] * lam if old else (1.0 if (nraw[m, W_W] > 0.0 and np.isfinite(nraw[m, W_R])) else 0.0)
+            if M > 0 and R > 0 and (w > 0.0) != valid:
+                continue
+            if (M == 0 and not old) or ((M == 0 or R == 0) and valid):  # no partition: in order
+                continue
+            dst = pool[k] if k < M else rwo[k - M]
+            if old:
+                for j in range(NRW):
+                    dst[j] = rw[i, j]
+            else:
+                dst[0], dst[1], dst[2] = nraw[m, 0], nraw[m, 1], nraw[m, 2]
+                dst[RW_R], dst[RW_LOS] = nraw[m, W_R], nraw[m, W_LOS]
+            dst[RW_W] = w
+            k += 1
     if M == 0:
         return
-    for k in range(R):
-        for j in range(NRW):
-            pool[k, j] = rwo[k, j]
-    for m in range(M):
-        pool[R + m, 0], pool[R + m, 1], pool[R + m, 2] = nraw[m, 0], nraw[m, 1], nraw[m, 2]
-        pool[R + m, RW_R], pool[R + m, RW_LOS] = nraw[m, W_R], nraw[m, W_LOS]
-        pool[R + m, RW_W] = 1.0 if (nraw[m, W_W] > 0.0 and np.isfinite(nraw[m, W_R])) else 0.0
-    n, k = R + M, 0
-    for valid in (False, True):  # invalid rows first, stable: the first M leave
-        for i in range(n if R > 0 else 0):
-            if (pool[i, RW_W] > 0.0) == valid:
-                for j in range(NRW):
-                    pool[n + k, j] = pool[i, j]
-                k += 1
-    leaving = pool[n : n + M] if R > 0 else pool[:M]
-    if R > 0:
-        _copy2(rwo, pool[n + M : 2 * n])
+    leaving = pool[:M]
     _range_rows(leaving, M, 1.0, p, rrows)
     has_range = False
     for m in range(M):
