@@ -14,6 +14,14 @@ with 10 new joint records per element, and for one planner (batch ``()``), in th
 and for the first call, for a few configurations.
 
     python benchmarks/bench_estimator.py [--repeat 50] [--calls 550] [--no-baseline]
+
+With ``--mission``, instead: the compiled batch update
+(:func:`planner.estimator.kernels.update.update_batch`) timed where the in-process simulator
+calls it, in ``--rounds`` runs of each mission (criterion A, ``--trials`` × ``--steps``, one
+process): per drone-step (one element of one call), split into the re-check calls (every
+``recheck_every``-th) and the others, and the run's wall time; medians over the rounds.
+
+    python benchmarks/bench_estimator.py --mission paper/ranging_los paper/bearing [--trials 20] [--steps 300] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -95,7 +103,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=550, help="calls of the final-geometry run (default 550)")
     parser.add_argument("--no-baseline", action="store_true", help="the compiled estimator only")
     parser.add_argument("--skip-large-window", action="store_true", help="skip window_rows=50 for batch (100, 10)")
+    parser.add_argument("--mission", nargs="+", metavar="MISSION", help="instead: the batch update inside simulated runs of these missions")
+    parser.add_argument("--trials", type=int, default=20, help="trials of a --mission run (default 20)")
+    parser.add_argument("--steps", type=int, default=300, help="steps of a --mission run (default 300)")
+    parser.add_argument("--rounds", type=int, default=3, help="runs of each --mission (default 3)")
     args = parser.parse_args(argv)
+    if args.mission:
+        for mission in args.mission:
+            _in_mission(mission, args.trials, args.steps, args.rounds)
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         impls = {"compiled": compiled}
         if not args.no_baseline:
@@ -107,6 +123,48 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, est in impls.items():
             _configurations(name, est, args.repeat, args.skip_large_window)
     return 0
+
+
+def _in_mission(name: str, trials: int, steps: int, rounds: int) -> None:
+    """The compiled batch update timed inside ``rounds`` simulated runs of mission ``name``
+    (criterion A): µs per drone-step, re-check calls and others, medians over the rounds."""
+    from missions.format.loader import load_mission
+    from missions.study.simulator import RunSpec, simulate
+    from planner.estimator.kernels import update as kernels
+
+    mission = load_mission(name, None)
+    batch = kernels.update_batch
+    times: dict[bool, list[float]] = {True: [], False: []}
+    sizes: list[int] = []
+
+    def timed(state: tuple, new: tuple, *args: object) -> tuple:
+        t0 = time.perf_counter()
+        out = batch(state, new, *args)
+        times[bool(args[2])].append(time.perf_counter() - t0)
+        sizes.append(state[0].shape[0])
+        return out
+
+    simulate(RunSpec(mission, "A", 1, 2))  # the kernels loaded, not timed
+    per_step, due_step, other_step, walls = [], [], [], []
+    kernels.update_batch = timed
+    try:
+        for _ in range(rounds):
+            times[True].clear(), times[False].clear(), sizes.clear()
+            t0 = time.perf_counter()
+            simulate(RunSpec(mission, "A", trials, steps))
+            walls.append(time.perf_counter() - t0)
+            E = sizes[0]
+            due, other = sum(times[True]), sum(times[False])
+            per_step.append(1e6 * (due + other) / (E * len(sizes)))
+            due_step.append(1e6 * due / (E * max(len(times[True]), 1)))
+            other_step.append(1e6 * other / (E * max(len(times[False]), 1)))
+    finally:
+        kernels.update_batch = batch
+    print(
+        f"{name}: {trials} trials x {steps} steps, batch of {E} drones, {len(sizes)} calls: update_batch "
+        f"{statistics.median(per_step):6.2f} us per drone-step (re-check calls {statistics.median(due_step):6.2f}, others "
+        f"{statistics.median(other_step):6.2f}); run wall {statistics.median(walls):6.2f} s; medians of {rounds}"
+    )
 
 
 def _warm_up(est: ModuleType) -> None:

@@ -330,23 +330,25 @@ def best_start(
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, d2: np.ndarray) -> tuple[int, float, int]:
     """The occupied cell nearest to (px, py, pz) of σ_r0 ``sig`` and its squared distance
-    ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and the nearest occupied
-    cell of any σ_r0 (0 if none). The first of equally near cells. ``d2`` (2, ≥ nc) scratch:
-    the squared distances, inf for the cells left out, in a loop the compiler vectorises, then
-    the two minima."""
+    ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and, only where there is
+    none (else the first), the nearest occupied cell of any σ_r0 (0 if none). The first of
+    equally near cells. ``d2`` (≥ nc,) scratch: the squared distances, inf for the empty
+    cells, in a loop the compiler vectorises, then the minima."""
     pp = px * px + py * py + pz * pz
     for c in range(nc):
         v = mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp
         v = 0.0 if v < 0.0 else v  # NaN kept
-        occupied = not mem[M_N, c] < EMPTY
-        d2[0, c] = v if occupied else np.inf
-        d2[1, c] = v if (occupied and mem[M_S0, c] == sig) else np.inf
-    best, bd, near, nd = 0, np.inf, 0, np.inf
+        d2[c] = np.inf if mem[M_N, c] < EMPTY else v
+    best, bd = 0, np.inf
     for c in range(nc):
-        if d2[0, c] < nd:
-            near, nd = c, d2[0, c]
-        if d2[1, c] < bd:
-            best, bd = c, d2[1, c]
+        if d2[c] < bd and mem[M_S0, c] == sig:
+            best, bd = c, d2[c]
+    if bd < np.inf:
+        return best, bd, best
+    near, nd = 0, np.inf
+    for c in range(nc):
+        if d2[c] < nd:
+            near, nd = c, d2[c]
     return best, bd, near
 
 
@@ -393,7 +395,7 @@ def _group(
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray) -> int:
+def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
     """Save (:func:`_save`) the empty cells that new groups of M rows may take: the first M
     empty cells in index order. Returns the new count k of saved cells."""
     C, c = mem.shape[1], 0
@@ -402,7 +404,7 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
             c += 1
         if c >= C:
             break
-        k = _save(mem, c, k, iw, backup)
+        k = _save(mem, c, k, iw, backup, keep)
         c += 1
     return k
 
@@ -419,6 +421,7 @@ def insert(
     iw: np.ndarray,
     backup: np.ndarray,
     sc: np.ndarray,
+    keep: bool,
 ) -> int:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
@@ -426,7 +429,7 @@ def insert(
     they were before the call). Each cell's sums grow by the sum of its rows' terms, in row
     order. ``iw`` (5, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
     the number k of cells changed and iw[4, 1:k+1] which; ``backup`` (NM, M) their columns
-    before the call; ``sc`` (≥ 2, C) float scratch. Returns the new count of used cells."""
+    before the call if ``keep`` (else only which); ``sc`` (≥ 1, C) float scratch. Returns the new count of used cells."""
     C, M = mem.shape[1], rng.shape[0]
     iw[4, 0] = 0
     if C == 0 or M == 0:
@@ -437,7 +440,7 @@ def insert(
         cell[m] = -1
         if not w[m] > 0.0:
             continue
-        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc)
+        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc[0])
         radius = rf * nmax(abs(mem[M_S1, best]) / mem[M_N, best], 1.0) if np.isfinite(d_same) else 0.0
         if d_same <= radius * radius:
             cell[m] = best
@@ -450,13 +453,13 @@ def insert(
     for m in range(M):
         any_fresh = any_fresh or fresh[m]
     if any_fresh:
-        k = _save_empty(mem, M, k, iw, backup)
+        k = _save_empty(mem, M, k, iw, backup, keep)
         used = _group(mem, nc, pos, rng, sig, rf, fresh, cell, iw)
     for m in range(M):
         c = cell[m]
         if c < 0 or _saved(iw, k, c):
             continue
-        k = _save(mem, c, k, iw, backup)
+        k = _save(mem, c, k, iw, backup, keep)
     for j in range(k):
         c = iw[4, 1 + j]
         inc_n = inc_s1 = inc_s2 = inc_q = 0.0
@@ -505,13 +508,14 @@ def _saved(iw: np.ndarray, k: int, c: int) -> bool:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray) -> int:
-    """Cell c's column into ``backup`` (slot k) and its index into iw[4, k + 1] (if there is
-    room); returns the new count."""
+def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
+    """Cell c's index into iw[4, k + 1] and, if ``keep``, its column into ``backup`` (slot k)
+    (if there is room); returns the new count."""
     if k >= backup.shape[1] or 1 + k >= iw.shape[1]:
         return k
-    for r in range(NM):
-        backup[r, k] = mem[r, c]
+    if keep:
+        for r in range(NM):
+            backup[r, k] = mem[r, c]
     iw[4, 0] = k + 1
     iw[4, 1 + k] = c
     return k + 1
@@ -543,9 +547,9 @@ def insert_batch(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarra
     M = rng.shape[1]
     iw = np.zeros((5, max(2 * M, 1) + 1), dtype=np.int64)
     backup = np.zeros((NM, 2 * M))
-    sc = np.empty((2, mem.shape[2]))
+    sc = np.empty((1, mem.shape[2]))
     for e in range(mem.shape[0]):
-        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup, sc)
+        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup, sc, np.bool_(False))
     return out
 
 

@@ -233,17 +233,17 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray) -> int:
+def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray, keep: bool) -> int:
     """The ranges of the rows ``nrows`` join the memory ``mem`` whose first nc cells are used
     (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
-    positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed);
-    returns the new count of used cells."""
+    positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed,
+    their columns before it if ``keep``); returns the new count of used cells."""
     _, sc, iw, backup, cols = memory
     pos, zr, ar, s0 = cols
     for m in range(nrows.shape[0]):
         pos[m, 0], pos[m, 1], pos[m, 2] = nrows[m, R_PX], nrows[m, R_PY], nrows[m, R_PZ]
         zr[m], ar[m], s0[m] = nrows[m, R_ZR], nrows[m, R_AR], nrows[m, R_S0]
-    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc)
+    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc, keep)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
@@ -338,7 +338,7 @@ def _recheck_memory(
         memt, nct = mo, mi[1]
     else:
         _copy2(memt, mo)
-        nct = _insert_ranges(memt, nc0, nrows, memory, p)
+        nct = _insert_ranges(memt, nc0, nrows, memory, p, np.bool_(False))
     x_prev, here, there = fo[F_EST : F_EST + 3], np.empty(3), np.empty(3)
     _copy1(here, x_prev)
     km.best_start(memt, nct, x_prev, cand, gamma, p, np.int64(16), sc, there)
@@ -720,7 +720,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
         flags[0] = flags[1] = True
     take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
     mi[0] = km.used_cells(mo) if (take or (due and before)) and mo.shape[1] > 0 else 0  # read by those two only
-    mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p) if take else mi[0]
+    mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p, np.bool_(due and before)) if take else mi[0]  # the re-check's swap reads the columns
     mi[2] = take
     if due and before:
         _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf), p, cb)
