@@ -233,7 +233,9 @@ def evaluate(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, 
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _polish_step(x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray, H: np.ndarray, step: np.ndarray) -> bool:
+def _polish_step(
+    x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray, H: np.ndarray, step: np.ndarray
+) -> bool:
     """``cand``: the damped projected Fisher-scoring step from x (coordinates on the box face
     that the gradient pushes against held); returns whether it moves by more than
     ``tolerance`` (m) (False if it is not finite). ``H`` (3, 3) and ``step`` (3,) scratch."""
