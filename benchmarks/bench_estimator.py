@@ -14,6 +14,14 @@ with 10 new joint records per element, and for one planner (batch ``()``), in th
 and for the first call, for a few configurations.
 
     python benchmarks/bench_estimator.py [--repeat 50] [--calls 550] [--no-baseline]
+
+With ``--mission``, instead: the compiled batch update
+(:func:`planner.estimator.kernels.update.update_batch`) timed where the in-process simulator
+calls it, in ``--rounds`` runs of each mission (criterion A, ``--trials`` × ``--steps``, one
+process): per drone-step (one element of one call), split into the re-check calls (every
+``recheck_every``-th) and the others, and the run's wall time; medians over the rounds.
+
+    python benchmarks/bench_estimator.py --mission paper/ranging_los paper/bearing [--trials 20] [--steps 300] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -95,7 +103,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=550, help="calls of the final-geometry run (default 550)")
     parser.add_argument("--no-baseline", action="store_true", help="the compiled estimator only")
     parser.add_argument("--skip-large-window", action="store_true", help="skip window_rows=50 for batch (100, 10)")
+    parser.add_argument("--mission", nargs="+", metavar="MISSION", help="instead: the batch update inside simulated runs of these missions")
+    parser.add_argument("--trials", type=int, default=20, help="trials of a --mission run (default 20)")
+    parser.add_argument("--steps", type=int, default=300, help="steps of a --mission run (default 300)")
+    parser.add_argument("--rounds", type=int, default=3, help="runs of each --mission (default 3)")
+    parser.add_argument("--against", metavar="COMMIT", help="with --mission: also time this commit's kernel on the same calls")
+    parser.add_argument(
+        "--kernels-dir", type=Path, help="with --against: where its kernels are written and compiled (default: a temporary directory)"
+    )
     args = parser.parse_args(argv)
+    if args.mission:
+        with tempfile.TemporaryDirectory() as tmp:
+            against = load_kernels(args.kernels_dir or Path(tmp), args.against) if args.against else None
+            for mission in args.mission:
+                _in_mission(mission, args.trials, args.steps, args.rounds, against)
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         impls = {"compiled": compiled}
         if not args.no_baseline:
@@ -107,6 +129,85 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, est in impls.items():
             _configurations(name, est, args.repeat, args.skip_large_window)
     return 0
+
+
+def load_kernels(directory: Path, commit: str) -> ModuleType:
+    """The compiled update kernel (``planner/estimator/kernels/update.py``) of ``commit``: its
+    package written into ``directory`` as ``estimator_kernels_<commit>`` (its imports of itself
+    renamed; the packed layout is shared) and imported from there (numba compiles it there
+    once)."""
+    name = f"estimator_kernels_{commit}"
+    package = directory / name
+    if not package.exists():
+        package.mkdir(parents=True)
+        names = subprocess.run(
+            ["git", "ls-tree", "--name-only", commit, "planner/estimator/kernels/"], cwd=REPO, capture_output=True, text=True, check=True
+        )
+        for path in names.stdout.split():
+            text = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=REPO, capture_output=True, text=True, check=True).stdout
+            (package / Path(path).name).write_text(text.replace("planner.estimator.kernels", name), encoding="utf-8")
+    if str(directory) not in sys.path:
+        sys.path.insert(0, str(directory))
+    return importlib.import_module(f"{name}.update")
+
+
+def _in_mission(name: str, trials: int, steps: int, rounds: int, against: ModuleType | None) -> None:
+    """The compiled batch update timed inside ``rounds`` simulated runs of mission ``name``
+    (criterion A): CPU µs per drone-step (one element of one call), re-check calls and others,
+    medians over the rounds; with ``against`` (another commit's kernel module) each call is
+    also made by that kernel on a copy of the same state (the order alternating), checked to
+    give the same state, and timed the same way."""
+    from missions.format.loader import load_mission
+    from missions.study.simulator import RunSpec, simulate
+    from planner.estimator.kernels import update as kernels
+
+    mission = load_mission(name, None)
+    batch = kernels.update_batch
+    impls = {"this commit": batch} if against is None else {"this commit": batch, "baseline": against.update_batch}
+    times: dict[str, dict[bool, list[float]]] = {k: {True: [], False: []} for k in impls}
+    sizes: list[int] = []
+
+    def timed(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due: bool, used: np.ndarray, cb: object, overwrite: bool) -> tuple:
+        order = list(impls) if len(sizes) % 2 == 0 else list(impls)[::-1]
+        outs: dict[str, tuple] = {}
+        copy = tuple(a.copy() for a in state) if against is not None else state  # before either call writes into state
+        for k in order:
+            own = state if k == "this commit" else copy
+            t0 = time.thread_time()
+            outs[k] = impls[k](own, new, cfg, channel, due, used, cb, overwrite)
+            times[k][bool(due)].append(time.thread_time() - t0)
+        if against is not None and not all(np.array_equal(a, b, equal_nan=True) for a, b in zip(outs["this commit"], outs["baseline"], strict=True)):
+            raise AssertionError(f"{name}: the baseline's state differs at call {len(sizes)}")
+        sizes.append(state[0].shape[0])
+        return outs["this commit"]
+
+    results: dict[str, dict[str, list[float]]] = {k: {"all": [], "due": [], "other": []} for k in impls}
+    walls = []
+    kernels.update_batch = timed
+    try:
+        simulate(RunSpec(mission, "A", 1, 2))  # the kernels loaded, not timed
+        for _ in range(rounds):
+            sizes.clear()
+            for k in impls:
+                times[k][True].clear(), times[k][False].clear()
+            t0 = time.perf_counter()
+            simulate(RunSpec(mission, "A", trials, steps))
+            walls.append(time.perf_counter() - t0)
+            E = sizes[0]
+            for k in impls:
+                due, other = sum(times[k][True]), sum(times[k][False])
+                results[k]["all"].append(1e6 * (due + other) / (E * len(sizes)))
+                results[k]["due"].append(1e6 * due / (E * max(len(times[k][True]), 1)))
+                results[k]["other"].append(1e6 * other / (E * max(len(times[k][False]), 1)))
+    finally:
+        kernels.update_batch = batch
+    for k, r in results.items():
+        print(
+            f"{name} ({k}): {trials} trials x {steps} steps, batch of {E} drones, {len(sizes)} calls: update_batch "
+            f"{statistics.median(r['all']):6.2f} us CPU per drone-step (re-check calls {statistics.median(r['due']):6.2f}, others "
+            f"{statistics.median(r['other']):6.2f}); medians of {rounds}"
+        )
+    print(f"{name}: run wall {statistics.median(walls):6.2f} s (median of {rounds}; the baseline's calls included)")
 
 
 def _warm_up(est: ModuleType) -> None:

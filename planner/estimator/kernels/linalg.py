@@ -81,14 +81,9 @@ def normalised_det(a: np.ndarray) -> float:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def solve3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """``out`` = a⁻¹ b for a 3 × 3 ``a`` by LU with partial pivoting (LAPACK's ``gesv`` order:
-    the column below the pivot scaled by the pivot's reciprocal); ``a``, ``b`` untouched."""
-    m, y = np.empty((3, 3)), np.empty(3)
-    for i in range(3):
-        y[i] = b[i]
-        for j in range(3):
-            m[i, j] = a[i, j]
+def solve3_in_place(m: np.ndarray, y: np.ndarray) -> None:
+    """y ← m⁻¹ y for a 3 × 3 ``m`` by LU with partial pivoting (LAPACK's ``gesv`` order: the
+    column below the pivot scaled by the pivot's reciprocal); m is left holding the factors."""
     for k in range(3):
         piv = k
         for i in range(k + 1, 3):
@@ -110,8 +105,6 @@ def solve3(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
         y[k] /= m[k, k]
         for i in range(k):
             y[i] -= y[k] * m[i, k]
-    for i in range(3):
-        out[i] = y[i]
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)

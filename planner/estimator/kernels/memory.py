@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from planner.estimator.kernels.linalg import clip, eigh, nmax, solve3
+from planner.estimator.kernels.linalg import clip, eigh, nmax, solve3_in_place
 from planner.estimator.layout import (
     M_CC,
     M_CX,
@@ -233,25 +233,27 @@ def evaluate(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, 
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _polish_step(x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray) -> bool:
+def _polish_step(
+    x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray, H: np.ndarray, step: np.ndarray
+) -> bool:
     """``cand``: the damped projected Fisher-scoring step from x (coordinates on the box face
     that the gradient pushes against held); returns whether it moves by more than
-    ``tolerance`` (m) (False if it is not finite)."""
-    H, gf, step = np.empty((3, 3)), np.empty(3), np.empty(3)
-    free = np.empty(3, dtype=np.bool_)
+    ``tolerance`` (m) (False if it is not finite). ``H`` (3, 3) and ``step`` (3,) scratch."""
+    free = 0  # bit i: coordinate i free
     for i in range(3):
         s = 0.0 if g[i] == 0.0 else (1.0 if g[i] > 0.0 else -1.0)
         if g[i] != g[i]:
             s = g[i]
-        free[i] = clip(x[i] - 1e-6 * s, p[P_LO + i], p[P_HI + i]) != x[i]
+        if clip(x[i] - 1e-6 * s, p[P_LO + i], p[P_HI + i]) != x[i]:
+            free |= 1 << i
     for i in range(3):
         for j in range(3):
-            H[i, j] = F[i, j] if (free[i] and free[j]) else 0.0
-        gf[i] = g[i] if free[i] else 0.0
+            H[i, j] = F[i, j] if ((free >> i) & (free >> j) & 1) else 0.0
+        step[i] = g[i] if (free >> i) & 1 else 0.0
     tr = H[0, 0] + H[1, 1] + H[2, 2]
     for i in range(3):
-        H[i, i] = H[i, i] + (mu * H[i, i] + 1e-9 * tr + 1e-12) + (0.0 if free[i] else 1.0)
-    solve3(H, gf, step)
+        H[i, i] = H[i, i] + (mu * H[i, i] + 1e-9 * tr + 1e-12) + (0.0 if (free >> i) & 1 else 1.0)
+    solve3_in_place(H, step)
     live, nan = False, False
     for i in range(3):
         cand[i] = clip(x[i] - step[i], p[P_LO + i], p[P_HI + i])
@@ -272,11 +274,12 @@ def polish(
     information at the candidate together; a rejected step re-uses those at x). Returns the
     cost at x and the cost where it started."""
     g, F, gc, Fc, cand = np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3)
+    H, step = np.empty((3, 3)), np.empty(3)
     cost = evaluate(mem, nc, x, gamma, np.bool_(True), sc, g, F)
     start = cost
     mu = 1e-3
     for _ in range(iterations):
-        live = _polish_step(x, g, F, mu, p, tolerance, cand)
+        live = _polish_step(x, g, F, mu, p, tolerance, cand, H, step)
         c_new = evaluate(mem, nc, cand, gamma, np.bool_(True), sc, gc, Fc) if live else nll(mem, nc, cand[0], cand[1], cand[2], gamma, sc)
         if np.isfinite(c_new) and c_new <= cost:
             x[0], x[1], x[2] = cand[0], cand[1], cand[2]
@@ -327,20 +330,27 @@ def best_start(
 
 # --------------------------------------------------------------------------- insertion
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float) -> tuple[int, float, int]:
+def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, d2: np.ndarray) -> tuple[int, float, int]:
     """The occupied cell nearest to (px, py, pz) of σ_r0 ``sig`` and its squared distance
-    ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and the nearest occupied
-    cell of any σ_r0 (0 if none). The first of equally near cells."""
-    best, bd, near, nd = 0, np.inf, 0, np.inf
+    ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and, only where there is
+    none (else the first), the nearest occupied cell of any σ_r0 (0 if none). The first of
+    equally near cells. ``d2`` (≥ nc,) scratch: the squared distances, inf for the empty
+    cells, in a loop the compiler vectorises, then the minima."""
     pp = px * px + py * py + pz * pz
     for c in range(nc):
-        if mem[M_N, c] < EMPTY:
-            continue
-        d2 = nmax(mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp, 0.0)
-        if d2 < nd:
-            near, nd = c, d2
-        if mem[M_S0, c] == sig and d2 < bd:
-            best, bd = c, d2
+        v = mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp
+        v = 0.0 if v < 0.0 else v  # NaN kept
+        d2[c] = np.inf if mem[M_N, c] < EMPTY else v
+    best, bd = 0, np.inf
+    for c in range(nc):
+        if d2[c] < bd and mem[M_S0, c] == sig:
+            best, bd = c, d2[c]
+    if bd < np.inf:
+        return best, bd, best
+    near, nd = 0, np.inf
+    for c in range(nc):
+        if d2[c] < nd:
+            near, nd = c, d2[c]
     return best, bd, near
 
 
@@ -387,7 +397,7 @@ def _group(
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray) -> int:
+def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
     """Save (:func:`_save`) the empty cells that new groups of M rows may take: the first M
     empty cells in index order. Returns the new count k of saved cells."""
     C, c = mem.shape[1], 0
@@ -396,14 +406,24 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
             c += 1
         if c >= C:
             break
-        k = _save(mem, c, k, iw, backup)
+        k = _save(mem, c, k, iw, backup, keep)
         c += 1
     return k
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def insert(
-    mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, w: np.ndarray, sig: np.ndarray, rf: float, iw: np.ndarray, backup: np.ndarray
+    mem: np.ndarray,
+    nc: int,
+    pos: np.ndarray,
+    rng: np.ndarray,
+    w: np.ndarray,
+    sig: np.ndarray,
+    rf: float,
+    iw: np.ndarray,
+    backup: np.ndarray,
+    sc: np.ndarray,
+    keep: bool,
 ) -> int:
     """Add the ranges ``rng`` (M,), m, taken at ``pos`` (M, 3), m, ENU, with weights ``w`` (M,)
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
@@ -411,7 +431,7 @@ def insert(
     they were before the call). Each cell's sums grow by the sum of its rows' terms, in row
     order. ``iw`` (5, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
     the number k of cells changed and iw[4, 1:k+1] which; ``backup`` (NM, M) their columns
-    before the call. Returns the new count of used cells."""
+    before the call if ``keep`` (else only which); ``sc`` (≥ 1, C) float scratch. Returns the new count of used cells."""
     C, M = mem.shape[1], rng.shape[0]
     iw[4, 0] = 0
     if C == 0 or M == 0:
@@ -422,7 +442,7 @@ def insert(
         cell[m] = -1
         if not w[m] > 0.0:
             continue
-        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m])
+        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc[0])
         radius = rf * nmax(abs(mem[M_S1, best]) / mem[M_N, best], 1.0) if np.isfinite(d_same) else 0.0
         if d_same <= radius * radius:
             cell[m] = best
@@ -435,13 +455,13 @@ def insert(
     for m in range(M):
         any_fresh = any_fresh or fresh[m]
     if any_fresh:
-        k = _save_empty(mem, M, k, iw, backup)
+        k = _save_empty(mem, M, k, iw, backup, keep)
         used = _group(mem, nc, pos, rng, sig, rf, fresh, cell, iw)
     for m in range(M):
         c = cell[m]
         if c < 0 or _saved(iw, k, c):
             continue
-        k = _save(mem, c, k, iw, backup)
+        k = _save(mem, c, k, iw, backup, keep)
     for j in range(k):
         c = iw[4, 1 + j]
         inc_n = inc_s1 = inc_s2 = inc_q = 0.0
@@ -490,13 +510,14 @@ def _saved(iw: np.ndarray, k: int, c: int) -> bool:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray) -> int:
-    """Cell c's column into ``backup`` (slot k) and its index into iw[4, k + 1] (if there is
-    room); returns the new count."""
+def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
+    """Cell c's index into iw[4, k + 1] and, if ``keep``, its column into ``backup`` (slot k)
+    (if there is room); returns the new count."""
     if k >= backup.shape[1] or 1 + k >= iw.shape[1]:
         return k
-    for r in range(NM):
-        backup[r, k] = mem[r, c]
+    if keep:
+        for r in range(NM):
+            backup[r, k] = mem[r, c]
     iw[4, 0] = k + 1
     iw[4, 1 + k] = c
     return k + 1
@@ -528,8 +549,9 @@ def insert_batch(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarra
     M = rng.shape[1]
     iw = np.zeros((5, max(2 * M, 1) + 1), dtype=np.int64)
     backup = np.zeros((NM, 2 * M))
+    sc = np.empty((1, mem.shape[2]))
     for e in range(mem.shape[0]):
-        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup)
+        insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup, sc, np.bool_(False))
     return out
 
 

@@ -63,7 +63,7 @@ def residuals(
 ) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
     """Row k at source x: r = x − p (rx, ry, rz), ρ² (floored), ρ, d², d, σ_r = σ_r0 dv^{γ/2}
     (dv = ``dv_given`` if positive, else d) and e = (z − h)/σ for range, azimuth (wrapped),
-    elevation."""
+    elevation (0 for an angle of weight 0)."""
     rx, ry, rz = x[0] - rows[k, R_PX], x[1] - rows[k, R_PY], x[2] - rows[k, R_PZ]
     rho2 = nmax(rx * rx + ry * ry, RHO2_FLOOR_M2)
     rho = math.sqrt(rho2)
@@ -75,8 +75,10 @@ def residuals(
     inv_sr = 1.0 / sr
     inv_sb = 1.0 / p[P_SB]
     er = (rows[k, R_ZR] - d) * inv_sr
-    ea = wrap(rows[k, R_ZA] - math.atan2(ry, rx)) * inv_sb
-    ee = (rows[k, R_ZE] - math.atan2(rz, rho)) * inv_sb
+    # an angle of weight 0 is 0 (its terms are a·… = 0 whatever e is; the range's e carries a
+    # NaN of x): no atan2 for a ranging-only row
+    ea = wrap(rows[k, R_ZA] - math.atan2(ry, rx)) * inv_sb if rows[k, R_AA] != 0.0 else 0.0
+    ee = (rows[k, R_ZE] - math.atan2(rz, rho)) * inv_sb if rows[k, R_AE] != 0.0 else 0.0
     return rx, ry, rz, rho2, rho, d2, d, sr, er, ea, ee
 
 
@@ -275,7 +277,8 @@ def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray,
     with v = (−r_y, r_x, 0) and w = (−r_x r_z, −r_y r_z, ρ²), g = Σ gA r + gB v + gC w,
     H = Σ hA r rᵀ + hB v vᵀ + hC w wᵀ, F = H + Σ hF r rᵀ, plus the extension components'
     terms (their Fisher information is their scoring matrix)."""
-    s = np.zeros(21)
+    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = s10 = 0.0
+    s11 = s12 = s13 = s14 = s15 = s16 = s17 = s18 = s19 = s20 = 0.0
     for k in range(lo, hi):
         rx, ry, rz, rho2 = ev[k, E_RX], ev[k, E_RY], ev[k, E_RZ], ev[k, E_RHO2]
         gA, gB, gC = ev[k, E_GA], ev[k, E_GB], ev[k, E_GC]
@@ -284,19 +287,36 @@ def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray,
         rzz = rz * rz
         q1, q2 = hA + hC * rzz, hA - hC * rho2
         rxx, ryy, rxy, rxz, ryz = rx * rx, ry * ry, rx * ry, rx * rz, ry * rz
-        for i, term in enumerate((rx * t, gB * ry, ry * t, gB * rx, gA * rz, gC * rho2, rxx * q1, ryy * hB, ryy * q1, rxx * hB, rxy * (q1 - hB))):
-            s[i] += term
-        for i, term in enumerate((rzz * hA, rho2 * rho2 * hC, rxz * q2, ryz * q2, rxx * hF, ryy * hF, rzz * hF, rxy * hF, rxz * hF, ryz * hF)):
-            s[11 + i] += term
-    g[0], g[1], g[2] = s[0] - s[1], s[2] + s[3], s[4] + s[5]
-    H[0, 0], H[1, 1], H[2, 2] = s[6] + s[7], s[8] + s[9], s[11] + s[12]
-    H[0, 1] = H[1, 0] = s[10]
-    H[0, 2] = H[2, 0] = s[13]
-    H[1, 2] = H[2, 1] = s[14]
-    F[0, 0], F[1, 1], F[2, 2] = H[0, 0] + s[15], H[1, 1] + s[16], H[2, 2] + s[17]
-    F[0, 1] = F[1, 0] = H[0, 1] + s[18]
-    F[0, 2] = F[2, 0] = H[0, 2] + s[19]
-    F[1, 2] = F[2, 1] = H[1, 2] + s[20]
+        s0 += rx * t
+        s1 += gB * ry
+        s2 += ry * t
+        s3 += gB * rx
+        s4 += gA * rz
+        s5 += gC * rho2
+        s6 += rxx * q1
+        s7 += ryy * hB
+        s8 += ryy * q1
+        s9 += rxx * hB
+        s10 += rxy * (q1 - hB)
+        s11 += rzz * hA
+        s12 += rho2 * rho2 * hC
+        s13 += rxz * q2
+        s14 += ryz * q2
+        s15 += rxx * hF
+        s16 += ryy * hF
+        s17 += rzz * hF
+        s18 += rxy * hF
+        s19 += rxz * hF
+        s20 += ryz * hF
+    g[0], g[1], g[2] = s0 - s1, s2 + s3, s4 + s5
+    H[0, 0], H[1, 1], H[2, 2] = s6 + s7, s8 + s9, s11 + s12
+    H[0, 1] = H[1, 0] = s10
+    H[0, 2] = H[2, 0] = s13
+    H[1, 2] = H[2, 1] = s14
+    F[0, 0], F[1, 1], F[2, 2] = H[0, 0] + s15, H[1, 1] + s16, H[2, 2] + s17
+    F[0, 1] = F[1, 0] = H[0, 1] + s18
+    F[0, 2] = F[2, 0] = H[0, 2] + s19
+    F[1, 2] = F[2, 1] = H[1, 2] + s20
     for k in range(lo, hi):
         if ev[k, E_XA] == 0.0:
             continue
@@ -340,17 +360,28 @@ def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H:
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _lm_step(
-    x: np.ndarray, g: np.ndarray, H: np.ndarray, mu: float, ev: np.ndarray, K: int, counts: np.ndarray, p: np.ndarray, cand: np.ndarray
+    x: np.ndarray,
+    g: np.ndarray,
+    H: np.ndarray,
+    mu: float,
+    ev: np.ndarray,
+    K: int,
+    counts: np.ndarray,
+    p: np.ndarray,
+    cand: np.ndarray,
+    scratch: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
     """``cand``: the damped Fisher-scoring step from x, capped at half the mean distance to the
     records (weighted as used) and projected into the search box (x itself if the damped
-    matrix is singular)."""
-    Hd, Hinv = H.copy(), np.empty((3, 3))
+    matrix is singular). ``scratch`` = two (3, 3) and a (3,)."""
+    Hd, Hinv, step = scratch
+    for i in range(3):
+        for j in range(3):
+            Hd[i, j] = H[i, j]
     tr = H[0, 0] + H[1, 1] + H[2, 2]
     for i in range(3):
         Hd[i, i] = H[i, i] + (mu * H[i, i] + 1e-12 * tr + 1e-300)
     ok = inv3_spd(Hd, Hinv)
-    step = np.empty(3)
     for i in range(3):
         step[i] = -(Hinv[i, 0] * g[0] + Hinv[i, 1] * g[1] + Hinv[i, 2] * g[2])
     n_w = nmax(np.sum(counts[0]), 1e-300)
@@ -380,6 +411,7 @@ def lm_iterations(
     cb,
     buf: np.ndarray,
     out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    scratch: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
     """Levenberg-Marquardt (Fisher scoring) iterations of the robust cost plus the prior
     ½xᵀΛx − ηᵀx from x (3,), in place; ``schedule`` = (fresh, initialised before, n) with n the
@@ -387,14 +419,14 @@ def lm_iterations(
     evaluation at x on entry (cost ``first_cost``) and at the last iterate x_lin on exit. A
     step is kept only if the cost does not increase (then μ shrinks by 3, else grows by 4).
     ``out`` = (g, H, F, x_lin): gradient (prior included), scoring matrix (prior included) and
-    Fisher information (prior excluded) at x_lin, and x_lin."""
+    Fisher information (prior excluded) at x_lin, and x_lin. ``scratch`` = (3,), two (3, 3), (3,)."""
     ev, xg, xh, counts = work
     g, H, F, x_lin = out
     fresh, before, n_el = schedule
     tukey, ml = p[P_TUKEY] != 0.0, p[P_ML] != 0.0
     mu = p[P_LM_DAMP]
     cost_ev = first_cost
-    cand = np.empty(3)
+    cand, Hd, Hinv, step = scratch
     for it in range(n_el):
         rd = redescend(tukey, it, fresh, before, n_el)
         if it > 0:
@@ -403,7 +435,7 @@ def lm_iterations(
         accumulate(ev, np.int64(0), K, xg, xh, g, H, F)
         add_prior(x, lam, eta, g, H)
         cost = cost_ev + prior_cost(x, lam, eta)
-        _lm_step(x, g, H, mu, ev, K, counts, p, cand)
+        _lm_step(x, g, H, mu, ev, K, counts, p, cand, (Hd, Hinv, step))
         c_new = cost_at(cand, rows, K, xz, xa, p, p[P_HUBER], rd, ml, ev, not ml, cb, buf) + prior_cost(cand, lam, eta)
         if np.isfinite(c_new) and c_new <= cost:
             x[0], x[1], x[2] = cand[0], cand[1], cand[2]

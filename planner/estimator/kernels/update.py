@@ -233,17 +233,17 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray) -> int:
+def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray, keep: bool) -> int:
     """The ranges of the rows ``nrows`` join the memory ``mem`` whose first nc cells are used
     (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
-    positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed);
-    returns the new count of used cells."""
-    _, _, iw, backup, cols = memory
+    positions, ranges, weights and σ_r0, and the insertion's record of the cells it changed,
+    their columns before it if ``keep``); returns the new count of used cells."""
+    _, sc, iw, backup, cols = memory
     pos, zr, ar, s0 = cols
     for m in range(nrows.shape[0]):
         pos[m, 0], pos[m, 1], pos[m, 2] = nrows[m, R_PX], nrows[m, R_PY], nrows[m, R_PZ]
         zr[m], ar[m], s0[m] = nrows[m, R_ZR], nrows[m, R_AR], nrows[m, R_S0]
-    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup)
+    return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc, keep)
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
@@ -338,7 +338,7 @@ def _recheck_memory(
         memt, nct = mo, mi[1]
     else:
         _copy2(memt, mo)
-        nct = _insert_ranges(memt, nc0, nrows, memory, p)
+        nct = _insert_ranges(memt, nc0, nrows, memory, p, np.bool_(False))
     x_prev, here, there = fo[F_EST : F_EST + 3], np.empty(3), np.empty(3)
     _copy1(here, x_prev)
     km.best_start(memt, nct, x_prev, cand, gamma, p, np.int64(16), sc, there)
@@ -448,27 +448,41 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
 def _refine(
-    fo: np.ndarray, x: np.ndarray, flags: np.ndarray, before: bool, K: int, rows: tuple, work: tuple, p: np.ndarray, cb, buf: np.ndarray, out: tuple
+    fo: np.ndarray,
+    x: np.ndarray,
+    flags: np.ndarray,
+    before: bool,
+    K: int,
+    rows: tuple,
+    work: tuple,
+    p: np.ndarray,
+    cb,
+    buf: np.ndarray,
+    out: tuple,
+    small: tuple,
 ) -> None:
     """Step 2, the robust refinement of an initialised element (its ``rows`` = (rows,
     extension values, weights), the gate applied before): ``iterations`` LM iterations
     (``init_iterations`` where initialised or moved this call, ``flags`` = (fresh start, long
     run)). ``work`` = (ev, xg, xh, counts) then holds the evaluation at the last iterate and
-    ``out`` = (g, H, F, x_lin)."""
+    ``out`` = (g, H, F, x_lin); ``small`` as for :func:`_finish` (slots 13-14 and 8-10)."""
     r, xz, xa = rows
+    sm, sv = small
     ev, xg, xh, counts = work
     g, H, F, x_lin = out
     n_short = int(p[P_ITER])
     n_el = max(n_short, int(p[P_INIT_ITER])) if flags[1] else n_short
     rd0 = redescend(p[P_TUKEY] != 0.0, np.int64(0), flags[0], before, n_el)
     cost0 = evaluate(x, r, K, xz, xa, p, rd0, ev, xg, xh, counts, cb, buf)
-    lam, eta = _get(fo, np.int64(F_PINFO), np.int64(3), np.empty((3, 3))), fo[F_PVEC : F_PVEC + 3].copy()
+    lam, eta = _get(fo, np.int64(F_PINFO), np.int64(3), sm[13]), sv[10]
+    for i in range(3):
+        eta[i] = fo[F_PVEC + i]
     if K == 0:
         accumulate(ev, K, K, xg, xh, g, H, F)
         add_prior(x, lam, eta, g, H)
         _copy1(x_lin, x)
         return
-    lm_iterations(x, r, K, xz, xa, p, lam, eta, cost0, (flags[0], before, n_el), work, cb, buf, out)
+    lm_iterations(x, r, K, xz, xa, p, lam, eta, cost0, (flags[0], before, n_el), work, cb, buf, out, (sv[8], sm[14], sm[15], sv[9]))
 
 
 # --------------------------------------------------------------------------- steps 3-5
@@ -490,26 +504,27 @@ def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: 
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.ndarray, x: np.ndarray, p: np.ndarray) -> bool:
+def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.ndarray, x: np.ndarray, p: np.ndarray, scratch: tuple) -> bool:
     """Rao's score test of the recent records against the estimate x (package doc, step 3):
     S_H ← λ_c S_H + H_new, S_v ← λ_c S_v + H_new x_lin − g_new, T = sᵀS_H⁻¹s with s = S_H x − S_v
     (coordinates on the search box left out). Returns whether T exceeds the threshold (the
-    recent model is then reset)."""
+    recent model is then reset). ``scratch`` = (3, 3), (3,), (3, 3), (3, 3)."""
     lc = p[P_CONS_LAMBDA]
-    S_H, s, S_t, S_inv = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    S_H, s, S_t, S_inv = scratch
     for i in range(3):
         fo[F_SV + i] = fo[F_SV + i] * lc + ((H_new[i, 0] * x_lin[0] + H_new[i, 1] * x_lin[1] + H_new[i, 2] * x_lin[2]) - g_new[i])
         for j in range(3):
             S_H[i, j] = fo[F_SH + 3 * i + j] * lc + H_new[i, j]
     tr = nmax(S_H[0, 0] + S_H[1, 1] + S_H[2, 2], 1e-300)
-    free = np.empty(3, dtype=np.bool_)
+    free = 0  # bit i: coordinate i inside the box
     for i in range(3):
-        free[i] = x[i] > p[P_LO + i] and x[i] < p[P_HI + i]
+        if x[i] > p[P_LO + i] and x[i] < p[P_HI + i]:
+            free |= 1 << i
         si = (S_H[i, 0] * x[0] + S_H[i, 1] * x[1] + S_H[i, 2] * x[2]) - fo[F_SV + i]
-        s[i] = si if free[i] else 0.0
+        s[i] = si if (free >> i) & 1 else 0.0
     for i in range(3):
         for j in range(3):
-            S_t[i, j] = S_H[i, j] if (free[i] and free[j]) else (tr if i == j else 0.0)
+            S_t[i, j] = S_H[i, j] if ((free >> i) & (free >> j) & 1) else (tr if i == j else 0.0)
     T = 0.0
     if inv3_spd(S_t, S_inv):
         for i in range(3):
@@ -533,27 +548,31 @@ def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
 
 
 @njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple) -> tuple[bool, bool]:
+def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple, small: tuple) -> tuple[bool, bool]:
     """Steps 3-5 after the refinement of an initialised element: the suspect flag, the rows
     leaving the window (the oldest M) marginalised into the prior (linearised at x_lin), the
     score test of the newest M and the reported estimate (kept where not finite), information
-    (symmetrised) and observability. Returns (observable, suspect)."""
+    (symmetrised) and observability. Returns (observable, suspect). ``small`` = (matrices
+    (≥ 13, 3, 3), vectors (≥ 8, 3)) scratch: slots 3.. of each."""
+    sm, sv = small
     K = work[0].shape[0]
     F = refined[2]
-    lam, fis = _get(fo, np.int64(F_PINFO), np.int64(3), np.empty((3, 3))), _get(fo, np.int64(F_PFISH), np.int64(3), np.empty((3, 3)))
-    eta = fo[F_PVEC : F_PVEC + 3].copy()
-    fisher = np.empty((3, 3))
+    lam, fis = _get(fo, np.int64(F_PINFO), np.int64(3), sm[3]), _get(fo, np.int64(F_PFISH), np.int64(3), sm[4])
+    eta = sv[4]
+    for i in range(3):
+        eta[i] = fo[F_PVEC + i]
+    fisher = sm[5]
     for i in range(3):
         for j in range(3):
             fisher[i, j] = F[i, j] + fis[i, j]
     suspect = _suspect(work[3], p)
     if M > 0:
-        gl, Hl, Fl = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+        gl, Hl, Fl = sv[5], sm[6], sm[7]
         _leaving(refined, lam, eta, work, np.int64(0), M, (gl, Hl, Fl))
         if p[P_CONS_THR] == p[P_CONS_THR] and K > 0:
-            gn, Hn, Fn = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+            gn, Hn, Fn = sv[6], sm[8], sm[9]
             _leaving(refined, lam, eta, work, K - M, K, (gn, Hn, Fn))
-            if _score_test(fo, gn, Hn, refined[3], x, p):
+            if _score_test(fo, gn, Hn, refined[3], x, p, (sm[10], sv[7], sm[11], sm[12])):
                 suspect = True
                 for i in range(3):
                     for j in range(3):
@@ -606,32 +625,34 @@ def _advance_range_window(
 ) -> None:
     """The new ranges join the range window ``rwo`` (weights times λ); the oldest rows (the
     invalid ones first) leave it and join the re-check's squared-range summary, each weighted
-    at this call's estimate. ``scratch`` = (range rows, scales, pool of 2 (R + M) rows)."""
+    at this call's estimate. ``scratch`` = (range rows, scales, pool of ≥ M rows: the rows
+    leaving). One pass per validity over the window then the new rows, each row written once
+    to where it goes."""
     R, M = rw.shape[0], nraw.shape[0]
     rrows, scale, pool = scratch
-    for k in range(R):
-        for j in range(NRW):
-            rwo[k, j] = rw[k, j]
-        rwo[k, RW_W] = rw[k, RW_W] * p[P_LAMBDA]
+    lam = p[P_LAMBDA]
+    k = 0
+    for valid in (False, True):  # invalid rows first, stable: the first M leave
+        for i in range(R + M):
+            old = i < R
+            m = i - R
+            w = rw[i, RW_W] * lam if old else (1.0 if (nraw[m, W_W] > 0.0 and np.isfinite(nraw[m, W_R])) else 0.0)
+            if M > 0 and R > 0 and (w > 0.0) != valid:
+                continue
+            if (M == 0 and not old) or ((M == 0 or R == 0) and valid):  # no partition: in order
+                continue
+            dst = pool[k] if k < M else rwo[k - M]
+            if old:
+                for j in range(NRW):
+                    dst[j] = rw[i, j]
+            else:
+                dst[0], dst[1], dst[2] = nraw[m, 0], nraw[m, 1], nraw[m, 2]
+                dst[RW_R], dst[RW_LOS] = nraw[m, W_R], nraw[m, W_LOS]
+            dst[RW_W] = w
+            k += 1
     if M == 0:
         return
-    for k in range(R):
-        for j in range(NRW):
-            pool[k, j] = rwo[k, j]
-    for m in range(M):
-        pool[R + m, 0], pool[R + m, 1], pool[R + m, 2] = nraw[m, 0], nraw[m, 1], nraw[m, 2]
-        pool[R + m, RW_R], pool[R + m, RW_LOS] = nraw[m, W_R], nraw[m, W_LOS]
-        pool[R + m, RW_W] = 1.0 if (nraw[m, W_W] > 0.0 and np.isfinite(nraw[m, W_R])) else 0.0
-    n, k = R + M, 0
-    for valid in (False, True):  # invalid rows first, stable: the first M leave
-        for i in range(n if R > 0 else 0):
-            if (pool[i, RW_W] > 0.0) == valid:
-                for j in range(NRW):
-                    pool[n + k, j] = pool[i, j]
-                k += 1
-    leaving = pool[n : n + M] if R > 0 else pool[:M]
-    if R > 0:
-        _copy2(rwo, pool[n + M : 2 * n])
+    leaving = pool[:M]
     _range_rows(leaving, M, 1.0, p, rrows)
     has_range = False
     for m in range(M):
@@ -672,7 +693,8 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     in place)."""
     fs, ist, rwin, win, mem = state
     fs2, ist2, rwin2, win2, mem2 = outs
-    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw = ws
+    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw, small = ws
+    sm, sv = small
     _copy1(fi, fs[e])
     _copy1(ii, ist[e])
     _copy2(rw, rwin[e])
@@ -687,7 +709,9 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     fill_rows(nraw, M, p, extra_used, nrows, nxz, nxa)
     K = _merge(win[e], nraw, p[P_LAMBDA], raw)
     fill_rows(raw, K, p, extra_used, rows, xz, xa)
-    x = fi[F_EST : F_EST + 3].copy()
+    x = sv[0]
+    for i in range(3):
+        x[i] = fi[F_EST + i]
     before = ii[I_INIT] != 0
     flags = np.zeros(2, dtype=np.bool_)  # fresh start, long run
     flags[0] = ii[I_SUSP] != 0 and before
@@ -695,17 +719,17 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
         io[I_INIT] = 1
         flags[0] = flags[1] = True
     take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
-    mi[0] = km.used_cells(mo) if mo.shape[1] > 0 else 0
-    mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p) if take else mi[0]
+    mi[0] = km.used_cells(mo) if (take or (due and before)) and mo.shape[1] > 0 else 0  # read by those two only
+    mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p, np.bool_(due and before)) if take else mi[0]  # the re-check's swap reads the columns
     mi[2] = take
     if due and before:
         _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf), p, cb)
     obs, susp = False, False
     if io[I_INIT] != 0:
         _gate_previous(fi, ii[I_OBS] != 0 and before, x, rows, K, p)
-        refined = (np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
-        _refine(fo, x, flags, before, K, (rows, xz, xa), (ev, xg, xh, counts), p, cb, buf, refined)
-        obs, susp = _finish(fo, fi, x, M, (ev, xg, xh, counts), p, refined)
+        refined = (sv[1], sm[0], sm[1], sv[2])
+        _refine(fo, x, flags, before, K, (rows, xz, xa), (ev, xg, xh, counts), p, cb, buf, refined, small)
+        obs, susp = _finish(fo, fi, x, M, (ev, xg, xh, counts), p, refined, small)
     else:
         _inactive(fo, M, win.shape[1], rows, p)
     io[I_OBS], io[I_SUSP] = obs, susp
@@ -722,7 +746,9 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     records; the evaluation (:func:`~planner.estimator.kernels.robust.evaluate`); range rows
     and distance scales; the extension callback's buffer; the memory scratch (a memory, pass
     scratch, the insertion's record and saved cells, columns of ranges) and its counts; the
-    range window's pool; copies of the element's float row, flags and range window."""
+    range window's pool; copies of the element's float row, flags and range window; small
+    matrices (16, 3, 3) and vectors (16, 3) (slots: :func:`_element` 0-2, :func:`_finish`,
+    :func:`_refine`)."""
     K = W + M
     cols = (np.zeros((M, 3)), np.zeros(M), np.zeros(M), np.zeros(M))
     memory = (np.zeros((NM, C)), np.zeros((km.NSC, C)), np.zeros((5, 2 * M + 1), dtype=np.int64), np.zeros((NM, 2 * M)), cols)
@@ -748,6 +774,7 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
         np.zeros(NF),
         np.zeros(NI, dtype=np.int64),
         np.zeros((R, NRW)),
+        (np.zeros((16, 3, 3)), np.zeros((16, 3))),
     )
 
 
