@@ -1018,28 +1018,41 @@ def kept_peers(wn, idx, lim, prune):
 
 # --------------------------------------------------------------------------- the loiter certificate
 @njit(no_cpython_wrapper=True)
+def loiter_heading(sx, sy, sz):
+    """cos Ψ, sin Ψ and the tilt Θ of the step (sx, sy, sz) that a loiter path follows (Ψ = 0 for a
+    vertical step)."""
+    rho = math.hypot(sx, sy)
+    cp, sp = (sx / rho, sy / rho) if rho > 0.0 else (1.0, 0.0)
+    return cp, sp, math.atan2(sz, rho)
+
+
+@njit(no_cpython_wrapper=True)
+def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
+    """One loiter path (``side`` 0: left, 1: right) of :func:`loiter_vertices` to ``out[side]``."""
+    K = int(lim[L_LOITER_K])
+    smin, tmax = lim[L_SMIN], lim[L_TMAX]
+    sgn = 1.0 if theta > 0.0 else (-1.0 if theta < 0.0 else 0.0)
+    turn = 1.0 - 2.0 * side
+    out[side, 0, 0], out[side, 0, 1], out[side, 0, 2] = ex, ey, ez
+    cx = cy = cz = 0.0
+    for v in range(1, K + 1):
+        ca, sa = lim[L_TABLE + 2 * v - 2], turn * lim[L_TABLE + 2 * v - 1]
+        th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
+        ct, st = (math.cos(th_v), math.sin(th_v)) if th_v != 0.0 else (1.0, 0.0)
+        sc = smin * ct
+        cx, cy, cz = cx + sc * (cp * ca - sp * sa), cy + sc * (sp * ca + cp * sa), cz + smin * st
+        out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
+
+
+@njit(no_cpython_wrapper=True)
 def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
     """The loiter paths (:func:`planner.control.loiter_path`) from the end (ex, ey, ez) of the step
     (sx, sy, sz) to ``out`` (2, K + 1, 3): per side (left, right) the end itself, then K steps of
     v_min Δt at the step's heading Ψ ± v φ_max (cos and sin of v φ_max from the limits' table),
     the tilt Θ returning to level at θ_max per step."""
-    K = int(lim[L_LOITER_K])
-    rho = math.hypot(sx, sy)
-    cp, sp = (sx / rho, sy / rho) if rho > 0.0 else (1.0, 0.0)
-    theta = math.atan2(sz, rho)
-    smin, tmax = lim[L_SMIN], lim[L_TMAX]
-    sgn = 1.0 if theta > 0.0 else (-1.0 if theta < 0.0 else 0.0)
+    cp, sp, theta = loiter_heading(sx, sy, sz)
     for side in range(2):
-        turn = 1.0 - 2.0 * side
-        out[side, 0, 0], out[side, 0, 1], out[side, 0, 2] = ex, ey, ez
-        cx = cy = cz = 0.0
-        for v in range(1, K + 1):
-            ca, sa = lim[L_TABLE + 2 * v - 2], turn * lim[L_TABLE + 2 * v - 1]
-            th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
-            ct, st = (math.cos(th_v), math.sin(th_v)) if th_v != 0.0 else (1.0, 0.0)
-            sc = smin * ct
-            cx, cy, cz = cx + sc * (cp * ca - sp * sa), cy + sc * (sp * ca + cp * sa), cz + smin * st
-            out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
+        loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out)
 
 
 @njit(no_cpython_wrapper=True)
@@ -1072,8 +1085,9 @@ def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, sou
     alt_on = min(lim[L_ZMAX] - ez, ez - lim[L_ZMIN]) - reach < need[ALTITUDE]
     if (n_on == 0) & (b_on == 0) & (not src_on) & (not alt_on):
         return True
-    loiter_vertices(ex, ey, ez, sx, sy, sz, lim, verts)
+    cp, sp, theta = loiter_heading(sx, sy, sz)
     for side in range(2):
+        loiter_side(ex, ey, ez, cp, sp, theta, side, lim, verts)  # the right path only where the left fails
         ok = True
         for v in range(verts.shape[1]):
             x, y, z = verts[side, v, 0], verts[side, v, 1], verts[side, v, 2]
