@@ -38,6 +38,7 @@ Usage (from the repository root, which must hold commit 48f7e03):
     python benchmarks/bench_planning_step.py            # N = 10, 100, 1000
     python benchmarks/bench_planning_step.py --near-building
     python benchmarks/bench_planning_step.py --sizes 10 --repeats 5000
+    python benchmarks/bench_planning_step.py --in-study missions/paper/bearing.yaml  # the kernel inside a study
 
 The machine is shared (2 cores) and noisy: the script reports medians over many repeats
 (and the interquartile range), never means.
@@ -408,12 +409,51 @@ def print_costs(rows: list[dict[str, Any]]) -> None:
         )
 
 
+def in_study(mission: str, criterion: str) -> None:
+    """The planning kernel as the in-process simulator calls it: ``fimnav montecarlo MISSION
+    --criterion C --jobs 1 --no-figures`` (the mission's trials and steps) with every call of
+    :func:`planner.kernels.plan_batch` timed, wall and the thread's CPU; per drone-step."""
+    from missions.cli.main import main as fimnav
+
+    kernel = K.plan_batch
+    total = {"wall": 0.0, "cpu": 0.0, "calls": 0, "drone_steps": 0}
+
+    def timed(*args: Any) -> None:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        kernel(*args)
+        total["wall"] += time.perf_counter() - wall
+        total["cpu"] += time.thread_time() - cpu
+        total["calls"] += 1
+        total["drone_steps"] += args[0][1].shape[0]
+
+    K.plan_batch = timed  # planner.agent.plan calls it through the module
+    t0 = time.perf_counter()
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            fimnav(["montecarlo", mission, "--criterion", criterion, "--jobs", "1", "--no-figures", "--out", str(Path(out) / "run")])
+    finally:
+        K.plan_batch = kernel
+    n = max(total["drone_steps"], 1)
+    print(
+        f"{mission} --criterion {criterion}: run {time.perf_counter() - t0:.1f} s wall; plan_batch {total['calls']} calls, "
+        f"{total['drone_steps']} drone-steps: {total['wall']:.2f} s wall ({total['wall'] / n * 1e6:.2f} µs per drone-step), "
+        f"{total['cpu']:.2f} s CPU ({total['cpu'] / n * 1e6:.2f} µs per drone-step)"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
     ap.add_argument("--repeats", type=int, default=3000, help="repeats of the compiled step (numpy: /10, SLSQP: /20, at least 30)")
     ap.add_argument("--near-building", action="store_true", help="drone 0 next to a building and a peer: constraints active")
+    ap.add_argument(
+        "--in-study", metavar="MISSION", help="instead: time the planning kernel inside fimnav montecarlo MISSION --jobs 1 (per drone-step)"
+    )
+    ap.add_argument("--criterion", choices=("A", "D"), default="A", help="--in-study: the design criterion")
     args = ap.parse_args(argv)
+    if args.in_study:
+        in_study(args.in_study, args.criterion)
+        return 0
     npl = numpy_planner()
     rows = [measure(n, args.near_building, args.repeats, npl) for n in args.sizes]
     print_times(rows, args.near_building)

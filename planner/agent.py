@@ -56,7 +56,7 @@ from planner.fim import CostGradient, cost_gradient, fisher_information
 from planner.geometry import as_boxes
 from planner.params import Channel, Criterion, Limits
 from planner.radio.power_planning import corrected_scene, unknown_power_cost
-from planner.sensing import COMPONENTS, SensingComponent
+from planner.sensing import BEARING, COMPONENTS, RANGE, SensingComponent
 from planner.step import OWN_RANGE_WINDOW as OWN_RANGE_WINDOW  # re-exported: the window lives with the carried state
 from planner.step import DroneState, StepScene
 
@@ -545,7 +545,7 @@ def plan(
     roles = (K.contiguous(config.ranging, bool), K.contiguous(config.bearing, bool), config.criterion == "D")
     view_los = K.as_batch(scene.view_los, batch + (n,), bool, 1)
     value, grad, status = np.empty(batch), np.empty(batch + (3,)), np.empty(batch, dtype=np.int8)
-    given = bool(config.extra_masks) or config.unknown_power is not None
+    given = config.unknown_power is not None or any(name not in _RANGE_BEARING for name in config.component_masks)
     if given:
         # Components beyond range and bearing: the cost here, each adding its own terms; an
         # unknown power: the cost of the 4 × 4 information's Schur complement (planner.radio).
@@ -560,6 +560,10 @@ def plan(
     p = np.asarray(scene.own_position_m, dtype=float)
     step = StepResult(p + u, u, flags[..., :4], flags[..., 4], flags[..., 5], flags[..., 6])
     return PlanResult(step, cg, keepout[..., 0], np.asarray(p_hat), flags[..., 7], DroneState.from_kernel_arrays(new, batch))
+
+
+#: The components whose terms the kernels add themselves (any other: :func:`_scene_cost`).
+_RANGE_BEARING: tuple[str, ...] = (RANGE.name, BEARING.name)
 
 
 def _scene_cost(config: PlannerConfig, scene: StepScene, own: NDArray[np.bool_], p_hat: FloatArray) -> CostGradient:

@@ -22,6 +22,7 @@ Imports: numpy and numba only.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -46,16 +47,22 @@ def one_drone(a: ArrayLike, dtype: type = np.float64) -> NDArray[Any]:
     return contiguous(a, dtype)[None]
 
 
-#: numba's decorator, typed loosely: the kernels' Python signatures are their docstrings'.
-njit: Any = numba.njit
+#: numba's decorator, typed loosely: the kernels' Python signatures are their docstrings'. With
+#: numpy's error model: a division by zero gives ±inf or NaN instead of raising (IEEE arithmetic,
+#: as everywhere else); every division here is guarded or by a nonzero quantity, so the results
+#: are those of Python's model, without its zero test before each division.
+njit: Any = functools.partial(numba.njit, error_model="numpy")
 
 
 def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> NDArray[Any]:
     """``a`` broadcast to ``shape`` as a C-contiguous, writeable ``dtype`` array (:func:`contiguous`)
     with the leading dimensions (all but the last ``tail``) flattened into one batch axis: the form
     the entry kernels take."""
-    arr: NDArray[Any] = np.asarray(a, dtype=dtype)
     cut = len(shape) - tail
+    if type(a) is np.ndarray and a.shape == shape and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable:
+        # Already the kernels' form (the planning step's inputs, every step): no conversion.
+        return a[None] if cut == 0 else (a if cut == 1 else a.reshape((math.prod(shape[:cut]),) + shape[cut:]))
+    arr: NDArray[Any] = np.asarray(a, dtype=dtype)
     if arr.shape != shape:
         arr = np.broadcast_to(arr, shape)
     if not (arr.flags.c_contiguous and arr.flags.writeable):
@@ -296,19 +303,18 @@ def channel_array(gamma: float, sigma_r0_los: float, sigma_r0_nlos: float, sigma
 
 
 @njit(no_cpython_wrapper=True)
-def _rotate(a, p, q, r, late):
-    """One Jacobi rotation of the symmetric 3×3 ``a`` zeroing a[p, q] (r the third index); after
-    the first sweeps (``late``) an a[p, q] negligible beside both a[p, p] and a[q, q] is set to
-    zero instead (relative accuracy of the small eigenvalues)."""
-    apq = a[p, q]
+def _rotate(app, aqq, apq, arp, arq, late):
+    """One Jacobi rotation of a symmetric 3×3 a zeroing a[p, q] (r the third index), on its
+    entries a[p, p], a[q, q], a[p, q], a[r, p], a[r, q]; after the first sweeps (``late``) an
+    a[p, q] negligible beside both a[p, p] and a[q, q] is set to zero instead (relative accuracy
+    of the small eigenvalues). Returns the five entries after it and what it did: 0 nothing
+    (a[p, q] = 0), 1 a[p, q] set to zero, 2 a rotation (a[q, p] = 0, a[p, r] = a[r, p], a[q, r] = a[r, q])."""
     if apq == 0.0:
-        return
+        return app, aqq, apq, arp, arq, 0
     g = 100.0 * abs(apq)
-    if late and abs(a[p, p]) + g == abs(a[p, p]) and abs(a[q, q]) + g == abs(a[q, q]):
-        a[p, q] = 0.0
-        a[q, p] = 0.0
-        return
-    h = a[q, q] - a[p, p]
+    if late and abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
+        return app, aqq, 0.0, arp, arq, 1
+    h = aqq - app
     if abs(h) + g == abs(h):
         t = apq / h
     else:
@@ -319,30 +325,40 @@ def _rotate(a, p, q, r, late):
     c = 1.0 / math.sqrt(1.0 + t * t)
     s = t * c
     tau = s / (1.0 + c)
-    a[p, p] -= t * apq
-    a[q, q] += t * apq
-    a[p, q] = 0.0
-    a[q, p] = 0.0
-    u, v = a[r, p], a[r, q]
-    a[r, p] = u - s * (v + u * tau)
-    a[r, q] = v + s * (u - v * tau)
-    a[p, r] = a[r, p]
-    a[q, r] = a[r, q]
+    return app - t * apq, aqq + t * apq, 0.0, arp - s * (arq + arp * tau), arq + s * (arp - arq * tau), 2
 
 
 @njit(no_cpython_wrapper=True)
-def eigvalsh3(J, work):
+def eigvalsh3(J):
     """Eigenvalues (ascending, three floats) of the symmetric 3×3 ``J`` by cyclic Jacobi
-    rotations (``work``: scratch (3, 3))."""
-    for i in range(3):
-        for j in range(3):
-            work[i, j] = J[i, j]
+    rotations (the nine entries held as scalars; each rotation reads and writes the entries a
+    rotation of the full matrix would, so a J that is not exactly symmetric gives the same)."""
+    a00, a01, a02 = J[0, 0], J[0, 1], J[0, 2]
+    a10, a11, a12 = J[1, 0], J[1, 1], J[1, 2]
+    a20, a21, a22 = J[2, 0], J[2, 1], J[2, 2]
     for sweep in range(60):
-        if work[0, 1] == 0.0 and work[0, 2] == 0.0 and work[1, 2] == 0.0:
+        if a01 == 0.0 and a02 == 0.0 and a12 == 0.0:
             break
-        for p, q, r in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
-            _rotate(work, p, q, r, sweep > 3)
-    e0, e1, e2 = work[0, 0], work[1, 1], work[2, 2]
+        late = sweep > 3
+        # (p, q, r) = (0, 1, 2)
+        a00, a11, a01, a20, a21, done = _rotate(a00, a11, a01, a20, a21, late)
+        if done > 0:
+            a10 = 0.0
+        if done == 2:
+            a02, a12 = a20, a21
+        # (0, 2, 1)
+        a00, a22, a02, a10, a12, done = _rotate(a00, a22, a02, a10, a12, late)
+        if done > 0:
+            a20 = 0.0
+        if done == 2:
+            a01, a21 = a10, a12
+        # (1, 2, 0)
+        a11, a22, a12, a01, a02, done = _rotate(a11, a22, a12, a01, a02, late)
+        if done > 0:
+            a21 = 0.0
+        if done == 2:
+            a10, a20 = a01, a02
+    e0, e1, e2 = a00, a11, a22
     if e0 > e1:
         e0, e1 = e1, e0
     if e1 > e2:
@@ -402,7 +418,7 @@ def invert(J, inv, work):
             for j in range(3):
                 inv[i, j] = 0.0
         return SINGULAR, -np.inf
-    e0, e1, e2 = eigvalsh3(J, work)
+    e0, e1, e2 = eigvalsh3(J)
     rcond = e0 / e2 if e2 > 0.0 else 0.0
     if not e2 > 0.0 or rcond <= SINGULAR_RCOND:
         for i in range(3):
@@ -649,8 +665,18 @@ def tilt_buffer(tilt, lim):
     """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0:
     v_max Δt Σ_{k=1..3} max(0, sin(Θ − k θ_max))."""
     tmax = lim[L_TMAX]
-    total = max(0.0, math.sin(tilt - 1.0 * tmax)) + max(0.0, math.sin(tilt - 2.0 * tmax))
-    return lim[L_SMAX] * (total + max(0.0, math.sin(tilt - 3.0 * tmax)))
+    total = _rising(tilt - 1.0 * tmax) + _rising(tilt - 2.0 * tmax)
+    return lim[L_SMAX] * (total + _rising(tilt - 3.0 * tmax))
+
+
+@njit(no_cpython_wrapper=True)
+def _rising(x):
+    """max(0, sin x), without evaluating sin where it is known to be ≤ 0: on [−3, 0] ⊂ [−π, 0]
+    (sin x ≤ 0 there, and the libm sin keeps the sign: |sin x| ≥ min(|x|, sin 3) is far above its
+    error), so max(0, sin x) = 0 exactly; NaN and every other x take the sine."""
+    if (x <= 0.0) & (x >= -3.0):
+        return 0.0
+    return max(0.0, math.sin(x))
 
 
 @njit(no_cpython_wrapper=True)
@@ -992,28 +1018,41 @@ def kept_peers(wn, idx, lim, prune):
 
 # --------------------------------------------------------------------------- the loiter certificate
 @njit(no_cpython_wrapper=True)
+def loiter_heading(sx, sy, sz):
+    """cos Ψ, sin Ψ and the tilt Θ of the step (sx, sy, sz) that a loiter path follows (Ψ = 0 for a
+    vertical step)."""
+    rho = math.hypot(sx, sy)
+    cp, sp = (sx / rho, sy / rho) if rho > 0.0 else (1.0, 0.0)
+    return cp, sp, math.atan2(sz, rho)
+
+
+@njit(no_cpython_wrapper=True)
+def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
+    """One loiter path (``side`` 0: left, 1: right) of :func:`loiter_vertices` to ``out[side]``."""
+    K = int(lim[L_LOITER_K])
+    smin, tmax = lim[L_SMIN], lim[L_TMAX]
+    sgn = 1.0 if theta > 0.0 else (-1.0 if theta < 0.0 else 0.0)
+    turn = 1.0 - 2.0 * side
+    out[side, 0, 0], out[side, 0, 1], out[side, 0, 2] = ex, ey, ez
+    cx = cy = cz = 0.0
+    for v in range(1, K + 1):
+        ca, sa = lim[L_TABLE + 2 * v - 2], turn * lim[L_TABLE + 2 * v - 1]
+        th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
+        ct, st = (math.cos(th_v), math.sin(th_v)) if th_v != 0.0 else (1.0, 0.0)
+        sc = smin * ct
+        cx, cy, cz = cx + sc * (cp * ca - sp * sa), cy + sc * (sp * ca + cp * sa), cz + smin * st
+        out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
+
+
+@njit(no_cpython_wrapper=True)
 def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
     """The loiter paths (:func:`planner.control.loiter_path`) from the end (ex, ey, ez) of the step
     (sx, sy, sz) to ``out`` (2, K + 1, 3): per side (left, right) the end itself, then K steps of
     v_min Δt at the step's heading Ψ ± v φ_max (cos and sin of v φ_max from the limits' table),
     the tilt Θ returning to level at θ_max per step."""
-    K = int(lim[L_LOITER_K])
-    rho = math.hypot(sx, sy)
-    cp, sp = (sx / rho, sy / rho) if rho > 0.0 else (1.0, 0.0)
-    theta = math.atan2(sz, rho)
-    smin, tmax = lim[L_SMIN], lim[L_TMAX]
-    sgn = 1.0 if theta > 0.0 else (-1.0 if theta < 0.0 else 0.0)
+    cp, sp, theta = loiter_heading(sx, sy, sz)
     for side in range(2):
-        turn = 1.0 - 2.0 * side
-        out[side, 0, 0], out[side, 0, 1], out[side, 0, 2] = ex, ey, ez
-        cx = cy = cz = 0.0
-        for v in range(1, K + 1):
-            ca, sa = lim[L_TABLE + 2 * v - 2], turn * lim[L_TABLE + 2 * v - 1]
-            th_v = sgn * max(abs(theta) - v * tmax, 0.0) if tmax > 0.0 else theta
-            ct, st = (math.cos(th_v), math.sin(th_v)) if th_v != 0.0 else (1.0, 0.0)
-            sc = smin * ct
-            cx, cy, cz = cx + sc * (cp * ca - sp * sa), cy + sc * (sp * ca + cp * sa), cz + smin * st
-            out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
+        loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out)
 
 
 @njit(no_cpython_wrapper=True)
@@ -1046,8 +1085,9 @@ def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, sou
     alt_on = min(lim[L_ZMAX] - ez, ez - lim[L_ZMIN]) - reach < need[ALTITUDE]
     if (n_on == 0) & (b_on == 0) & (not src_on) & (not alt_on):
         return True
-    loiter_vertices(ex, ey, ez, sx, sy, sz, lim, verts)
+    cp, sp, theta = loiter_heading(sx, sy, sz)
     for side in range(2):
+        loiter_side(ex, ey, ez, cp, sp, theta, side, lim, verts)  # the right path only where the left fails
         ok = True
         for v in range(verts.shape[1]):
             x, y, z = verts[side, v, 0], verts[side, v, 1], verts[side, v, 2]
@@ -1496,9 +1536,10 @@ def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     for b in range(bmin.shape[0]):
         c = link_clearance(p, s, bmin, bmax, b, np.int64(LINK_SAMPLES), LOS_CUTOFF_SOFTNESSES * soft, gc, work)
         u = max(c / soft, -30.0)
-        q = q * normal_cdf(u)
+        phi_u = normal_cdf(u)
+        q = q * phi_u
         v = max(u, -LOS_SLOPE_FLOOR_SOFTNESSES)
-        phi_v = normal_cdf(v)
+        phi_v = phi_u if v == u else normal_cdf(v)
         qbar = qbar * phi_v
         mills = math.exp(-0.5 * v * v) / (math.sqrt(2.0 * math.pi) * phi_v)
         sx, sy, sz = sx + mills * gc[0], sy + mills * gc[1], sz + mills * gc[2]
@@ -1552,9 +1593,11 @@ def own_range_stats(ranges, los, ch):
 def own_relative_sd(weight, gamma, d):
     """r(d) = 1/√(Σw d^(2−γ)), the relative standard deviation of the own ranges' mean about a
     distance d (m); +inf without ranges (:meth:`planner.agent.OwnRanges.relative_sd`)."""
+    if not weight > 0.0:
+        return np.inf
     d = max(d, 1e-9)
     info = weight * d ** (2.0 - gamma)
-    return 1.0 / math.sqrt(info if info > 0.0 else 1.0) if weight > 0.0 else np.inf
+    return 1.0 / math.sqrt(info if info > 0.0 else 1.0)
 
 
 @njit(no_cpython_wrapper=True)
@@ -1570,10 +1613,10 @@ def own_lower_bound(mean, weight, gamma, k):
 def own_contradicts(mean, weight, gamma, d, k):
     """The own ranges put the source nearer than the distance d (m) to the estimate by more than k
     standard deviations: (d̄/d − 1)/r(d) < −k (:meth:`planner.agent.OwnRanges.contradicts`)."""
-    d = max(d, 1e-9)
-    have = weight > 0.0
-    z = ((mean if have else 0.0) / d - 1.0) / own_relative_sd(weight, gamma, d)
-    return have & (z < -k)
+    if not weight > 0.0:
+        return False
+    z = (mean / max(d, 1e-9) - 1.0) / own_relative_sd(weight, gamma, d)
+    return z < -k
 
 
 @njit(no_cpython_wrapper=True)
@@ -1582,18 +1625,21 @@ def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     its estimate gives no direction to trust (not observable, 3σ ≥ d_S*, or contradicted by its
     own ranges, with the hysteresis of a drone ``loitering`` at its last step) and its ranges'
     lower bound is below d_S* + a (a loitering drone: below :data:`OWN_RANGE_CLEAR_FACTOR` times that)."""
-    k = OWN_RANGE_RELEASE_SIGMAS if loitering else OWN_RANGE_CONTRADICTION_SIGMAS
-    untrusted = (not observable) | (SOURCE_SIGMA_FACTOR * sigma >= lim[L_DSRC]) | own_contradicts(mean, weight, gamma, d_est, k)
+    # The cheap test first (without ranges the lower bound is +inf: no loiter); the rest only
+    # where it passes (pure functions: the same answer as evaluating all of it).
     near = lim[L_DSRC] + lim[L_SRC_MARGIN]
     lower = own_lower_bound(mean, weight, gamma, OWN_RANGE_SIGMA_FACTOR)
-    return untrusted & ((lower < near) | (loitering & (lower < OWN_RANGE_CLEAR_FACTOR * near)))
+    if not ((lower < near) | (loitering & (lower < OWN_RANGE_CLEAR_FACTOR * near))):
+        return False
+    k = OWN_RANGE_RELEASE_SIGMAS if loitering else OWN_RANGE_CONTRADICTION_SIGMAS
+    return (not observable) or (SOURCE_SIGMA_FACTOR * sigma >= lim[L_DSRC]) or own_contradicts(mean, weight, gamma, d_est, k)
 
 
 @njit(no_cpython_wrapper=True)
-def estimate_sigma(information, work):
+def estimate_sigma(information):
     """Largest standard deviation (m) of an estimate with Fisher information (3, 3): 1/√λ_min,
     +inf where λ_min ≤ 0 (:func:`planner.agent.estimate_sigma_m`)."""
-    lmin = eigvalsh3(information, work)[0]
+    lmin = eigvalsh3(information)[0]
     return 1.0 / math.sqrt(max(lmin, 1e-300)) if lmin > 0.0 else np.inf
 
 
@@ -1634,7 +1680,8 @@ def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new)
     newest record updates the peer's drift (its mean step between its two newest records, NaN
     unless they are at most :data:`DRIFT_MAX_GAP_STEPS` apart) and the drone's own position at
     that record's step (from the track; ``p`` where the track no longer holds it). Writes
-    ``new[...][b]`` from ``old[...][b]``."""
+    ``new[...][b]`` from ``old[...][b]``, the track's arrays excepted: ``new``'s track holds
+    ``old``'s already (:func:`plan_batch` copies them for the whole batch at once)."""
     W = old[ST_RANGE].shape[1]
     for w in range(W - 1):
         new[ST_RANGE][b, w] = old[ST_RANGE][b, w + 1]
@@ -1642,10 +1689,6 @@ def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new)
     new[ST_RANGE][b, W - 1] = own_range
     new[ST_RANGE_LOS][b, W - 1] = own_los
     T = old[ST_TRACK].shape[1]
-    for t in range(T):
-        new[ST_TRACK_STEPS][b, t] = old[ST_TRACK_STEPS][b, t]
-        for a in range(3):
-            new[ST_TRACK][b, t, a] = old[ST_TRACK][b, t, a]
     new[ST_TRACK_STEPS][b, k % T] = k
     for a in range(3):
         new[ST_TRACK][b, k % T, a] = p[a]
@@ -1704,15 +1747,15 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
 
 
 @njit(no_cpython_wrapper=True)
-def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch, work):
+def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
     loiters (docs/control.md, "Own-range loiter"): an unobservable estimate
     counts as singular and has no keep-out (−inf); an observable one has :func:`source_keepout` of
     its largest σ, limited by :func:`followable` against the last step's keep-out; where the own
     ranges (``ranges``, ``range_los``: the window) say so (:func:`must_loiter`) the drone loiters
     (status OK) and keeps no keep-out where it is inside it and its ranges contradict the
-    estimate. ``work``: scratch (3, 3)."""
-    sigma = estimate_sigma(information, work)
+    estimate."""
+    sigma = estimate_sigma(information)
     keepout = source_keepout(sigma, lim) if observable else -np.inf
     keepout = followable(p, p_hat, keepout, sigma, last_centre, last_keepout, lim)
     mean, weight = own_range_stats(ranges, range_los, ch)
@@ -1720,7 +1763,7 @@ def keepout_policy(p, p_hat, information, observable, status, ranges, range_los,
     d_est = math.sqrt(dx * dx + dy * dy + dz * dz)
     gamma = ch[CH_GAMMA]
     loiter = must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim)
-    drop = loiter & own_contradicts(mean, weight, gamma, d_est, OWN_RANGE_CONTRADICTION_SIGMAS) & (d_est < keepout)
+    drop = loiter and (d_est < keepout) and own_contradicts(mean, weight, gamma, d_est, OWN_RANGE_CONTRADICTION_SIGMAS)
     keepout = -np.inf if drop else keepout
     status = status if observable else SINGULAR
     return np.int64(STATUS_OK if loiter else status), keepout, loiter
@@ -1736,7 +1779,7 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
     grad, status = cost
     k, start, has_start, hop_rule, oracle, source_exact, bmin, bmax, lim, ch, xi, pert = config
     u, flags, extra = out
-    rows, mask, ages, planes, g, work, cws = ws
+    rows, mask, ages, planes, g, cws = ws
     advance_state(b, k, p[b], own_range[b], own_los[b], view_pos[b], valid[b], saved[b], old, new)
     st, keepout, loiter = np.int64(status[b]), lim[L_DSRC], False
     if not oracle:
@@ -1753,7 +1796,6 @@ def plan_one(b, scene, cost, old, new, config, out, ws):
             old[ST_LOITER][b],
             lim,
             ch,
-            work,
         )
     if loiter:
         loiter_gradient(old[ST_PREV][b], g)
@@ -1860,9 +1902,8 @@ def small_batch(information, prev):
     """Per element: the largest standard deviation of an estimate (:func:`estimate_sigma`) of
     information (n, 3, 3), and the loiter gradient (:func:`loiter_gradient`) of last steps (m, 3)."""
     sigma = np.empty(information.shape[0])
-    work = np.empty((3, 3))
     for i in range(information.shape[0]):
-        sigma[i] = estimate_sigma(information[i], work)
+        sigma[i] = estimate_sigma(information[i])
     g = np.empty((prev.shape[0], 3))
     for i in range(prev.shape[0]):
         loiter_gradient(prev[i], g[i])
@@ -2018,9 +2059,11 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         np.empty(N),
         np.empty((N, 3)),
         np.empty(3),
-        np.empty((3, 3)),
         workspace(N, int(lim[L_LOITER_K]), bmin.shape[0]),
     )
+    # The tracks as they were (each drone's step then writes its own slot): one block copy.
+    new[ST_TRACK][:] = old[ST_TRACK]
+    new[ST_TRACK_STEPS][:] = old[ST_TRACK_STEPS]
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)

@@ -531,3 +531,29 @@ def test_a_drone_pressed_into_the_corner_of_keep_out_building_and_ceiling_keeps_
         worst["altitude"] = min(worst["altitude"], float(np.minimum(LIM.z_max_m - p[:, 2], p[:, 2] - LIM.z_min_m).min()))
     print(f"corner of keep-out, building and ceiling: smallest margins {worst}")
     assert min(worst.values()) >= -1e-9, worst
+
+
+def test_the_compiled_altitude_margin_is_the_former_numpy_expression_at_every_tilt() -> None:
+    """The kernels' tilt buffer skips the sine where it is ≤ 0 (x in [−3, 0]): bit-identical to
+    the former numpy expression Σ max(0, sin(Θ − k θ_max)) over a dense grid of tilts, those with
+    Θ − k θ_max beyond −π (where the sine is positive again) and the edges −3 and 0 included."""
+    import numba
+
+    from planner import kernels as K
+    from planner.control import kernel_limits
+    from tests.reference_numpy.planner.control import _tilt_buffer
+
+    @numba.njit
+    def margins(z: np.ndarray, tilt: np.ndarray, lim: np.ndarray) -> np.ndarray:
+        out = np.empty(tilt.shape[0])
+        for i in range(tilt.shape[0]):
+            out[i] = K.altitude_margin(z[i], tilt[i], lim)
+        return out
+
+    limits = Limits()
+    tmax = limits.tilt_change_max_rad
+    edges = np.array([k * tmax + e for k in (1.0, 2.0, 3.0) for e in (0.0, -3.0, -math.pi, 3.0 - 2.0 * math.pi)])
+    tilt = np.concatenate((np.linspace(-math.pi, math.pi, 20001), edges, np.nextafter(edges, 10.0), np.nextafter(edges, -10.0)))
+    z = np.linspace(limits.z_min_m - 1.0, limits.z_max_m + 1.0, tilt.size)
+    expected = np.minimum(limits.z_max_m - z - _tilt_buffer(tilt, limits), z - limits.z_min_m - _tilt_buffer(-tilt, limits))
+    np.testing.assert_array_equal(margins(z, tilt, kernel_limits(limits)), expected)
