@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, TypedDict
+from xml.sax.saxutils import escape
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,11 +67,6 @@ def flight_features(result: SimulationResult) -> list[Feature]:
     return [f for f in out if len(f["lonlatalt"]) >= (2 if f["kind"] == "trajectory" else 1)]
 
 
-def _xml_text(text: str) -> str:
-    """``text`` as XML character data (``&``, ``<``, ``>`` escaped)."""
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-
-
 def _kml_coordinates(lonlatalt: NDArray[np.float64]) -> str:
     """KML's ``lon,lat,alt`` tuples, space separated, each number as Python's shortest repr
     (the float read back is the float written)."""
@@ -90,14 +86,14 @@ def write_kml(features: list[Feature], name: str, path: Path) -> None:
         tag = "LineString" if f["kind"] == "trajectory" else "Point"
         extrude = "\n          <extrude>1</extrude>" if tag == "LineString" else ""
         folders[f["kind"]].append(
-            f"      <Placemark>\n        <name>{_xml_text(f['name'])}</name>\n        <{tag}>{extrude}\n"
+            f"      <Placemark>\n        <name>{escape(f['name'])}</name>\n        <{tag}>{extrude}\n"
             f"          <altitudeMode>absolute</altitudeMode>\n          <coordinates>{coords}</coordinates>\n"
             f"        </{tag}>\n      </Placemark>\n"
         )
-    body = "".join(f"    <Folder>\n      <name>{_xml_text(names[kind])}</name>\n{''.join(marks)}    </Folder>\n" for kind, marks in folders.items())
+    body = "".join(f"    <Folder>\n      <name>{escape(names[kind])}</name>\n{''.join(marks)}    </Folder>\n" for kind, marks in folders.items())
     path.write_text(
         '<?xml version="1.0" encoding="UTF-8"?>\n<kml xmlns="http://www.opengis.net/kml/2.2">\n  <Document>\n'
-        f"    <name>{_xml_text(name)}</name>\n{body}  </Document>\n</kml>\n"
+        f"    <name>{escape(name)}</name>\n{body}  </Document>\n</kml>\n"
     )
 
 

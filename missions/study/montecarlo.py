@@ -143,31 +143,41 @@ def run_study(
     Returns:
         The :class:`Study`: the results, the same whatever the executor and number of workers.
     """
-    results: list[SimulationResult | None] = [None] * len(specs)
-    penalties: list[dict[str, float | None] | None] = [None] * len(specs)
-    for done in iter_study(
-        specs,
-        oracle_estimate=oracle_estimate,
-        baselines=baselines,
-        workers=workers,
-        executor=executor,
-        chunk_trials=chunk_trials,
-        max_chunks=max_chunks,
-        progress=progress,
-        watch=watch,
-        warn=warn,
-    ):
-        results[done.index], penalties[done.index] = done.result, done.penalty
-    finished = [r for r in results if r is not None]
-    if len(finished) != len(specs):
-        raise RuntimeError(f"run_study: the executor returned {len(finished)} of {len(specs)} runs")
-    extras: list[dict[str, Any] | None] = [None] * len(finished)
-    if optimum:
-        from missions.study.optimum import run_optimum_summary
+    runs = list(
+        _finished_runs(
+            specs,
+            optimum,
+            oracle_estimate=oracle_estimate,
+            baselines=baselines,
+            workers=workers,
+            executor=executor,
+            chunk_trials=chunk_trials,
+            max_chunks=max_chunks,
+            progress=progress,
+            watch=watch,
+            warn=warn,
+        )
+    )
+    return Study([done.result for done, _ in runs], [done.penalty for done, _ in runs], [extra for _, extra in runs])
 
-        placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
-        extras = [run_optimum_summary(r, known=placements) for r in finished]
-    return Study(finished, penalties, extras)
+
+def _finished_runs(specs: Sequence[RunSpec], optimum: bool, **study: Any) -> Iterator[tuple[RunDone, dict[str, Any] | None]]:
+    """:func:`iter_study`'s runs (``study``: its keyword arguments), each with its optimum's
+    summary (``optimum``; else None), checked to come in the order of ``specs``, all of them."""
+    placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
+    count = 0
+    for done in iter_study(specs, **study):
+        if done.index != count:  # iter_study yields the runs in the order of the specs
+            raise RuntimeError(f"run {done.index} of the study came before run {count}")
+        count += 1
+        extra = None
+        if optimum:
+            from missions.study.optimum import run_optimum_summary
+
+            extra = run_optimum_summary(done.result, known=placements)
+        yield done, extra
+    if count != len(specs):
+        raise RuntimeError(f"the executor returned {count} of {len(specs)} runs")
 
 
 def write_study(
@@ -193,10 +203,9 @@ def write_study(
     figures. The same files as :func:`missions.study.results.write_results` of the study.
     Arguments as :func:`run_study`; returns the runs' summaries."""
     writer = ResultsWriter(out, command, figures)
-    placements: dict[str, Any] = {}  # one optimum per mission whatever its policy
-    expected = 0
-    for done in iter_study(
+    for done, extra in _finished_runs(
         specs,
+        optimum,
         oracle_estimate=oracle_estimate,
         baselines=baselines,
         executor=executor,
@@ -206,17 +215,7 @@ def write_study(
         watch=watch,
         warn=warn,
     ):
-        if done.index != expected:  # iter_study yields the runs in the order of the specs
-            raise RuntimeError(f"write_study: run {done.index} came before run {expected}")
-        expected += 1
-        extra = None
-        if optimum:
-            from missions.study.optimum import run_optimum_summary
-
-            extra = run_optimum_summary(done.result, known=placements)
         writer.add(done.result, done.penalty, extra)
-    if expected != len(specs):
-        raise RuntimeError(f"write_study: the executor returned {expected} of {len(specs)} runs")
     return writer.close()
 
 
