@@ -99,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from missions.launch.forkspawn import watch_launcher
     from missions.runtime.signals import signals_deferred
     from planner.node import NodeOptions, PlannerNode
+    from planner.warm import available_cores, compile_aside
 
     setup_logging(args.log_level, f"plan[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
@@ -148,6 +149,9 @@ def run(args: argparse.Namespace) -> int:
     # numba's compiler would be raised inside its LLVM callback (a traceback, the load cut
     # short). A signal that came meanwhile stops the command as soon as they are in. (Started
     # by `fimnav launch`, the fork server has loaded them already.)
+    # On a cold cache the two kernel groups are first compiled in child processes, at once, a
+    # wait that a signal may end (the children are killed).
+    compile_aside(available_cores())
     with signals_deferred():
         import planner.node.warm
         import planner.node.warm_estimator  # noqa: F401

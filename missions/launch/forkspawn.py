@@ -299,7 +299,7 @@ class ForkServer:
                 notice_after_s,
                 notice,
                 ("compiling the planning and estimation kernels into numba's cache: once after an install, "
-                 "about a minute on two cores (later launches load them in a second)",),
+                 "about 40 s on two cores (later launches load them in a second)",),
             )  # fmt: skip
             timer.daemon = True
             timer.start()

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from missions.runtime.signals import signals_deferred, worker_defaults
+from planner.warm import compile_aside, warm_estimator, warm_planning
 
 if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where a chunk runs
     from missions.study.simulator import RunSpec, SimStep, SimulationResult
@@ -141,6 +142,15 @@ class LocalPool:
         pending: deque[tuple[Chunk, Future[SimulationResult]]] = deque()
         pool: ProcessPoolExecutor | None = None
         done = False
+        # The planning and estimator kernels are loaded here, before the fork, so the workers
+        # inherit them rather than each loading them (or, on a cold cache, each compiling them
+        # all): missing ones are first compiled in child processes, a group each, at once
+        # (planner.warm). The wait for those can be interrupted (the children are killed); the
+        # load itself is not, as a signal inside numba's compiler would end it with a traceback.
+        compile_aside(workers)
+        with signals_deferred():
+            warm_planning()
+            warm_estimator()
         try:
             with signals_deferred():
                 pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=worker_defaults)

@@ -1,0 +1,156 @@
+"""Loading the compiled kernels into a process, and compiling them once on several cores.
+
+The planning kernels (:mod:`planner.kernels`, the step of :func:`planner.agent.plan`) and the
+estimator's (:mod:`planner.estimator.kernels`) are compiled by numba into its on-disk cache the
+first time they are used after an install or a change of their source, then loaded from it
+(about a second). The two groups are independent and each takes about half of the first
+compile (30-40 s of CPU each on this project's reference machine), so :func:`compile_aside`
+compiles each missing group in a child process of its own, at once, and the caller then loads
+both from the cache: on two cores the first compile takes the time of the longer group instead
+of the sum. A group already in the cache costs nothing more than its load.
+
+Used by the fork server of ``fimnav launch`` (through :mod:`planner.node.warm`), ``fimnav
+plan`` and the local pool of ``fimnav montecarlo --jobs N`` (before it forks its workers, which
+then inherit the loaded kernels).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+#: What a compiling child runs, by group: a watchdog thread ends it at once when its parent is
+#: gone (the end of its stdin), whatever ended the parent; Ctrl-C ends it without a traceback.
+_CHILD = (
+    "import os, signal, sys, threading\n"
+    "signal.signal(signal.SIGINT, signal.SIG_DFL)\n"
+    "threading.Thread(target=lambda: (sys.stdin.buffer.read(), os._exit(1)), daemon=True).start()\n"
+    "import planner.warm as w\n"
+    "w.{function}()\n"
+)
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform tells it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def warm_planning() -> None:
+    """One planning step of drone 0 of two (joint and ranging, one building, start positions
+    known), its peer heard directly: every kernel a planner's step calls is loaded (or
+    compiled into numba's cache), with the argument types of a planner's steps."""
+    from planner.agent import plan
+    from planner.config import PlannerConfig
+    from planner.estimator import EstimatorConfig
+    from planner.params import Channel, Limits
+    from planner.step import DroneState, StepScene
+
+    start = np.array([[0.0, 100.0, 10.0], [5.0, 100.0, 10.0]])
+    config = PlannerConfig(
+        channel=Channel(),
+        limits=Limits(),
+        criterion="A",
+        component_masks={"range": np.array([True, True]), "bearing": np.array([True, False])},
+        boxes_min_m=np.array([[20.0, 40.0, 0.0]]),
+        boxes_max_m=np.array([[30.0, 50.0, 15.0]]),
+        d_hop_m=100.0,
+        start_positions_m=start,
+        estimator=EstimatorConfig(),
+    )
+    scene = StepScene(
+        step_index=0,
+        own_index=np.array(0),
+        own_position_m=start[0],
+        own_range_m=np.array(100.0),
+        own_los=np.array(True),
+        view_positions_m=start,
+        view_valid=np.ones(2, dtype=bool),
+        view_los=np.ones(2, dtype=bool),
+        saved_steps=np.zeros(2, dtype=np.int64),
+        hops=np.array([0, 1]),
+        estimate_m=np.array([0.0, 0.0, 2.0]),
+        information=np.eye(3),
+        observable=np.array(True),
+        perturbation_uniforms=np.array([0.5, 0.5]),
+        lost_contact=np.zeros(2, dtype=bool),
+    )
+    plan(config, scene, DroneState.initial((), 2))
+
+
+def warm_estimator() -> None:
+    """One update of one record (:func:`planner.estimator.warm_up`): the estimator's kernels
+    loaded (or compiled into numba's cache)."""
+    from planner.estimator import warm_up
+
+    warm_up()
+
+
+def in_cache(kernel: object) -> bool:
+    """Whether numba's on-disk cache holds a compiled version of ``kernel`` (a ``cache=True``
+    dispatcher) for its current source. Unknown (not a numba dispatcher, the JIT disabled, a
+    numba whose cache is laid out otherwise): True, so that nothing is compiled aside."""
+    try:
+        return bool(kernel._cache._cache_file._load_index())  # type: ignore[attr-defined]
+    except Exception:  # numba internals: any surprise means "do not compile aside"
+        return True
+
+
+def missing_groups() -> list[str]:
+    """The kernel groups ("planning", "estimator") numba's cache lacks: their entry kernel
+    (:func:`planner.kernels.plan_batch`, :func:`planner.estimator.kernels.update.update_batch`)
+    has no compiled version for its current source."""
+    from planner import kernels
+    from planner.estimator.kernels import update
+
+    entries = {"planning": kernels.plan_batch, "estimator": update.update_batch}
+    return [group for group, kernel in entries.items() if not in_cache(kernel)]
+
+
+def compile_aside(workers: int) -> list[str]:
+    """Compile the kernel groups numba's cache lacks, each in a child process of its own, all
+    at once, and wait for them; returns the groups compiled so. Nothing when ``workers`` < 2
+    or fewer than two groups are missing (one group compiles as fast in the caller).
+
+    A child that fails is not an error here: the caller's own load then compiles the group and
+    raises what went wrong. Leaving early (an exception, a signal turned into one) kills the
+    children; a child also ends by itself when this process is gone (its stdin closes)."""
+    if workers < 2:
+        return []
+    missing = missing_groups()
+    if len(missing) < 2:
+        return []
+    source_root = str(Path(__file__).resolve().parents[1])  # the children import this very code
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (source_root, os.environ.get("PYTHONPATH")) if p))
+    children: list[subprocess.Popen[bytes]] = []
+    try:
+        for group in missing:
+            code = _CHILD.format(function=f"warm_{group}")
+            argv = [sys.executable, "-c", code]
+            children.append(subprocess.Popen(argv, env=env, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        for child in children:
+            child.wait()
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+            if child.stdin is not None:
+                child.stdin.close()
+    return missing
+
+
+def load_kernels(workers: int = 1) -> None:
+    """Load the planning and the estimator kernels into this process, compiling the missing
+    ones first on up to ``workers`` cores (:func:`compile_aside`)."""
+    compile_aside(workers)
+    warm_planning()
+    warm_estimator()
+
+
+__all__ = ["available_cores", "compile_aside", "in_cache", "load_kernels", "missing_groups", "warm_estimator", "warm_planning"]
