@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from missions.runtime.signals import signals_deferred, worker_defaults
-from planner.warm import compile_aside, warm_estimator, warm_planning
+from planner.warm import available_cores, compile_aside, warm_estimator, warm_planning
 
 if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where a chunk runs
     from missions.study.simulator import RunSpec, SimStep, SimulationResult
@@ -113,7 +113,11 @@ class InProcess:
     """Every chunk in this process, one after the other (progress at every step)."""
 
     def map(self, chunks: Sequence[Chunk], progress: Callable[[int], object] | None = None) -> Iterator[SimulationResult]:
-        """See :meth:`ChunkExecutor.map`."""
+        """See :meth:`ChunkExecutor.map`. On a cold cache the planning and estimator kernels
+        are first compiled in child processes, a group each, at once, on the cores this
+        process may use (once after an install; :func:`planner.warm.compile_aside`)."""
+        if chunks:
+            compile_aside(available_cores())
         for chunk in chunks:
             yield simulate_chunk(chunk, progress)
 
