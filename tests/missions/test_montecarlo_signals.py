@@ -13,31 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.proc import with_default_hangup, with_default_interrupt
+from tests.support.proc import alive, child_pids, with_default_hangup, with_default_interrupt
 from tests.support.wait import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.integration
-
-
-def _children(pid: int) -> set[int]:
-    """The direct children of ``pid`` (Linux /proc)."""
-    out: set[int] = set()
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            out.update(int(c) for c in (task / "children").read_text().split())
-        except OSError:
-            continue
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the worker processes")
@@ -57,7 +38,7 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
         def started() -> bool:
             nonlocal workers
             assert proc.poll() is None, proc.communicate()
-            workers = _children(proc.pid)
+            workers = child_pids(proc.pid)
             return len(workers) >= 2
 
         wait_for(started, 60.0, "the two workers to start", interval_s=0.05)
@@ -65,8 +46,8 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
         _, err = proc.communicate(timeout=15)
         assert proc.returncode == status, err
         assert "Traceback" not in err
-        wait_for(lambda: not any(_alive(w) for w in workers), 5.0, "the workers to exit",
-                 detail=lambda: f"workers left behind: {[w for w in workers if _alive(w)]}", interval_s=0.05)
+        wait_for(lambda: not any(alive(w) for w in workers), 5.0, "the workers to exit",
+                 detail=lambda: f"workers left behind: {[w for w in workers if alive(w)]}", interval_s=0.05)
     finally:
         # the whole session, even when the command itself has exited (its workers may not have)
         with contextlib.suppress(ProcessLookupError):

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from planner.warm import compile_aside, in_cache
+from tests.support.proc import alive, child_pids
 from tests.support.wait import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,29 +25,6 @@ ROOT = Path(__file__).resolve().parents[2]
 def python(code: str, cache: Path, **kw: object) -> subprocess.Popen[str]:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
     return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
-
-
-def children_of(pid: int) -> list[int]:
-    """Live (not zombie) processes whose parent is ``pid`` (from /proc)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid and fields[0] != "Z":
-            found.append(int(entry.name))
-    return found
-
-
-def alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def test_in_cache_tells_an_empty_cache_a_compiled_kernel_and_a_changed_source(tmp_path: Path) -> None:
@@ -91,9 +69,10 @@ def test_a_caller_stopped_while_compiling_leaves_no_child(tmp_path: Path, signum
     # SIGINT: KeyboardInterrupt, whose way out kills the children; SIGTERM (default action) and
     # SIGKILL end the caller at once: each child sees its stdin close and ends itself.
     p = python("from planner.warm import compile_aside\ncompile_aside(2)\n", tmp_path / "cache", start_new_session=True)
+    children: set[int] = set()
     try:
-        wait_for(lambda: len(children_of(p.pid)) == 2, 60, "the two compiling children")
-        children = children_of(p.pid)
+        wait_for(lambda: len(child_pids(p.pid)) == 2, 60, "the two compiling children")
+        children = child_pids(p.pid)
         p.send_signal(signum)
         p.wait(timeout=30)
         wait_for(lambda: not any(alive(c) for c in children), 30, "the compiling children to end")
@@ -101,8 +80,9 @@ def test_a_caller_stopped_while_compiling_leaves_no_child(tmp_path: Path, signum
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
-        for c in children_of(p.pid):
-            os.kill(c, signal.SIGKILL)
+        for c in children:
+            if alive(c):
+                os.kill(c, signal.SIGKILL)
 
 
 @pytest.mark.slow

@@ -48,6 +48,26 @@ def stop_group(p: subprocess.Popen[bytes], sig: int = signal.SIGTERM, grace_s: f
     return p.poll()
 
 
+def child_pids(pid: int) -> set[int]:
+    """The direct children of ``pid`` (Linux /proc)."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out.update(int(c) for c in (task / "children").read_text().split())
+        except OSError:
+            continue
+    return out
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (Linux /proc)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 def with_signal(argv: Sequence[str], name: str, disposition: str) -> list[str]:
     """``argv`` run with signal ``name`` (e.g. "SIGHUP") set to ``disposition`` ("SIG_DFL" or
     "SIG_IGN") and unblocked, which exec keeps."""
