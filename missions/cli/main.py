@@ -31,6 +31,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "missions.cli.handback",
     "missions.cli.view",
     "missions.cli.missions",
+    "missions.cli.compile",
     "missions.cli.calibrate",
     "missions.cli.localize",
 )

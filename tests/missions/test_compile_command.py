@@ -1,0 +1,52 @@
+"""``fimnav compile``: every kernel group in numba's cache afterwards, each group reported as
+compiled or loaded, a bad --jobs refused in one line. The cold cache is an empty temporary
+directory (``NUMBA_CACHE_DIR``); the warm one is the suite's (tests/conftest.py fills it)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.support.proc import fimnav
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def run(*args: str, cache: Path | None = None) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    if cache is not None:
+        env["NUMBA_CACHE_DIR"] = str(cache)
+    return subprocess.run(fimnav("compile", *args), env=env, text=True, capture_output=True, timeout=600)
+
+
+def test_on_a_warm_cache_every_group_is_loaded_not_compiled() -> None:
+    done = run()
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    for group in ("planning", "estimator", "simulator"):
+        assert f"{group} kernels: already in numba's cache, loaded: " in done.stdout, done.stdout
+    assert lines[-1].startswith("every kernel is in numba's cache: ")
+
+
+@pytest.mark.parametrize("jobs", ["0", "-3"])
+def test_a_bad_jobs_is_refused_in_one_line(jobs: str) -> None:
+    done = run("--jobs", jobs)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [f"fimnav compile: error: --jobs: expected a whole number of at least 1, found {jobs}"]
+    assert done.stdout == ""
+
+
+@pytest.mark.slow
+def test_on_a_cold_cache_the_groups_compile_at_once_then_a_second_run_loads_them(tmp_path: Path) -> None:
+    # About 40 s on two cores.
+    first = run("--jobs", "2", cache=tmp_path / "cache")
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.startswith("compiled the planning and estimator kernels at once in 2 processes: ")
+    assert "simulator kernels: compiled: " in first.stdout
+    second = run(cache=tmp_path / "cache")
+    assert second.returncode == 0, second.stderr
+    for group in ("planning", "estimator", "simulator"):
+        assert f"{group} kernels: already in numba's cache, loaded: " in second.stdout, second.stdout
