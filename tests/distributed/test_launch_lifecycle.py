@@ -151,7 +151,9 @@ def test_a_finished_launch_has_stopped_its_fork_server_when_it_returns(tmp_path:
     its planners' fork server and multiprocessing's resource tracker included (they used to
     end on their own a moment after the launcher, reading the end of file of their pipes)."""
     out = tmp_path / "run"
-    run = Launch(PAPER / "joint.yaml", out, "--steps", "12", "--set", "drones.count=4")
+    # 40 steps: the planners must still be flying when swarm_of counts them (with 12, a loaded
+    # machine saw the launch end between its two-step wait and its count).
+    run = Launch(PAPER / "joint.yaml", out, "--steps", "40", "--set", "drones.count=4")
     launches.append(run)
     tree = swarm_of(run, 4)
     run.proc.wait(60.0)  # the launcher's exit (its output is read by threads meanwhile)
