@@ -258,6 +258,8 @@ class ForkServer:
         self.ctx = multiprocessing.get_context("forkserver")
         self.python = python
         self.ctx.set_forkserver_preload(list(PRELOAD))
+        #: Whether :meth:`wait_ready` saw the server done with its preload.
+        self.ready = False
 
     def warm_up(self, cwd: Path | None = None) -> None:
         """Start the fork server now (it imports the preload in the background), with
@@ -286,13 +288,23 @@ class ForkServer:
                 else:
                     os.environ[name] = value
 
-    def wait_ready(self, timeout_s: float = 120.0, notice: Callable[[str], None] | None = None, notice_after_s: float = 3.0) -> None:
+    def wait_ready(
+        self,
+        timeout_s: float = 120.0,
+        notice: Callable[[str], None] | None = None,
+        notice_after_s: float = 3.0,
+        stop: Callable[[], bool] | None = None,
+    ) -> bool:
         """Wait until the fork server has imported :data:`PRELOAD` (it forks a child only then):
         fork a child that exits at once and wait for it. The planners' start time (real time)
         is fixed after this, as the preload loads the compiled planning step (seconds, and
         once after an install the time to compile it). ``notice``: told once, in one line, when
-        the wait passes ``notice_after_s`` seconds (the kernels being compiled)."""
-        # (Process.start itself blocks until the server forks, after its preload: a timer tells.)
+        the wait passes ``notice_after_s`` seconds (the kernels being compiled). ``stop``:
+        polled every 0.1 s; once true the wait ends at once and returns False (Ctrl-C during
+        the first compile: :meth:`close` then ends the server without waiting for its
+        preload). True once the server is ready."""
+        # (Process.start itself blocks until the server forks, after its preload: a timer
+        # tells, and the start runs in a thread so that a stop need not wait for it.)
         timer = None
         if notice is not None:
             timer = threading.Timer(
@@ -303,13 +315,32 @@ class ForkServer:
             )  # fmt: skip
             timer.daemon = True
             timer.start()
+        child = self.ctx.Process(target=int)
+        failed: list[BaseException] = []
+
+        def start() -> None:
+            try:
+                child.start()
+            except BaseException as exc:  # raised below, in the caller's thread; a server ended by close() is no error
+                failed.append(exc)
+
+        starter = threading.Thread(target=start, name="fork-server-ready", daemon=True)
         try:
-            child = self.ctx.Process(target=int)
-            child.start()
+            starter.start()
+            # The preload takes what it takes (a first compile on a slow machine: minutes);
+            # only the forked child's exit is bounded by timeout_s.
+            while starter.is_alive():
+                if stop is not None and stop():
+                    return False
+                starter.join(0.1)
+            if failed:
+                raise failed[0]
             child.join(timeout_s)
         finally:
             if timer is not None:
                 timer.cancel()
+        self.ready = True
+        return True
 
     def close(self) -> None:
         """End the fork server and multiprocessing's resource tracker (started with it) and wait
@@ -318,6 +349,14 @@ class ForkServer:
         later, so a launch that had returned still left it running for that moment."""
         server = getattr(multiprocessing.forkserver, "_forkserver", None)
         tracker = getattr(multiprocessing.resource_tracker, "_resource_tracker", None)
+        # A server still in its preload (a launch stopped during the first compile) would only
+        # notice the end of its pipe once the preload is done: it is killed (it has forked no
+        # planner yet; numba writes its cache files whole or not at all), and its compiling
+        # children (planner.warm) end when it does.
+        pid = getattr(server, "_forkserver_pid", None)
+        if not self.ready and pid is not None:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
         # The server first: its children hold the resource tracker too.
         for owner, pid_attr in ((server, "_forkserver_pid"), (tracker, "_pid")):
             stop = getattr(owner, "_stop", None)

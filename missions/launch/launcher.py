@@ -351,9 +351,11 @@ class Launcher:
         ports = self.processes.vehicle_ports(vehicle_children, self.preflight_timeout_s)
         if self.realtime and self.gcs_endpoint is not None:
             self._start_gcs(self.gcs_endpoint, ports)
-        if self.processes.forks is not None:
-            # The planners' modules and kernels loaded (compiled, the first time): they start at once.
-            self.processes.forks.wait_ready(notice=self.notice)
+        # The planners' modules and kernels loaded (compiled, the first time): they start at
+        # once. A signal meanwhile stops the launch without waiting for a first compile.
+        forks = self.processes.forks
+        if forks is not None and not forks.wait_ready(notice=self.notice, stop=lambda: self.stop_requested):
+            raise self.interrupted()
         if self.realtime:
             # On the UNIX grid of multiples of Δt/speed-up: the simulated payloads measure
             # just before each point of it (vehicle_sim.bridge).

@@ -32,8 +32,8 @@ from typing import NamedTuple
 import pytest
 
 from comms.errors import UsageError
-from missions.runtime.rundir import claim_results_dir, previous_run, unique_results_dir
 from missions.launch.supervisor import ready_line
+from missions.runtime.rundir import claim_results_dir, previous_run, unique_results_dir
 from tests.support.launch import PAPER, ROOT, Launch
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav, with_hangup
@@ -362,3 +362,44 @@ def test_a_vehicle_started_by_hand_outlives_its_parent(tmp_path: Path) -> None:
         finally:
             os.kill(pid, signal.SIGTERM)
             wait_for(lambda: read_proc(pid) is None or read_proc(pid).state == "Z", 10.0, "the vehicle to stop")  # type: ignore[union-attr]
+
+
+def processes_with_environment(entry: str) -> list[int]:
+    """Live processes of this user whose environment holds ``entry`` (``NAME=value``)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            environ = (proc / "environ").read_bytes().split(b"\0")
+            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if entry.encode() in environ and state != "Z":
+            found.append(int(proc.name))
+    return found
+
+
+def test_a_launch_stopped_during_its_first_compile_ends_at_once_and_leaves_no_process(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the launch's process group, as a terminal sends it) while the fork
+    server compiles the kernels on a cold cache (an empty ``NUMBA_CACHE_DIR``; the compile takes
+    about 35 s on two cores): the launch exits 130 within seconds, without waiting for the
+    compile, and every process it started, the compiling ones included, is gone."""
+    cache = f"NUMBA_CACHE_DIR={tmp_path / 'numba'}"
+    env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1", NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    argv = fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(tmp_path / "run"), "--set", "drones.count=4")
+    run = Proc(argv, cwd=ROOT, env=env)
+    try:
+        wait_for(lambda: "compiling the planning and estimation kernels" in run.out + run.err, 60.0, "the launch's compiling notice", procs=[run])
+        os.killpg(run.p.pid, signal.SIGINT)
+        stopped_at = time.monotonic()
+        run.p.wait(30.0)
+        took = time.monotonic() - stopped_at
+        assert run.p.returncode == 130, run.tail()
+        assert took < 15.0, f"the launch took {took:.1f} s to stop during its first compile"
+        assert "interrupted by SIGINT" in run.err, run.tail()
+        wait_for(lambda: not processes_with_environment(cache), 10.0, "every process of the launch to end", detail=lambda: processes_with_environment(cache))
+    finally:
+        for pid in processes_with_environment(cache):
+            os.kill(pid, signal.SIGKILL)
+        run.stop()
