@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from missions.runtime.signals import signals_deferred, worker_defaults
-from planner.warm import available_cores, compile_aside, warm_estimator, warm_planning
+from planner.warm import available_cores, compile_aside, missing_groups, warm_estimator, warm_planning
 
 if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where a chunk runs
     from missions.study.simulator import RunSpec, SimStep, SimulationResult
@@ -148,13 +148,16 @@ class LocalPool:
         done = False
         # The planning and estimator kernels are loaded here, before the fork, so the workers
         # inherit them rather than each loading them (or, on a cold cache, each compiling them
-        # all): missing ones are first compiled in child processes, a group each, at once
-        # (planner.warm). The wait for those can be interrupted (the children are killed); the
-        # load itself is not, as a signal inside numba's compiler would end it with a traceback.
-        compile_aside(workers)
-        with signals_deferred():
-            warm_planning()
-            warm_estimator()
+        # all): missing ones are first compiled in child processes, a group each, at once, on
+        # the cores this process may use (planner.warm). The wait for those can be interrupted
+        # (the children are killed). The load from the cache is not (a signal inside numba
+        # would end it with a traceback); a group still missing (one core) is left to the
+        # workers, whose compile a signal does end.
+        compile_aside(available_cores())
+        if not missing_groups():
+            with signals_deferred():
+                warm_planning()
+                warm_estimator()
         try:
             with signals_deferred():
                 pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=worker_defaults)
