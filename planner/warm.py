@@ -16,9 +16,14 @@ then inherit the loaded kernels).
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import hashlib
 import os
 import subprocess
 import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -112,37 +117,57 @@ def missing_groups() -> list[str]:
     return [group for group, kernel in entries.items() if not in_cache(kernel)]
 
 
+@contextlib.contextmanager
+def _compiling_alone(source_root: str) -> Iterator[None]:
+    """Inside: no other process of this machine compiles aside the same kernels (this source
+    tree, this numba cache) at the same time; one that does is waited for. An advisory lock on
+    a file in the temporary directory; without one (it cannot be made or opened) no wait."""
+    key = f"{source_root}\0{os.environ.get('NUMBA_CACHE_DIR', '')}".encode()
+    path = Path(tempfile.gettempdir()) / f"fimnav-compile-{hashlib.sha256(key).hexdigest()[:16]}.lock"
+    try:
+        handle = path.open("a")
+    except OSError:
+        yield
+        return
+    with handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file is closed
+        yield
+
+
 def compile_aside(workers: int) -> list[str]:
     """Compile the kernel groups numba's cache lacks, each in a child process of its own, all
     at once, and wait for them; returns the groups compiled so. Nothing when ``workers`` < 2
-    or fewer than two groups are missing (one group compiles as fast in the caller).
+    or fewer than two groups are missing (one group compiles as fast in the caller). Another
+    process of this machine compiling the same kernels aside (the workers of a cluster node, a
+    second command) is waited for first, and what it compiled is not compiled again.
 
     A child that fails is not an error here: the caller's own load then compiles the group and
     raises what went wrong. Leaving early (an exception, a signal turned into one) kills the
     children; a child also ends by itself when this process is gone (its stdin closes)."""
-    if workers < 2:
-        return []
-    missing = missing_groups()
-    if len(missing) < 2:
+    if workers < 2 or len(missing_groups()) < 2:
         return []
     source_root = str(Path(__file__).resolve().parents[1])  # the children import this very code
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (source_root, os.environ.get("PYTHONPATH")) if p))
-    children: list[subprocess.Popen[bytes]] = []
-    try:
-        for group in missing:
-            code = _CHILD.format(function=f"warm_{group}")
-            argv = [sys.executable, "-c", code]
-            children.append(subprocess.Popen(argv, env=env, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        for child in children:
-            child.wait()
-    finally:
-        for child in children:
-            if child.poll() is None:
-                child.kill()
+    with _compiling_alone(source_root):
+        missing = missing_groups()  # again: another process may have compiled them meanwhile
+        if len(missing) < 2:
+            return []
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (source_root, os.environ.get("PYTHONPATH")) if p))
+        children: list[subprocess.Popen[bytes]] = []
+        try:
+            for group in missing:
+                code = _CHILD.format(function=f"warm_{group}")
+                argv = [sys.executable, "-c", code]
+                children.append(subprocess.Popen(argv, env=env, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            for child in children:
                 child.wait()
-            if child.stdin is not None:
-                child.stdin.close()
-    return missing
+        finally:
+            for child in children:
+                if child.poll() is None:
+                    child.kill()
+                    child.wait()
+                if child.stdin is not None:
+                    child.stdin.close()
+        return missing
 
 
 def load_kernels(workers: int = 1) -> None:

@@ -31,6 +31,7 @@ from typing import Any
 from comms.errors import FimnavError, UsageError
 from missions.study.executors import Chunk, simulate_chunk
 from missions.study.simulator import SimulationResult
+from planner.warm import available_cores, compile_aside
 
 #: Most seconds between two progress reports of a running chunk.
 PROGRESS_INTERVAL_S: float = 0.5
@@ -88,6 +89,9 @@ def run_chunk_on_worker(chunk: Chunk, tag: str, topic: str, expected: dict[str, 
     diff = [f"{k} {here.get(k)} (submitted from {v})" for k, v in expected.items() if here.get(k) != v]
     if diff:
         raise EnvironmentMismatch(f"worker {worker.address} runs other code: {', '.join(diff)}")
+    # A cold kernel cache (a fresh node): the planning and estimator kernels compiled in two
+    # child processes at once, by one worker of the node while the others wait (planner.warm).
+    compile_aside(available_cores())
     done = 0
     last = time.monotonic()
 

@@ -105,3 +105,29 @@ def test_a_cold_cache_is_compiled_a_group_per_child_then_loaded(tmp_path: Path) 
     lines = out.splitlines()
     assert lines[:3] == ["['planning', 'estimator']", "['planning', 'estimator']", "[]"]
     assert float(lines[3]) < 10.0  # a load from the cache, not a compile (30-40 s of CPU a group)
+
+
+@pytest.mark.slow
+def test_two_callers_on_one_cold_cache_compile_it_once(tmp_path: Path) -> None:
+    # Two commands (or two Dask workers of one node) starting at once on a cold cache: one
+    # compiles the two groups aside, the other waits for it and compiles nothing (about 40 s).
+    code = "from planner.warm import compile_aside\nprint(compile_aside(2))\n"
+    callers = [python(code, tmp_path / "cache") for _ in range(2)]
+    peak = 0
+
+    def both_done() -> bool:
+        nonlocal peak
+        peak = max(peak, sum(len(child_pids(c.pid)) for c in callers))
+        return all(c.poll() is not None for c in callers)
+
+    try:
+        wait_for(both_done, 600, "both callers to finish", interval_s=0.05)
+        outs = sorted(c.communicate()[0].strip() for c in callers)
+        assert [c.returncode for c in callers] == [0, 0]
+        assert outs == ["['planning', 'estimator']", "[]"]
+        assert peak == 2  # never four compiling children
+    finally:
+        for c in callers:
+            if c.poll() is None:
+                c.kill()
+                c.wait()
