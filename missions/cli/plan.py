@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from missions.launch.forkspawn import watch_launcher
     from missions.runtime.signals import signals_deferred
     from planner.node import NodeOptions, PlannerNode
-    from planner.warm import available_cores, compile_aside
+    from planner.warm import available_cores, compile_aside, compile_notice, missing_groups
 
     setup_logging(args.log_level, f"plan[{args.uav}]")
     watch_launcher()  # started by fimnav launch: stop when the launcher dies
@@ -151,6 +152,9 @@ def run(args: argparse.Namespace) -> int:
     # by `fimnav launch`, the fork server has loaded them already.)
     # On a cold cache the two kernel groups are first compiled in child processes, at once, a
     # wait that a signal may end (the children are killed).
+    missing = missing_groups()
+    if missing:
+        print(f"fimnav plan: {compile_notice(missing)}", file=sys.stderr, flush=True)
     compile_aside(available_cores())
     with signals_deferred():
         import planner.node.warm

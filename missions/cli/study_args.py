@@ -75,9 +75,15 @@ def chunking(args: argparse.Namespace) -> dict[str, int]:
 
 def open_executor(args: argparse.Namespace, stack: contextlib.ExitStack, say: Callable[[str], Any]) -> ChunkExecutor:
     """The executor of ``--jobs`` (a local process pool) or ``--cluster`` (a Dask cluster,
-    closed with ``stack``); ``say`` is told which cluster it is."""
+    closed with ``stack``); ``say`` is told which cluster it is, or that the kernels are about
+    to be compiled (a cold cache, once after an install)."""
     positive("jobs", args.jobs)
     if args.cluster is None:
+        from planner.warm import compile_notice, missing_groups
+
+        missing = missing_groups()
+        if missing:
+            say(compile_notice(missing))
         return local_executor(args.jobs or 1)
     if getattr(args, "view", False):
         raise UsageError("--view watches a run on this machine only: leave it out with --cluster")

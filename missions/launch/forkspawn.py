@@ -311,7 +311,7 @@ class ForkServer:
                 notice_after_s,
                 notice,
                 ("compiling the planning and estimation kernels into numba's cache: once after an install, "
-                 "about 40 s on two cores (later launches load them in a second)",),
+                 "about 40 s on two cores (later launches load them in a second; `fimnav compile` does it ahead of time)",),
             )  # fmt: skip
             timer.daemon = True
             timer.start()

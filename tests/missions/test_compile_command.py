@@ -50,3 +50,11 @@ def test_on_a_cold_cache_the_groups_compile_at_once_then_a_second_run_loads_them
     assert second.returncode == 0, second.stderr
     for group in ("planning", "estimator", "simulator"):
         assert f"{group} kernels: already in numba's cache, loaded: " in second.stdout, second.stdout
+
+
+def test_a_study_on_a_warm_cache_says_nothing_of_compiling(tmp_path: Path) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    argv = fimnav("montecarlo", "paper/joint", "--trials", "1", "--steps", "1", "--no-figures", "--out", str(tmp_path / "out"))
+    done = subprocess.run(argv, env=env, text=True, capture_output=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "compiling" not in done.stderr, done.stderr

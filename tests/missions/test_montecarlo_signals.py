@@ -81,6 +81,8 @@ def test_signal_during_the_first_compile_stops_the_compiling_children(tmp_path: 
         _, err = proc.communicate(timeout=15)
         assert proc.returncode == status, err
         assert "Traceback" not in err
+        # The command said, before, what it was doing and how to do it ahead of time.
+        assert "compiling the planning and estimator kernels into numba's cache first" in err and "fimnav compile" in err, err
         wait_for(lambda: not any(alive(c) for c in compiling), 5.0, "the compiling children to exit",
                  detail=lambda: f"left behind: {[c for c in compiling if alive(c)]}", interval_s=0.05)
     finally:
