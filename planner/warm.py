@@ -10,8 +10,10 @@ both from the cache: on two cores the first compile takes the time of the longer
 of the sum. A group already in the cache costs nothing more than its load.
 
 Used by the fork server of ``fimnav launch`` (through :mod:`planner.node.warm`), ``fimnav
-plan`` and the local pool of ``fimnav montecarlo --jobs N`` (before it forks its workers, which
-then inherit the loaded kernels).
+plan``, ``fimnav compile``, a local study (``fimnav montecarlo`` and ``sweep``; with ``--jobs
+N`` before the pool forks its workers, which then inherit the loaded kernels) and a Dask worker
+at its first chunk. A process compiling aside holds an advisory lock that the other processes
+of the machine compiling the same kernels wait on, so a machine compiles them once.
 """
 
 from __future__ import annotations
