@@ -7,9 +7,6 @@ or compile, the same kernels at their first step.
 
 from __future__ import annotations
 
-from planner.warm import available_cores, load_kernels, warm_planning
-
-#: One planning step of a small synthetic mission (:func:`planner.warm.warm_planning`).
-warm_up = warm_planning
+from planner.warm import available_cores, load_kernels
 
 load_kernels(available_cores())

@@ -34,7 +34,7 @@ import pytest
 from comms.errors import UsageError
 from missions.launch.supervisor import ready_line
 from missions.runtime.rundir import claim_results_dir, previous_run, unique_results_dir
-from tests.support.launch import PAPER, ROOT, Launch
+from tests.support.launch import PAPER, ROOT, Launch, processes_with_environment
 from tests.support.net import free_port
 from tests.support.proc import Proc, fimnav, with_hangup
 from tests.support.wait import wait_for
@@ -362,22 +362,6 @@ def test_a_vehicle_started_by_hand_outlives_its_parent(tmp_path: Path) -> None:
         finally:
             os.kill(pid, signal.SIGTERM)
             wait_for(lambda: read_proc(pid) is None or read_proc(pid).state == "Z", 10.0, "the vehicle to stop")  # type: ignore[union-attr]
-
-
-def processes_with_environment(entry: str) -> list[int]:
-    """Live processes of this user whose environment holds ``entry`` (``NAME=value``)."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit() or int(proc.name) == os.getpid():
-            continue
-        try:
-            environ = (proc / "environ").read_bytes().split(b"\0")
-            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if entry.encode() in environ and state != "Z":
-            found.append(int(proc.name))
-    return found
 
 
 def test_a_launch_stopped_during_its_first_compile_ends_at_once_and_leaves_no_process(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -21,38 +22,46 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
 
 
+def _signal_while_children_run(argv: list[str], env: dict[str, str], cwd: Path, sig: signal.Signals, status: int,
+                               ready: Callable[[set[int]], bool], what: str) -> str:
+    """Start ``argv`` in a session of its own, wait until its children make ``ready`` true, send
+    ``sig`` to the command alone (not its group), check it exits ``status`` without a traceback
+    and that those children exit too; returns its stderr. Whatever happens, the session is
+    killed at the end."""
+    proc = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        children: set[int] = set()
+
+        def started() -> bool:
+            nonlocal children
+            assert proc.poll() is None, proc.communicate()
+            children = child_pids(proc.pid)
+            return ready(children)
+
+        wait_for(started, 60.0, f"the {what} to start", interval_s=0.05)
+        proc.send_signal(sig)  # to the command alone, not its group
+        _, err = proc.communicate(timeout=15)
+        assert proc.returncode == status, err
+        assert "Traceback" not in err
+        wait_for(lambda: not any(alive(c) for c in children), 5.0, f"the {what} to exit",
+                 detail=lambda: f"left behind: {[c for c in children if alive(c)]}", interval_s=0.05)
+        return err
+    finally:
+        # the whole session, even when the command itself has exited (its children may not have)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the worker processes")
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130), (signal.SIGHUP, 129)])
 def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Signals, status: int) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     # Started as from a terminal (SIGINT and SIGHUP at their defaults): the suite's own process
     # may have them ignored, and the command honours an inherited ignored SIGHUP on purpose (nohup).
-    proc = subprocess.Popen(
-        with_default_hangup(with_default_interrupt([sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
-                                "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")])),
-        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )
-    try:
-        workers: set[int] = set()
-
-        def started() -> bool:
-            nonlocal workers
-            assert proc.poll() is None, proc.communicate()
-            workers = child_pids(proc.pid)
-            return len(workers) >= 2
-
-        wait_for(started, 60.0, "the two workers to start", interval_s=0.05)
-        proc.send_signal(sig)  # to the command alone, not its group
-        _, err = proc.communicate(timeout=15)
-        assert proc.returncode == status, err
-        assert "Traceback" not in err
-        wait_for(lambda: not any(alive(w) for w in workers), 5.0, "the workers to exit",
-                 detail=lambda: f"workers left behind: {[w for w in workers if alive(w)]}", interval_s=0.05)
-    finally:
-        # the whole session, even when the command itself has exited (its workers may not have)
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+    argv = with_default_hangup(with_default_interrupt([sys.executable, "-m", "missions", "montecarlo", "paper/heterogeneous", "paper/joint", "--criterion", "both",
+                                                       "--trials", "20", "--no-figures", "--jobs", "2", "--out", str(tmp_path / "out")]))
+    _signal_while_children_run(argv, env, tmp_path, sig, status, lambda workers: len(workers) >= 2, "two workers")
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the compiling processes")
@@ -63,29 +72,7 @@ def test_signal_during_the_first_compile_stops_the_compiling_children(tmp_path: 
     # alone meanwhile ends it at once, and the children with it.
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
     argv = [sys.executable, "-m", "missions", "montecarlo", "paper/joint", "--trials", "4", "--steps", "2", "--no-figures", "--jobs", "2"]
-    proc = subprocess.Popen(
-        with_default_interrupt([*argv, "--out", str(tmp_path / "out")]),
-        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )
-    try:
-        compiling: set[int] = set()
-
-        def started() -> bool:
-            nonlocal compiling
-            assert proc.poll() is None, proc.communicate()
-            compiling = child_pids(proc.pid)
-            return len(compiling) == 2
-
-        wait_for(started, 60.0, "the two compiling children to start", interval_s=0.05)
-        proc.send_signal(sig)  # to the command alone, not its group
-        _, err = proc.communicate(timeout=15)
-        assert proc.returncode == status, err
-        assert "Traceback" not in err
-        # The command said, before, what it was doing and how to do it ahead of time.
-        assert "compiling the planning and estimator kernels into numba's cache first" in err and "fimnav compile" in err, err
-        wait_for(lambda: not any(alive(c) for c in compiling), 5.0, "the compiling children to exit",
-                 detail=lambda: f"left behind: {[c for c in compiling if alive(c)]}", interval_s=0.05)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+    err = _signal_while_children_run(with_default_interrupt([*argv, "--out", str(tmp_path / "out")]), env, tmp_path, sig, status,
+                                     lambda compiling: len(compiling) == 2, "two compiling children")
+    # The command said, before, what it was doing and how to do it ahead of time.
+    assert "compiling the planning and estimator kernels into numba's cache first" in err and "fimnav compile" in err, err

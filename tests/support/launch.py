@@ -8,7 +8,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,20 +21,30 @@ ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "missions" / "paper"
 
 
-def processes_mentioning(text: str) -> list[int]:
-    """PIDs of live processes whose command line contains ``text`` (from /proc)."""
+def _live_processes_where(read: str, matches: Callable[[bytes], bool]) -> list[int]:
+    """PIDs of live (not zombie) processes but this one whose /proc/PID/``read`` ``matches``."""
     pids = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
-            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            content = (entry / read).read_bytes()
             state = (entry / "stat").read_text().split(")")[-1].split()[0]
         except OSError:
             continue
-        if text in cmd and state != "Z":
+        if matches(content) and state != "Z":
             pids.append(int(entry.name))
     return pids
+
+
+def processes_mentioning(text: str) -> list[int]:
+    """PIDs of live processes whose command line contains ``text`` (from /proc)."""
+    return _live_processes_where("cmdline", lambda cmd: text in cmd.replace(b"\0", b" ").decode(errors="replace"))
+
+
+def processes_with_environment(entry: str) -> list[int]:
+    """PIDs of live processes of this user whose environment holds ``entry`` (``NAME=value``)."""
+    return _live_processes_where("environ", lambda environ: entry.encode() in environ.split(b"\0"))
 
 
 class Launch:
