@@ -2068,3 +2068,9 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)
         plan_one(b, scene, (cost[1], cost[2]), old, new, config, out, ws)
+
+
+# The entry kernels built ahead of time, when they are (planner.aot): bound here, at import.
+from planner.aot import bind as _bind  # noqa: E402
+
+_bind("planning", globals())

@@ -338,3 +338,9 @@ __all__ = [
     "same_views",
     "update_saved_steps",
 ]
+
+
+# The entry kernels built ahead of time, when they are (planner.aot): bound here, at import.
+from planner.aot import bind as _bind  # noqa: E402
+
+_bind("simulator", globals())

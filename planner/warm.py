@@ -25,6 +25,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -37,7 +38,7 @@ _CHILD = (
     "signal.signal(signal.SIGINT, signal.SIG_DFL)\n"
     "threading.Thread(target=lambda: (sys.stdin.buffer.read(), os._exit(1)), daemon=True).start()\n"
     "import planner.warm as w\n"
-    "w.{function}()\n"
+    "{call}\n"
 )
 
 
@@ -108,15 +109,28 @@ def in_cache(kernel: object) -> bool:
         return True
 
 
-def missing_groups() -> list[str]:
-    """The kernel groups ("planning", "estimator") numba's cache lacks: their entry kernel
-    (:func:`planner.kernels.plan_batch`, :func:`planner.estimator.kernels.update.update_batch`)
+def _jit_missing() -> list[str]:
+    """The JIT kernel groups ("planning", "estimator") numba's cache lacks: their entry kernel
     has no compiled version for its current source."""
     from planner import kernels
+    from planner.aot import jit_kernel
     from planner.estimator.kernels import update
 
     entries = {"planning": kernels.plan_batch, "estimator": update.update_batch}
-    return [group for group, kernel in entries.items() if not in_cache(kernel)]
+    return [group for group, kernel in entries.items() if not in_cache(jit_kernel(kernel))]
+
+
+def missing_groups() -> list[str]:
+    """The kernel groups still to compile: those with no extension module built ahead of time
+    (:mod:`planner.aot`; "planning", "estimator", "simulator"), or, where they are turned off
+    (``FIMNAV_AOT=0``) or cannot be built here, the JIT groups numba's cache lacks ("planning",
+    "estimator")."""
+    from planner import aot
+
+    if not aot.enabled():
+        return _jit_missing()
+    failed = aot.failed()
+    return [g for g in aot.missing() if g not in failed] + [g for g in _jit_missing() if g in failed]
 
 
 @contextlib.contextmanager
@@ -138,35 +152,44 @@ def _compiling_alone(source_root: str) -> Iterator[None]:
 
 def compile_notice(missing: list[str]) -> str:
     """The one line a command prints before it compiles the ``missing`` kernel groups."""
-    return (
-        f"compiling the {' and '.join(missing)} kernels into numba's cache first: once after an install, "
-        "about 40 s on two cores (`fimnav compile` does it ahead of time)"
-    )
+    names = ", ".join(missing[:-1]) + (" and " if len(missing) > 1 else "") + missing[-1] if missing else "no"
+    return f"compiling the {names} kernels first: once after an install, about a minute on two cores (`fimnav compile` does it beforehand)"
 
 
 def compile_aside(workers: int) -> list[str]:
-    """Compile the kernel groups numba's cache lacks, each in a child process of its own, all
-    at once, and wait for them; returns the groups compiled so. Nothing when ``workers`` < 2
-    or fewer than two groups are missing (one group compiles as fast in the caller). Another
+    """Compile the kernel groups still to compile (:func:`missing_groups`) in child processes,
+    and wait for them; returns the groups compiled so. An extension module built ahead of time
+    (:func:`planner.aot.build`) is always built in a child, every group at once when
+    ``workers`` ≥ 2, else one after the other; a group that cannot be built is recorded as such
+    (:func:`planner.aot.failed`) and is the JIT's from then on. JIT groups are compiled aside
+    only when two are missing and ``workers`` ≥ 2 (one compiles as fast in the caller). Another
     process of this machine compiling the same kernels aside (the workers of a cluster node, a
     second command) is waited for first, and what it compiled is not compiled again.
 
-    A child that fails is not an error here: the caller's own load then compiles the group and
-    raises what went wrong. Leaving early (an exception, a signal turned into one) kills the
-    children; a child also ends by itself when this process is gone (its stdin closes)."""
-    if workers < 2 or len(missing_groups()) < 2:
+    A JIT child that fails is not an error here: the caller's own load then compiles the group
+    and raises what went wrong. Leaving early (an exception, a signal turned into one) kills
+    the children; a child also ends by itself when this process is gone (its stdin closes)."""
+    from planner import aot
+
+    if not _to_compile(workers, missing_groups()):
+        aot.bind_built()
         return []
     source_root = str(Path(__file__).resolve().parents[1])  # the children import this very code
     with _compiling_alone(source_root):
         missing = missing_groups()  # again: another process may have compiled them meanwhile
-        if len(missing) < 2:
+        if not _to_compile(workers, missing):
+            aot.bind_built()
             return []
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (source_root, os.environ.get("PYTHONPATH")) if p))
+        ahead = aot.enabled() and not set(missing) & set(aot.failed())
+        calls = [f"import planner.aot_build as a\na.build_or_record({group!r})" if ahead else f"w.warm_{group}()" for group in missing]
         children: list[subprocess.Popen[bytes]] = []
         try:
-            for group in missing:
-                code = _CHILD.format(function=f"warm_{group}")
-                argv = [sys.executable, "-c", code]
+            # At most ``workers`` at once, the longest group (planning) first.
+            for call in calls:
+                while sum(c.poll() is None for c in children) >= max(workers, 1):
+                    time.sleep(0.1)  # the poll interval of the wait for a free slot
+                argv = [sys.executable, "-c", _CHILD.format(call=call)]
                 children.append(subprocess.Popen(argv, env=env, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             for child in children:
                 child.wait()
@@ -177,7 +200,17 @@ def compile_aside(workers: int) -> list[str]:
                     child.wait()
                 if child.stdin is not None:
                     child.stdin.close()
-        return missing
+        aot.bind_built()
+        return [g for g in missing if g not in missing_groups()] if ahead else missing
+
+
+def _to_compile(workers: int, missing: list[str]) -> bool:
+    """Whether :func:`compile_aside` compiles ``missing`` in children."""
+    from planner import aot
+
+    if aot.enabled() and missing and not set(missing) & set(aot.failed()):
+        return workers >= 1
+    return workers >= 2 and len(missing) >= 2
 
 
 def load_kernels(workers: int = 1) -> None:

@@ -3,8 +3,15 @@
 
 pymavlink chooses MAVLink 1 or 2 when it is first imported, from ``MAVLINK20`` in the
 environment: it is set here, before any test module or test script can import pymavlink.
+
+The suite runs numba's JIT kernels (``FIMNAV_AOT=0``, unless the environment sets it), compiled
+once into numba's cache by tests/conftest.py: building the extension modules ahead of time
+(:mod:`planner.aot`) on top would add about a minute of CPU to every clean run. The
+ahead-of-time kernels are tested against the JIT's in tests/planner/test_aot.py, which turns
+them on for its own processes; ``FIMNAV_AOT=1 python -m pytest`` runs the whole suite on them.
 """
 
 import os
 
 os.environ["MAVLINK20"] = "1"
+os.environ.setdefault("FIMNAV_AOT", "0")

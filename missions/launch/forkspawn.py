@@ -310,8 +310,8 @@ class ForkServer:
             timer = threading.Timer(
                 notice_after_s,
                 notice,
-                ("compiling the planning and estimation kernels into numba's cache: once after an install, "
-                 "about 40 s on two cores (later launches load them in a second; `fimnav compile` does it ahead of time)",),
+                ("compiling the planning and estimation kernels: once after an install, "
+                 "about a minute on two cores (later launches load them at once; `fimnav compile` does it beforehand)",),
             )  # fmt: skip
             timer.daemon = True
             timer.start()

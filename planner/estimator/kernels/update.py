@@ -805,3 +805,9 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
     for e in range(fs.shape[0]):
         _element(e, state, new, p, due, extra_used, cb, ws, outs, overwrite)
     return outs
+
+
+# The entry kernels built ahead of time, when they are (planner.aot): bound here, at import.
+from planner.aot import bind as _bind  # noqa: E402
+
+_bind("estimator", globals())

@@ -1,0 +1,85 @@
+"""Building the extension modules of :mod:`planner.aot` (numba.pycc), in a process of its own.
+
+Imports the kernel modules by name (:data:`planner.aot.GROUPS`): only the process that builds
+(a child of :func:`planner.warm.compile_aside`) imports this module.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from planner.aot import GROUPS, failure_file, forget_failure, jit_kernel, module_name, path
+from planner.aot_signatures import SIGNATURES
+
+
+class BuildError(RuntimeError):
+    """An extension module could not be built (no C compiler, no setuptools, a kernel numba's
+    ahead-of-time compiler refuses); the message says which group and why."""
+
+
+def build(group: str) -> Path:
+    """Build ``group``'s extension module (numba.pycc, for the CPU numba's JIT compiles for,
+    with its features) and put it in :func:`directory`, atomically; returns its file. Run it in
+    a process of its own (:func:`planner.warm.compile_aside`): it changes numba's
+    ahead-of-time code generator in this process so that it compiles with the host's features.
+
+    Raises:
+        BuildError: the build failed (the message says why).
+    """
+    module_path, names = GROUPS[group]
+    target = path(group)
+    try:
+        from numba.core import codegen
+        from numba.core import types as nbtypes
+        from numba.core.typing import signature as nbsignature
+        from numba.pycc import CC
+
+        # The JIT's feature set rather than the one implied by the CPU model: the same code
+        # choices as the JIT, and no instruction a virtual machine masks.
+        codegen.AOTCPUCodegen._customize_tm_features = lambda self: self._get_host_cpu_features()  # type: ignore[method-assign]
+        kernels = importlib.import_module(module_path)
+        name = module_name(group)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
+            cc = CC(name)
+            cc.output_dir = tmp
+            cc.target_cpu = "host"
+            cc.verbose = False
+            namespace = {name: getattr(nbtypes, name) for name in dir(nbtypes) if not name.startswith("_")}
+            namespace["signature"] = nbsignature
+            for kernel in names:
+                signature = eval(SIGNATURES[kernel], {"__builtins__": {}}, namespace)  # our own, fixed text
+                cc.export(kernel, signature)(jit_kernel(getattr(kernels, kernel)).py_func)
+            cc.compile()
+            built = [p for p in Path(tmp).iterdir() if p.name.startswith(name) and p.suffix in (".so", ".pyd")]
+            if not built:
+                raise BuildError(f"{group}: numba.pycc wrote no extension module")
+            os.replace(built[0], target)
+    except BuildError:
+        raise
+    except Exception as exc:  # a compiler, setuptools or numba refusing: the reason
+        raise BuildError(f"the {group} kernels could not be built ahead of time: {type(exc).__name__}: {exc}") from exc
+    return target
+
+
+def build_or_record(group: str) -> None:
+    """:func:`build` ``group``; if it fails, record why (:func:`failed`), print it to stderr
+    and exit with status 1 (what a child of :func:`planner.warm.compile_aside` runs)."""
+    forget_failure(group)
+    try:
+        build(group)
+    except BuildError as exc:
+        try:
+            failure_file(group).parent.mkdir(parents=True, exist_ok=True)
+            failure_file(group).write_text(str(exc) + "\n", encoding="utf-8")
+        except OSError:
+            pass
+        print(exc, file=sys.stderr)
+        raise SystemExit(1) from None
+
+
+__all__ = ["BuildError", "build", "build_or_record"]

@@ -1,0 +1,178 @@
+"""planner.aot: the kernels built ahead of time compute what numba's JIT kernels compute, bit
+for bit; an argument of another type goes to the JIT; a build that fails is recorded and its
+group is the JIT's; the recorded argument types are those the kernels are called with; the key
+of a module follows its sources and the CPU.
+
+Each test builds into its own empty directory (``FIMNAV_AOT_DIR``) in fresh interpreters with
+the modules turned on (``FIMNAV_AOT=1``; the rest of the suite runs the JIT kernels). The
+simulator group (about 8 s to build) is the one built in the default run; every group, and a
+study on them, in the slow run."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from planner import aot
+from planner.aot_signatures import SIGNATURES
+from tests.support.proc import fimnav
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def run(code: str, aot_dir: Path, on: bool = True, **env: str) -> subprocess.CompletedProcess[str]:
+    full = dict(os.environ, PYTHONPATH=str(ROOT), FIMNAV_AOT_DIR=str(aot_dir), FIMNAV_AOT="1" if on else "0", **env)
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=full, text=True, capture_output=True, timeout=600)
+
+
+#: A short study of the simulator's every kernel (faults on: the late records), its arrays saved.
+SIMULATE = """
+import sys
+import numpy as np
+from missions.format.loader import load_mission
+from missions.study.simulator import RunSpec, simulate
+from planner import sim_kernels
+print(type(sim_kernels.gather_view).__name__)
+mission = load_mission("paper/heterogeneous", {"comms.faults.loss": 0.2, "comms.faults.extra_delay_steps": 1})
+r = simulate(RunSpec(mission, "A", 4, 25))
+np.savez(sys.argv[1] if len(sys.argv) > 1 else OUT, positions=r.positions_m, estimates=r.estimates_m, peb=r.peb_m, ages=r.record_ages)
+"""
+
+
+def test_sources_are_the_kernel_modules_and_what_they_import_not_the_binding() -> None:
+    names = {g: sorted(p.relative_to(ROOT / "planner").as_posix() for p in aot.sources(m)) for g, (m, _) in aot.GROUPS.items()}
+    assert names["planning"] == ["kernels.py"]
+    assert names["simulator"] == ["sim_kernels.py"]
+    assert names["estimator"] == [
+        "estimator/kernels/__init__.py",
+        "estimator/kernels/linalg.py",
+        "estimator/kernels/memory.py",
+        "estimator/kernels/pseudolinear.py",
+        "estimator/kernels/robust.py",
+        "estimator/kernels/update.py",
+        "estimator/layout.py",
+    ]
+
+
+def test_the_key_follows_the_cpu_numba_compiles_for(tmp_path: Path) -> None:
+    code = "from planner import aot; print(aot.key('simulator'), aot.path('simulator').parent)"
+    host = run(code, tmp_path)
+    generic = run(code, tmp_path, NUMBA_CPU_NAME="generic")
+    assert host.returncode == 0 and generic.returncode == 0, host.stderr + generic.stderr
+    assert host.stdout.split()[1] == generic.stdout.split()[1] == str(tmp_path)
+    assert host.stdout.split()[0] != generic.stdout.split()[0]
+
+
+def test_every_recorded_signature_reads_back_to_its_own_text() -> None:
+    from numba.core import types
+    from numba.core.typing import signature
+
+    namespace = {name: getattr(types, name) for name in dir(types) if not name.startswith("_")} | {"signature": signature}
+    built = {name for _, names in aot.GROUPS.values() for name in names}
+    assert set(SIGNATURES) == built
+    for name, text in SIGNATURES.items():
+        assert aot.signature_expression(eval(text, {"__builtins__": {}}, namespace)) == text, name
+
+
+def test_the_recorded_signatures_are_those_the_jit_kernels_are_compiled_for(tmp_path: Path) -> None:
+    # A planner's warm-up and a few steps of every paper mission under every policy, read off the
+    # JIT kernels: the file in the repository is what they give.
+    done = run("from missions.study.kernel_signatures import record; print(record(), end='')", tmp_path, on=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == (ROOT / "planner" / "aot_signatures.py").read_text()
+
+
+def test_a_built_group_gives_the_jit_results_bit_for_bit_and_another_type_goes_to_the_jit(tmp_path: Path) -> None:
+    built = run("import planner.aot_build as a; print(a.build('simulator').name)", tmp_path)
+    assert built.returncode == 0, built.stderr
+    assert built.stdout.strip().startswith("fimnav_aot_simulator_")
+    with_aot = run(SIMULATE.replace("OUT", repr(str(tmp_path / "aot.npz"))), tmp_path)
+    with_jit = run(SIMULATE.replace("OUT", repr(str(tmp_path / "jit.npz"))), tmp_path, on=False)
+    assert with_aot.returncode == 0 and with_jit.returncode == 0, with_aot.stderr + with_jit.stderr
+    assert with_aot.stdout.split() == ["Entry"]
+    assert with_jit.stdout.split() == ["CPUDispatcher"]
+    a, b = np.load(tmp_path / "aot.npz"), np.load(tmp_path / "jit.npz")
+    for name in ("positions", "estimates", "peb", "ages"):
+        assert np.array_equal(a[name], b[name], equal_nan=True), name
+    # float32 points are not the recorded type: the JIT kernel runs (and agrees with numpy's).
+    other = run(
+        """
+        import numpy as np
+        from planner import geometry, sim_kernels
+        rng = np.random.default_rng(3)
+        points = rng.uniform(-50, 50, (64, 3)).astype(np.float32)
+        source, bmin, bmax = np.zeros(3), np.array([[-10.0, 5.0, 0.0]]), np.array([[10.0, 15.0, 30.0]])
+        out = np.empty(64, dtype=bool)
+        sim_kernels.line_of_sight(points, source, bmin, bmax, out)
+        jit = sim_kernels.line_of_sight.jit
+        print(type(sim_kernels.line_of_sight).__name__, [str(s[0]) for s in jit.signatures])
+        print(bool(np.array_equal(out, geometry.line_of_sight(points.astype(float), source, bmin, bmax))), int(out.sum()), int((~out).sum()))
+        """,
+        tmp_path,
+    )
+    assert other.returncode == 0, other.stderr
+    first, second = other.stdout.splitlines()
+    assert first == "Entry ['array(float32, 2d, C)']"
+    same, clear, blocked = second.split()
+    assert same == "True" and int(clear) > 0 and int(blocked) > 0
+
+
+def test_a_failed_build_is_recorded_and_its_group_is_the_jits(tmp_path: Path) -> None:
+    # No C compiler: numba.pycc's wrapper cannot be compiled.
+    failed = run("import planner.aot_build as a; a.build_or_record('simulator')", tmp_path, CC="/nonexistent-cc")
+    assert failed.returncode == 1
+    assert "the simulator kernels could not be built ahead of time" in failed.stderr, failed.stderr
+    assert "Traceback" not in failed.stderr
+    after = run(
+        """
+        from planner import aot, sim_kernels
+        from planner.warm import missing_groups
+        print(sorted(aot.failed()), 'simulator' in missing_groups(), type(sim_kernels.gather_view).__name__)
+        """,
+        tmp_path,
+    )
+    assert after.returncode == 0, after.stderr
+    assert after.stdout.split() == ["['simulator']", "False", "CPUDispatcher"]
+
+
+def test_a_damaged_module_is_not_loaded(tmp_path: Path) -> None:
+    done = run(
+        """
+        from planner import aot
+        aot.path('simulator').parent.mkdir(parents=True, exist_ok=True)
+        aot.path('simulator').write_bytes(b'not an extension module')
+        from planner import sim_kernels
+        print(aot.load('simulator'), type(sim_kernels.gather_view).__name__)
+        """,
+        tmp_path,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["None", "CPUDispatcher"]
+
+
+@pytest.mark.slow
+def test_fimnav_compile_builds_every_group_and_a_study_on_them_equals_the_jits(tmp_path: Path) -> None:
+    # About a minute on two cores.
+    env = dict(os.environ, PYTHONPATH=str(ROOT), FIMNAV_AOT_DIR=str(tmp_path / "aot"), FIMNAV_AOT="1")
+    first = subprocess.run(fimnav("compile", "--jobs", "2"), env=env, text=True, capture_output=True, timeout=900)
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.startswith("compiled the planning, estimator and simulator kernels in 3 processes, up to 2 at once: "), first.stdout
+    second = subprocess.run(fimnav("compile"), env=env, text=True, capture_output=True, timeout=300)
+    assert second.returncode == 0, second.stderr
+    for group in aot.GROUPS:
+        assert f"{group} kernels: already built ({tmp_path / 'aot'}), loaded: " in second.stdout, second.stdout
+    outs = {}
+    for on in ("1", "0"):
+        argv = fimnav("montecarlo", "paper/ranging_los", "--trials", "12", "--steps", "60", "--no-figures", "--out", str(tmp_path / on))
+        done = subprocess.run(argv, env=dict(env, FIMNAV_AOT=on), text=True, capture_output=True, timeout=600)
+        assert done.returncode == 0, done.stderr
+        assert "compiling" not in done.stderr, done.stderr
+        outs[on] = tmp_path / on / "runs" / "paper_ranging_los_A"
+    for name in ("peb.csv", "trajectories.csv", "trajectories.geojson"):
+        assert (outs["1"] / name).read_bytes() == (outs["0"] / name).read_bytes(), name
