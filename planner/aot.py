@@ -28,6 +28,7 @@ for a debugger, or to compare).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 import importlib.machinery
@@ -203,11 +204,13 @@ class Entry:
         return self.jit(*args)
 
 
+@functools.cache
 def checker(t: Any) -> Callable[[Any], bool]:
     """A check that a Python value is of numba type ``t`` as numba's ``typeof`` would type it
     (for the kinds of :func:`expression`): an array of that dtype, dimension, layout, aligned and
     writeable unless ``t`` is read-only; a tuple of that length whose items check; a bool, an
-    integer or a float of that width (Python's own or numpy's); a first-class function.
+    integer or a float of that width (Python's own or numpy's); a first-class function. One
+    check per type (numba's types are interned), made on first use.
 
     Raises:
         ValueError: a kind of type the signatures do not use.
