@@ -188,18 +188,43 @@ class Entry:
     """An entry kernel bound to its ahead-of-time version: a call whose arguments are of the
     recorded types (``accepts``, checked before the call: the compiled function itself does not
     check them) runs the compiled function, any other the JIT kernel ``jit``, which compiles
-    or loads a version for them as numba does."""
+    or loads a version for them as numba does. The check runs once per combination of argument
+    types, which later calls recognise by numba's own type fingerprints of their arguments (its
+    dispatcher's fast path, in C)."""
 
     def __init__(self, compiled: Callable[..., Any], jit: Any, accepts: Callable[[tuple[Any, ...]], bool]) -> None:
+        from numba._dispatcher import compute_fingerprint
+
         self.compiled = compiled
         self.jit = jit
         self.accepts = accepts
         self.__name__ = getattr(jit, "__name__", "kernel")
         self.__doc__ = getattr(jit, "__doc__", None)
         self.py_func = getattr(jit, "py_func", None)
+        self._fingerprint = compute_fingerprint
+        self._accepted: set[tuple[Any, ...]] = set()
+
+    def _key(self, args: tuple[Any, ...]) -> tuple[Any, ...] | None:
+        """The types of ``args`` as numba's fingerprints (a value without one, such as a
+        first-class function, by its Python type); None when an array has none (then every
+        call is checked in full)."""
+        key: list[Any] = []
+        for a in args:
+            try:
+                key.append(self._fingerprint(a))
+            except Exception:  # no fingerprint: an unusual array (checked in full), or another kind of value
+                if hasattr(a, "__array_interface__") or isinstance(a, tuple):
+                    return None
+                key.append(type(a))
+        return tuple(key)
 
     def __call__(self, *args: Any) -> Any:
+        key = self._key(args)
+        if key is not None and key in self._accepted:
+            return self.compiled(*args)
         if self.accepts(args):
+            if key is not None:
+                self._accepted.add(key)
             return self.compiled(*args)
         return self.jit(*args)
 
