@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from planner.aot import GROUPS, failure_file, forget_failure, jit_kernel, module_name, path
@@ -44,6 +46,7 @@ def build(group: str) -> Path:
         kernels = importlib.import_module(module_path)
         name = module_name(group)
         target.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_builds(target.parent)
         with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
             cc = CC(name)
             cc.output_dir = tmp
@@ -64,6 +67,24 @@ def build(group: str) -> Path:
     except Exception as exc:  # a compiler, setuptools or numba refusing: the reason
         raise BuildError(f"the {group} kernels could not be built ahead of time: {type(exc).__name__}: {exc}") from exc
     return target
+
+
+#: A build directory left older than this is from a build that was killed (a build takes a minute
+#: or two): removed by the next build in the same directory.
+STALE_BUILD_S: float = 3600.0
+
+
+def _remove_stale_builds(directory: Path) -> None:
+    """Remove the temporary directories of killed builds (``.build-*`` older than
+    :data:`STALE_BUILD_S`) from ``directory``; a build running now (another machine sharing the
+    directory) is younger and kept."""
+    now = time.time()
+    for old in directory.glob(".build-*"):
+        try:
+            if now - old.stat().st_mtime > STALE_BUILD_S:
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError:
+            continue
 
 
 def build_or_record(group: str) -> None:

@@ -14,6 +14,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -89,9 +90,16 @@ def test_the_recorded_signatures_are_those_the_jit_kernels_are_compiled_for(tmp_
 
 
 def test_a_built_group_gives_the_jit_results_bit_for_bit_and_another_type_goes_to_the_jit(tmp_path: Path) -> None:
+    # What a killed build left two hours ago goes; what a build running now holds stays.
+    stale, fresh = tmp_path / ".build-killed", tmp_path / ".build-running"
+    for d in (stale, fresh):
+        (d / "sub").mkdir(parents=True)
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
     built = run("import planner.aot_build as a; print(a.build('simulator').name)", tmp_path)
     assert built.returncode == 0, built.stderr
     assert built.stdout.strip().startswith("fimnav_aot_simulator_")
+    assert not stale.exists() and fresh.is_dir()
+    assert sorted(p.name for p in tmp_path.glob(".build-*")) == [".build-running"]
     with_aot = run(SIMULATE.replace("OUT", repr(str(tmp_path / "aot.npz"))), tmp_path)
     with_jit = run(SIMULATE.replace("OUT", repr(str(tmp_path / "jit.npz"))), tmp_path, on=False)
     assert with_aot.returncode == 0 and with_jit.returncode == 0, with_aot.stderr + with_jit.stderr
