@@ -4,26 +4,29 @@ numba compiles the kernels (:mod:`planner.kernels`, :mod:`planner.estimator.kern
 :mod:`planner.sim_kernels`) on first use and caches them, but loading a cached kernel still
 starts numba's compiler in the process (its registries, its typing, the link of each kernel):
 about a second of every command that plans or estimates. Here the same kernel functions are
-compiled once by numba's ahead-of-time compiler (``numba.pycc``) into one extension module per
-group, for the machine's own CPU and its features, exactly as numba's JIT compiles them (the
-same machine code choices: a run is bit-identical either way), with the argument types of
-:mod:`planner.aot_signatures` (written by :mod:`missions.study.kernel_signatures`). A kernel module then binds its entry kernels to the module's
-functions at import (:func:`bind`): a call goes straight to the compiled code. An argument of
-another type than the recorded one (a caller off the common path) goes to the JIT kernel, which
-compiles or loads that version as before.
+compiled once by numba's ahead-of-time compiler (``numba.pycc``, :mod:`planner.aot_build`) into
+one extension module per group, for the machine's own CPU and its features, exactly as numba's
+JIT compiles them (the same machine code choices: a run is bit-identical either way), with the
+argument types of :mod:`planner.aot_signatures` (written by
+:mod:`missions.study.kernel_signatures`). A kernel module then binds its entry kernels to the
+module's functions at import (:func:`bind`): a call goes straight to the compiled code. An
+argument of another type than the recorded one (a caller off the common path) goes to the JIT
+kernel, which compiles or loads that version as before.
 
 An extension module is keyed by everything its code depends on: the source of the kernel module
 and of the ``planner`` modules it imports, numba's and Python's versions, the CPU name and
 features numba compiles for (``NUMBA_CPU_NAME``, ``NUMBA_CPU_FEATURES`` or the host's). An edit
 of the source, an upgrade or another CPU (a home directory shared by a cluster's nodes) finds no
-module and builds its own. They live in ``$NUMBA_CACHE_DIR/fimnav-aot`` when that variable is
-set, else in ``planner/__pycache__/aot`` of the installed package when it can be written, else
-in ``$XDG_CACHE_HOME/fimnav/aot`` (``~/.cache/fimnav/aot``).
+module and builds its own. They live in ``$FIMNAV_AOT_DIR`` when that variable is set, else in
+``$NUMBA_CACHE_DIR/fimnav-aot`` when that one is, else in ``planner/__pycache__/aot`` of the
+installed package when it can be written, else in ``$XDG_CACHE_HOME/fimnav/aot``
+(``~/.cache/fimnav/aot``).
 
 The build needs a C compiler (numba.pycc compiles a small C wrapper) and, on Python 3.12 or
-later, setuptools; without them :func:`planner.aot_build.build` raises :class:`planner.aot_build.BuildError` and the kernels are
-the JIT's, as before. ``FIMNAV_AOT=0`` turns the extension modules off (the JIT kernels only:
-for a debugger, or to compare).
+later, setuptools; without them :func:`planner.aot_build.build` raises
+:class:`planner.aot_build.BuildError`, the reason is recorded (:func:`failed`) and the kernels
+are the JIT's, as before. ``FIMNAV_AOT=0`` turns the extension modules off (the JIT kernels
+only: for a debugger, or to compare).
 """
 
 from __future__ import annotations
