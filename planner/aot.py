@@ -120,9 +120,11 @@ def _cpu() -> tuple[str, str]:
     return str(name), str(features)
 
 
+@functools.cache
 def key(group: str) -> str:
     """The key of ``group``'s extension module: a digest of its sources (:func:`sources`),
-    numba's and Python's versions and the CPU (:func:`_cpu`)."""
+    numba's and Python's versions and the CPU (:func:`_cpu`). Computed once per process (the
+    kernels a process runs are the sources it imported)."""
     import numba
 
     module = GROUPS[group][0]
@@ -277,14 +279,19 @@ def checker(t: Any) -> Callable[[Any], bool]:
     raise ValueError(f"no check for numba type {t!r}")
 
 
-def _accepts(text: str) -> Callable[[tuple[Any, ...]], bool]:
-    """The argument check of a recorded signature (:mod:`planner.aot_signatures`)."""
+def parse_signature(text: str) -> Any:
+    """A recorded signature (:mod:`planner.aot_signatures`, the text of
+    :func:`signature_expression`) as numba's signature."""
     from numba.core import types as nbtypes
     from numba.core.typing import signature
 
     namespace = {name: getattr(nbtypes, name) for name in dir(nbtypes) if not name.startswith("_")} | {"signature": signature}
-    sig = eval(text, {"__builtins__": {}}, namespace)  # our own, fixed text
-    checks = [checker(a) for a in sig.args]
+    return eval(text, {"__builtins__": {}}, namespace)  # our own, fixed text
+
+
+def _accepts(text: str) -> Callable[[tuple[Any, ...]], bool]:
+    """The argument check of a recorded signature (:mod:`planner.aot_signatures`)."""
+    checks = [checker(a) for a in parse_signature(text).args]
 
     def accepts(args: tuple[Any, ...]) -> bool:
         return len(args) == len(checks) and all(c(a) for c, a in zip(checks, args))
@@ -404,6 +411,7 @@ __all__ = [
     "key",
     "load",
     "missing",
+    "parse_signature",
     "path",
     "signature_expression",
     "sources",

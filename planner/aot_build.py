@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from planner.aot import GROUPS, failure_file, forget_failure, jit_kernel, module_name, path
+from planner.aot import GROUPS, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
 from planner.aot_signatures import SIGNATURES
 
 
@@ -36,8 +36,6 @@ def build(group: str) -> Path:
     target = path(group)
     try:
         from numba.core import codegen
-        from numba.core import types as nbtypes
-        from numba.core.typing import signature as nbsignature
         from numba.pycc import CC
 
         # The JIT's feature set rather than the one implied by the CPU model: the same code
@@ -52,11 +50,8 @@ def build(group: str) -> Path:
             cc.output_dir = tmp
             cc.target_cpu = "host"
             cc.verbose = False
-            namespace = {name: getattr(nbtypes, name) for name in dir(nbtypes) if not name.startswith("_")}
-            namespace["signature"] = nbsignature
             for kernel in names:
-                signature = eval(SIGNATURES[kernel], {"__builtins__": {}}, namespace)  # our own, fixed text
-                cc.export(kernel, signature)(jit_kernel(getattr(kernels, kernel)).py_func)
+                cc.export(kernel, parse_signature(SIGNATURES[kernel]))(jit_kernel(getattr(kernels, kernel)).py_func)
             cc.compile()
             built = [p for p in Path(tmp).iterdir() if p.name.startswith(name) and p.suffix in (".so", ".pyd")]
             if not built:

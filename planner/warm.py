@@ -150,10 +150,14 @@ def _compiling_alone(source_root: str) -> Iterator[None]:
         yield
 
 
+def group_names(groups: list[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c`` (``no`` for none)."""
+    return ", ".join(groups[:-1]) + (" and " if len(groups) > 1 else "") + groups[-1] if groups else "no"
+
+
 def compile_notice(missing: list[str]) -> str:
     """The one line a command prints before it compiles the ``missing`` kernel groups."""
-    names = ", ".join(missing[:-1]) + (" and " if len(missing) > 1 else "") + missing[-1] if missing else "no"
-    return f"compiling the {names} kernels first: once after an install, about a minute on two cores (`fimnav compile` does it beforehand)"
+    return f"compiling the {group_names(missing)} kernels first: once after an install, about a minute on two cores (`fimnav compile` does it beforehand)"
 
 
 def compile_aside(workers: int) -> list[str]:
@@ -171,18 +175,18 @@ def compile_aside(workers: int) -> list[str]:
     the children; a child also ends by itself when this process is gone (its stdin closes)."""
     from planner import aot
 
-    if not _to_compile(workers, missing_groups()):
+    if not _aside(workers, missing_groups()):
         aot.bind_built()
         return []
     source_root = str(Path(__file__).resolve().parents[1])  # the children import this very code
     with _compiling_alone(source_root):
         missing = missing_groups()  # again: another process may have compiled them meanwhile
-        if not _to_compile(workers, missing):
+        aside = _aside(workers, missing)
+        if not aside:
             aot.bind_built()
             return []
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (source_root, os.environ.get("PYTHONPATH")) if p))
-        ahead = aot.enabled() and not set(missing) & set(aot.failed())
-        calls = [f"import planner.aot_build as a\na.build_or_record({group!r})" if ahead else f"w.warm_{group}()" for group in missing]
+        calls = [f"import planner.aot_build as a\na.build_or_record({group!r})" if ahead else f"w.warm_{group}()" for group, ahead in aside]
         children: list[subprocess.Popen[bytes]] = []
         try:
             # At most ``workers`` at once, the longest group (planning) first.
@@ -201,16 +205,20 @@ def compile_aside(workers: int) -> list[str]:
                 if child.stdin is not None:
                     child.stdin.close()
         aot.bind_built()
-        return [g for g in missing if g not in missing_groups()] if ahead else missing
+        still = missing_groups()
+        return [group for group, ahead in aside if not ahead or group not in still]
 
 
-def _to_compile(workers: int, missing: list[str]) -> bool:
-    """Whether :func:`compile_aside` compiles ``missing`` in children."""
+def _aside(workers: int, missing: list[str]) -> list[tuple[str, bool]]:
+    """What :func:`compile_aside` compiles in children, as (group, built ahead of time): every
+    group to build ahead of time, and the JIT groups when two are missing and ``workers`` ≥ 2
+    (one compiles as fast in the caller)."""
     from planner import aot
 
-    if aot.enabled() and missing and not set(missing) & set(aot.failed()):
-        return workers >= 1
-    return workers >= 2 and len(missing) >= 2
+    failed = aot.failed() if aot.enabled() else {}
+    ahead = [g for g in missing if aot.enabled() and g not in failed]
+    jit = [g for g in missing if g not in ahead]
+    return [(g, True) for g in ahead] + ([(g, False) for g in jit] if workers >= 2 and len(jit) >= 2 else [])
 
 
 def load_kernels(workers: int = 1) -> None:
@@ -221,4 +229,14 @@ def load_kernels(workers: int = 1) -> None:
     warm_estimator()
 
 
-__all__ = ["available_cores", "compile_aside", "compile_notice", "in_cache", "load_kernels", "missing_groups", "warm_estimator", "warm_planning"]
+__all__ = [
+    "available_cores",
+    "compile_aside",
+    "compile_notice",
+    "group_names",
+    "in_cache",
+    "load_kernels",
+    "missing_groups",
+    "warm_estimator",
+    "warm_planning",
+]

@@ -66,13 +66,13 @@ def _compile(jobs: int) -> None:
     by numba's JIT into its cache (or found there)."""
     from missions.runtime.signals import signals_deferred
     from planner import aot, sim_kernels
-    from planner.warm import compile_aside, in_cache, missing_groups, warm_estimator, warm_planning
+    from planner.warm import compile_aside, group_names, in_cache, missing_groups, warm_estimator, warm_planning
 
     t0 = time.monotonic()
     missing = missing_groups()
     aside = compile_aside(jobs)  # a wait a signal may end (the children are killed)
     if aside:
-        print(f"compiled the {_names(aside)} kernels in {len(aside)} processes, up to {jobs} at once: {time.monotonic() - t0:.1f} s", flush=True)
+        print(f"compiled the {group_names(aside)} kernels in {len(aside)} processes, up to {jobs} at once: {time.monotonic() - t0:.1f} s", flush=True)
     failed = aot.failed() if aot.enabled() else {}
     for group, why in failed.items():
         print(f"{group} kernels: {why}; numba's JIT compiles them instead, into its cache", flush=True)
@@ -91,11 +91,6 @@ def _compile(jobs: int) -> None:
             else:
                 done = "already in numba's cache, loaded"
             print(f"{group} kernels: {done}: {time.monotonic() - t:.1f} s", flush=True)
-
-
-def _names(groups: list[str]) -> str:
-    """``a``, ``a and b``, ``a, b and c``."""
-    return ", ".join(groups[:-1]) + (" and " if len(groups) > 1 else "") + groups[-1]
 
 
 def _simulate_two_steps() -> None:
