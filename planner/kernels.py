@@ -12,8 +12,12 @@ differences, dense sampling, the former numpy expressions evaluated in the test)
 One module: numba keys the cache of a compiled function on its own source file only, so the
 functions a cached kernel links in live in the same file (an edit anywhere here recompiles).
 Entry kernels (called from Python) are ``@njit(cache=True)``; the functions they call are
-``@njit(no_cpython_wrapper=True)`` (compiled into their callers, no Python entry point of
-their own). Written for numba's compile time as well as for speed: short functions with few
+``@njit(no_cpython_wrapper=True, _nrt=False)`` (compiled into their callers, no Python entry
+point of their own, and without numba's reference counting: they allocate nothing and return
+no array, so their array arguments are borrowed from the entry kernel that owns them, without
+the atomic increment and decrement of every array argument at every call that otherwise took
+about 40 % of the planning step's time; ``tests/simulator/test_reference_counts.py`` checks
+that a simulation leaves no array of the compiled code alive). Written for numba's compile time as well as for speed: short functions with few
 branches (``&`` rather than ``and``, ``min``/``max`` rather than conditional expressions),
 since numba's compile time grows faster than linearly with the branches of a function.
 
@@ -77,7 +81,7 @@ def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> ND
 NO_EXIT_M: float = 1.0e4
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def box_signed_distance(x, y, z, bmin, bmax, b):
     """Signed distance (m) of the point (x, y, z) to box b: the distance to its surface outside,
     minus the distance to its nearest face inside."""
@@ -91,7 +95,7 @@ def box_signed_distance(x, y, z, bmin, bmax, b):
     return -max(depth, 0.0)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def distance_to_boxes(x, y, z, bmin, bmax):
     """Signed distance (m) of the point (x, y, z) to the nearest box; +inf without boxes (eq. 17)."""
     best = np.inf
@@ -102,7 +106,7 @@ def distance_to_boxes(x, y, z, bmin, bmax):
     return best
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):
     """Signed distance (m) to the nearest box, its unit gradient written to ``grad`` (3,): from the
     nearest surface point outside, the outward normal of the nearest face inside; +inf and
@@ -146,7 +150,7 @@ def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):
     return best
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _crossing_exit(p, s, lo, hi, out):
     """Unit direction ``out`` (3,) in which the drone p moves a link s → p that crosses the box
     [lo, hi] out of it: per face, the displacement along its normal that takes the part of the
@@ -188,7 +192,7 @@ def _crossing_exit(p, s, lo, hi, out):
     out[k % 3] = 1.0 if k < 3 else -1.0
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def link_clearance(p, s, bmin, bmax, b, samples, cutoff_m, grad, work):
     """Clearance c (m) of the link s → p from box b and its gradient w.r.t. p, written to ``grad``
     (3,) (:func:`planner.geometry.link_clearance_with_gradient`): the smallest signed distance
@@ -302,7 +306,7 @@ def channel_array(gamma: float, sigma_r0_los: float, sigma_r0_nlos: float, sigma
     return np.array([gamma, sigma_r0_los**2, sigma_r0_nlos**2, sigma_bearing_rad**2])
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _rotate(app, aqq, apq, arp, arq, late):
     """One Jacobi rotation of a symmetric 3×3 a zeroing a[p, q] (r the third index), on its
     entries a[p, p], a[q, q], a[p, q], a[r, p], a[r, q]; after the first sweeps (``late``) an
@@ -328,7 +332,7 @@ def _rotate(app, aqq, apq, arp, arq, late):
     return app - t * apq, aqq + t * apq, 0.0, arp - s * (arq + arp * tau), arq + s * (arp - arq * tau), 2
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def eigvalsh3(J):
     """Eigenvalues (ascending, three floats) of the symmetric 3×3 ``J`` by cyclic Jacobi
     rotations (the nine entries held as scalars; each rotation reads and writes the entries a
@@ -368,7 +372,7 @@ def eigvalsh3(J):
     return e0, e1, e2
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def inverse3(J, out, lu):
     """``out`` = J⁻¹ of a 3×3 matrix by an LU factorisation with partial pivoting (as LAPACK's
     gesv: error ~ cond(J) ε); ``lu``: scratch (3, 3)."""
@@ -403,7 +407,7 @@ def inverse3(J, out, lu):
         out[2, col] = x2
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def invert(J, inv, work):
     """Health, inverse and ln det of a symmetric 3×3 FIM (:func:`planner.fim.invert_fim`): the
     status code (λ_min ≤ 1e-12 λ_max, λ_max ≤ 0 or a non-finite entry: singular, ``inv`` zeros,
@@ -430,7 +434,7 @@ def invert(J, inv, work):
     return status, math.log(e0) + math.log(e1) + math.log(e2)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     """J += the range and bearing terms (eqs. 10-12) of the drones at ``positions`` (N, 3) seen
     from the source ``src`` (3,): ``ranging``, ``bearing`` (N,) bool (κ_j, β_j, and the view
@@ -483,7 +487,7 @@ def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     J[2, 2] += j22
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def criterion_derivative(J, criterion_d, M, work):
     """The cost C of eq. 6 at ``J`` and M = ∂C/∂J to ``M`` (3, 3): C = tr J⁻¹, M = −J⁻² (A);
     C = −ln det J, M = −J⁻¹ (``criterion_d``). Returns (C, status); singular: (+inf, 2), M = 0.
@@ -499,7 +503,7 @@ def criterion_derivative(J, criterion_d, M, work):
     return (-logdet if criterion_d else inv[0, 0] + inv[1, 1] + inv[2, 2]), status
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, grad, M, work):
     """Cost C of eq. 6 at ``J`` (``criterion_d``: −ln det J, else tr J⁻¹) and its gradient
     w.r.t. the drone's own position ``p`` (eq. 14), written to ``grad`` (3,): −∂ tr(M J_own)/∂r
@@ -647,20 +651,20 @@ def limits_array(values: tuple[float, ...], safe: bool, derived: tuple[float, ..
 
 
 # --------------------------------------------------------------------------- small helpers
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def spherical(x, y, z):
     """(length, heading Ψ from east, tilt Θ) of a step (eq. 1), m and rad."""
     return math.sqrt(x * x + y * y + z * z), math.atan2(y, x), math.atan2(z, math.hypot(x, y))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def cartesian(s, psi, theta):
     """The step of length s, heading Ψ and tilt Θ (eq. 1): s (cos Ψ cos Θ, sin Ψ cos Θ, sin Θ)."""
     sc = s * math.cos(theta)
     return sc * math.cos(psi), sc * math.sin(psi), s * math.sin(theta)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def tilt_buffer(tilt, lim):
     """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0:
     v_max Δt Σ_{k=1..3} max(0, sin(Θ − k θ_max))."""
@@ -669,7 +673,7 @@ def tilt_buffer(tilt, lim):
     return lim[L_SMAX] * (total + _rising(tilt - 3.0 * tmax))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _rising(x):
     """max(0, sin x), without evaluating sin where it is known to be ≤ 0: on [−3, 0] ⊂ [−π, 0]
     (sin x ≤ 0 there, and the libm sin keeps the sign: |sin x| ≥ min(|x|, sin 3) is far above its
@@ -679,13 +683,13 @@ def _rising(x):
     return max(0.0, math.sin(x))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def altitude_margin(z, tilt, lim):
     """Margin (m) of a height z to the altitude box after a step of tilt Θ (:func:`tilt_buffer`)."""
     return min(lim[L_ZMAX] - z - tilt_buffer(tilt, lim), z - lim[L_ZMIN] - tilt_buffer(-tilt, lim))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def peer_distance(x, y, z, peers, planes, flags, j, d_uav):
     """Distance (m) of (x, y, z) to peer row j: Euclidean to a point row; (x − m)·n + d_U*/2 to a
     plane row (``flags[j]`` > 0: point m, unit normal n = ``planes[j]``;
@@ -696,7 +700,7 @@ def peer_distance(x, y, z, peers, planes, flags, j, d_uav):
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):
     """Smallest peer margin (m) of (x, y, z) over the peer rows ``idx[:n_idx]``: min_j d_j − required_j (+inf: none)."""
     best = np.inf
@@ -706,7 +710,7 @@ def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):
     return best
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, source_required, obstacle_required, bmin, bmax, lim, out):
     """Clearance margins (m) of the end position (x, y, z) of a step of tilt Θ, per family, to
     ``out`` (4,): nearest peer (``required`` per peer row), source, nearest obstacle, altitude
@@ -719,7 +723,7 @@ def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, sou
 
 
 # --------------------------------------------------------------------------- eqs. 15-17 and 14
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _select3(sel, col, v, c):
     """Keep the three smallest values in ``sel`` (3,) with their columns in ``col``; a tie keeps
     the earlier column first (a stable sort's first three)."""
@@ -735,7 +739,7 @@ def _select3(sel, col, v, c):
             sel[2], col[2] = v, c
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, source_exact, wn, vec, active):
     """Constraint values g = d − d* of eqs. 15-17 less their activation margins (safe rule: one
     step of both parties' motion and the turn-away buffers, docs/control.md): every peer (to
@@ -779,7 +783,7 @@ def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, s
     return g_s, g_o
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _normal(c, p, peers, planes, wn, source, vec):
     """Unit normal w.r.t. p of constraint column ``c`` (peers, source, obstacle, altitude top,
     altitude bottom) to ``vec[V_NRM]``."""
@@ -801,7 +805,7 @@ def _normal(c, p, peers, planes, wn, source, vec):
         out[0], out[1], out[2] = 0.0, 0.0, 2.0 * (c == N + 3) - 1.0
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _orthogonalise(U, V, m):
     """One-sided Jacobi SVD of the 3 × m matrix ``U`` (in place; ``V`` (3, 3) the accumulated
     rotations): afterwards U's columns are orthogonal and A = U Vᵀ."""
@@ -829,7 +833,7 @@ def _orthogonalise(U, V, m):
             break
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def projection(A, g, m, P, corr, V):
     """Eq. 14's projection onto the m active constraints of unit normals A[:, :m] (3 × m) and
     values g[:m]: P = I − N (NᵀN)⁻¹ Nᵀ to ``P`` (3, 3) and the correction −N (NᵀN)⁻¹ g to
@@ -857,7 +861,7 @@ def projection(A, g, m, P, corr, V):
             corr[r] -= ur * (vg / sig)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def active_projection(p, peers, planes, wn, source, vec, m33):
     """P (``m33[2]``) and the correction (``vec[V_CORR]``) of eq. 14 over the active ones among
     the three most violated constraints (:func:`constraints`); returns whether any is active."""
@@ -880,13 +884,13 @@ def active_projection(p, peers, planes, wn, source, vec, m33):
     return False
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _mul(P, x, y, z):
     """P (x, y, z) for a 3 × 3 P."""
     return P[0, 0] * x + P[0, 1] * y + P[0, 2] * z, P[1, 0] * x + P[1, 1] * y + P[1, 2] * z, P[2, 0] * x + P[2, 1] * y + P[2, 2] * z
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def descent(grad, P, projected, xi, lim):
     """The gradient step −ξ P∇C of eq. 14, m (P applied where ``projected``): ξ given (``xi``, m
     per unit gradient), or (``xi`` NaN) normalised to v_max Δt; a projected gradient up to 1e-9
@@ -905,7 +909,7 @@ def descent(grad, P, projected, xi, lim):
     return -xi * px, -xi * py, -xi * pz
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
     """Steps 2-3 of one drone's step: the descent of eq. 14 (or, with a singular J, the paper's
     fallback: the last heading and tilt perturbed uniformly by ±``pert`` rad, a random heading
@@ -936,7 +940,7 @@ def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
 
 
 # --------------------------------------------------------------------------- the safety filter's requirements
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     """The safety filter's requirements (docs/control.md, "Safety filter").
 
@@ -991,7 +995,7 @@ def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     need[UAV] = 0.0
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def kept_peers(wn, idx, lim, prune):
     """The peer rows the filter scores, to ``idx``; returns their number. All, or (``prune``) only
     those whose clearance now is within 2 (v_max Δt + the loiter's reach) of the smallest, per
@@ -1017,7 +1021,7 @@ def kept_peers(wn, idx, lim, prune):
 
 
 # --------------------------------------------------------------------------- the loiter certificate
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def loiter_heading(sx, sy, sz):
     """cos Ψ, sin Ψ and the tilt Θ of the step (sx, sy, sz) that a loiter path follows (Ψ = 0 for a
     vertical step)."""
@@ -1026,7 +1030,7 @@ def loiter_heading(sx, sy, sz):
     return cp, sp, math.atan2(sz, rho)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
     """One loiter path (``side`` 0: left, 1: right) of :func:`loiter_vertices` to ``out[side]``."""
     K = int(lim[L_LOITER_K])
@@ -1044,7 +1048,7 @@ def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
         out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
     """The loiter paths (:func:`planner.control.loiter_path`) from the end (ex, ey, ez) of the step
     (sx, sy, sz) to ``out`` (2, K + 1, 3): per side (left, right) the end itself, then K steps of
@@ -1055,7 +1059,7 @@ def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
         loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, cw):
     """Whether a loiter path (:func:`loiter_vertices`) from the end position (ex, ey, ez) after the
     step (sx, sy, sz) keeps every clearance of the loiter certificate (the peers' reachable balls
@@ -1107,7 +1111,7 @@ def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, sou
 
 
 # --------------------------------------------------------------------------- the envelope search
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def envelope_candidates(prev, has_prev, lim, cand, th):
     """The kinematic envelope's candidate steps to ``cand`` (C, 3), m, and their tilts to ``th``
     (C,), rad: 9 headings × 5 tilts across the allowed turn from the previous step ``prev`` (a
@@ -1135,7 +1139,7 @@ def envelope_candidates(prev, has_prev, lim, cand, th):
         c += 1
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def peer_margins(x, y, z, peers, planes, wn, idx, n_idx, d_uav):
     """The smallest peer margins (m) of (x, y, z) over the peer rows ``idx[:n_idx]`` against the
     strict, loose, hard and record-clearance requirements (rows of ``wn``), each distance once."""
@@ -1149,7 +1153,7 @@ def peer_margins(x, y, z, peers, planes, wn, idx, n_idx, d_uav):
     return m_s, m_l, m_h, m_r
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc):
     """Per candidate step c of ``cand``: its margins per family (the peers' against the loose
     requirements, ``mc[0, c]``), its slack over ``need`` (``mc[1, c]``), the scores the tiers
@@ -1198,7 +1202,7 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
         okc[O_CERT, c] = False
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def record_requirements(p, peers, planes, wn, idx, n_idx, lim):
     """The record clearance's requirements to ``wn[W_REC]`` (tier 4 of the envelope search): every
     peer's clearance as if its record were of now, d_U* + v_max Δt from a heard peer's record, the
@@ -1215,7 +1219,7 @@ def record_requirements(p, peers, planes, wn, idx, n_idx, lim):
         wn[W_REC, j] = required if math.isfinite(wn[W_HARD, j]) else -np.inf
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     """``ok`` (C,): the candidates that do not bring the drone nearer the dead-reckoned position
     of a peer whose reachable ball it is inside (``reck``: now and at the end of the step):
@@ -1241,7 +1245,7 @@ def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     return known
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _top_first(eligible, scores, order):
     """The eligible candidates to ``order``, the five of best score first (ties in order of index,
     as a stable sort), the rest after; returns their number."""
@@ -1259,7 +1263,7 @@ def _top_first(eligible, scores, order):
     return n
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     """Check the eligible candidates of one lazy tier for a loiter certificate, best score first,
     in chunks of 1, 4 and the rest, until a chunk holds a certified one; mark those in ``marks``
@@ -1278,7 +1282,7 @@ def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     return False
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def _argmax_where(ok, scores):
     """numpy's argmax of where(ok, scores, −inf): the first index of the largest value."""
     pick = 0
@@ -1290,7 +1294,7 @@ def _argmax_where(ok, scores):
     return pick
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def envelope_pick(okc, wc, has_reck):
     """The envelope search's pick: the first tier (most demanding first) that some candidate
     passes, its best score; each tier first among the candidates that keep clear of the peers'
@@ -1323,12 +1327,12 @@ def envelope_pick(okc, wc, has_reck):
     return _argmax_where(okc[O_EVERY], wc[S_EXACT_PHYS])
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env):
     """The best step of the kinematic envelope for a drone at ``p`` whose limited step ``u`` failed
     the safety filter (docs/control.md, "Safety filter"); the step to
     ``u``. Returns (infeasible: no candidate keeps every clearance with the loose peer
-    requirements, the pick's margins (4,) with the peers' against them)."""
+    requirements, the pick: its margins (4,) with the peers' against them are ``env[2][0, pick]``)."""
     cand, th, mc, wc, okc, order = env
     bmin, bmax, lim = cert[9], cert[10], cert[11]
     C = cand.shape[0]
@@ -1353,11 +1357,11 @@ def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_
         okc[O_STRICT_CERT, c] = okc[O_STRICT, c] & okc[O_CERT, c]
     pick = envelope_pick(okc, wc, has_reck)
     u[0], u[1], u[2] = cand[pick, 0], cand[pick, 1], cand[pick, 2]
-    return infeasible, mc[0, pick]
+    return infeasible, pick
 
 
 # --------------------------------------------------------------------------- one drone's step
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, source, keepout, g_s, g_o, bmin, bmax, lim, u, active, ws):
     """Step 4 of :func:`control_one` (safe rule): check the limited step ``u`` (3,), m, of tilt Θ
     against the required clearances (:func:`requirements`) and the loiter certificate
@@ -1388,13 +1392,14 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
     active[ALTITUDE] = active[ALTITUDE] | (alt < 0.0)
     if not bad:
         return False, False
-    infeasible, margins = envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env)
+    infeasible, pick = envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env)
+    margins = env[2][0, pick]
     for f in range(4):
         active[f] = active[f] | (margins[f] < 0.0)
     return True, infeasible
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, active, ws):
     """One drone's control step (eqs. 14-17 and 2, and the safety filter with the safe rule):
     the step to ``u`` (3,), m, the active constraint families to ``active`` (4,); returns
@@ -1417,7 +1422,7 @@ def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, 
     return singular, False, False
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=True)
 def workspace(N, K, nb):
     """The scratch arrays of :func:`control_one` for N peer rows, loiter paths of K steps and nb
     buildings."""
@@ -1510,7 +1515,7 @@ DRIFT_MAX_GAP_STEPS: int = 4
 STATUS_OK = 0
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def normal_cdf(a):
     """Φ(a), the standard normal CDF (cephes' ndtr: 0.5 + 0.5 erf(a/√2) near 0, erfc in the tails)."""
     x = a * 0.7071067811865476
@@ -1521,7 +1526,7 @@ def normal_cdf(a):
     return 1.0 - y if x > 0.0 else y
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     """Predicted line of sight q = Π_b Φ(c_b/s) of the link s → p (c_b its clearance from building
     b, :func:`link_clearance`, s = :data:`LOS_SOFTNESS_M`) and its gradient w.r.t. p to ``grad``
@@ -1549,7 +1554,7 @@ def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     return q
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def source_keepout(sigma, lim):
     """Keep-out radius (m) about an estimate of largest standard deviation σ (m):
     d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*) (:func:`planner.agent.source_keepout_m`)."""
@@ -1559,7 +1564,7 @@ def source_keepout(sigma, lim):
     return d_s + min(inflation, d_s)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def followable(p, centre, r, sigma, last_centre, last_r, lim):
     """The keep-out radius (m) a drone at ``p`` plans with (:func:`planner.agent.followable_keepout_m`):
     about an estimate too uncertain to cover the source (3σ ≥ d_S*) its boundary advances on the
@@ -1574,7 +1579,7 @@ def followable(p, centre, r, sigma, last_centre, last_r, lim):
     return min(r, max(last_r + moved + lim[L_TB], floor))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_range_stats(ranges, los, ch):
     """(d̄, Σw) of a drone's own last ranges (NaN: none) and their LOS flags: the weighted mean with
     w = 1/σ_r0² of each range's LOS or NLOS σ_r0 (eq. 5), NaN and 0 without ranges
@@ -1589,7 +1594,7 @@ def own_range_stats(ranges, los, ch):
     return (swr / sw if sw > 0.0 else np.nan), sw
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_relative_sd(weight, gamma, d):
     """r(d) = 1/√(Σw d^(2−γ)), the relative standard deviation of the own ranges' mean about a
     distance d (m); +inf without ranges (:meth:`planner.agent.OwnRanges.relative_sd`)."""
@@ -1600,7 +1605,7 @@ def own_relative_sd(weight, gamma, d):
     return 1.0 / math.sqrt(info if info > 0.0 else 1.0)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_lower_bound(mean, weight, gamma, k):
     """d̄ / (1 + k r(d̄)), the own ranges' lower confidence bound on the distance (m); +inf without
     ranges (:meth:`planner.agent.OwnRanges.lower_bound_m`)."""
@@ -1609,7 +1614,7 @@ def own_lower_bound(mean, weight, gamma, k):
     return mean / (1.0 + k * own_relative_sd(weight, gamma, mean))
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def own_contradicts(mean, weight, gamma, d, k):
     """The own ranges put the source nearer than the distance d (m) to the estimate by more than k
     standard deviations: (d̄/d − 1)/r(d) < −k (:meth:`planner.agent.OwnRanges.contradicts`)."""
@@ -1619,7 +1624,7 @@ def own_contradicts(mean, weight, gamma, d, k):
     return z < -k
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     """Whether the drone loiters instead of descending its cost (:func:`planner.agent.must_loiter`):
     its estimate gives no direction to trust (not observable, 3σ ≥ d_S*, or contradicted by its
@@ -1635,7 +1640,7 @@ def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     return (not observable) or (SOURCE_SIGMA_FACTOR * sigma >= lim[L_DSRC]) or own_contradicts(mean, weight, gamma, d_est, k)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def estimate_sigma(information):
     """Largest standard deviation (m) of an estimate with Fisher information (3, 3): 1/√λ_min,
     +inf where λ_min ≤ 0 (:func:`planner.agent.estimate_sigma_m`)."""
@@ -1643,7 +1648,7 @@ def estimate_sigma(information):
     return 1.0 / math.sqrt(max(lmin, 1e-300)) if lmin > 0.0 else np.inf
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def loiter_gradient(prev, out):
     """The gradient a loitering drone descends, to ``out`` (3,): minus the horizontal unit vector
     90° to the left of its last step (east where it has none; :func:`planner.agent.loiter_gradient`)."""
@@ -1673,7 +1678,7 @@ def loiter_gradient(prev, out):
 ) = range(12)
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new):
     """Drone b's carried state after the records of step k: its own range (NaN: none) and LOS flag
     enter its window (oldest first), its position ``p`` its track (slot k mod T), and each peer's
@@ -1708,7 +1713,7 @@ def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new)
             new[ST_OWN_THEN][b, j, a] = then if fresh else old[ST_OWN_THEN][b, j, a]
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def bisector_plane(a, b, lost, point, normal):
     """The plane two drones that lost contact keep apart by (:func:`planner.control.lost_contact_planes`):
     to ``point`` the midpoint of a (this drone then) and b (the peer's last record), to ``normal``
@@ -1722,7 +1727,7 @@ def bisector_plane(a, b, lost, point, normal):
         point[k] = 0.5 * (a[k] + b[k]) if plane else b[k]
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_start, hop_rule, rows, mask, ages, planes):
     """The peer rows of drone i's anti-collision constraint (:func:`planner.agent.plan`): the peers
     heard directly (``hop_rule``: h_ij = 1; else every known peer), each at its record with the
@@ -1746,7 +1751,7 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
         mask[j] = (valid[j] & other & relevant) | unheard
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
     loiters (docs/control.md, "Own-range loiter"): an unobservable estimate
@@ -1769,7 +1774,7 @@ def keepout_policy(p, p_hat, information, observable, status, ranges, range_los,
     return np.int64(STATUS_OK if loiter else status), keepout, loiter
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def plan_one(b, scene, cost, old, new, config, out, ws):
     """Drone b's planning step after its cost (:func:`planner.agent.plan`): the carried state's
     update (:func:`advance_state`), the keep-out and loiter policy (:func:`keepout_policy`; with
@@ -1977,8 +1982,8 @@ def envelope_batch(p, u, prev, has_prev, need, need_c, peers, planes, strict, lo
             reck[1, j, a] = np.nan
     step = u.copy()
     cert = (peers, planes, wn, idx, N, source, keepout, lim[L_DOBS] + 0.5 * lim[L_SMIN], need_c, bmin, bmax, lim, cw)
-    infeasible, margins = envelope_search(p, step, prev, has_prev, need, peers, planes, wn, reck, idx, N, source, keepout, cert, env)
-    return step, margins.copy(), infeasible
+    infeasible, pick = envelope_search(p, step, prev, has_prev, need, peers, planes, wn, reck, idx, N, source, keepout, cert, env)
+    return step, env[2][0, pick].copy(), infeasible
 
 
 @njit(cache=True)
@@ -1995,7 +2000,7 @@ def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):
     return ok, known
 
 
-@njit(no_cpython_wrapper=True)
+@njit(no_cpython_wrapper=True, _nrt=False)
 def plan_cost(b, scene, view_los, roles, config, cost, ws):
     """Drone b's cost of eq. 6 and its gradient w.r.t. its own position, to ``cost`` (value (B,),
     ∇C (B, 3), status (B,)): the predicted line of sight q of its own link (:func:`own_los`; q = 1

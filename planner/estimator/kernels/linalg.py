@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def nmin(a: float, b: float) -> float:
     """min(a, b), NaN if either is NaN (``numpy.minimum``)."""
     if a != a or b != b:
@@ -19,7 +19,7 @@ def nmin(a: float, b: float) -> float:
     return a if a <= b else b
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def nmax(a: float, b: float) -> float:
     """max(a, b), NaN if either is NaN (``numpy.maximum``)."""
     if a != a or b != b:
@@ -27,20 +27,20 @@ def nmax(a: float, b: float) -> float:
     return a if a >= b else b
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def clip(v: float, lo: float, hi: float) -> float:
     """``numpy.minimum(numpy.maximum(v, lo), hi)``: v projected onto [lo, hi], NaN kept."""
     return nmin(nmax(v, lo), hi)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def clip3(x: np.ndarray, p: np.ndarray, lo: int, out: np.ndarray) -> None:
     """``out`` = x (3,) projected into the box p[lo:lo+3], p[lo+3:lo+6] (the search box)."""
     for i in range(3):
         out[i] = clip(x[i], p[lo + i], p[lo + 3 + i])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def det3(a: np.ndarray) -> float:
     """Determinant of a 3 × 3 matrix."""
     return (
@@ -50,7 +50,7 @@ def det3(a: np.ndarray) -> float:
     )
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def inv3_spd(a: np.ndarray, out: np.ndarray) -> bool:
     """``out`` = inverse of the symmetric 3 × 3 ``a`` (adjugate over determinant); returns
     whether it is well defined (finite det > 1e-14 (tr a)³)."""
@@ -71,7 +71,7 @@ def inv3_spd(a: np.ndarray, out: np.ndarray) -> bool:
     return ok
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def normalised_det(a: np.ndarray) -> float:
     """det(A)/(tr(A)/3)³ of a symmetric PSD 3 × 3 matrix (0 where tr A ≤ 0)."""
     tr = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
@@ -80,7 +80,7 @@ def normalised_det(a: np.ndarray) -> float:
     return 0.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def solve3_in_place(m: np.ndarray, y: np.ndarray) -> None:
     """y ← m⁻¹ y for a 3 × 3 ``m`` by LU with partial pivoting (LAPACK's ``gesv`` order: the
     column below the pivot scaled by the pivot's reciprocal); m is left holding the factors."""
@@ -107,7 +107,7 @@ def solve3_in_place(m: np.ndarray, y: np.ndarray) -> None:
             y[i] -= y[k] * m[i, k]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def eigh(a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
     """Eigenvalues ``w`` (ascending) and eigenvectors ``v`` (columns) of a small symmetric
     matrix ``a`` (LAPACK's ``syevd``, as ``numpy.linalg.eigh``: the same digits); NaN where
@@ -132,7 +132,7 @@ def eigh(a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
             v[i, j] = ev[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def eigvalsh_min(a: np.ndarray) -> float:
     """The smallest eigenvalue of a small symmetric matrix (LAPACK, as
     ``numpy.linalg.eigvalsh``); NaN where ``a`` is not finite."""
@@ -146,7 +146,7 @@ def eigvalsh_min(a: np.ndarray) -> float:
     return np.linalg.eigvalsh(b)[0]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def median(z: np.ndarray, n: int) -> float:
     """The median of z[:n] (n ≥ 1), sorting z[:n] in place; the mean of the two middle values
     for even n."""
@@ -179,7 +179,7 @@ def dot(a: np.ndarray, b: np.ndarray, n: int) -> float:
     return acc0 + acc1
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """``numpy.sum``'s sum of at most 128 values a[lo:lo + n]: one by one below 8, else eight
     accumulators, added pairwise, then the rest one by one."""

@@ -38,7 +38,7 @@ RHO2_FLOOR_M2 = 1e-12
 XB_HEAD = 3
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float]:
     """Robust loss ρ(e), influence ψ(e) and IRLS weight ψ/e: Tukey's biweight (threshold c)
     where ``tukey``, else Huber (threshold k)."""
@@ -51,13 +51,13 @@ def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float
     return m * (ae - 0.5 * m), nmax(nmin(e, k), -k), k / nmax(ae, k)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def wrap(angle: float) -> float:
     """The angle wrapped into [−π, π] (rad)."""
     return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def residuals(
     x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: float
 ) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
@@ -82,7 +82,7 @@ def residuals(
     return rx, ry, rz, rho2, rho, d2, d, sr, er, ea, ee
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def extra_terms(
     cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool
 ) -> float:
@@ -121,7 +121,7 @@ def extra_terms(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def cost_at(
     x: np.ndarray,
     rows: np.ndarray,
@@ -158,7 +158,7 @@ def cost_at(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _has_extra(xa: np.ndarray, K: int) -> bool:
     """Whether any of the first K rows carries a weighted extension value."""
     for k in range(K):
@@ -168,7 +168,7 @@ def _has_extra(xa: np.ndarray, K: int) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarray) -> None:
     """The innovation gate (``gate`` = (σ, max fraction, variance bound tr Σ, m²)): a component
     whose innovation exceeds σ standard deviations of σ² + tr(Σ)‖∇h‖² gets weight 0 in
@@ -196,7 +196,7 @@ def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarra
             return
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def evaluate(
     x: np.ndarray,
     rows: np.ndarray,
@@ -271,7 +271,7 @@ def evaluate(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray, g: np.ndarray, H: np.ndarray, F: np.ndarray) -> None:
     """Gradient g (3,), scoring matrix H and Fisher information F (3, 3) of the rows lo..hi−1:
     with v = (−r_y, r_x, 0) and w = (−r_x r_z, −r_y r_z, ρ²), g = Σ gA r + gB v + gC w,
@@ -327,7 +327,7 @@ def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray,
                 F[i, j] += xh[k, 3 * i + j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> bool:
     """Whether Tukey's biweight applies at iteration ``it`` (else Huber): settled elements
     always; after a pseudo-linear initialisation (``fresh`` and not initialised ``before``)
@@ -340,7 +340,7 @@ def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> boo
     return 2 * it >= n_el and not before
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     """½ xᵀΛx − ηᵀx."""
     q = 0.0
@@ -349,7 +349,7 @@ def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     return 0.5 * q - (eta[0] * x[0] + eta[1] * x[1] + eta[2] * x[2])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H: np.ndarray) -> None:
     """g += Λx − η, H += Λ (the prior's gradient and curvature)."""
     for i in range(3):
@@ -358,7 +358,7 @@ def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H:
             H[i, j] += lam[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _lm_step(
     x: np.ndarray,
     g: np.ndarray,
@@ -395,7 +395,7 @@ def _lm_step(
         cand[i] = clip(x[i] + (step[i] * shrink if ok else 0.0), p[P_LO + i], p[P_HI + i])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def lm_iterations(
     x: np.ndarray,
     rows: np.ndarray,

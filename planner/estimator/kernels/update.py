@@ -119,16 +119,15 @@ from planner.estimator.layout import (
 
 
 # --------------------------------------------------------------------------- array helpers
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
-def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> np.ndarray:
-    """``out`` (n, n) = the matrix stored row-major at f[off:]; returns ``out``."""
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> None:
+    """``out`` (n, n) = the matrix stored row-major at f[off:]."""
     for i in range(n):
         for j in range(n):
             out[i, j] = f[off + n * i + j]
-    return out
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
     """The n × n matrix ``a`` times ``scale`` stored row-major at f[off:]."""
     n = a.shape[0]
@@ -137,7 +136,7 @@ def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
             f[off + n * i + j] = a[i, j] * scale if scale != 1.0 else a[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 2-D arrays of one shape."""
     for i in range(src.shape[0]):
@@ -145,7 +144,7 @@ def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
             dst[i, j] = src[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 1-D arrays of one length."""
     for i in range(src.shape[0]):
@@ -153,7 +152,7 @@ def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- the records
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, rows: np.ndarray, xz: np.ndarray, xa: np.ndarray) -> None:
     """The first n rows (component-major, NaN replaced by 0 and weight 0) of the raw records
     ``raw`` (position, range, azimuth, elevation, LOS, weight, extension values): ranges get
@@ -180,7 +179,7 @@ def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, ro
             xa[k, j] = w if present else 0.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, los: np.ndarray, xv: np.ndarray, nraw: np.ndarray) -> None:
     """The new records of one element as raw rows, weight 1 where the position is finite."""
     for m in range(rng.shape[0]):
@@ -192,7 +191,7 @@ def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, l
             nraw[m, NW + j] = xv[m, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> int:
     """All rows of this call into ``raw``: the window (weights times λ) then the new ones; with
     a window and new rows, the invalid ones first (stable: by validity, then by age). Returns
@@ -216,7 +215,7 @@ def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> in
     return k
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.ndarray) -> None:
     """Rows (ranges only) of the first n range-window rows ``rw`` (position, range, LOS,
     weight), their weights times ``factor``."""
@@ -232,7 +231,7 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
         rrows[k, R_S0] = p[P_S0_LOS] if rw[k, RW_LOS] != 0.0 else p[P_S0_NLOS]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray, keep: bool) -> int:
     """The ranges of the rows ``nrows`` join the memory ``mem`` whose first nc cells are used
     (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
@@ -246,7 +245,7 @@ def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p
     return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc, keep)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarray) -> bool:
     """Whether this call's ranges join the range memory: the memory is on, the new rows carry a
     range and the element never used another component (these rows included)."""
@@ -260,7 +259,7 @@ def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarra
 
 
 # --------------------------------------------------------------------------- steps 1 and 3
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> None:
     """The output row before the call's records: the prior times λ (times λ·
     ``suspect_deflation`` for a suspect element), the PL systems times λ, the rest as was."""
@@ -275,7 +274,7 @@ def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> Non
             fo[j] = fi[j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndarray, fisher_scale: float) -> None:
     """The prior (Λ, F × ``fisher_scale``, η) of the output row ``fo``."""
     _put(fo, np.int64(F_PINFO), lam, 1.0)
@@ -284,7 +283,7 @@ def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndar
         fo[F_PVEC + i] = eta[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray) -> bool:
     """Step 1 for an element not initialised: the new records' PL equations join its system;
     where it becomes solvable (and :func:`determined`) the estimate is its solution in the
@@ -306,12 +305,14 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
     for i in range(3):
         x[i] = clip(xi[i], p[P_LO + i], p[P_HI + i])
     lam, eta = np.empty((3, 3)), np.empty(3)
-    schur_prior(_get(fo, np.int64(F_DRA), np.int64(4), np.empty((4, 4))), fo[F_DRB : F_DRB + 4], lam, eta)
+    dropped = np.empty((4, 4))
+    _get(fo, np.int64(F_DRA), np.int64(4), dropped)
+    schur_prior(dropped, fo[F_DRB : F_DRB + 4], lam, eta)
     _set_prior(fo, lam, lam, eta, 1.0)
     return True
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _recheck_memory(
     fo: np.ndarray,
     x: np.ndarray,
@@ -363,7 +364,7 @@ def _recheck_memory(
     flags[0] = flags[1] = True  # fresh start, long run
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _recheck_system(
     fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray
 ) -> None:
@@ -380,7 +381,7 @@ def _recheck_system(
         b[i] = fo[F_PRB + i] + b_p[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _recheck(
     fo: np.ndarray,
     x: np.ndarray,
@@ -430,14 +431,15 @@ def _recheck(
 
 
 # --------------------------------------------------------------------------- step 2
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray) -> None:
     """The innovation gate against the previous state (when ``gate_sigma`` is set and it was
     observable): tr(J⁻¹) = tr(adj J)/det J, m², bounds the variance of the previous estimate
     along any direction (J its information)."""
     if not (p[P_GATE] == p[P_GATE] and observable):
         return
-    J = _get(fi, np.int64(F_INFO), np.int64(3), np.empty((3, 3)))
+    J = np.empty((3, 3))
+    _get(fi, np.int64(F_INFO), np.int64(3), J)
     det = det3(J)
     if det > 0.0:
         tr_adj = J[1, 1] * J[2, 2] - J[1, 2] ** 2 + J[0, 0] * J[2, 2] - J[0, 2] ** 2 + J[0, 0] * J[1, 1] - J[0, 1] ** 2
@@ -446,7 +448,7 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
         _gate_rows(x, rows, K, p, gate)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _refine(
     fo: np.ndarray,
     x: np.ndarray,
@@ -474,7 +476,8 @@ def _refine(
     n_el = max(n_short, int(p[P_INIT_ITER])) if flags[1] else n_short
     rd0 = redescend(p[P_TUKEY] != 0.0, np.int64(0), flags[0], before, n_el)
     cost0 = evaluate(x, r, K, xz, xa, p, rd0, ev, xg, xh, counts, cb, buf)
-    lam, eta = _get(fo, np.int64(F_PINFO), np.int64(3), sm[13]), sv[10]
+    lam, eta = sm[13], sv[10]
+    _get(fo, np.int64(F_PINFO), np.int64(3), lam)
     for i in range(3):
         eta[i] = fo[F_PVEC + i]
     if K == 0:
@@ -486,7 +489,7 @@ def _refine(
 
 
 # --------------------------------------------------------------------------- steps 3-5
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: int, hi: int, out: tuple) -> None:
     """``out`` = (g, H, F) of the rows lo..hi−1 at x_lin: from the evaluation ``work``, or, when
     they are all its rows, the totals of ``refined`` = (g, H, F, x_lin) minus the prior's part
@@ -503,7 +506,7 @@ def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: 
         accumulate(work[0], lo, hi, work[1], work[2], go, Ho, Fo)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.ndarray, x: np.ndarray, p: np.ndarray, scratch: tuple) -> bool:
     """Rao's score test of the recent records against the estimate x (package doc, step 3):
     S_H ← λ_c S_H + H_new, S_v ← λ_c S_v + H_new x_lin − g_new, T = sᵀS_H⁻¹s with s = S_H x − S_v
@@ -537,7 +540,7 @@ def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.
     return fail
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     """More than ``suspect_fraction`` of the values of one component type (at least 2.5,
     weighted) lie beyond ``suspect_sigma``."""
@@ -547,7 +550,7 @@ def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple, small: tuple) -> tuple[bool, bool]:
     """Steps 3-5 after the refinement of an initialised element: the suspect flag, the rows
     leaving the window (the oldest M) marginalised into the prior (linearised at x_lin), the
@@ -557,7 +560,9 @@ def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, 
     sm, sv = small
     K = work[0].shape[0]
     F = refined[2]
-    lam, fis = _get(fo, np.int64(F_PINFO), np.int64(3), sm[3]), _get(fo, np.int64(F_PFISH), np.int64(3), sm[4])
+    lam, fis = sm[3], sm[4]
+    _get(fo, np.int64(F_PINFO), np.int64(3), lam)
+    _get(fo, np.int64(F_PFISH), np.int64(3), fis)
     eta = sv[4]
     for i in range(3):
         eta[i] = fo[F_PVEC + i]
@@ -587,7 +592,7 @@ def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, 
     return _report(fo, fi, x, fisher, p), suspect
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p: np.ndarray) -> bool:
     """The reported estimate and information (symmetrised), the previous estimate and none
     where either is not finite; returns observability, det J/(tr J/3)³ ≥ ``min_rcond``."""
@@ -603,7 +608,7 @@ def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p
     return finite and normalised_det(fisher) >= p[P_MIN_RCOND]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -> None:
     """An element still not initialised: the estimate stays, no information; the rows leaving
     the window (the oldest M) join the PL equations dropped before initialisation."""
@@ -619,7 +624,7 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 
 # --------------------------------------------------------------------------- the windows and the memory
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def _advance_range_window(
     fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray
 ) -> None:
@@ -667,7 +672,7 @@ def _advance_range_window(
             fo[F_PRB + i] += b_r[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     """The values the new rows used join the count, and whether any record ever used a value
     other than a range; returns whether the new rows carry a range."""
@@ -685,7 +690,7 @@ def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
 
 
 # --------------------------------------------------------------------------- one element, a batch
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
 def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple, overwrite: bool) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
     order); ``ws`` = :func:`workspace`. With ``overwrite`` the outputs ``outs`` are the
@@ -693,7 +698,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     in place)."""
     fs, ist, rwin, win, mem = state
     fs2, ist2, rwin2, win2, mem2 = outs
-    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw, small = ws
+    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw, small, flags = ws
     sm, sv = small
     _copy1(fi, fs[e])
     _copy1(ii, ist[e])
@@ -713,8 +718,8 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     for i in range(3):
         x[i] = fi[F_EST + i]
     before = ii[I_INIT] != 0
-    flags = np.zeros(2, dtype=np.bool_)  # fresh start, long run
-    flags[0] = ii[I_SUSP] != 0 and before
+    flags[0] = ii[I_SUSP] != 0 and before  # fresh start, long run
+    flags[1] = False
     if M > 0 and not before and _initialise(fo, x, nrows, p):
         io[I_INIT] = 1
         flags[0] = flags[1] = True
@@ -739,7 +744,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     _count(io, nrows, nxa)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True)
+@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     """Scratch arrays of one element's update (reused by every element of a batch), K = W + M:
     the raw rows of the call, their rows, extension values and weights; the same for the new
@@ -748,7 +753,7 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     scratch, the insertion's record and saved cells, columns of ranges) and its counts; the
     range window's pool; copies of the element's float row, flags and range window; small
     matrices (16, 3, 3) and vectors (16, 3) (slots: :func:`_element` 0-2, :func:`_finish`,
-    :func:`_refine`)."""
+    :func:`_refine`); the element's two flags (fresh start, long run)."""
     K = W + M
     cols = (np.zeros((M, 3)), np.zeros(M), np.zeros(M), np.zeros(M))
     memory = (np.zeros((NM, C)), np.zeros((km.NSC, C)), np.zeros((5, 2 * M + 1), dtype=np.int64), np.zeros((NM, 2 * M)), cols)
@@ -775,6 +780,7 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
         np.zeros(NI, dtype=np.int64),
         np.zeros((R, NRW)),
         (np.zeros((16, 3, 3)), np.zeros((16, 3))),
+        np.zeros(2, dtype=np.bool_),
     )
 
 
