@@ -16,15 +16,19 @@ from pathlib import Path
 import pytest
 
 from planner.warm import compile_aside, in_cache
-from tests.support.proc import alive, child_pids
+from tests.support.proc import alive, child_pids, with_default_interrupt
 from tests.support.wait import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def python(code: str, cache: Path, **kw: object) -> subprocess.Popen[str]:
+    """``code`` in a fresh interpreter with its own numba cache, started as from a terminal:
+    SIGINT at its default action (Python's KeyboardInterrupt) even where the suite runs with it
+    ignored (a background job, a pytest-xdist worker)."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+    argv = with_default_interrupt([sys.executable, "-c", textwrap.dedent(code)])
+    return subprocess.Popen(argv, env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
 
 
 def test_in_cache_tells_an_empty_cache_a_compiled_kernel_and_a_changed_source(tmp_path: Path) -> None:
