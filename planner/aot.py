@@ -20,7 +20,10 @@ of the source, an upgrade or another CPU (a home directory shared by a cluster's
 module and builds its own. They live in ``$FIMNAV_AOT_DIR`` when that variable is set, else in
 ``$NUMBA_CACHE_DIR/fimnav-aot`` when that one is, else in ``planner/__pycache__/aot`` of the
 installed package when it can be written, else in ``$XDG_CACHE_HOME/fimnav/aot``
-(``~/.cache/fimnav/aot``).
+(``~/.cache/fimnav/aot``). A module is marked used when it is loaded (its modification time,
+renewed at most once a day); a build removes its group's modules of other keys that were not
+used for 30 days (:func:`planner.aot_build.remove_unused_modules`), so edits and upgrades do not
+pile them up, while the modules of other CPUs still in use in a shared directory stay.
 
 The build needs a C compiler (numba.pycc compiles a small C wrapper) and, on Python 3.12 or
 later, setuptools; without them :func:`planner.aot_build.build` raises
@@ -39,6 +42,7 @@ import importlib.util
 import os
 import re
 import sys
+import time
 from collections.abc import Callable, MutableMapping
 from pathlib import Path
 from types import ModuleType
@@ -186,7 +190,28 @@ def load(group: str) -> ModuleType | None:
     except Exception:  # a damaged or foreign file: the JIT kernels
         return None
     sys.modules[name] = module
+    mark_used(file)
     return module
+
+
+#: A module not loaded for this long (seconds) is removed by the next build in its directory
+#: (:func:`planner.aot_build.build`): one of earlier sources or versions, left by an edit or an
+#: upgrade. A module in use has its modification time renewed at most once a day (:func:`mark_used`).
+UNUSED_MODULE_S: float = 30 * 86400.0
+#: How old (seconds) a loaded module's modification time may be before :func:`mark_used` renews it.
+USE_MARK_S: float = 86400.0
+
+
+def mark_used(file: Path) -> None:
+    """Record that ``file`` (an extension module) was loaded now: its modification time is set to
+    now when it is more than :data:`USE_MARK_S` old (a directory that cannot be written is left
+    as it is). Modules of other CPUs sharing a directory (the nodes of a cluster on one install)
+    keep their own mark and are not removed while their nodes use them."""
+    try:
+        if time.time() - file.stat().st_mtime > USE_MARK_S:
+            os.utime(file)
+    except OSError:
+        pass
 
 
 class Entry:

@@ -7,6 +7,7 @@ Imports the kernel modules by name (:data:`planner.aot.GROUPS`): only the proces
 from __future__ import annotations
 
 import importlib
+import importlib.machinery
 import os
 import shutil
 import sys
@@ -14,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from planner.aot import GROUPS, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
+from planner.aot import GROUPS, UNUSED_MODULE_S, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
 from planner.aot_signatures import SIGNATURES
 
 
@@ -57,6 +58,7 @@ def build(group: str) -> Path:
             if not built:
                 raise BuildError(f"{group}: numba.pycc wrote no extension module")
             os.replace(built[0], target)
+        remove_unused_modules(target.parent, group)
     except BuildError:
         raise
     except Exception as exc:  # a compiler, setuptools or numba refusing: the reason
@@ -80,6 +82,27 @@ def _remove_stale_builds(directory: Path) -> None:
                 shutil.rmtree(old, ignore_errors=True)
         except OSError:
             continue
+
+
+def remove_unused_modules(directory: Path, group: str) -> list[Path]:
+    """Remove ``group``'s extension modules (and failure records) of other keys from
+    ``directory`` that were not loaded for :data:`planner.aot.UNUSED_MODULE_S` (their
+    modification time, renewed by :func:`planner.aot.mark_used`): those of earlier sources,
+    numba or Python versions, or of a CPU no longer seen. The current key's are kept whatever
+    their age. Returns what was removed."""
+    current = module_name(group)
+    now = time.time()
+    removed = []
+    for old in directory.glob(f"fimnav_aot_{group}_*"):
+        if old.name.startswith(current + ".") or old.name.startswith(current + importlib.machinery.EXTENSION_SUFFIXES[0]):
+            continue
+        try:
+            if now - old.stat().st_mtime > UNUSED_MODULE_S:
+                old.unlink()
+                removed.append(old)
+        except OSError:
+            continue
+    return removed
 
 
 def build_or_record(group: str) -> None:

@@ -10,6 +10,7 @@ study on them, in the slow run."""
 
 from __future__ import annotations
 
+import importlib.machinery
 import os
 import subprocess
 import sys
@@ -184,3 +185,36 @@ def test_fimnav_compile_builds_every_group_and_a_study_on_them_equals_the_jits(t
         outs[on] = tmp_path / on / "runs" / "paper_ranging_los_A"
     for name in ("peb.csv", "trajectories.csv", "trajectories.geojson"):
         assert (outs["1"] / name).read_bytes() == (outs["0"] / name).read_bytes(), name
+
+
+def test_a_build_removes_its_groups_modules_unused_for_30_days_and_a_load_marks_its_own(tmp_path: Path) -> None:
+    from planner.aot_build import remove_unused_modules
+
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    now = time.time()
+
+    def made(name: str, age_days: float) -> Path:
+        f = tmp_path / name
+        f.write_bytes(b"")
+        os.utime(f, (now - age_days * 86400, now - age_days * 86400))
+        return f
+
+    current = aot.module_name("simulator")
+    keep_current_old = made(current + suffix, 90)  # the current key's, however old
+    keep_current_failed = made(current + ".failed", 90)
+    stale = made("fimnav_aot_simulator_0123456789abcdef0123" + suffix, 31)
+    stale_failed = made("fimnav_aot_simulator_0123456789abcdef0123.failed", 45)
+    recent = made("fimnav_aot_simulator_fedcba9876543210fedc" + suffix, 29)  # another CPU, still in use
+    other_group = made("fimnav_aot_planning_0123456789abcdef0123" + suffix, 400)
+    removed = remove_unused_modules(tmp_path, "simulator")
+    assert sorted(removed) == sorted([stale, stale_failed])
+    assert not stale.exists() and not stale_failed.exists()
+    assert all(f.exists() for f in (keep_current_old, keep_current_failed, recent, other_group))
+    # A load renews a mark older than a day, and leaves a fresh one as it is.
+    aot.mark_used(recent)
+    assert abs(recent.stat().st_mtime - time.time()) < 60
+    fresh = made("fresh" + suffix, 0.5)
+    before = fresh.stat().st_mtime
+    aot.mark_used(fresh)
+    assert fresh.stat().st_mtime == before
+    aot.mark_used(tmp_path / "missing")  # no error where there is nothing to mark
