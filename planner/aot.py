@@ -422,6 +422,8 @@ def forget_failure(group: str) -> None:
 
 __all__ = [
     "GROUPS",
+    "UNUSED_MODULE_S",
+    "USE_MARK_S",
     "Entry",
     "bind",
     "bind_built",
@@ -435,6 +437,7 @@ __all__ = [
     "jit_kernel",
     "key",
     "load",
+    "mark_used",
     "missing",
     "parse_signature",
     "path",

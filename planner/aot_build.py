@@ -7,7 +7,6 @@ Imports the kernel modules by name (:data:`planner.aot.GROUPS`): only the proces
 from __future__ import annotations
 
 import importlib
-import importlib.machinery
 import os
 import shutil
 import sys
@@ -71,17 +70,23 @@ def build(group: str) -> Path:
 STALE_BUILD_S: float = 3600.0
 
 
+def _unused_for(path: Path, seconds: float, now: float) -> bool:
+    """Whether ``path`` was last modified more than ``seconds`` before ``now`` (False when it
+    cannot be told: gone, or unreadable)."""
+    try:
+        return now - path.stat().st_mtime > seconds
+    except OSError:
+        return False
+
+
 def _remove_stale_builds(directory: Path) -> None:
     """Remove the temporary directories of killed builds (``.build-*`` older than
     :data:`STALE_BUILD_S`) from ``directory``; a build running now (another machine sharing the
     directory) is younger and kept."""
     now = time.time()
     for old in directory.glob(".build-*"):
-        try:
-            if now - old.stat().st_mtime > STALE_BUILD_S:
-                shutil.rmtree(old, ignore_errors=True)
-        except OSError:
-            continue
+        if _unused_for(old, STALE_BUILD_S, now):
+            shutil.rmtree(old, ignore_errors=True)
 
 
 def remove_unused_modules(directory: Path, group: str) -> list[Path]:
@@ -90,18 +95,17 @@ def remove_unused_modules(directory: Path, group: str) -> list[Path]:
     modification time, renewed by :func:`planner.aot.mark_used`): those of earlier sources,
     numba or Python versions, or of a CPU no longer seen. The current key's are kept whatever
     their age. Returns what was removed."""
-    current = module_name(group)
+    current = module_name(group) + "."
     now = time.time()
     removed = []
     for old in directory.glob(f"fimnav_aot_{group}_*"):
-        if old.name.startswith(current + ".") or old.name.startswith(current + importlib.machinery.EXTENSION_SUFFIXES[0]):
+        if old.name.startswith(current) or not _unused_for(old, UNUSED_MODULE_S, now):
             continue
         try:
-            if now - old.stat().st_mtime > UNUSED_MODULE_S:
-                old.unlink()
-                removed.append(old)
+            old.unlink()
         except OSError:
             continue
+        removed.append(old)
     return removed
 
 
@@ -121,4 +125,4 @@ def build_or_record(group: str) -> None:
         raise SystemExit(1) from None
 
 
-__all__ = ["BuildError", "build", "build_or_record"]
+__all__ = ["BuildError", "build", "build_or_record", "remove_unused_modules"]

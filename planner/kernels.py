@@ -12,7 +12,7 @@ differences, dense sampling, the former numpy expressions evaluated in the test)
 One module: numba keys the cache of a compiled function on its own source file only, so the
 functions a cached kernel links in live in the same file (an edit anywhere here recompiles).
 Entry kernels (called from Python) are ``@njit(cache=True)``; the functions they call are
-``@njit(no_cpython_wrapper=True, _nrt=False)`` (compiled into their callers, no Python entry
+``@inner`` (``no_cpython_wrapper=True, _nrt=False``: compiled into their callers, no Python entry
 point of their own, and without numba's reference counting: they allocate nothing and return
 no array, so their array arguments are borrowed from the entry kernel that owns them, without
 the atomic increment and decrement of every array argument at every call that otherwise took
@@ -56,6 +56,9 @@ def one_drone(a: ArrayLike, dtype: type = np.float64) -> NDArray[Any]:
 #: as everywhere else); every division here is guarded or by a nonzero quantity, so the results
 #: are those of Python's model, without its zero test before each division.
 njit: Any = functools.partial(numba.njit, error_model="numpy")
+#: The decorator of the functions the entry kernels call: compiled into their callers, without
+#: numba's reference counting (the module's documentation).
+inner: Any = functools.partial(numba.njit, error_model="numpy", no_cpython_wrapper=True, _nrt=False)
 
 
 def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> NDArray[Any]:
@@ -81,7 +84,7 @@ def as_batch(a: ArrayLike, shape: tuple[int, ...], dtype: type, tail: int) -> ND
 NO_EXIT_M: float = 1.0e4
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def box_signed_distance(x, y, z, bmin, bmax, b):
     """Signed distance (m) of the point (x, y, z) to box b: the distance to its surface outside,
     minus the distance to its nearest face inside."""
@@ -95,7 +98,7 @@ def box_signed_distance(x, y, z, bmin, bmax, b):
     return -max(depth, 0.0)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def distance_to_boxes(x, y, z, bmin, bmax):
     """Signed distance (m) of the point (x, y, z) to the nearest box; +inf without boxes (eq. 17)."""
     best = np.inf
@@ -106,7 +109,7 @@ def distance_to_boxes(x, y, z, bmin, bmax):
     return best
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):
     """Signed distance (m) to the nearest box, its unit gradient written to ``grad`` (3,): from the
     nearest surface point outside, the outward normal of the nearest face inside; +inf and
@@ -150,7 +153,7 @@ def distance_to_boxes_with_gradient(x, y, z, bmin, bmax, grad):
     return best
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _crossing_exit(p, s, lo, hi, out):
     """Unit direction ``out`` (3,) in which the drone p moves a link s → p that crosses the box
     [lo, hi] out of it: per face, the displacement along its normal that takes the part of the
@@ -192,7 +195,7 @@ def _crossing_exit(p, s, lo, hi, out):
     out[k % 3] = 1.0 if k < 3 else -1.0
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def link_clearance(p, s, bmin, bmax, b, samples, cutoff_m, grad, work):
     """Clearance c (m) of the link s → p from box b and its gradient w.r.t. p, written to ``grad``
     (3,) (:func:`planner.geometry.link_clearance_with_gradient`): the smallest signed distance
@@ -306,7 +309,7 @@ def channel_array(gamma: float, sigma_r0_los: float, sigma_r0_nlos: float, sigma
     return np.array([gamma, sigma_r0_los**2, sigma_r0_nlos**2, sigma_bearing_rad**2])
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _rotate(app, aqq, apq, arp, arq, late):
     """One Jacobi rotation of a symmetric 3×3 a zeroing a[p, q] (r the third index), on its
     entries a[p, p], a[q, q], a[p, q], a[r, p], a[r, q]; after the first sweeps (``late``) an
@@ -332,7 +335,7 @@ def _rotate(app, aqq, apq, arp, arq, late):
     return app - t * apq, aqq + t * apq, 0.0, arp - s * (arq + arp * tau), arq + s * (arp - arq * tau), 2
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def eigvalsh3(J):
     """Eigenvalues (ascending, three floats) of the symmetric 3×3 ``J`` by cyclic Jacobi
     rotations (the nine entries held as scalars; each rotation reads and writes the entries a
@@ -372,7 +375,7 @@ def eigvalsh3(J):
     return e0, e1, e2
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def inverse3(J, out, lu):
     """``out`` = J⁻¹ of a 3×3 matrix by an LU factorisation with partial pivoting (as LAPACK's
     gesv: error ~ cond(J) ε); ``lu``: scratch (3, 3)."""
@@ -407,7 +410,7 @@ def inverse3(J, out, lu):
         out[2, col] = x2
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def invert(J, inv, work):
     """Health, inverse and ln det of a symmetric 3×3 FIM (:func:`planner.fim.invert_fim`): the
     status code (λ_min ≤ 1e-12 λ_max, λ_max ≤ 0 or a non-finite entry: singular, ``inv`` zeros,
@@ -434,7 +437,7 @@ def invert(J, inv, work):
     return status, math.log(e0) + math.log(e1) + math.log(e2)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     """J += the range and bearing terms (eqs. 10-12) of the drones at ``positions`` (N, 3) seen
     from the source ``src`` (3,): ``ranging``, ``bearing`` (N,) bool (κ_j, β_j, and the view
@@ -487,7 +490,7 @@ def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     J[2, 2] += j22
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def criterion_derivative(J, criterion_d, M, work):
     """The cost C of eq. 6 at ``J`` and M = ∂C/∂J to ``M`` (3, 3): C = tr J⁻¹, M = −J⁻² (A);
     C = −ln det J, M = −J⁻¹ (``criterion_d``). Returns (C, status); singular: (+inf, 2), M = 0.
@@ -503,7 +506,7 @@ def criterion_derivative(J, criterion_d, M, work):
     return (-logdet if criterion_d else inv[0, 0] + inv[1, 1] + inv[2, 2]), status
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_gradient(J, src, p, ranging, bearing, q, grad_q, use_grad_q, ch, criterion_d, grad, M, work):
     """Cost C of eq. 6 at ``J`` (``criterion_d``: −ln det J, else tr J⁻¹) and its gradient
     w.r.t. the drone's own position ``p`` (eq. 14), written to ``grad`` (3,): −∂ tr(M J_own)/∂r
@@ -651,20 +654,20 @@ def limits_array(values: tuple[float, ...], safe: bool, derived: tuple[float, ..
 
 
 # --------------------------------------------------------------------------- small helpers
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def spherical(x, y, z):
     """(length, heading Ψ from east, tilt Θ) of a step (eq. 1), m and rad."""
     return math.sqrt(x * x + y * y + z * z), math.atan2(y, x), math.atan2(z, math.hypot(x, y))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def cartesian(s, psi, theta):
     """The step of length s, heading Ψ and tilt Θ (eq. 1): s (cos Ψ cos Θ, sin Ψ cos Θ, sin Θ)."""
     sc = s * math.cos(theta)
     return sc * math.cos(psi), sc * math.sin(psi), s * math.sin(theta)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def tilt_buffer(tilt, lim):
     """Height (m) still climbed after a step of tilt Θ before the tilt can reach 0:
     v_max Δt Σ_{k=1..3} max(0, sin(Θ − k θ_max))."""
@@ -673,7 +676,7 @@ def tilt_buffer(tilt, lim):
     return lim[L_SMAX] * (total + _rising(tilt - 3.0 * tmax))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _rising(x):
     """max(0, sin x), without evaluating sin where it is known to be ≤ 0: on [−3, 0] ⊂ [−π, 0]
     (sin x ≤ 0 there, and the libm sin keeps the sign: |sin x| ≥ min(|x|, sin 3) is far above its
@@ -683,13 +686,13 @@ def _rising(x):
     return max(0.0, math.sin(x))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def altitude_margin(z, tilt, lim):
     """Margin (m) of a height z to the altitude box after a step of tilt Θ (:func:`tilt_buffer`)."""
     return min(lim[L_ZMAX] - z - tilt_buffer(tilt, lim), z - lim[L_ZMIN] - tilt_buffer(-tilt, lim))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def peer_distance(x, y, z, peers, planes, flags, j, d_uav):
     """Distance (m) of (x, y, z) to peer row j: Euclidean to a point row; (x − m)·n + d_U*/2 to a
     plane row (``flags[j]`` > 0: point m, unit normal n = ``planes[j]``;
@@ -700,7 +703,7 @@ def peer_distance(x, y, z, peers, planes, flags, j, d_uav):
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):
     """Smallest peer margin (m) of (x, y, z) over the peer rows ``idx[:n_idx]``: min_j d_j − required_j (+inf: none)."""
     best = np.inf
@@ -710,7 +713,7 @@ def peer_margin(x, y, z, peers, planes, flags, required, idx, n_idx, d_uav):
     return best
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, source_required, obstacle_required, bmin, bmax, lim, out):
     """Clearance margins (m) of the end position (x, y, z) of a step of tilt Θ, per family, to
     ``out`` (4,): nearest peer (``required`` per peer row), source, nearest obstacle, altitude
@@ -723,7 +726,7 @@ def score(x, y, z, tilt, peers, planes, flags, required, idx, n_idx, source, sou
 
 
 # --------------------------------------------------------------------------- eqs. 15-17 and 14
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _select3(sel, col, v, c):
     """Keep the three smallest values in ``sel`` (3,) with their columns in ``col``; a tie keeps
     the earlier column first (a stable sort's first three)."""
@@ -739,7 +742,7 @@ def _select3(sel, col, v, c):
             sel[2], col[2] = v, c
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, source_exact, wn, vec, active):
     """Constraint values g = d − d* of eqs. 15-17 less their activation margins (safe rule: one
     step of both parties' motion and the turn-away buffers, docs/control.md): every peer (to
@@ -783,7 +786,7 @@ def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, s
     return g_s, g_o
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _normal(c, p, peers, planes, wn, source, vec):
     """Unit normal w.r.t. p of constraint column ``c`` (peers, source, obstacle, altitude top,
     altitude bottom) to ``vec[V_NRM]``."""
@@ -805,7 +808,7 @@ def _normal(c, p, peers, planes, wn, source, vec):
         out[0], out[1], out[2] = 0.0, 0.0, 2.0 * (c == N + 3) - 1.0
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _orthogonalise(U, V, m):
     """One-sided Jacobi SVD of the 3 × m matrix ``U`` (in place; ``V`` (3, 3) the accumulated
     rotations): afterwards U's columns are orthogonal and A = U Vᵀ."""
@@ -833,7 +836,7 @@ def _orthogonalise(U, V, m):
             break
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def projection(A, g, m, P, corr, V):
     """Eq. 14's projection onto the m active constraints of unit normals A[:, :m] (3 × m) and
     values g[:m]: P = I − N (NᵀN)⁻¹ Nᵀ to ``P`` (3, 3) and the correction −N (NᵀN)⁻¹ g to
@@ -861,7 +864,7 @@ def projection(A, g, m, P, corr, V):
             corr[r] -= ur * (vg / sig)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def active_projection(p, peers, planes, wn, source, vec, m33):
     """P (``m33[2]``) and the correction (``vec[V_CORR]``) of eq. 14 over the active ones among
     the three most violated constraints (:func:`constraints`); returns whether any is active."""
@@ -884,13 +887,13 @@ def active_projection(p, peers, planes, wn, source, vec, m33):
     return False
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _mul(P, x, y, z):
     """P (x, y, z) for a 3 × 3 P."""
     return P[0, 0] * x + P[0, 1] * y + P[0, 2] * z, P[1, 0] * x + P[1, 1] * y + P[1, 2] * z, P[2, 0] * x + P[2, 1] * y + P[2, 2] * z
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def descent(grad, P, projected, xi, lim):
     """The gradient step −ξ P∇C of eq. 14, m (P applied where ``projected``): ξ given (``xi``, m
     per unit gradient), or (``xi`` NaN) normalised to v_max Δt; a projected gradient up to 1e-9
@@ -909,7 +912,7 @@ def descent(grad, P, projected, xi, lim):
     return -xi * px, -xi * py, -xi * pz
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
     """Steps 2-3 of one drone's step: the descent of eq. 14 (or, with a singular J, the paper's
     fallback: the last heading and tilt perturbed uniformly by ±``pert`` rad, a random heading
@@ -940,7 +943,7 @@ def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
 
 
 # --------------------------------------------------------------------------- the safety filter's requirements
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     """The safety filter's requirements (docs/control.md, "Safety filter").
 
@@ -995,7 +998,7 @@ def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     need[UAV] = 0.0
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def kept_peers(wn, idx, lim, prune):
     """The peer rows the filter scores, to ``idx``; returns their number. All, or (``prune``) only
     those whose clearance now is within 2 (v_max Δt + the loiter's reach) of the smallest, per
@@ -1021,7 +1024,7 @@ def kept_peers(wn, idx, lim, prune):
 
 
 # --------------------------------------------------------------------------- the loiter certificate
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def loiter_heading(sx, sy, sz):
     """cos Ψ, sin Ψ and the tilt Θ of the step (sx, sy, sz) that a loiter path follows (Ψ = 0 for a
     vertical step)."""
@@ -1030,7 +1033,7 @@ def loiter_heading(sx, sy, sz):
     return cp, sp, math.atan2(sz, rho)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
     """One loiter path (``side`` 0: left, 1: right) of :func:`loiter_vertices` to ``out[side]``."""
     K = int(lim[L_LOITER_K])
@@ -1048,7 +1051,7 @@ def loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out):
         out[side, v, 0], out[side, v, 1], out[side, v, 2] = ex + cx, ey + cy, ez + cz
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
     """The loiter paths (:func:`planner.control.loiter_path`) from the end (ex, ey, ez) of the step
     (sx, sy, sz) to ``out`` (2, K + 1, 3): per side (left, right) the end itself, then K steps of
@@ -1059,7 +1062,7 @@ def loiter_vertices(ex, ey, ez, sx, sy, sz, lim, out):
         loiter_side(ex, ey, ez, cp, sp, theta, side, lim, out)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, source_required, obstacle_required, need, bmin, bmax, lim, cw):
     """Whether a loiter path (:func:`loiter_vertices`) from the end position (ex, ey, ez) after the
     step (sx, sy, sz) keeps every clearance of the loiter certificate (the peers' reachable balls
@@ -1111,7 +1114,7 @@ def certified(ex, ey, ez, sx, sy, sz, peers, planes, wn, idx, n_idx, source, sou
 
 
 # --------------------------------------------------------------------------- the envelope search
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def envelope_candidates(prev, has_prev, lim, cand, th):
     """The kinematic envelope's candidate steps to ``cand`` (C, 3), m, and their tilts to ``th``
     (C,), rad: 9 headings × 5 tilts across the allowed turn from the previous step ``prev`` (a
@@ -1139,7 +1142,7 @@ def envelope_candidates(prev, has_prev, lim, cand, th):
         c += 1
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def peer_margins(x, y, z, peers, planes, wn, idx, n_idx, d_uav):
     """The smallest peer margins (m) of (x, y, z) over the peer rows ``idx[:n_idx]`` against the
     strict, loose, hard and record-clearance requirements (rows of ``wn``), each distance once."""
@@ -1153,7 +1156,7 @@ def peer_margins(x, y, z, peers, planes, wn, idx, n_idx, d_uav):
     return m_s, m_l, m_h, m_r
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, bmin, bmax, lim, cand, th, mc, wc, okc):
     """Per candidate step c of ``cand``: its margins per family (the peers' against the loose
     requirements, ``mc[0, c]``), its slack over ``need`` (``mc[1, c]``), the scores the tiers
@@ -1202,7 +1205,7 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
         okc[O_CERT, c] = False
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def record_requirements(p, peers, planes, wn, idx, n_idx, lim):
     """The record clearance's requirements to ``wn[W_REC]`` (tier 4 of the envelope search): every
     peer's clearance as if its record were of now, d_U* + v_max Δt from a heard peer's record, the
@@ -1219,7 +1222,7 @@ def record_requirements(p, peers, planes, wn, idx, n_idx, lim):
         wn[W_REC, j] = required if math.isfinite(wn[W_HARD, j]) else -np.inf
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     """``ok`` (C,): the candidates that do not bring the drone nearer the dead-reckoned position
     of a peer whose reachable ball it is inside (``reck``: now and at the end of the step):
@@ -1245,7 +1248,7 @@ def dead_reckoning_kept(p, cand, reck, idx, n_idx, lim, ok):
     return known
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _top_first(eligible, scores, order):
     """The eligible candidates to ``order``, the five of best score first (ties in order of index,
     as a stable sort), the rest after; returns their number."""
@@ -1263,7 +1266,7 @@ def _top_first(eligible, scores, order):
     return n
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     """Check the eligible candidates of one lazy tier for a loiter certificate, best score first,
     in chunks of 1, 4 and the rest, until a chunk holds a certified one; mark those in ``marks``
@@ -1282,7 +1285,7 @@ def certified_lazily(p, cand, eligible, scores, marks, order, cert):
     return False
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def _argmax_where(ok, scores):
     """numpy's argmax of where(ok, scores, −inf): the first index of the largest value."""
     pick = 0
@@ -1294,7 +1297,7 @@ def _argmax_where(ok, scores):
     return pick
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def envelope_pick(okc, wc, has_reck):
     """The envelope search's pick: the first tier (most demanding first) that some candidate
     passes, its best score; each tier first among the candidates that keep clear of the peers'
@@ -1327,7 +1330,7 @@ def envelope_pick(okc, wc, has_reck):
     return _argmax_where(okc[O_EVERY], wc[S_EXACT_PHYS])
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_idx, source, keepout, cert, env):
     """The best step of the kinematic envelope for a drone at ``p`` whose limited step ``u`` failed
     the safety filter (docs/control.md, "Safety filter"); the step to
@@ -1361,7 +1364,7 @@ def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_
 
 
 # --------------------------------------------------------------------------- one drone's step
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, source, keepout, g_s, g_o, bmin, bmax, lim, u, active, ws):
     """Step 4 of :func:`control_one` (safe rule): check the limited step ``u`` (3,), m, of tilt Θ
     against the required clearances (:func:`requirements`) and the loiter certificate
@@ -1399,7 +1402,7 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
     return True, infeasible
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, active, ws):
     """One drone's control step (eqs. 14-17 and 2, and the safety filter with the safe rule):
     the step to ``u`` (3,), m, the active constraint families to ``active`` (4,); returns
@@ -1515,7 +1518,7 @@ DRIFT_MAX_GAP_STEPS: int = 4
 STATUS_OK = 0
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def normal_cdf(a):
     """Φ(a), the standard normal CDF (cephes' ndtr: 0.5 + 0.5 erf(a/√2) near 0, erfc in the tails)."""
     x = a * 0.7071067811865476
@@ -1526,7 +1529,7 @@ def normal_cdf(a):
     return 1.0 - y if x > 0.0 else y
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     """Predicted line of sight q = Π_b Φ(c_b/s) of the link s → p (c_b its clearance from building
     b, :func:`link_clearance`, s = :data:`LOS_SOFTNESS_M`) and its gradient w.r.t. p to ``grad``
@@ -1554,7 +1557,7 @@ def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
     return q
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def source_keepout(sigma, lim):
     """Keep-out radius (m) about an estimate of largest standard deviation σ (m):
     d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*) (:func:`planner.agent.source_keepout_m`)."""
@@ -1564,7 +1567,7 @@ def source_keepout(sigma, lim):
     return d_s + min(inflation, d_s)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def followable(p, centre, r, sigma, last_centre, last_r, lim):
     """The keep-out radius (m) a drone at ``p`` plans with (:func:`planner.agent.followable_keepout_m`):
     about an estimate too uncertain to cover the source (3σ ≥ d_S*) its boundary advances on the
@@ -1579,7 +1582,7 @@ def followable(p, centre, r, sigma, last_centre, last_r, lim):
     return min(r, max(last_r + moved + lim[L_TB], floor))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_range_stats(ranges, los, ch):
     """(d̄, Σw) of a drone's own last ranges (NaN: none) and their LOS flags: the weighted mean with
     w = 1/σ_r0² of each range's LOS or NLOS σ_r0 (eq. 5), NaN and 0 without ranges
@@ -1594,7 +1597,7 @@ def own_range_stats(ranges, los, ch):
     return (swr / sw if sw > 0.0 else np.nan), sw
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_relative_sd(weight, gamma, d):
     """r(d) = 1/√(Σw d^(2−γ)), the relative standard deviation of the own ranges' mean about a
     distance d (m); +inf without ranges (:meth:`planner.agent.OwnRanges.relative_sd`)."""
@@ -1605,7 +1608,7 @@ def own_relative_sd(weight, gamma, d):
     return 1.0 / math.sqrt(info if info > 0.0 else 1.0)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_lower_bound(mean, weight, gamma, k):
     """d̄ / (1 + k r(d̄)), the own ranges' lower confidence bound on the distance (m); +inf without
     ranges (:meth:`planner.agent.OwnRanges.lower_bound_m`)."""
@@ -1614,7 +1617,7 @@ def own_lower_bound(mean, weight, gamma, k):
     return mean / (1.0 + k * own_relative_sd(weight, gamma, mean))
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def own_contradicts(mean, weight, gamma, d, k):
     """The own ranges put the source nearer than the distance d (m) to the estimate by more than k
     standard deviations: (d̄/d − 1)/r(d) < −k (:meth:`planner.agent.OwnRanges.contradicts`)."""
@@ -1624,7 +1627,7 @@ def own_contradicts(mean, weight, gamma, d, k):
     return z < -k
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     """Whether the drone loiters instead of descending its cost (:func:`planner.agent.must_loiter`):
     its estimate gives no direction to trust (not observable, 3σ ≥ d_S*, or contradicted by its
@@ -1640,7 +1643,7 @@ def must_loiter(sigma, observable, d_est, mean, weight, gamma, loitering, lim):
     return (not observable) or (SOURCE_SIGMA_FACTOR * sigma >= lim[L_DSRC]) or own_contradicts(mean, weight, gamma, d_est, k)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def estimate_sigma(information):
     """Largest standard deviation (m) of an estimate with Fisher information (3, 3): 1/√λ_min,
     +inf where λ_min ≤ 0 (:func:`planner.agent.estimate_sigma_m`)."""
@@ -1648,7 +1651,7 @@ def estimate_sigma(information):
     return 1.0 / math.sqrt(max(lmin, 1e-300)) if lmin > 0.0 else np.inf
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def loiter_gradient(prev, out):
     """The gradient a loitering drone descends, to ``out`` (3,): minus the horizontal unit vector
     90° to the left of its last step (east where it has none; :func:`planner.agent.loiter_gradient`)."""
@@ -1678,7 +1681,7 @@ def loiter_gradient(prev, out):
 ) = range(12)
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new):
     """Drone b's carried state after the records of step k: its own range (NaN: none) and LOS flag
     enter its window (oldest first), its position ``p`` its track (slot k mod T), and each peer's
@@ -1713,7 +1716,7 @@ def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new)
             new[ST_OWN_THEN][b, j, a] = then if fresh else old[ST_OWN_THEN][b, j, a]
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def bisector_plane(a, b, lost, point, normal):
     """The plane two drones that lost contact keep apart by (:func:`planner.control.lost_contact_planes`):
     to ``point`` the midpoint of a (this drone then) and b (the peer's last record), to ``normal``
@@ -1727,7 +1730,7 @@ def bisector_plane(a, b, lost, point, normal):
         point[k] = 0.5 * (a[k] + b[k]) if plane else b[k]
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_start, hop_rule, rows, mask, ages, planes):
     """The peer rows of drone i's anti-collision constraint (:func:`planner.agent.plan`): the peers
     heard directly (``hop_rule``: h_ij = 1; else every known peer), each at its record with the
@@ -1751,7 +1754,7 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
         mask[j] = (valid[j] & other & relevant) | unheard
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
     loiters (docs/control.md, "Own-range loiter"): an unobservable estimate
@@ -1774,7 +1777,7 @@ def keepout_policy(p, p_hat, information, observable, status, ranges, range_los,
     return np.int64(STATUS_OK if loiter else status), keepout, loiter
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def plan_one(b, scene, cost, old, new, config, out, ws):
     """Drone b's planning step after its cost (:func:`planner.agent.plan`): the carried state's
     update (:func:`advance_state`), the keep-out and loiter policy (:func:`keepout_policy`; with
@@ -2000,7 +2003,7 @@ def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):
     return ok, known
 
 
-@njit(no_cpython_wrapper=True, _nrt=False)
+@inner
 def plan_cost(b, scene, view_los, roles, config, cost, ws):
     """Drone b's cost of eq. 6 and its gradient w.r.t. its own position, to ``cost`` (value (B,),
     ∇C (B, 3), status (B,)): the predicted line of sight q of its own link (:func:`own_los`; q = 1

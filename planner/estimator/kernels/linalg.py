@@ -7,11 +7,21 @@ assignment of arrays (each would compile its shape checks and error messages).""
 
 from __future__ import annotations
 
+import functools
+from typing import Any
+
 import numpy as np
 from numba import njit
 
+#: The decorator of an inner kernel that allocates nothing and returns no array: compiled without
+#: numba's reference counting, its array arguments borrowed from its caller (package doc).
+borrowing: Any = functools.partial(njit, cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+#: The decorator of an inner kernel that allocates: with numba's reference counting, said
+#: explicitly (a callee of a :data:`borrowing` kernel would otherwise inherit its setting).
+counting: Any = functools.partial(njit, cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+
+@borrowing
 def nmin(a: float, b: float) -> float:
     """min(a, b), NaN if either is NaN (``numpy.minimum``)."""
     if a != a or b != b:
@@ -19,7 +29,7 @@ def nmin(a: float, b: float) -> float:
     return a if a <= b else b
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def nmax(a: float, b: float) -> float:
     """max(a, b), NaN if either is NaN (``numpy.maximum``)."""
     if a != a or b != b:
@@ -27,20 +37,20 @@ def nmax(a: float, b: float) -> float:
     return a if a >= b else b
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def clip(v: float, lo: float, hi: float) -> float:
     """``numpy.minimum(numpy.maximum(v, lo), hi)``: v projected onto [lo, hi], NaN kept."""
     return nmin(nmax(v, lo), hi)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def clip3(x: np.ndarray, p: np.ndarray, lo: int, out: np.ndarray) -> None:
     """``out`` = x (3,) projected into the box p[lo:lo+3], p[lo+3:lo+6] (the search box)."""
     for i in range(3):
         out[i] = clip(x[i], p[lo + i], p[lo + 3 + i])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def det3(a: np.ndarray) -> float:
     """Determinant of a 3 × 3 matrix."""
     return (
@@ -50,7 +60,7 @@ def det3(a: np.ndarray) -> float:
     )
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def inv3_spd(a: np.ndarray, out: np.ndarray) -> bool:
     """``out`` = inverse of the symmetric 3 × 3 ``a`` (adjugate over determinant); returns
     whether it is well defined (finite det > 1e-14 (tr a)³)."""
@@ -71,7 +81,7 @@ def inv3_spd(a: np.ndarray, out: np.ndarray) -> bool:
     return ok
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def normalised_det(a: np.ndarray) -> float:
     """det(A)/(tr(A)/3)³ of a symmetric PSD 3 × 3 matrix (0 where tr A ≤ 0)."""
     tr = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
@@ -80,7 +90,7 @@ def normalised_det(a: np.ndarray) -> float:
     return 0.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def solve3_in_place(m: np.ndarray, y: np.ndarray) -> None:
     """y ← m⁻¹ y for a 3 × 3 ``m`` by LU with partial pivoting (LAPACK's ``gesv`` order: the
     column below the pivot scaled by the pivot's reciprocal); m is left holding the factors."""
@@ -107,7 +117,7 @@ def solve3_in_place(m: np.ndarray, y: np.ndarray) -> None:
             y[i] -= y[k] * m[i, k]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def eigh(a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
     """Eigenvalues ``w`` (ascending) and eigenvectors ``v`` (columns) of a small symmetric
     matrix ``a`` (LAPACK's ``syevd``, as ``numpy.linalg.eigh``: the same digits); NaN where
@@ -132,7 +142,7 @@ def eigh(a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
             v[i, j] = ev[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def eigvalsh_min(a: np.ndarray) -> float:
     """The smallest eigenvalue of a small symmetric matrix (LAPACK, as
     ``numpy.linalg.eigvalsh``); NaN where ``a`` is not finite."""
@@ -146,7 +156,7 @@ def eigvalsh_min(a: np.ndarray) -> float:
     return np.linalg.eigvalsh(b)[0]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def median(z: np.ndarray, n: int) -> float:
     """The median of z[:n] (n ≥ 1), sorting z[:n] in place; the mean of the two middle values
     for even n."""
@@ -179,7 +189,7 @@ def dot(a: np.ndarray, b: np.ndarray, n: int) -> float:
     return acc0 + acc1
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """``numpy.sum``'s sum of at most 128 values a[lo:lo + n]: one by one below 8, else eight
     accumulators, added pairwise, then the rest one by one."""

@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from planner.estimator.kernels.linalg import clip, eigh, nmax, solve3_in_place
+from planner.estimator.kernels.linalg import borrowing, clip, counting, eigh, nmax, solve3_in_place
 from planner.estimator.layout import (
     M_CC,
     M_CX,
@@ -57,7 +57,7 @@ NSC = 5
 _FAST = {"reassoc", "contract"}
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def refresh(mem: np.ndarray, c: int) -> None:
     """The evaluation rows of cell c from its sums: centre Σwp/n, σ_r0², lever T − S1 p̄, spread
     max(Q − n‖p̄‖², 0), ‖p̄‖², n, S1, S2; zeros (σ_r0² kept) for an empty cell."""
@@ -78,7 +78,7 @@ def refresh(mem: np.ndarray, c: int) -> None:
     mem[M_EN, c], mem[M_ES1, c], mem[M_ES2, c] = n, s1, mem[M_S2, c]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def used_cells(mem: np.ndarray) -> int:
     """1 + the index of the last occupied cell (0 if none)."""
     for c in range(mem.shape[1] - 1, -1, -1):
@@ -87,7 +87,7 @@ def used_cells(mem: np.ndarray) -> int:
     return 0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def occupied(mem: np.ndarray, nc: int) -> int:
     """The number of occupied cells among the first nc."""
     k = 0
@@ -96,7 +96,7 @@ def occupied(mem: np.ndarray, nc: int) -> int:
     return k
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def forget(mem: np.ndarray, lam: float) -> None:
     """Every sum of every cell times λ (σ_r0 kept), in place, and the cells refreshed."""
     if lam == 1.0:
@@ -115,7 +115,7 @@ _LG1, _LG2, _LG3, _LG4 = 6.666666666666735130e-01, 3.999999999940941908e-01, 2.8
 _LG5, _LG6, _LG7 = 1.818357216161805012e-01, 1.531383769920937332e-01, 1.479819860511658591e-01
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST, _nrt=False)
+@borrowing(fastmath=_FAST)
 def _logs(sc: np.ndarray, nc: int) -> None:
     """sc[1, c] = ln sc[0, c] for c < nc (positive values; inf and NaN kept), fdlibm's
     algorithm written over arrays so that the compiler vectorises it (a call of the C
@@ -141,7 +141,7 @@ def _logs(sc: np.ndarray, nc: int) -> None:
         sc[1, c] = r if x < 1.7976931348623157e308 else x
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST, _nrt=False)
+@borrowing(fastmath=_FAST)
 def _distances(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, sc: np.ndarray, logs: bool) -> None:
     """sc[0] = d = max(‖x − p̄_c‖, 1 mm), sc[2] the distance itself, sc[3] the variance
     σ_r0² d^γ, sc[1] = ln d if ``logs`` (loops the compiler vectorises)."""
@@ -160,7 +160,7 @@ def _distances(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma:
         _logs(sc, nc)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST, _nrt=False)
+@borrowing(fastmath=_FAST)
 def _nll_sum(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, sc: np.ndarray) -> float:
     """Σ_cells resid2/(2 var) + (nγ/2) ln d from the distances ``sc``."""
     total = 0.0
@@ -173,7 +173,7 @@ def _nll_sum(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: f
     return total
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST, _nrt=False)
+@borrowing(fastmath=_FAST)
 def _gradient_sum(
     mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, full: bool, sc: np.ndarray, g: np.ndarray, F: np.ndarray
 ) -> None:
@@ -213,7 +213,7 @@ def _gradient_sum(
     F[0, 2] = F[2, 0] = fxz
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def nll(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float, sc: np.ndarray) -> float:
     """Σ_cells resid2/(2 var) + (nγ/2) ln d at x over the first nc cells: the memory's negative
     log-likelihood (the residual sum S2 − 2(S1 d − u·lever) + n d² + spread, variance σ_r0² d^γ
@@ -222,7 +222,7 @@ def nll(mem: np.ndarray, nc: int, x0: float, x1: float, x2: float, gamma: float,
     return _nll_sum(mem, nc, x0, x1, x2, gamma, sc)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def evaluate(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, sc: np.ndarray, g: np.ndarray, F: np.ndarray) -> float:
     """``g`` (3,) and ``F`` (3, 3): gradient and Fisher information of the memory's cost at x,
     of the full likelihood (``full``: returns its :func:`nll` too, computed by the same code,
@@ -232,7 +232,7 @@ def evaluate(mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, full: bool, 
     return _nll_sum(mem, nc, x[0], x[1], x[2], gamma, sc) if full else 0.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _polish_step(
     x: np.ndarray, g: np.ndarray, F: np.ndarray, mu: float, p: np.ndarray, tolerance: float, cand: np.ndarray, H: np.ndarray, step: np.ndarray
 ) -> bool:
@@ -263,7 +263,7 @@ def _polish_step(
     return live and not nan  # numpy's max over the coordinates is NaN then
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def polish(
     mem: np.ndarray, nc: int, x: np.ndarray, gamma: float, p: np.ndarray, iterations: int, tolerance: float, sc: np.ndarray
 ) -> tuple[float, float]:
@@ -296,7 +296,7 @@ def polish(
     return cost, start
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def best_start(
     mem: np.ndarray, nc: int, x: np.ndarray, cand: np.ndarray, gamma: float, p: np.ndarray, points: int, sc: np.ndarray, out: np.ndarray
 ) -> None:
@@ -329,7 +329,7 @@ def best_start(
 
 
 # --------------------------------------------------------------------------- insertion
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, d2: np.ndarray) -> tuple[int, float, int]:
     """The occupied cell nearest to (px, py, pz) of σ_r0 ``sig`` and its squared distance
     ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and, only where there is
@@ -354,7 +354,7 @@ def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: flo
     return best, bd, near
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _group(
     mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, sig: np.ndarray, rf: float, fresh: np.ndarray, cell: np.ndarray, iw: np.ndarray
 ) -> int:
@@ -396,7 +396,7 @@ def _group(
     return used
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
     """Save (:func:`_save`) the empty cells that new groups of M rows may take: the first M
     empty cells in index order. Returns the new count k of saved cells."""
@@ -411,7 +411,7 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
     return k
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def insert(
     mem: np.ndarray,
     nc: int,
@@ -500,7 +500,7 @@ def insert(
     return used
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _saved(iw: np.ndarray, k: int, c: int) -> bool:
     """Whether cell c is among the k saved ones."""
     for j in range(k):  # noqa: SIM110 - compiled: no generator
@@ -509,7 +509,7 @@ def _saved(iw: np.ndarray, k: int, c: int) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray, keep: bool) -> int:
     """Cell c's index into iw[4, k + 1] and, if ``keep``, its column into ``backup`` (slot k)
     (if there is room); returns the new count."""
@@ -523,7 +523,7 @@ def _save(mem: np.ndarray, c: int, k: int, iw: np.ndarray, backup: np.ndarray, k
     return k + 1
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def swap_backup(mem: np.ndarray, iw: np.ndarray, backup: np.ndarray) -> None:
     """Exchange the saved columns (:func:`insert`) with the cells': called twice, the memory
     is as it was."""

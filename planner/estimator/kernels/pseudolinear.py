@@ -16,14 +16,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from planner.estimator.kernels.linalg import dot, eigh, eigvalsh_min, median, nmax, pairwise_sum
+from planner.estimator.kernels.linalg import borrowing, counting, dot, eigh, eigvalsh_min, median, nmax, pairwise_sum
 from planner.estimator.kernels.robust import R_AA, R_AE, R_AR, R_PX, R_PY, R_PZ, R_S0, R_ZA, R_ZE, R_ZR
 from planner.estimator.layout import P_GAMMA, P_INIT_D, P_INIT_REL, P_MIRROR_BELOW, P_PL_RCOND, P_SB
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _normal_equations(c: np.ndarray, om: np.ndarray, beta: np.ndarray, m: int, A: np.ndarray, b: np.ndarray) -> None:
     """A += Σ ω c cᵀ, b += Σ ω c β over m equations (coefficients ``c`` (4, m)), each sum
     formed as numpy forms it: (ω c_i)·c_j."""
@@ -40,7 +39,7 @@ def _normal_equations(c: np.ndarray, om: np.ndarray, beta: np.ndarray, m: int, A
         b[i] += dot(wc[i], beta, m)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def pl_rows(rows: np.ndarray, n: int, D: float, p: np.ndarray, A: np.ndarray, b: np.ndarray) -> None:
     """A, b += the pseudo-linear normal equations of the first n rows, weights at the distance
     D (m): azimuth (sin φ̂, −cos φ̂, 0)·(p0 − p) = 0, ω = a/(σ_b² (D cos θ̂)²); elevation with an
@@ -72,7 +71,7 @@ def pl_rows(rows: np.ndarray, n: int, D: float, p: np.ndarray, A: np.ndarray, b:
     _normal_equations(c, om, beta, 4 * n, A, b)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: np.ndarray, b: np.ndarray) -> None:
     """A, b += the squared-range equations 2pᵀp0 − R = ‖p‖² − d̂² + σ_r²(D) of every range of the
     first n rows, ω = a/(4D²σ_r²(D)), D = ``scale[k]`` (m); summed in numpy's order."""
@@ -103,7 +102,7 @@ def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: 
     b[3] += -dot(om, beta, n)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def distance_scale(rows: np.ndarray, n: int, p: np.ndarray) -> float:
     """The median measured range of the first n rows (at least 1 m), or ``init_distance_m``
     (m) where none has a range."""
@@ -118,7 +117,7 @@ def distance_scale(rows: np.ndarray, n: int, p: np.ndarray) -> float:
     return nmax(median(z, m), 1.0)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def range_scale(x: np.ndarray, initialised: bool, rows: np.ndarray, n: int, p: np.ndarray, out: np.ndarray) -> None:
     """``out[k]``, the distance scale of row k's squared-range weight (k < n): |x − p_k| (at
     least 1 m) where the element is initialised, else :func:`distance_scale` of the rows."""
@@ -131,7 +130,7 @@ def range_scale(x: np.ndarray, initialised: bool, rows: np.ndarray, n: int, p: n
             out[k] = D
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def pl_cost(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> float:
     """θᵀAθ − 2bᵀθ at θ = (x, ‖x‖²), in numpy's order."""
     th = np.empty(4)
@@ -144,7 +143,7 @@ def pl_cost(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> float:
     return q - 2.0 * dot(b, th, np.int64(4))
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def schur_prior(A: np.ndarray, b: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> None:
     """Λ (3, 3), η (3,): R marginalised out of (A, b), Λ = A_pp − A_pR A_RR⁻¹ A_Rp,
     symmetrised."""
@@ -160,7 +159,7 @@ def schur_prior(A: np.ndarray, b: np.ndarray, lam: np.ndarray, eta: np.ndarray) 
             lam[i, j] = lam[j, i] = 0.5 * (lam[i, j] + lam[j, i])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def determined(A: np.ndarray, p: np.ndarray) -> bool:
     """Whether the PL system determines the source well enough to initialise from: any with a
     squared-range equation; with bearings only, one whose weakest direction's standard
@@ -172,7 +171,7 @@ def determined(A: np.ndarray, p: np.ndarray) -> bool:
     return eigvalsh_min(A[:3, :3]) * limit * limit >= 1.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray, v: np.ndarray) -> tuple[float, int]:
     """θ_LS (``theta``, 4) of the Jacobi-scaled system's well-conditioned part (R decoupled
     when it has no squared-range equation), its weakest direction in θ units (``v``, 4);
@@ -206,7 +205,7 @@ def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray,
     return V[3, 0], rank
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def pl_solve(A: np.ndarray, b: np.ndarray, p: np.ndarray, out: np.ndarray) -> bool:
     """Solve the PL normal equations for p0 (``out``, 0 where not ok); returns ok. The
     candidates are θ_LS (if full rank) and the two points of the line θ_LS + t v along the

@@ -15,9 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from planner.estimator.kernels.linalg import clip, inv3_spd, nmax, nmin
+from planner.estimator.kernels.linalg import borrowing, clip, counting, inv3_spd, nmax, nmin
 from planner.estimator.layout import P_GAMMA, P_HI, P_HUBER, P_LM_DAMP, P_LO, P_ML, P_SB, P_SUSP_SIGMA, P_TUKEY, P_TUKEY_C
 
 R_PX, R_PY, R_PZ, R_ZR, R_ZA, R_ZE, R_AR, R_AA, R_AE, R_S0 = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
@@ -38,7 +37,7 @@ RHO2_FLOOR_M2 = 1e-12
 XB_HEAD = 3
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float]:
     """Robust loss ρ(e), influence ψ(e) and IRLS weight ψ/e: Tukey's biweight (threshold c)
     where ``tukey``, else Huber (threshold k)."""
@@ -51,13 +50,13 @@ def loss(e: float, k: float, c: float, tukey: bool) -> tuple[float, float, float
     return m * (ae - 0.5 * m), nmax(nmin(e, k), -k), k / nmax(ae, k)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def wrap(angle: float) -> float:
     """The angle wrapped into [−π, π] (rad)."""
     return angle - (2.0 * np.pi) * np.rint(angle * (0.5 / np.pi))
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def residuals(
     x: np.ndarray, rows: np.ndarray, k: int, p: np.ndarray, dv_given: float
 ) -> tuple[float, float, float, float, float, float, float, float, float, float, float]:
@@ -82,7 +81,7 @@ def residuals(
     return rx, ry, rz, rho2, rho, d2, d, sr, er, ea, ee
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def extra_terms(
     cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool
 ) -> float:
@@ -121,7 +120,7 @@ def extra_terms(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def cost_at(
     x: np.ndarray,
     rows: np.ndarray,
@@ -158,7 +157,7 @@ def cost_at(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _has_extra(xa: np.ndarray, K: int) -> bool:
     """Whether any of the first K rows carries a weighted extension value."""
     for k in range(K):
@@ -168,7 +167,7 @@ def _has_extra(xa: np.ndarray, K: int) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarray) -> None:
     """The innovation gate (``gate`` = (σ, max fraction, variance bound tr Σ, m²)): a component
     whose innovation exceeds σ standard deviations of σ² + tr(Σ)‖∇h‖² gets weight 0 in
@@ -196,7 +195,7 @@ def gate(x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, gate: np.ndarra
             return
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def evaluate(
     x: np.ndarray,
     rows: np.ndarray,
@@ -271,7 +270,7 @@ def evaluate(
     return cost
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray, g: np.ndarray, H: np.ndarray, F: np.ndarray) -> None:
     """Gradient g (3,), scoring matrix H and Fisher information F (3, 3) of the rows lo..hi−1:
     with v = (−r_y, r_x, 0) and w = (−r_x r_z, −r_y r_z, ρ²), g = Σ gA r + gB v + gC w,
@@ -327,7 +326,7 @@ def accumulate(ev: np.ndarray, lo: int, hi: int, xg: np.ndarray, xh: np.ndarray,
                 F[i, j] += xh[k, 3 * i + j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> bool:
     """Whether Tukey's biweight applies at iteration ``it`` (else Huber): settled elements
     always; after a pseudo-linear initialisation (``fresh`` and not initialised ``before``)
@@ -340,7 +339,7 @@ def redescend(tukey: bool, it: int, fresh: bool, before: bool, n_el: int) -> boo
     return 2 * it >= n_el and not before
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     """½ xᵀΛx − ηᵀx."""
     q = 0.0
@@ -349,7 +348,7 @@ def prior_cost(x: np.ndarray, lam: np.ndarray, eta: np.ndarray) -> float:
     return 0.5 * q - (eta[0] * x[0] + eta[1] * x[1] + eta[2] * x[2])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H: np.ndarray) -> None:
     """g += Λx − η, H += Λ (the prior's gradient and curvature)."""
     for i in range(3):
@@ -358,7 +357,7 @@ def add_prior(x: np.ndarray, lam: np.ndarray, eta: np.ndarray, g: np.ndarray, H:
             H[i, j] += lam[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _lm_step(
     x: np.ndarray,
     g: np.ndarray,
@@ -395,7 +394,7 @@ def _lm_step(
         cand[i] = clip(x[i] + (step[i] * shrink if ok else 0.0), p[P_LO + i], p[P_HI + i])
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def lm_iterations(
     x: np.ndarray,
     rows: np.ndarray,

@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 
 from planner.estimator.kernels import memory as km
-from planner.estimator.kernels.linalg import clip, det3, inv3_spd, nmax, nmin, normalised_det
+from planner.estimator.kernels.linalg import borrowing, clip, counting, det3, inv3_spd, nmax, nmin, normalised_det
 from planner.estimator.kernels.pseudolinear import (
     determined,
     distance_scale,
@@ -119,7 +119,7 @@ from planner.estimator.layout import (
 
 
 # --------------------------------------------------------------------------- array helpers
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> None:
     """``out`` (n, n) = the matrix stored row-major at f[off:]."""
     for i in range(n):
@@ -127,7 +127,7 @@ def _get(f: np.ndarray, off: int, n: int, out: np.ndarray) -> None:
             out[i, j] = f[off + n * i + j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
     """The n × n matrix ``a`` times ``scale`` stored row-major at f[off:]."""
     n = a.shape[0]
@@ -136,7 +136,7 @@ def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
             f[off + n * i + j] = a[i, j] * scale if scale != 1.0 else a[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 2-D arrays of one shape."""
     for i in range(src.shape[0]):
@@ -144,7 +144,7 @@ def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
             dst[i, j] = src[i, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 1-D arrays of one length."""
     for i in range(src.shape[0]):
@@ -152,7 +152,7 @@ def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- the records
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, rows: np.ndarray, xz: np.ndarray, xa: np.ndarray) -> None:
     """The first n rows (component-major, NaN replaced by 0 and weight 0) of the raw records
     ``raw`` (position, range, azimuth, elevation, LOS, weight, extension values): ranges get
@@ -179,7 +179,7 @@ def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, ro
             xa[k, j] = w if present else 0.0
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, los: np.ndarray, xv: np.ndarray, nraw: np.ndarray) -> None:
     """The new records of one element as raw rows, weight 1 where the position is finite."""
     for m in range(rng.shape[0]):
@@ -191,7 +191,7 @@ def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, l
             nraw[m, NW + j] = xv[m, j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> int:
     """All rows of this call into ``raw``: the window (weights times λ) then the new ones; with
     a window and new rows, the invalid ones first (stable: by validity, then by age). Returns
@@ -215,7 +215,7 @@ def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> in
     return k
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.ndarray) -> None:
     """Rows (ranges only) of the first n range-window rows ``rw`` (position, range, LOS,
     weight), their weights times ``factor``."""
@@ -231,7 +231,7 @@ def _range_rows(rw: np.ndarray, n: int, factor: float, p: np.ndarray, rrows: np.
         rrows[k, R_S0] = p[P_S0_LOS] if rw[k, RW_LOS] != 0.0 else p[P_S0_NLOS]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p: np.ndarray, keep: bool) -> int:
     """The ranges of the rows ``nrows`` join the memory ``mem`` whose first nc cells are used
     (``memory`` = :func:`workspace`'s memory scratch: contiguous columns for the rows'
@@ -245,7 +245,7 @@ def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p
     return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc, keep)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarray) -> bool:
     """Whether this call's ranges join the range memory: the memory is on, the new rows carry a
     range and the element never used another component (these rows included)."""
@@ -259,7 +259,7 @@ def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarra
 
 
 # --------------------------------------------------------------------------- steps 1 and 3
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> None:
     """The output row before the call's records: the prior times λ (times λ·
     ``suspect_deflation`` for a suspect element), the PL systems times λ, the rest as was."""
@@ -274,7 +274,7 @@ def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> Non
             fo[j] = fi[j]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndarray, fisher_scale: float) -> None:
     """The prior (Λ, F × ``fisher_scale``, η) of the output row ``fo``."""
     _put(fo, np.int64(F_PINFO), lam, 1.0)
@@ -283,7 +283,7 @@ def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndar
         fo[F_PVEC + i] = eta[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray) -> bool:
     """Step 1 for an element not initialised: the new records' PL equations join its system;
     where it becomes solvable (and :func:`determined`) the estimate is its solution in the
@@ -312,7 +312,7 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
     return True
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _recheck_memory(
     fo: np.ndarray,
     x: np.ndarray,
@@ -364,7 +364,7 @@ def _recheck_memory(
     flags[0] = flags[1] = True  # fresh start, long run
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _recheck_system(
     fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray
 ) -> None:
@@ -381,7 +381,7 @@ def _recheck_system(
         b[i] = fo[F_PRB + i] + b_p[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _recheck(
     fo: np.ndarray,
     x: np.ndarray,
@@ -431,7 +431,7 @@ def _recheck(
 
 
 # --------------------------------------------------------------------------- step 2
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray) -> None:
     """The innovation gate against the previous state (when ``gate_sigma`` is set and it was
     observable): tr(J⁻¹) = tr(adj J)/det J, m², bounds the variance of the previous estimate
@@ -448,7 +448,7 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
         _gate_rows(x, rows, K, p, gate)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _refine(
     fo: np.ndarray,
     x: np.ndarray,
@@ -489,7 +489,7 @@ def _refine(
 
 
 # --------------------------------------------------------------------------- steps 3-5
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: int, hi: int, out: tuple) -> None:
     """``out`` = (g, H, F) of the rows lo..hi−1 at x_lin: from the evaluation ``work``, or, when
     they are all its rows, the totals of ``refined`` = (g, H, F, x_lin) minus the prior's part
@@ -506,7 +506,7 @@ def _leaving(refined: tuple, lam: np.ndarray, eta: np.ndarray, work: tuple, lo: 
         accumulate(work[0], lo, hi, work[1], work[2], go, Ho, Fo)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.ndarray, x: np.ndarray, p: np.ndarray, scratch: tuple) -> bool:
     """Rao's score test of the recent records against the estimate x (package doc, step 3):
     S_H ← λ_c S_H + H_new, S_v ← λ_c S_v + H_new x_lin − g_new, T = sᵀS_H⁻¹s with s = S_H x − S_v
@@ -540,7 +540,7 @@ def _score_test(fo: np.ndarray, g_new: np.ndarray, H_new: np.ndarray, x_lin: np.
     return fail
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     """More than ``suspect_fraction`` of the values of one component type (at least 2.5,
     weighted) lie beyond ``suspect_sigma``."""
@@ -550,7 +550,7 @@ def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     return False
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple, small: tuple) -> tuple[bool, bool]:
     """Steps 3-5 after the refinement of an initialised element: the suspect flag, the rows
     leaving the window (the oldest M) marginalised into the prior (linearised at x_lin), the
@@ -592,7 +592,7 @@ def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, 
     return _report(fo, fi, x, fisher, p), suspect
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p: np.ndarray) -> bool:
     """The reported estimate and information (symmetrised), the previous estimate and none
     where either is not finite; returns observability, det J/(tr J/3)³ ≥ ``min_rcond``."""
@@ -608,7 +608,7 @@ def _report(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, fisher: np.ndarray, p
     return finite and normalised_det(fisher) >= p[P_MIN_RCOND]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -> None:
     """An element still not initialised: the estimate stays, no information; the rows leaving
     the window (the oldest M) join the PL equations dropped before initialisation."""
@@ -624,7 +624,7 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 
 # --------------------------------------------------------------------------- the windows and the memory
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def _advance_range_window(
     fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray
 ) -> None:
@@ -672,7 +672,7 @@ def _advance_range_window(
             fo[F_PRB + i] += b_r[i]
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     """The values the new rows used join the count, and whether any record ever used a value
     other than a range; returns whether the new rows carry a range."""
@@ -690,7 +690,7 @@ def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
 
 
 # --------------------------------------------------------------------------- one element, a batch
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=False)
+@borrowing
 def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple, overwrite: bool) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
     order); ``ws`` = :func:`workspace`. With ``overwrite`` the outputs ``outs`` are the
@@ -744,7 +744,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     _count(io, nrows, nxa)
 
 
-@njit(cache=True, error_model="numpy", no_cpython_wrapper=True, no_cfunc_wrapper=True, _nrt=True)
+@counting
 def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     """Scratch arrays of one element's update (reused by every element of a batch), K = W + M:
     the raw rows of the call, their rows, extension values and weights; the same for the new
