@@ -14,16 +14,20 @@ argument of another type than the recorded one (a caller off the common path) go
 kernel, which compiles or loads that version as before.
 
 An extension module is keyed by everything its code depends on: the source of the kernel module
-and of the ``planner`` modules it imports, numba's and Python's versions, the CPU name and
+and of the ``planner`` modules it imports, numba's, numpy's and Python's versions (the module is
+compiled against numpy's C interface), the CPU name and
 features numba compiles for (``NUMBA_CPU_NAME``, ``NUMBA_CPU_FEATURES`` or the host's). An edit
 of the source, an upgrade or another CPU (a home directory shared by a cluster's nodes) finds no
 module and builds its own. They live in ``$FIMNAV_AOT_DIR`` when that variable is set, else in
 ``$NUMBA_CACHE_DIR/fimnav-aot`` when that one is, else in ``planner/__pycache__/aot`` of the
 installed package when it can be written, else in ``$XDG_CACHE_HOME/fimnav/aot``
-(``~/.cache/fimnav/aot``). A module is marked used when it is loaded (its modification time,
-renewed at most once a day); a build removes its group's modules of other keys that were not
-used for 30 days (:func:`planner.aot_build.remove_unused_modules`), so edits and upgrades do not
-pile them up, while the modules of other CPUs still in use in a shared directory stay.
+(``~/.cache/fimnav/aot``). A wheel built on the machine that installs it (``pip install .``)
+carries its modules in that package directory already (``setup.py``,
+:func:`planner.aot_build.build_for_install`): the first command builds nothing. A module is
+marked used when it is loaded (its modification time, renewed at most once a day); a build
+removes its group's modules of other keys that were not used for 30 days
+(:func:`planner.aot_build.remove_unused_modules`), so edits and upgrades do not pile them up,
+while the modules of other CPUs still in use in a shared directory stay.
 
 The build needs a C compiler (numba.pycc compiles a small C wrapper) and, on Python 3.12 or
 later, setuptools; without them :func:`planner.aot_build.build` raises
@@ -127,13 +131,14 @@ def _cpu() -> tuple[str, str]:
 @functools.cache
 def key(group: str) -> str:
     """The key of ``group``'s extension module: a digest of its sources (:func:`sources`),
-    numba's and Python's versions and the CPU (:func:`_cpu`). Computed once per process (the
+    numba's, numpy's and Python's versions and the CPU (:func:`_cpu`). Computed once per process (the
     kernels a process runs are the sources it imported)."""
     import numba
+    import numpy
 
     module = GROUPS[group][0]
     h = hashlib.sha256()
-    for part in (group, numba.__version__, sys.version, *_cpu(), repr(GROUPS[group][1])):
+    for part in (group, numba.__version__, numpy.__version__, sys.version, *_cpu(), repr(GROUPS[group][1])):
         h.update(part.encode())
         h.update(b"\0")
     for path in [*sources(module), _PLANNER / "aot.py", _PLANNER / "aot_signatures.py"]:

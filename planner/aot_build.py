@@ -125,4 +125,28 @@ def build_or_record(group: str) -> None:
         raise SystemExit(1) from None
 
 
-__all__ = ["BuildError", "build", "build_or_record", "remove_unused_modules"]
+def build_for_install() -> int:
+    """Build every group into :func:`planner.aot.directory` and leave nothing else there (no
+    module of another key, no failure record: an installed package tries again on first use);
+    what the package's build runs (``setup.py``, with ``FIMNAV_AOT_DIR`` set to the built
+    package's ``planner/__pycache__/aot``). Returns 0 when every group was built, else 1 (the
+    reasons printed to stderr)."""
+    from planner.aot import GROUPS, directory, failed
+    from planner.warm import available_cores, compile_aside
+
+    compile_aside(available_cores())
+    reasons = failed()
+    keep = {path(group).name for group in GROUPS if group not in reasons}
+    for entry in directory().iterdir() if directory().is_dir() else ():
+        if entry.name in keep:
+            continue
+        if entry.is_dir():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+    for reason in reasons.values():
+        print(reason, file=sys.stderr)
+    return 1 if reasons else 0
+
+
+__all__ = ["BuildError", "build", "build_for_install", "build_or_record", "remove_unused_modules"]

@@ -218,3 +218,75 @@ def test_a_build_removes_its_groups_modules_unused_for_30_days_and_a_load_marks_
     aot.mark_used(fresh)
     assert fresh.stat().st_mtime == before
     aot.mark_used(tmp_path / "missing")  # no error where there is nothing to mark
+
+
+def test_the_install_build_leaves_only_the_current_keys_modules_and_no_failure_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import planner.warm
+    from planner.aot_build import build_for_install
+
+    monkeypatch.setenv("FIMNAV_AOT_DIR", str(tmp_path))
+    monkeypatch.setenv("FIMNAV_AOT", "1")
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    built = [aot.path(g) for g in ("planning", "estimator")]
+    left = [
+        tmp_path / ("fimnav_aot_planning_0123456789abcdef0123" + suffix),  # another key's
+        aot.failure_file("simulator"),  # the group that could not be built
+        tmp_path / ".build-x1y2z3" / "partial.o",  # a build's scratch
+    ]
+
+    def compile_aside(workers: int) -> list[str]:  # what the real build leaves, minus the slow part
+        assert workers >= 1
+        for f in built + left:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_text("the simulator kernels could not be built ahead of time: no C compiler\n" if f.suffix == ".failed" else "")
+        return ["planning", "estimator"]
+
+    monkeypatch.setattr(planner.warm, "compile_aside", compile_aside)
+    assert build_for_install() == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in built)
+    assert "the simulator kernels could not be built ahead of time: no C compiler" in capsys.readouterr().err
+    # Every group built: 0, and the built modules stay.
+    monkeypatch.setattr(planner.warm, "compile_aside", lambda workers: [])
+    assert build_for_install() == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in built)
+
+
+@pytest.mark.slow
+def test_the_packages_build_carries_this_machines_kernel_modules_and_nothing_numba_cached(tmp_path: Path) -> None:
+    # About a minute on two cores: setup.py's build_py (what `pip install .` runs to make its
+    # wheel) builds every group into the built package.
+    listed = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout.split(b"\0")
+    src = tmp_path / "src"
+    for name in (n.decode() for n in listed if n):
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        (src / name).write_bytes((ROOT / name).read_bytes())
+    env = {k: v for k, v in os.environ.items() if k not in ("FIMNAV_AOT_DIR", "FIMNAV_AOT", "NUMBA_CACHE_DIR", "PYTHONPATH")}
+    built = tmp_path / "lib"
+    done = subprocess.run([sys.executable, "setup.py", "build_py", "--build-lib", str(built)], cwd=src, env=env, text=True, capture_output=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "building the compiled kernels for this machine" in done.stderr
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    # The same sources, numba, numpy, Python and CPU here: the keys this process computes.
+    cached = sorted(p.relative_to(built).as_posix() for p in built.rglob("*") if "__pycache__" in p.parts and p.is_file())
+    assert cached == sorted(f"planner/__pycache__/aot/{aot.module_name(g)}{suffix}" for g in aot.GROUPS)
+    # An editable install's build (setuptools sets build_py's editable_mode) skips the step: its
+    # kernels are built where its sources are.
+    as_editable = """
+        import sys
+        from setuptools.command.build_py import build_py
+        plain = build_py.initialize_options
+        def initialize_options(self):
+            plain(self)
+            self.editable_mode = True
+        build_py.initialize_options = initialize_options
+        sys.argv = ["setup.py", "build_py", "--build-lib", sys.argv[1]]
+        exec(open("setup.py").read())
+    """
+    editable = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(as_editable), str(tmp_path / "editable")], cwd=src, env=env, text=True, capture_output=True, timeout=300
+    )
+    assert editable.returncode == 0, editable.stderr
+    assert "building the compiled kernels" not in editable.stderr, editable.stderr
+    assert not list((tmp_path / "editable").rglob("*.so"))
