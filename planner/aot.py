@@ -196,7 +196,44 @@ def load(group: str) -> ModuleType | None:
         return None
     sys.modules[name] = module
     mark_used(file)
+    preload_lapack()
     return module
+
+
+#: The module of scipy's LAPACK bindings that numba's LAPACK helpers look their functions up in.
+LAPACK_MODULE: str = "scipy.linalg.cython_lapack"
+
+
+def preload_lapack() -> bool:
+    """Load scipy's LAPACK bindings (:data:`LAPACK_MODULE`, which a built kernel's ``eigh`` and
+    ``eigvalsh`` reach through numba's helpers: they import it by name at their first call)
+    from its file, without running ``scipy.linalg``'s package (about 0.2 s of a command's start
+    that the kernels do not use: it imports scipy's whole linear algebra, numpy's test tools and
+    unittest). The import system then finds it loaded: ``import scipy.linalg.cython_lapack`` and
+    ``from scipy.linalg import cython_lapack`` give the same module, also after a later ``import
+    scipy.linalg`` (whose package then has no ``cython_lapack`` attribute of its own: reach the
+    module by one of those imports). Returns whether it is loaded (True at once when it is
+    already); nothing is done (False) where scipy.linalg is imported without it or scipy's file
+    is not where scipy keeps it, and the helpers then import it the usual way.
+    """
+    if LAPACK_MODULE in sys.modules:
+        return True
+    if "scipy.linalg" in sys.modules:
+        return False
+    try:
+        scipy = importlib.util.find_spec("scipy")
+        if scipy is None or not scipy.submodule_search_locations:
+            return False
+        file = Path(next(iter(scipy.submodule_search_locations))) / "linalg" / ("cython_lapack" + importlib.machinery.EXTENSION_SUFFIXES[0])
+        spec = importlib.util.spec_from_file_location(LAPACK_MODULE, file) if file.is_file() else None
+        if spec is None or spec.loader is None:
+            return False
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except Exception:  # another layout of scipy: imported the usual way when first used
+        return False
+    sys.modules[LAPACK_MODULE] = module
+    return True
 
 
 #: A module not loaded for this long (seconds) is removed by the next build in its directory
@@ -427,6 +464,7 @@ def forget_failure(group: str) -> None:
 
 __all__ = [
     "GROUPS",
+    "LAPACK_MODULE",
     "UNUSED_MODULE_S",
     "USE_MARK_S",
     "Entry",
@@ -446,6 +484,7 @@ __all__ = [
     "missing",
     "parse_signature",
     "path",
+    "preload_lapack",
     "signature_expression",
     "sources",
 ]

@@ -290,3 +290,28 @@ def test_the_packages_build_carries_this_machines_kernel_modules_and_nothing_num
     assert editable.returncode == 0, editable.stderr
     assert "building the compiled kernels" not in editable.stderr, editable.stderr
     assert not list((tmp_path / "editable").rglob("*.so"))
+
+
+def test_lapacks_bindings_are_loaded_without_scipy_linalgs_package(tmp_path: Path) -> None:
+    done = run(
+        """
+        import sys
+        from planner import aot
+        first = aot.preload_lapack()
+        alone = "scipy.linalg" not in sys.modules
+        import scipy.linalg.cython_lapack as lapack  # what numba's LAPACK helpers import
+        same = lapack is sys.modules[aot.LAPACK_MODULE] and "dsyevd" in lapack.__pyx_capi__
+        import numpy as np
+        import scipy.linalg
+        w = scipy.linalg.eigh(np.array([[2.0, 1.0], [1.0, 2.0]]), eigvals_only=True)
+        from scipy.linalg import cython_lapack
+        print(first, alone, same, aot.preload_lapack(), np.allclose(w, [1.0, 3.0]), cython_lapack is lapack)
+        """,
+        tmp_path,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True"] * 6
+    # scipy.linalg imported first: its own import of the bindings is the one used.
+    late = run("import sys, scipy.linalg; from planner import aot; print(aot.preload_lapack(), scipy.linalg.cython_lapack is sys.modules[aot.LAPACK_MODULE])", tmp_path)
+    assert late.returncode == 0, late.stderr
+    assert late.stdout.split() == ["True", "True"]
