@@ -101,7 +101,7 @@ def update(
         ch,
         due,
         used,
-        callback,
+        callback.address,
         overwrite,
     )
     if errors:

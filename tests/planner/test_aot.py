@@ -53,6 +53,7 @@ def test_sources_are_the_kernel_modules_and_what_they_import_not_the_binding() -
     assert names["simulator"] == ["sim_kernels.py"]
     assert names["estimator"] == [
         "estimator/kernels/__init__.py",
+        "estimator/kernels/extension.py",
         "estimator/kernels/linalg.py",
         "estimator/kernels/memory.py",
         "estimator/kernels/pseudolinear.py",

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from planner.estimator.kernels.extension import call
 from planner.estimator.kernels.linalg import borrowing, clip, counting, inv3_spd, nmax, nmin
 from planner.estimator.layout import P_GAMMA, P_HI, P_HUBER, P_LM_DAMP, P_LO, P_ML, P_SB, P_SUSP_SIGMA, P_TUKEY, P_TUKEY_C
 
@@ -85,7 +86,8 @@ def residuals(
 def extra_terms(
     cb, buf: np.ndarray, x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, grad: tuple, want: bool
 ) -> float:
-    """The components outside the kernel at x: ``cb`` (their own code) leaves in ``buf`` the
+    """The components outside the kernel at x: the callback at ``cb`` (their own code, an address:
+    :func:`planner.estimator.kernels.extension.call`) leaves in ``buf`` the
     normalised residuals e (K, X) and gradients ∂e/∂x (K, X, 3) of the rows' values; returns
     their robust cost Σ a ρ(e) and, if ``want``, fills ``grad`` = (xg, xh, counts): per row
     Σ a ψ ∂e/∂x (K, 3) and Σ a w ∂e/∂x ∂e/∂xᵀ (K, 9) and their counts per value."""
@@ -96,7 +98,7 @@ def extra_terms(
         buf[o + k], buf[o + K + k], buf[o + 2 * K + k] = rows[k, R_PX], rows[k, R_PY], rows[k, R_PZ]
         for j in range(X):
             buf[o + 3 * K + k * X + j] = xz[k, j]
-    cb(buf.ctypes.data, K, X)
+    call(cb, buf.ctypes.data, K, X)
     oe = o + 3 * K + K * X
     od = oe + K * X
     huber, c, c2 = p[P_HUBER], p[P_TUKEY_C], p[P_SUSP_SIGMA] * p[P_SUSP_SIGMA]

@@ -797,7 +797,7 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
             σ_r0 LOS, σ_r0 NLOS, σ_b).
         due: whether the global re-check runs in this call.
         extra_used: (X,) which extension values belong to a component in use.
-        cb: the extension components' callback (never called without such values).
+        cb: the address of the extension components' callback (:attr:`planner.estimator.kernels.extension.Callback.address`; never called without such values).
         overwrite: write the new state into ``state``'s arrays (returned) instead of new ones.
 
     Returns:
