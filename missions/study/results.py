@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 import platform
@@ -276,16 +277,9 @@ def write_run(
                     _fmt(err_median[k]),
                 ]
             )
-    roles = result.spec.mission.drones.roles
     with (run_dir / "trajectories.csv").open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["trial", "step", "drone", "role", "x_m", "y_m", "z_m", "estimate_x_m", "estimate_y_m", "estimate_z_m", "peb_m"])
-        pos, est, peb = result.positions_m[:, 0], result.estimates_m[:, 0], result.peb_m[:, 0]
-        K = est.shape[0]
-        for k in range(K + 1):
-            for i in range(pos.shape[1]):
-                e = est[min(k, K - 1), i]
-                w.writerow([0, k, i + 1, roles[i], *(_fmt(v) for v in pos[k, i]), *(_fmt(v) for v in e), _fmt(peb[min(k, K - 1), i])])
+        csv.writer(fh).writerow(["trial", "step", "drone", "role", "x_m", "y_m", "z_m", "estimate_x_m", "estimate_y_m", "estimate_z_m", "peb_m"])
+        fh.write(_trajectory_rows(result))
     from missions.study.exports import write_exports
 
     write_exports(result, run_dir)  # trajectories.kml, trajectories.geojson (first trial)
@@ -298,6 +292,33 @@ def write_run(
 
 def _fmt(x: float) -> str:
     return f"{float(x):.10g}"
+
+
+#: One row of trajectories.csv after its role: the numbers as :func:`_fmt` writes them.
+_TRAJECTORY_ROW = "%d,%d,%s" + ",%.10g" * 7 + "\r\n"
+
+
+def _csv_cell(text: str) -> str:
+    """``text`` as ``csv.writer`` writes one cell (quoted only where it must be)."""
+    buf = io.StringIO()
+    csv.writer(buf).writerow([text])  # its line terminator decides the quoting too: kept, then cut
+    return buf.getvalue()[: -len("\r\n")]
+
+
+def _trajectory_rows(result: SimulationResult) -> str:
+    """The rows of trajectories.csv (the first trial: every step's position of each drone, m,
+    ENU, with its estimate and PEB of that step, the last step's for the final position), as
+    ``csv.writer`` writes them with :func:`_fmt`'s numbers: one format per row."""
+    roles = [_csv_cell(r) for r in result.spec.mission.drones.roles]
+    pos, est, peb = result.positions_m[:, 0].tolist(), result.estimates_m[:, 0].tolist(), result.peb_m[:, 0].tolist()
+    K = len(est)
+    rows = []
+    for k, at_k in enumerate(pos):
+        e_k, peb_k = est[min(k, K - 1)], peb[min(k, K - 1)]
+        for i, p in enumerate(at_k):
+            e = e_k[i]
+            rows.append("0," + _TRAJECTORY_ROW % (k, i + 1, roles[i], p[0], p[1], p[2], e[0], e[1], e[2], peb_k[i]))
+    return "".join(rows)
 
 
 def figure_view(result: SimulationResult) -> SimulationResult:

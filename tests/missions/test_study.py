@@ -196,3 +196,29 @@ def test_write_study_writes_each_run_when_it_is_done_and_the_same_files_as_write
     assert sorted(p.name for p in (tmp_path / "streamed" / "figures").iterdir()) == sorted(p.name for p in (tmp_path / "whole" / "figures").iterdir())
     top = json.loads((tmp_path / "streamed" / "summary.json").read_text())
     assert [r["run"] for r in top["runs"]] == ["paper_joint_A", "paper_bearing_A"]
+
+
+def test_trajectories_csv_rows_are_what_csv_writer_writes_of_every_number_and_role() -> None:
+    import csv
+    import io
+
+    from missions.study import results
+
+    r = simulate(RunSpec(paper_mission("heterogeneous"), "A", 2, 12))
+    pos, peb = r.positions_m.copy(), r.peb_m.copy()
+    pos[3, 0, 1, 0], pos[4, 0, 2, 1], pos[5, 0, 3, 2], pos[6, 0, 0, 0] = np.nan, -np.inf, -0.0, 1e-300
+    peb[2, 0, :] = np.inf
+    r = dataclasses.replace(r, positions_m=pos, peb_m=peb)
+    mission = r.spec.mission
+    roles = ["joint", "a,b", 'say "hi"', "line\nbreak", "100%s"] + list(mission.drones.roles[5:])
+    r = dataclasses.replace(r, spec=dataclasses.replace(r.spec, mission=mission.model_copy(update={"drones": mission.drones.model_copy(update={"roles": roles})})))
+    # The reference: csv.writer, cell by cell, each number as results._fmt writes it.
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    K = r.estimates_m.shape[0]
+    for k in range(K + 1):
+        for i in range(r.positions_m.shape[2]):
+            e = r.estimates_m[min(k, K - 1), 0, i]
+            p = r.positions_m[k, 0, i]
+            w.writerow([0, k, i + 1, roles[i], *(results._fmt(v) for v in p), *(results._fmt(v) for v in e), results._fmt(r.peb_m[min(k, K - 1), 0, i])])
+    assert results._trajectory_rows(r) == buf.getvalue()
