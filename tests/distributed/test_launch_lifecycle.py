@@ -107,11 +107,18 @@ def swarm_of(run: Launch, planners: int) -> dict[int, ProcInfo]:
     process and the planners' fork server (and multiprocessing's resource tracker)."""
     wait_for(lambda: steps_logged(run.out) >= 2, 90.0, "the mission to fly two steps")
 
+    seen: dict[int, ProcInfo] = {}
+
     def planners_up() -> bool:  # a forked planner shows its own command line a moment after the fork
-        return sum(" plan " in p.cmdline for p in descendants(run.proc.pid).values()) == planners
+        # One snapshot, counted and returned: a short mission may end between two.
+        tree = descendants(run.proc.pid)
+        if sum(" plan " in p.cmdline for p in tree.values()) != planners:
+            return False
+        seen.update(tree)
+        return True
 
     wait_for(planners_up, 30.0, f"{planners} planner processes")
-    tree = descendants(run.proc.pid)
+    tree = seen
     kinds = [p.cmdline for p in tree.values()]
     assert sum(" plan " in c for c in kinds) == planners, kinds
     assert sum(" vehicle " in c for c in kinds) == 1, kinds
