@@ -277,9 +277,8 @@ class Entry:
         self._accepted: set[tuple[Any, ...]] = set()
 
     def _key(self, args: tuple[Any, ...]) -> tuple[Any, ...] | None:
-        """The types of ``args`` as numba's fingerprints (a value without one, such as a
-        first-class function, by its Python type); None when an array has none (then every
-        call is checked in full)."""
+        """The types of ``args`` as numba's fingerprints (a value without one by its Python
+        type); None when an array has none (then every call is checked in full)."""
         key: list[Any] = []
         for a in args:
             try:
@@ -306,8 +305,8 @@ def checker(t: Any) -> Callable[[Any], bool]:
     """A check that a Python value is of numba type ``t`` as numba's ``typeof`` would type it
     (for the kinds of :func:`expression`): an array of that dtype, dimension, layout, aligned and
     writeable unless ``t`` is read-only; a tuple of that length whose items check; a bool, an
-    integer or a float of that width (Python's own or numpy's); a first-class function. One
-    check per type (numba's types are interned), made on first use.
+    integer or a float of that width (Python's own or numpy's). One check per type (numba's
+    types are interned), made on first use.
 
     Raises:
         ValueError: a kind of type the signatures do not use.
@@ -341,8 +340,6 @@ def checker(t: Any) -> Callable[[Any], bool]:
     if isinstance(t, nbtypes.Float):
         exact = np.dtype(str(t)).type
         return lambda x: type(x) is exact or (type(x) is float and str(t) == "float64")
-    if isinstance(t, nbtypes.FunctionType):
-        return lambda x: hasattr(x, "__wrapper_address__")
     raise ValueError(f"no check for numba type {t!r}")
 
 
@@ -416,8 +413,6 @@ def expression(t: Any) -> str:
         return f"UniTuple({expression(t.dtype)}, {t.count})"
     if isinstance(t, nbtypes.Tuple):
         return "Tuple((" + "".join(expression(x) + ", " for x in t.types) + "))"
-    if isinstance(t, nbtypes.FunctionType):
-        return f"FunctionType({signature_expression(t.signature)})"
     if isinstance(t, (nbtypes.Boolean, nbtypes.Integer, nbtypes.Float)):
         return str(t) if str(t) != "bool" else "boolean"
     raise ValueError(f"no expression for numba type {t!r}")
