@@ -75,6 +75,10 @@ GROUPS: dict[str, tuple[str, tuple[str, ...]]] = {
     ),
 }
 
+#: The groups whose kernels call LAPACK (the estimator's ``eigh`` and ``eigvalsh``): loading one
+#: loads scipy's LAPACK bindings too (:func:`preload_lapack`).
+LAPACK_GROUPS: frozenset[str] = frozenset({"estimator"})
+
 _PLANNER = Path(__file__).resolve().parent
 _IMPORT = re.compile(r"^\s*(?:from\s+(planner[\w.]*)\s+import\s+([\w\s,()]+)|import\s+(planner[\w.]*))", re.MULTILINE)
 
@@ -196,7 +200,8 @@ def load(group: str) -> ModuleType | None:
         return None
     sys.modules[name] = module
     mark_used(file)
-    preload_lapack()
+    if group in LAPACK_GROUPS:
+        preload_lapack()
     return module
 
 
@@ -459,6 +464,7 @@ def forget_failure(group: str) -> None:
 
 __all__ = [
     "GROUPS",
+    "LAPACK_GROUPS",
     "LAPACK_MODULE",
     "UNUSED_MODULE_S",
     "USE_MARK_S",

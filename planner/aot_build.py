@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from planner.aot import GROUPS, UNUSED_MODULE_S, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
+from planner.aot import GROUPS, UNUSED_MODULE_S, directory, failed, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
 from planner.aot_signatures import SIGNATURES
 
 
@@ -131,7 +131,6 @@ def build_for_install() -> int:
     what the package's build runs (``setup.py``, with ``FIMNAV_AOT_DIR`` set to the built
     package's ``planner/__pycache__/aot``). Returns 0 when every group was built, else 1 (the
     reasons printed to stderr)."""
-    from planner.aot import GROUPS, directory, failed
     from planner.warm import available_cores, compile_aside
 
     compile_aside(available_cores())

@@ -294,8 +294,8 @@ def _fmt(x: float) -> str:
     return f"{float(x):.10g}"
 
 
-#: One row of trajectories.csv after its role: the numbers as :func:`_fmt` writes them.
-_TRAJECTORY_ROW = "%d,%d,%s" + ",%.10g" * 7 + "\r\n"
+#: One row of trajectories.csv (trial 0, step, drone, role, numbers as :func:`_fmt` writes them).
+_TRAJECTORY_ROW = "0,%d,%d,%s" + ",%.10g" * 7 + "\r\n"
 
 
 def _csv_cell(text: str) -> str:
@@ -317,7 +317,7 @@ def _trajectory_rows(result: SimulationResult) -> str:
         e_k, peb_k = est[min(k, K - 1)], peb[min(k, K - 1)]
         for i, p in enumerate(at_k):
             e = e_k[i]
-            rows.append("0," + _TRAJECTORY_ROW % (k, i + 1, roles[i], p[0], p[1], p[2], e[0], e[1], e[2], peb_k[i]))
+            rows.append(_TRAJECTORY_ROW % (k, i + 1, roles[i], p[0], p[1], p[2], e[0], e[1], e[2], peb_k[i]))
     return "".join(rows)
 
 
