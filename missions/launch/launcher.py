@@ -537,8 +537,11 @@ class Launcher:
         return launch_result(self.mission, self._planner_config, self.collected, logs, self.realtime, runtime_s)
 
 
-def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, int], None] | None = None, **kwargs: Any) -> dict[str, Any]:
-    """Fly ``mission`` distributed and write the results directory; return the summary.
+def launch(
+    mission: Mission, out: Path, progress: Callable[[int, float, float, int], None] | None = None, figures: bool = True, **kwargs: Any
+) -> dict[str, Any]:
+    """Fly ``mission`` distributed and write the results directory (its PNG figures too if
+    ``figures``); return the summary. ``kwargs`` go to :class:`Launcher`.
 
     Raises:
         UsageError: ``out`` holds a previous run (see :func:`claim_results_dir`).
@@ -562,4 +565,4 @@ def launch(mission: Mission, out: Path, progress: Callable[[int, float, float, i
         "clock": f"realtime x{launcher.speedup:g}" if launcher.realtime else "lockstep",
         "taken_over": taken_over(out, mission.drones.count),
     }
-    return write_results([result], out, command=["fimnav", "launch", *sys.argv[2:]], extras=[launched])[0]
+    return write_results([result], out, figures=figures, command=["fimnav", "launch", *sys.argv[2:]], extras=[launched])[0]

@@ -30,7 +30,7 @@ def test_heterogeneous_mission_runs_and_matches_the_simulator(tmp_path: Path, la
     (with the MAVLink float32 precision of positions emulated): positions within 1 cm for every
     step and final PEB within 2 % (measured: 1e-5 m and 1e-6, docs/distributed.md)."""
     out = tmp_path / "het"
-    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "60", "--step-timeout", "60")
+    run = Launch(PAPER / "heterogeneous.yaml", out, "--steps", "60", "--step-timeout", "60", figures=True)
     launches.append(run)
     code, stdout, stderr = run.wait()
     assert code == 0, stderr[-3000:]

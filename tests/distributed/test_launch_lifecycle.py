@@ -176,7 +176,7 @@ def test_a_launch_started_with_hangups_ignored_flies_on_through_a_hangup(tmp_pat
     the mission flies: the launch ends the mission normally (exit 0, its results line, a summary)
     and leaves no process behind."""
     out = tmp_path / "run"
-    argv = with_hangup(fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--steps", "60", "--set", "drones.count=4"), "SIG_IGN")
+    argv = with_hangup(fimnav("launch", str(PAPER / "joint.yaml"), "--out", str(out), "--steps", "60", "--set", "drones.count=4", "--no-figures"), "SIG_IGN")
     run = Launch.command(argv, out, ROOT)
     launches.append(run)
     tree = swarm_of(run, 4)

@@ -21,7 +21,8 @@ pytestmark = pytest.mark.integration
 def test_lockstep_launch_with_unknown_power_reports_the_offset(tmp_path: Path, launches: list[Launch]) -> None:
     """20 steps of the paper's ranging swarm: the run completes with no violation; every planner's
     step log and the summary carry the estimated offset (dB); positions, estimates and offsets
-    equal the simulator's (1 cm, 1 cm, 1e-3 dB; measured 8e-6 m and 8e-7 dB)."""
+    equal the simulator's (1 cm, 1 cm, 1e-3 dB; measured 8e-6 m and 8e-7 dB). Run with
+    ``--no-figures`` (:class:`Launch`'s default): every result but the PNG figures is written."""
     out = tmp_path / "power"
     steps = 20
     run = Launch(
@@ -39,6 +40,10 @@ def test_lockstep_launch_with_unknown_power_reports_the_offset(tmp_path: Path, l
     launches.append(run)
     code, _stdout, stderr = run.wait()
     assert code == 0, stderr[-3000:]
+    assert "--no-figures" in run.process.argv
+    assert not list(out.rglob("*.png"))
+    run_dir = out / "runs" / "paper_ranging_los_A"
+    assert (run_dir / "peb.csv").stat().st_size > 0 and (run_dir / "trajectories.csv").stat().st_size > 0
     summary = json.loads((out / "summary.json").read_text())["runs"][0]
     assert summary["violations"] == dict.fromkeys(summary["violations"], 0)
     block = summary["source_power"]

@@ -73,7 +73,7 @@ def test_a_stopped_realtime_launch_leaves_every_vehicle_in_on_stop(tmp_path: Pat
     mission = write(tmp_path / "m.yaml", mission_of("stopped", 2, 300, vehicles={"flavour": flavour}))
     out = tmp_path / "run"
     run = Launch.command(with_default_interrupt(fimnav("launch", str(mission), "--out", str(out), "--realtime", "--speedup", str(SPEEDUP),
-                                                       "--start-delay", "12")), out, tmp_path)
+                                                       "--start-delay", "12", "--no-figures")), out, tmp_path)
     launches.append(run)
     wait_for(lambda: min(steps_logged(out, 1), steps_logged(out, 2)) >= 3, 90.0, "three steps of every drone")
     if signum == signal.SIGINT:

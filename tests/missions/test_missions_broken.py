@@ -12,8 +12,11 @@ import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
+
+from tests.support.shared import once_per_run
 
 HERE = Path(__file__).resolve().parent
 BROKEN = HERE / "broken"
@@ -67,10 +70,9 @@ def run_check_in_process(target: str) -> subprocess.CompletedProcess[str]:
 SUBPROCESS_SAMPLE = frozenset(str(c.relative_to(REPO)) for c in CASES[::6])
 
 
-@pytest.fixture(scope="module")
-def corpus_runs() -> dict[str, subprocess.CompletedProcess[str]]:
+def _corpus_runs() -> dict[str, list[Any]]:
     """``fimnav check`` on every corpus file: in process, and for a sample as a subprocess too
-    (the two must agree)."""
+    (the two must agree); per file [argv, exit status, stdout, stderr]."""
     rels = [str(c.relative_to(REPO)) for c in CASES]
     runs = {rel: run_check_in_process(rel) for rel in rels}
     with ThreadPoolExecutor(max_workers=2) as pool:
@@ -78,7 +80,14 @@ def corpus_runs() -> dict[str, subprocess.CompletedProcess[str]]:
         for rel, proc in zip(sample, pool.map(run_check, sample)):
             assert (proc.returncode, proc.stderr) == (runs[rel].returncode, runs[rel].stderr), rel
             runs[rel] = proc
-    return runs
+    return {rel: [list(p.args), p.returncode, p.stdout, p.stderr] for rel, p in runs.items()}
+
+
+@pytest.fixture(scope="module")
+def corpus_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, subprocess.CompletedProcess[str]]:
+    """:func:`_corpus_runs`, once per test run (shared by the workers: :mod:`tests.support.shared`)."""
+    runs = once_per_run(tmp_path_factory, "broken-missions-corpus", _corpus_runs)
+    return {rel: subprocess.CompletedProcess(args, code, out, err) for rel, (args, code, out, err) in runs.items()}
 
 
 def assert_one_clear_error(proc: subprocess.CompletedProcess[str], file_label: str) -> str:

@@ -96,7 +96,7 @@ def test_fimnav_vehicle_default_mavlink_binding_is_loopback() -> None:
 def test_every_process_of_a_launch_listens_on_loopback_only(tmp_path: Path) -> None:
     out = tmp_path / "run"
     run = subprocess.Popen([sys.executable, "-m", "missions", "launch", str(ROOT / "missions/paper/ranging_los.yaml"),
-                            "--out", str(out), "--steps", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            "--out", str(out), "--steps", "30", "--no-figures"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                            start_new_session=True, cwd=ROOT)
     try:
         log = out / "logs" / "planner_1.jsonl"

@@ -49,10 +49,11 @@ def processes_with_environment(entry: str) -> list[int]:
 
 class Launch:
     """``fimnav launch MISSION --out OUT ARGS`` from the repository, in its own session (a
-    :class:`Proc` with this process's environment)."""
+    :class:`Proc` with this process's environment); with ``--no-figures`` unless ``figures``
+    (the PNG figures cost 2-3 s of CPU per launch; the tests that read them ask for them)."""
 
-    def __init__(self, mission: Path, out: Path, *args: str) -> None:
-        self._start(fimnav("launch", str(mission), "--out", str(out), *args), out, ROOT)
+    def __init__(self, mission: Path, out: Path, *args: str, figures: bool = False) -> None:
+        self._start(fimnav("launch", str(mission), "--out", str(out), *args, *(() if figures else ("--no-figures",))), out, ROOT)
 
     @classmethod
     def command(cls, argv: Sequence[str], out: Path, cwd: Path) -> Launch:
