@@ -70,9 +70,10 @@ def test_mavproxy_on_the_ground_station_port_sees_every_vehicle_and_commands_rea
         "source": {"position_m": [60.0, 90.0, 2.0]},
     }))
     out = tmp_path / "run"
-    # 6 s from the launch to step 0: take-off to the starts, even with the suite's other tests
-    # loading the machine (with 3 s a loaded run had drones join a few steps late).
-    run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "6", "--gcs", f"udpout:127.0.0.1:{gcs_port}")
+    # 10 s from the launch to step 0: take-off to the starts, even with the suite's other tests
+    # loading the machine (with 3 s a loaded run had drones join a few steps late; with 6 s,
+    # twice in a day of full runs on two cores, one drone joined 6 steps late).
+    run = Launch(mission, out, "--realtime", "--speedup", str(SPEEDUP), "--start-delay", "10", "--gcs", f"udpout:127.0.0.1:{gcs_port}")
     launches.append(run)
     try:
         # (lat, lon) of each system once airborne at its start altitude (7 m of 8).
