@@ -8,7 +8,8 @@ The suite runs numba's JIT kernels (``FIMNAV_AOT=0``, unless the environment set
 once into numba's cache by tests/conftest.py: building the extension modules ahead of time
 (:mod:`planner.aot`) on top would add about a minute of CPU to every clean run. The
 ahead-of-time kernels are tested against the JIT's in tests/planner/test_aot.py, which turns
-them on for its own processes; ``FIMNAV_AOT=1 python -m pytest`` runs the whole suite on them.
+them on for its own processes; ``FIMNAV_AOT=1 python -m pytest`` runs the suite on them (the
+tests of the JIT itself skip: :data:`tests.support.kernels.jit_only`).
 """
 
 import os

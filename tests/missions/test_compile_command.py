@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.kernels import jit_only
 from tests.support.proc import fimnav
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -22,6 +23,7 @@ def run(*args: str, cache: Path | None = None) -> subprocess.CompletedProcess[st
     return subprocess.run(fimnav("compile", *args), env=env, text=True, capture_output=True, timeout=600)
 
 
+@jit_only
 def test_on_a_warm_cache_every_group_is_loaded_not_compiled() -> None:
     done = run()
     assert done.returncode == 0, done.stderr

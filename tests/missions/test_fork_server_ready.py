@@ -16,6 +16,7 @@ import textwrap
 from pathlib import Path
 
 from missions.launch.forkspawn import PRELOAD
+from tests.support.kernels import jit_only
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -57,6 +58,7 @@ def test_wait_ready_returns_only_once_a_slow_preload_is_imported(tmp_path: Path)
     assert float(waited) >= 1.0, done.stdout  # it did wait for the preload
 
 
+@jit_only
 def test_the_preload_loads_the_compiled_estimator() -> None:
     assert "planner.node.warm_estimator" in PRELOAD
     done = run_python(

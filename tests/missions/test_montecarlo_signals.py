@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.kernels import jit_only
 from tests.support.proc import alive, child_pids, with_default_hangup, with_default_interrupt
 from tests.support.wait import wait_for
 
@@ -66,6 +67,7 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the compiling processes")
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@jit_only
 def test_signal_during_the_first_compile_stops_the_compiling_children(tmp_path: Path, sig: signal.Signals, status: int) -> None:
     # A cold kernel cache (an empty NUMBA_CACHE_DIR): the command first compiles the planning and
     # estimator kernels in two child processes (planner.warm, about 35 s); a signal to the command

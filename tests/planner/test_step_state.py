@@ -18,6 +18,7 @@ from planner.agent import _scene_cost, plan
 from planner.control import ControlScene, control_step
 from planner.step import OWN_RANGE_WINDOW, OWN_TRACK_STEPS, DroneState, StepScene
 from tests.planner.stepping import planner_config
+from tests.support.kernels import jit_only
 
 BOXES = (np.array([[20.0, 30.0, 0.0], [-40.0, 10.0, 0.0]]), np.array([[30.0, 45.0, 18.0], [-30.0, 25.0, 12.0]]))
 N = 5
@@ -76,6 +77,7 @@ def test_a_batch_is_its_drones_planned_one_by_one(rng: np.random.Generator) -> N
             np.testing.assert_array_equal(getattr(one.state, f.name), getattr(batch.state, f.name)[i], err_msg=f.name)
 
 
+@jit_only
 def test_read_only_inputs_reuse_the_one_compiled_step(rng: np.random.Generator) -> None:
     """A one-trial run's inputs are read-only broadcast views that look C-contiguous (a (1, N)
     broadcast of arange(N)); numba would compile the step again for them (another array type,
