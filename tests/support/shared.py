@@ -20,17 +20,16 @@ import pytest
 def once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, compute: Callable[[], Any]) -> Any:
     """``compute()`` (a JSON value), run once per test run under the name ``name``: by the
     first worker that asks; the others (and later callers) get the value it wrote. Without
-    workers the value is computed (no other process needs it)."""
+    workers the value is computed (no other process needs it). Every caller gets the value as
+    JSON gives it back (tuples as lists), whoever computed it."""
     if "PYTEST_XDIST_WORKER" not in os.environ:
-        return compute()
+        return json.loads(json.dumps(compute()))
     root = tmp_path_factory.getbasetemp().parent  # a worker's is <the run's>/popen-gwN
     path = root / f"shared-{name}.json"
     with open(root / f"shared-{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if path.exists():
-            return json.loads(path.read_text())
-        value = compute()
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(value))
-        tmp.replace(path)
+        if not path.exists():
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(compute()))
+            tmp.replace(path)
         return json.loads(path.read_text())
