@@ -2069,9 +2069,15 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         np.empty(3),
         workspace(N, int(lim[L_LOITER_K]), bmin.shape[0]),
     )
-    # The tracks as they were (each drone's step then writes its own slot): one block copy.
-    new[ST_TRACK][:] = old[ST_TRACK]
-    new[ST_TRACK_STEPS][:] = old[ST_TRACK_STEPS]
+    # The tracks as they were (each drone's step then writes its own slot). Element loops, not
+    # slice assignments: numba compiles a slice assignment's shape-mismatch message (string
+    # formatting) into the kernel, a seventh of this group's first compile.
+    track, track_steps = old[ST_TRACK], old[ST_TRACK_STEPS]
+    for i in range(track.shape[0]):
+        for j in range(track.shape[1]):
+            new[ST_TRACK_STEPS][i, j] = track_steps[i, j]
+            for a in range(track.shape[2]):
+                new[ST_TRACK][i, j, a] = track[i, j, a]
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)

@@ -15,7 +15,6 @@ from tests.support.launch import Launch, processes_mentioning
 from tests.support.proc import Proc
 from tests.support.wait import wait_for
 
-
 #: A two-step study with and without injected faults: loads (compiles, on a cold cache) the
 #: in-process simulator's kernels (planner.sim_kernels).
 WARM_SIMULATOR = """
@@ -41,15 +40,30 @@ def pytest_configure(config: pytest.Config) -> None:
     workers and every planner process a test starts then load them instead of each compiling
     them."""
     if not hasattr(config, "workerinput"):  # the controller, or a run without workers
-        # Two processes at once (on a cold cache about 30 s of CPU each: the two cores halve
-        # the wait): the planning kernels and the control step; the estimator's, then the simulator's (by then the
-        # planning kernels are in the cache).
-        warm = ("planner.node.warm", "planner.node.warm_estimator")
-        scripts = [f"import {warm[0]}\n{WARM_CONTROL}", f"import {warm[1]}\n{WARM_SIMULATOR}"]
+        scripts = warm_up_scripts()
         compiling = [subprocess.Popen([sys.executable, "-c", code]) for code in scripts]
         for p, code in zip(compiling, scripts):
             if p.wait() != 0:  # its error, raised here, stops the run
                 exec(code, {})
+
+
+def warm_up_scripts() -> list[str]:
+    """The two processes of :func:`pytest_configure`'s warm-up, run at once (the two cores
+    halve the wait). On numba's JIT (the suite's default, ``FIMNAV_AOT=0``): the planning
+    kernels, then the control step in the same process (it calls the planning kernels' inner
+    functions, which a process links only where it compiled them itself: loaded from the cache,
+    they would be compiled again); and the estimator's kernels, then the simulator's (by then
+    the planning kernels are in the cache). On a cold cache on this project's 2-core machine:
+    57-70 s wall and 90-107 s of CPU, against 102-120 s wall and 187-214 s of CPU when the first
+    process went through a planner's start (:mod:`planner.node.warm`: both groups compiled in
+    children, then the control step's inner functions again) while the second compiled the
+    estimator's kernels a second time. On the kernels built ahead of time (``FIMNAV_AOT=1``):
+    a planner's start (which builds the missing extension modules) and the estimator's."""
+    from planner import aot
+
+    if aot.enabled():
+        return [f"import planner.node.warm\n{WARM_CONTROL}", f"import planner.node.warm_estimator\n{WARM_SIMULATOR}"]
+    return [f"import planner.warm as w\nw.warm_planning()\n{WARM_CONTROL}", f"import planner.warm as w\nw.warm_estimator()\n{WARM_SIMULATOR}"]
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
