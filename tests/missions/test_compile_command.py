@@ -1,16 +1,18 @@
-"""``fimnav compile``: every kernel group in numba's cache afterwards, each group reported as
-compiled or loaded, a bad --jobs refused in one line. The cold cache is an empty temporary
-directory (``NUMBA_CACHE_DIR``); the warm one is the suite's (tests/conftest.py fills it)."""
+"""``fimnav compile``: every kernel group compiled afterwards (in numba's cache, or built ahead
+of time), each group reported as compiled or loaded, a bad --jobs refused in one line. The cold
+cache is an empty temporary directory (``NUMBA_CACHE_DIR``); the warm cache and the built modules
+are the suite's (tests/conftest.py fills the one its run uses)."""
 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 from pathlib import Path
 
 import pytest
 
-from tests.support.kernels import jit_only
+from tests.support.kernels import aot_only, jit_only
 from tests.support.proc import fimnav
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,6 +32,16 @@ def test_on_a_warm_cache_every_group_is_loaded_not_compiled() -> None:
     lines = done.stdout.splitlines()
     for group in ("planning", "estimator", "simulator"):
         assert f"{group} kernels: already in numba's cache, loaded: " in done.stdout, done.stdout
+    assert lines[-1].startswith("every kernel is compiled: ")
+
+
+@aot_only
+def test_with_the_modules_built_every_group_is_loaded_not_built() -> None:
+    done = run()
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    for group in ("planning", "estimator", "simulator"):
+        assert re.search(rf"^{group} kernels: already built \(.+\), loaded: [0-9.]+ s$", done.stdout, re.M), done.stdout
     assert lines[-1].startswith("every kernel is compiled: ")
 
 

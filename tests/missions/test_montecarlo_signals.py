@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.kernels import jit_only
 from tests.support.proc import alive, child_pids, with_default_hangup, with_default_interrupt
 from tests.support.wait import wait_for
 
@@ -65,16 +64,30 @@ def test_signal_to_montecarlo_stops_its_workers(tmp_path: Path, sig: signal.Sign
     _signal_while_children_run(argv, env, tmp_path, sig, status, lambda workers: len(workers) >= 2, "two workers")
 
 
+#: The first compile of each kernel path, in a command's own environment (whatever the suite
+#: runs on): numba's JIT into an empty cache (the planning and estimator groups in two children,
+#: about 35 s), and the default, the extension modules built ahead of time into an empty
+#: directory (three groups, two children at once, about a minute), as after an editable install
+#: or an edit of the kernels.
+FIRST_COMPILES = {
+    "jit": ({"FIMNAV_AOT": "0"}, "compiling the planning and estimator kernels first"),
+    "built-ahead-of-time": ({"FIMNAV_AOT": "1"}, "compiling the planning, estimator and simulator kernels first"),
+}
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the compiling processes")
+@pytest.mark.parametrize("path", FIRST_COMPILES)
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-@jit_only
-def test_signal_during_the_first_compile_stops_the_compiling_children(tmp_path: Path, sig: signal.Signals, status: int) -> None:
-    # A cold kernel cache (an empty NUMBA_CACHE_DIR): the command first compiles the planning and
-    # estimator kernels in two child processes (planner.warm, about 35 s); a signal to the command
-    # alone meanwhile ends it at once, and the children with it.
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+def test_signal_during_the_first_compile_stops_the_compiling_children(tmp_path: Path, sig: signal.Signals, status: int, path: str) -> None:
+    # Empty kernel directories: the command first compiles in two child processes
+    # (planner.warm.compile_aside); a signal to the command alone meanwhile ends it at once, and
+    # the children with it.
+    mode, notice = FIRST_COMPILES[path]
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), "NUMBA_CACHE_DIR": str(tmp_path / "numba"),
+           "FIMNAV_AOT_DIR": str(tmp_path / "aot"), **mode}
     argv = [sys.executable, "-m", "missions", "montecarlo", "paper/joint", "--trials", "4", "--steps", "2", "--no-figures", "--jobs", "2"]
     err = _signal_while_children_run(with_default_interrupt([*argv, "--out", str(tmp_path / "out")]), env, tmp_path, sig, status,
                                      lambda compiling: len(compiling) == 2, "two compiling children")
     # The command said, before, what it was doing and how to do it ahead of time.
-    assert "compiling the planning and estimator kernels first" in err and "fimnav compile" in err, err
+    assert notice in err and "fimnav compile" in err, err
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").rglob("summary.json"))
