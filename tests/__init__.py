@@ -9,9 +9,8 @@ once into numba's cache by tests/conftest.py: building the extension modules ahe
 (:mod:`planner.aot`) on top would add about a minute of CPU to every clean run. The
 ahead-of-time kernels are tested against the JIT's in tests/planner/test_aot.py, which turns
 them on for its own processes; ``FIMNAV_AOT=1 python -m pytest`` runs the suite on them (the
-tests of the JIT's cache and signatures skip, :data:`tests.support.kernels.jit_only`, and those
-of the modules the run built run, :data:`tests.support.kernels.aot_only`). A test of a first
-compile sets the kernel path in its command's environment and runs in either.
+tests of the JIT's cache and signatures skip, :data:`tests.support.kernels.jit_only`). A test of
+a first compile sets the kernel path in its command's environment and runs in either.
 """
 
 import os

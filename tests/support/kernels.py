@@ -10,7 +10,3 @@ from planner import aot
 #: For a test of numba's JIT itself (its first compile, its cache, a dispatcher's signatures):
 #: skipped, with its reason, when the suite runs on the kernels built ahead of time.
 jit_only = pytest.mark.skipif(aot.enabled(), reason="checks numba's JIT kernels; this run uses the ones built ahead of time (FIMNAV_AOT=1)")
-
-#: For a test of the kernels built ahead of time as the suite's own processes find them (built
-#: by its warm-up): skipped, with its reason, when the suite runs on numba's JIT.
-aot_only = pytest.mark.skipif(not aot.enabled(), reason="checks the kernels built ahead of time as this run finds them; it uses numba's JIT (FIMNAV_AOT=0)")
