@@ -1,14 +1,23 @@
 """How a study scales with its workers (not a timed test): one mission's Monte Carlo run on one
 local worker, on two (``--jobs 2``), and on a loopback Dask cluster of two workers
-(``--cluster``), the three commands taken in turn, in a rotated order, for ``--rounds``
-rounds; medians of the wall times and of the CPU times.
+(``--cluster``); and, for the machine's own ceiling, half its trials on one worker alone and two
+such commands at once. The five taken in turn, in a rotated order, for ``--rounds`` rounds;
+medians of the wall times and of the CPU times.
 
 Each command is ``fimnav montecarlo MISSION --trials M --steps K --no-figures`` in a fresh
 process (start-up included). The cluster (a ``dask scheduler`` and two ``dask worker`` processes
 of one thread each, no nanny, on 127.0.0.1) is started once, before the rounds, and is not
 timed; its CPU time is read from /proc for the scheduler and workers. The local runs' CPU time
-is the command's and its pool workers' (``RUSAGE_CHILDREN``). The three summaries must agree
-(bit for bit, but the wall times): the script fails otherwise.
+is the command's and its pool workers' (``RUSAGE_CHILDREN``). The three full-size summaries must
+agree (bit for bit, but the wall times), and so must the half-size ones: the script fails
+otherwise.
+
+The ceiling: two independent processes, each doing half the work with its own start, write and
+no coordination, are as parallel as two processes can be; 2 × (the half alone) / (two at once)
+is what this machine's two cores give on this work (2.00 × on two free, independent cores).
+``--jobs 2`` does the same work with one start (its workers forked from it) and the results
+merged and written once, at the end: it can come near this ceiling, not past it by more than
+the half-study's write.
 
 Usage::
 
@@ -35,6 +44,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMING = ("runtime_s", "drone_steps_per_s")
+#: The machine's own ceiling: half the trials on one worker alone, then two such commands at once
+#: (no fimnav between them: two independent processes, each with its own start and write).
+SOLO = "half the trials, 1 worker, alone"
+PAIR = "half the trials, 1 worker, two commands at once"
 
 
 def free_port() -> int:
@@ -81,6 +94,20 @@ def run(argv: list[str], env: dict[str, str], cluster: list[subprocess.Popen[byt
     return wall, cpu
 
 
+def run_pair(argvs: list[list[str]], env: dict[str, str]) -> tuple[float, float]:
+    """Wall seconds until every command of ``argvs``, started at once, has ended, and their CPU
+    seconds (their own and their waited-for children's)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    started = [subprocess.Popen(a, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for a in argvs]
+    codes = [p.wait() for p in started]
+    wall = time.perf_counter() - t0
+    if any(codes):
+        raise SystemExit(f"bench_study_scaling: a command of the pair failed ({codes})")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
 def untimed(summary_path: Path) -> list[dict[str, object]]:
     runs = json.loads(summary_path.read_text())["runs"]
     return [{k: v for k, v in r.items() if k not in TIMING} for r in runs]
@@ -100,6 +127,8 @@ def main() -> int:
         "1 local worker (--jobs 1)": ["--jobs", "1"],
         "2 local workers (--jobs 2)": ["--jobs", "2"],
         "Dask, 2 workers (--cluster)": ["--cluster", address],
+        SOLO: ["--jobs", "1"],
+        PAIR: ["--jobs", "1"],
     }
     names = list(configs)
     walls: dict[str, list[float]] = {n: [] for n in names}
@@ -111,21 +140,28 @@ def main() -> int:
                 argv = [sys.executable, "-m", "missions", "montecarlo", args.mission, "--trials", str(args.trials), "--steps", "2"]
                 wall, cpu = run([*argv, "--no-figures", "--out", str(Path(tmp) / "warm"), "--cluster", address], env, cluster)
                 print(f"warm-up (untimed in the table): the cluster's first study, 2 steps: wall {wall:.1f} s, CPU {cpu:.1f} s", flush=True)
+            half = max(1, args.trials // 2)
             for r in range(args.rounds):
-                for n in names[r % 3 :] + names[: r % 3]:
+                for n in names[r % len(names) :] + names[: r % len(names)]:
                     out = Path(tmp) / f"{names.index(n)}-{r}"
-                    argv = [sys.executable, "-m", "missions", "montecarlo", args.mission, "--trials", str(args.trials), "--steps", str(args.steps)]
-                    argv += ["--no-figures", "--out", str(out), *configs[n]]
-                    wall, cpu = run(argv, env, cluster if "--cluster" in configs[n] else None)
+                    trials = half if n in (SOLO, PAIR) else args.trials
+                    argv = [sys.executable, "-m", "missions", "montecarlo", args.mission, "--trials", str(trials), "--steps", str(args.steps)]
+                    argv += ["--no-figures", *configs[n]]
+                    if n == PAIR:
+                        wall, cpu = run_pair([[*argv, "--out", f"{out}-{i}"] for i in range(2)], env)
+                    else:
+                        wall, cpu = run([*argv, "--out", str(out)], env, cluster if "--cluster" in configs[n] else None)
                     walls[n].append(wall)
                     cpus[n].append(cpu)
                     loads.append(os.getloadavg()[0])
                     print(f"round {r + 1}: {n}: wall {wall:.1f} s, CPU {cpu:.1f} s, load {loads[-1]:.1f}", flush=True)
             reference = untimed(Path(tmp) / "0-0" / "summary.json")
+            reference_half = untimed(Path(tmp) / f"{names.index(SOLO)}-0" / "summary.json")
             for d in Path(tmp).iterdir():
                 if d.name == "warm":
                     continue
-                if untimed(d / "summary.json") != reference:
+                ours = untimed(d / "summary.json")
+                if ours != (reference_half if d.name.split("-")[0] in (str(names.index(SOLO)), str(names.index(PAIR))) else reference):
                     raise SystemExit(f"bench_study_scaling: {d.name}'s summary differs from the one-worker run's")
     finally:
         for p in reversed(cluster):  # the workers, then the scheduler
@@ -141,14 +177,20 @@ def main() -> int:
     print("| command | wall, median [min-max] | CPU (all processes), median | wall speed-up over 1 worker | CPU over 1 worker's |")
     print("|---|---|---|---|---|")
     cpu_one = statistics.median(cpus[names[0]])
-    for n in names:
+    for n in names[:3]:
         w, c = statistics.median(walls[n]), statistics.median(cpus[n])
         print(f"| {n} | {w:.1f} s [{min(walls[n]):.1f}-{max(walls[n]):.1f}] | {c:.1f} s | {one / w:.2f} x | {c / cpu_one:.2f} x |")
     # Two workers on two free cores: each does half the CPU work at once.
     print(f"\nspeed-up two free cores would give (2 x CPU of 1 worker / CPU of 2): {2 * cpu_one / statistics.median(cpus[names[1]]):.2f} x")
+    solo, pair = statistics.median(walls[SOLO]), statistics.median(walls[PAIR])
+    print(
+        f"this machine's ceiling for two processes on this work (2 x wall of one half-study alone / wall of two at once, "
+        f"each with its own start): {2 * solo / pair:.2f} x (half alone {solo:.1f} s, two at once {pair:.1f} s; "
+        f"CPU {statistics.median(cpus[SOLO]):.1f} s against {statistics.median(cpus[PAIR]) / 2:.1f} s each)"
+    )
     print(f"\nDask cluster over --jobs 2 (wall, medians): {statistics.median(walls[names[2]]) / two - 1:+.1%}")
     print(f"Dask cluster over --jobs 2 (CPU, medians): {statistics.median(cpus[names[2]]) / statistics.median(cpus[names[1]]) - 1:+.1%}")
-    print("the three summaries are equal (but wall times)")
+    print("the three full-size summaries are equal (but wall times), and the half-size ones")
     return 0
 
 
