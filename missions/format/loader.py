@@ -298,6 +298,26 @@ class _MissionLoader(yaml.SafeLoader):
         except (ValueError, OverflowError, TypeError, KeyError, AttributeError, IndexError) as exc:
             raise _UnreadableValue(node, exc) from None
 
+    def fetch_flow_collection_start(self, TokenClass: Any) -> None:  # PyYAML hook
+        """Refuse a ``[`` or ``{`` deeper than :data:`MAX_FLOW_DEPTH` at once: PyYAML's scanner
+        takes time quadratic in the depth (a 10 kB file of 5000 nested ``[`` took 3 s to reach
+        Python's recursion limit), and no mission nests more than a few levels."""
+        if self.flow_level >= MAX_FLOW_DEPTH:
+            raise _TooDeep(self.get_mark())
+        super().fetch_flow_collection_start(TokenClass)
+
+
+#: The deepest nesting of flow collections (``[ ]``, ``{ }``) a mission file may have.
+MAX_FLOW_DEPTH: int = 64
+
+
+class _TooDeep(yaml.YAMLError):
+    """Flow collections nested deeper than :data:`MAX_FLOW_DEPTH`, at ``mark``."""
+
+    def __init__(self, mark: yaml.Mark) -> None:
+        super().__init__()
+        self.mark = mark
+
 
 class _UnreadableValue(yaml.constructor.ConstructorError):
     """A YAML value its tag's constructor cannot read; :attr:`problem` is the message."""
@@ -328,6 +348,10 @@ def _parse_yaml(text: str, file: str) -> tuple[yaml.Node, dict[str, Any]]:
             raise MissionError(file, ["expected a mapping of mission keys (id, drones, source, ...), found an empty document"])
         _check_nodes(node, file)
         data = loader.construct_document(node)
+    except _TooDeep as exc:
+        raise MissionError(
+            file, [f"line {exc.mark.line + 1}: expected a mission, found YAML nested too deeply (more than {MAX_FLOW_DEPTH} levels of [ ] or {{ }})"]
+        ) from None
     except yaml.reader.ReaderError as exc:
         raise MissionError(file, [_describe_reader_error(exc, text)]) from None
     except yaml.MarkedYAMLError as exc:

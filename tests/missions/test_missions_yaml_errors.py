@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from missions.cli.main import main
-from missions.format.loader import MAX_FILE_BYTES, MissionError, load_mission, loads_mission
+from missions.format.loader import MAX_FILE_BYTES, MAX_FLOW_DEPTH, MissionError, load_mission, loads_mission
 
 PAPER = Path(__file__).resolve().parents[2] / "missions" / "paper"
 
@@ -175,6 +175,24 @@ def test_huge_file_is_refused_before_reading(tmp_path: Path) -> None:
     mission.write_bytes(b"id: m\n" + b"# padding\n" * (MAX_FILE_BYTES // 10 + 1))
     message = _assert_one_line_error(*_check(mission), mission)
     assert f"expected a mission file of at most {MAX_FILE_BYTES} bytes" in message
+
+
+@pytest.mark.parametrize("opening", ["[", "{a: "])
+def test_flow_nesting_past_the_limit_is_refused_at_its_line(opening: str) -> None:
+    """``[`` or ``{`` nested one level past :data:`MAX_FLOW_DEPTH` is refused where it opens;
+    at the limit the nesting is read, and the mission refused for what the value is (a list
+    where a text is expected), not for its depth."""
+    closing = "]" if opening == "[" else "}"
+
+    def nested(depth: int) -> str:
+        return "id: m\nsteps: 3\n\ndescription: " + opening * depth + "1" + closing * depth + "\n"
+
+    with pytest.raises(MissionError) as too_deep:
+        loads_mission(nested(MAX_FLOW_DEPTH + 1))
+    assert f"line 4: expected a mission, found YAML nested too deeply (more than {MAX_FLOW_DEPTH} levels" in str(too_deep.value)
+    with pytest.raises(MissionError) as at_limit:
+        loads_mission(nested(MAX_FLOW_DEPTH))
+    assert "nested too deeply" not in str(at_limit.value) and "description" in str(at_limit.value)
 
 
 def test_directory_is_refused(tmp_path: Path) -> None:
