@@ -2,7 +2,8 @@
 ``tests.<directory>.<module>``, by pytest and by the scripts run with ``python -m tests.…``.
 
 pymavlink chooses MAVLink 1 or 2 when it is first imported, from ``MAVLINK20`` in the
-environment: it is set here, before any test module or test script can import pymavlink.
+environment: it is set here, before any test module or test script can import pymavlink; so
+are the BLAS libraries' thread counts (:mod:`missions.runtime.threads`), before numpy.
 
 The suite runs numba's JIT kernels (``FIMNAV_AOT=0``, unless the environment sets it), compiled
 once into numba's cache by tests/conftest.py: building the extension modules ahead of time
@@ -15,5 +16,10 @@ a first compile sets the kernel path in its command's environment and runs in ei
 
 import os
 
+from missions.runtime.threads import one_blas_thread
+
 os.environ["MAVLINK20"] = "1"
 os.environ.setdefault("FIMNAV_AOT", "0")
+# As in every fimnav command (missions.cli.main): the tests that call the library in process
+# run it as a command does, and their BLAS threads do not spin on the other workers' cores.
+one_blas_thread(os.environ)

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 from collections.abc import Sequence
 
 from comms.errors import FimnavError
 from missions.runtime.signals import Stopped, exit_status, raise_on_signals
+from missions.runtime.threads import one_blas_thread
 
 #: Subcommand modules, in the order ``fimnav --help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -75,6 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``fimnav`` with ``argv`` (default ``sys.argv[1:]``); return the exit status: 0, the
     command's error status (1, 2, 3), or 128 + the signal that ended it (SIGINT 130, SIGTERM
     143, SIGHUP 129; :mod:`missions.runtime.signals`)."""
+    one_blas_thread(os.environ)  # before any subcommand's module imports numpy
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
