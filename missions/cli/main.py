@@ -3,7 +3,9 @@
 Each subcommand lives in its own module exposing ``register(subparsers) -> None``; the
 module adds its parser and sets ``func`` (``Callable[[argparse.Namespace], int]``).
 Heavy imports (zenoh, matplotlib, pymavlink) happen inside ``func``, so ``fimnav --help``
-stays fast.
+stays fast. A new command's module goes in :data:`COMMAND_MODULES` (the order of ``fimnav
+--help``) and its names in :data:`COMMANDS` (a command line naming one imports that module
+alone).
 """
 
 from __future__ import annotations
