@@ -155,13 +155,11 @@ def main() -> int:
                     cpus[n].append(cpu)
                     loads.append(os.getloadavg()[0])
                     print(f"round {r + 1}: {n}: wall {wall:.1f} s, CPU {cpu:.1f} s, load {loads[-1]:.1f}", flush=True)
-            reference = untimed(Path(tmp) / "0-0" / "summary.json")
-            reference_half = untimed(Path(tmp) / f"{names.index(SOLO)}-0" / "summary.json")
+            # Each output directory is "<config index>-<round>[-<pair member>]".
+            halves = {str(names.index(SOLO)), str(names.index(PAIR))}
+            reference = {False: untimed(Path(tmp) / "0-0" / "summary.json"), True: untimed(Path(tmp) / f"{names.index(SOLO)}-0" / "summary.json")}
             for d in Path(tmp).iterdir():
-                if d.name == "warm":
-                    continue
-                ours = untimed(d / "summary.json")
-                if ours != (reference_half if d.name.split("-")[0] in (str(names.index(SOLO)), str(names.index(PAIR))) else reference):
+                if d.name != "warm" and untimed(d / "summary.json") != reference[d.name.split("-")[0] in halves]:
                     raise SystemExit(f"bench_study_scaling: {d.name}'s summary differs from the one-worker run's")
     finally:
         for p in reversed(cluster):  # the workers, then the scheduler

@@ -3,9 +3,8 @@
 Each subcommand lives in its own module exposing ``register(subparsers) -> None``; the
 module adds its parser and sets ``func`` (``Callable[[argparse.Namespace], int]``).
 Heavy imports (zenoh, matplotlib, pymavlink) happen inside ``func``, so ``fimnav --help``
-stays fast. A new command's module goes in :data:`COMMAND_MODULES` (the order of ``fimnav
---help``) and its names in :data:`COMMANDS` (a command line naming one imports that module
-alone).
+stays fast. A new command's names and module go in :data:`COMMANDS` (a command line naming one
+imports that module alone; ``fimnav --help`` lists them in its order).
 """
 
 from __future__ import annotations
@@ -21,28 +20,9 @@ from comms.errors import FimnavError
 from missions.runtime.signals import Stopped, exit_status, raise_on_signals
 from missions.runtime.threads import one_blas_thread
 
-#: Subcommand modules, in the order ``fimnav --help`` lists them.
-COMMAND_MODULES: tuple[str, ...] = (
-    "missions.cli.vehicle",
-    "missions.cli.check",
-    "missions.cli.montecarlo",
-    "missions.cli.sweep",
-    "missions.cli.optimum",
-    "missions.cli.plan",
-    "missions.cli.payload",
-    "missions.cli.launch",
-    "missions.cli.router",
-    "missions.cli.handback",
-    "missions.cli.view",
-    "missions.cli.missions",
-    "missions.cli.compile",
-    "missions.cli.calibrate",
-    "missions.cli.localize",
-)
-
-#: Each command name and the module that registers it (tests/missions/test_cli_parser.py checks
-#: it against what the modules register). A command line naming one is parsed with that
-#: module's parser alone (:func:`build_parser`).
+#: Each command name and the module that registers it, in the order ``fimnav --help`` lists them
+#: (tests/missions/test_cli_parser.py checks it against what the modules register). A command
+#: line naming one is parsed with that module's parser alone (:func:`build_parser`).
 COMMANDS: dict[str, str] = {
     "vehicle": "missions.cli.vehicle",
     "check": "missions.cli.check",
@@ -61,6 +41,9 @@ COMMANDS: dict[str, str] = {
     "calibrate": "missions.cli.calibrate",
     "localize": "missions.cli.localize",
 }
+
+#: The subcommand modules, each once, in that order.
+COMMAND_MODULES: tuple[str, ...] = tuple(dict.fromkeys(COMMANDS.values()))
 
 
 def installed_version() -> str:
