@@ -300,6 +300,13 @@ SINGULAR_RCOND: float = 1e-12
 ILL_CONDITIONED_RCOND: float = 1e-8
 #: Status codes of :class:`planner.fim.FimStatus`.
 OK, ILL, SINGULAR = 0, 1, 2
+#: :func:`well_conditioned`'s threshold on its lower bound 4 det J/(tr J)³ of the reciprocal
+#: condition number: a hundred times :data:`ILL_CONDITIONED_RCOND`, so that the bound, with its
+#: rounding, decides only where the eigenvalues would give status OK by far.
+SURELY_OK_RCOND: float = 100.0 * ILL_CONDITIONED_RCOND
+#: Relative size (of (tr J)^k, k the minor's order) below which a computed leading minor is not
+#: trusted to be positive: its rounding error is a few ε (tr J)^k.
+MINOR_TOL: float = 1e-13
 #: Indices of the channel array.
 CH_GAMMA, CH_S2_LOS, CH_S2_NLOS, CH_SB2 = 0, 1, 2, 3
 
@@ -411,10 +418,34 @@ def inverse3(J, out, lu):
 
 
 @inner
-def invert(J, inv, work):
+def well_conditioned(J):
+    """Whether the symmetric 3×3 ``J`` is surely positive definite with λ_min/λ_max above
+    :data:`SURELY_OK_RCOND`, from its trace, leading minors and determinant alone (no
+    eigenvalues): positive minors (Sylvester's criterion, each above its rounding) make J
+    positive definite, and then λ_max ≤ tr J and λ_mid λ_max ≤ (tr J/2)², so λ_min/λ_max ≥
+    4 det J/(tr J)³. False says nothing (the eigenvalues decide)."""
+    tr = J[0, 0] + J[1, 1] + J[2, 2]
+    if not (tr > 0.0 and J[0, 0] > 0.0):
+        return False
+    t2 = tr * tr
+    t3 = t2 * tr
+    m2 = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    det = (
+        J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
+        - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
+        + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0])
+    )
+    return m2 > MINOR_TOL * t2 and det > MINOR_TOL * t3 and 4.0 * det > SURELY_OK_RCOND * t3
+
+
+@inner
+def invert(J, inv, work, need_logdet):
     """Health, inverse and ln det of a symmetric 3×3 FIM (:func:`planner.fim.invert_fim`): the
     status code (λ_min ≤ 1e-12 λ_max, λ_max ≤ 0 or a non-finite entry: singular, ``inv`` zeros,
-    ln det −inf; λ_min ≤ 1e-8 λ_max: ill-conditioned) and ln det J = Σ ln λ. ``inv``: (3, 3) out."""
+    ln det −inf; λ_min ≤ 1e-8 λ_max: ill-conditioned) and ln det J = Σ ln λ. ``inv``: (3, 3)
+    out. Without ``need_logdet`` (the A criterion reads only the inverse and the status), a J
+    that is :func:`well_conditioned` skips the eigenvalues: status OK, the same inverse, ln det
+    NaN."""
     finite = True
     for i in range(3):
         for j in range(3):
@@ -425,6 +456,9 @@ def invert(J, inv, work):
             for j in range(3):
                 inv[i, j] = 0.0
         return SINGULAR, -np.inf
+    if not need_logdet and well_conditioned(J):
+        inverse3(J, inv, work)
+        return OK, np.nan
     e0, e1, e2 = eigvalsh3(J)
     rcond = e0 / e2 if e2 > 0.0 else 0.0
     if not e2 > 0.0 or rcond <= SINGULAR_RCOND:
@@ -496,7 +530,7 @@ def criterion_derivative(J, criterion_d, M, work):
     C = −ln det J, M = −J⁻¹ (``criterion_d``). Returns (C, status); singular: (+inf, 2), M = 0.
     ``work``: scratch (2, 3, 3)."""
     inv = work[0]
-    status, logdet = invert(J, inv, work[1])
+    status, logdet = invert(J, inv, work[1], criterion_d)
     for i in range(3):
         for k in range(3):
             mik = -(inv[i, 0] * inv[0, k] + inv[i, 1] * inv[1, k] + inv[i, 2] * inv[2, k])
@@ -604,7 +638,7 @@ def invert_batch(J, inv, out):
     ``out`` (B, 2)."""
     work = np.empty((3, 3))
     for b in range(J.shape[0]):
-        status, logdet = invert(J[b], inv[b], work)
+        status, logdet = invert(J[b], inv[b], work, True)
         out[b, 0], out[b, 1] = logdet, status
 
 

@@ -246,3 +246,35 @@ def test_zero_and_negative_definite_fims_are_singular():
         for crit in "AD":
             value, status = cost(J, crit)
             assert status == FimStatus.SINGULAR and value == np.inf
+
+
+def _indefinite_with_positive_trace_and_det(rng: np.random.Generator) -> np.ndarray:
+    """Two negative eigenvalues and a large positive one: tr J > 0 and det J > 0 all the same."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    lam = np.array([-rng.uniform(0.1, 1.0), -rng.uniform(0.1, 1.0), rng.uniform(5.0, 50.0)])
+    return (q * lam) @ q.T
+
+
+def test_a_cost_status_and_inverse_are_those_of_the_eigenvalues_at_every_condition():
+    """The A cost's gradient (``cost_gradient``) skips the eigenvalues where trace, leading
+    minors and determinant already prove J well conditioned: its status and cost must be
+    bit for bit those of ``invert_fim`` (eigenvalues by Jacobi rotations) on FIMs from
+    perfectly conditioned to singular, indefinite ones with a positive trace and determinant,
+    and not exactly symmetric ones; numpy's eigenvalues say which status is right."""
+    rng = np.random.default_rng(20261129)
+    mats = [random_spd(rng, cond) for cond in np.logspace(0.0, 14.0, 57) for _ in range(8)]
+    mats += [_indefinite_with_positive_trace_and_det(rng) for _ in range(50)]
+    mats += [m + np.triu(rng.normal(scale=1e-9 * np.abs(m).max(), size=(3, 3)), 1) for m in mats[:100]]
+    J = np.array(mats)
+    src, own = np.zeros(3), np.array([30.0, -40.0, 12.0])
+    cg = cost_gradient(J, np.broadcast_to(src, (len(J), 3)), np.broadcast_to(own, (len(J), 3)), True, True, True, Channel(), "A")
+    ref = invert_fim(J)
+    np.testing.assert_array_equal(cg.status, ref.status)
+    expected = np.where(ref.status == FimStatus.SINGULAR, np.inf, np.trace(ref.inverse, axis1=-2, axis2=-1))
+    np.testing.assert_array_equal(cg.value, expected)
+    lam = np.linalg.eigvalsh(0.5 * (J + np.swapaxes(J, -1, -2)))
+    rcond = lam[:, 0] / lam[:, -1]
+    clear = (rcond > 1e-7) | (rcond < 1e-13)  # away from the thresholds, the status is certain
+    want = np.where(rcond > 1e-8, FimStatus.OK, np.where(rcond > 1e-12, FimStatus.ILL_CONDITIONED, FimStatus.SINGULAR))
+    np.testing.assert_array_equal(cg.status[clear], want[clear])
+    assert {FimStatus.OK, FimStatus.ILL_CONDITIONED, FimStatus.SINGULAR} <= set(cg.status.tolist())
