@@ -21,6 +21,8 @@ import hashlib
 import importlib.util
 import platform
 import queue
+import re
+import socket
 import threading
 import time
 import uuid
@@ -118,9 +120,55 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
     except ImportError:
         raise UsageError(f"--cluster needs Dask's distributed package: {INSTALL_HINT}") from None
     where = {"scheduler_file": address} if Path(address).is_file() else {"address": address}
+    if "address" in where:
+        _check_reachable(address, timeout_s)
+    # The client waits for the scheduler's handshake without its timeout (a port where another
+    # server listens and never answers would hang the command): it connects in a thread of its
+    # own, waited for twice the timeout at most, and left behind (a daemon) if it is still waiting.
+    outcome: dict[str, Any] = {}
+
+    def attempt() -> None:
+        try:
+            outcome["client"] = Client(**where, timeout=timeout_s, set_as_default=False)
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=attempt, name="fimnav-dask-connect", daemon=True)
+    thread.start()
+    thread.join(2.0 * timeout_s)
+    if "client" in outcome:
+        return outcome["client"]
+    if "error" in outcome:
+        exc = outcome["error"]
+        raise UsageError(f"--cluster {address}: no Dask scheduler answered ({type(exc).__name__}: {exc})")
+    raise UsageError(
+        f"--cluster {address}: no Dask scheduler answered within {2.0 * timeout_s:g} s (something accepts connections there, but does not speak Dask)"
+    )
+
+
+#: A scheduler's TCP address as ``--cluster`` takes it: ``[tcp://]HOST:PORT`` (HOST a name, an
+#: IPv4 address or a bracketed IPv6 one).
+_TCP_ADDRESS = re.compile(r"^(?:tcp://)?(\[[^\]]+\]|[^:/\[\]]+):(\d+)$")
+
+
+def _check_reachable(address: str, timeout_s: float) -> None:
+    """Refuse at once a TCP address where nothing listens: Dask's client retries a refused
+    connection until its timeout (10 s), a plain connection says so in a millisecond. Other
+    addresses (another protocol) are left to the client.
+
+    Raises:
+        UsageError: the connection is refused, or does not open within ``timeout_s``.
+    """
+    match = _TCP_ADDRESS.match(address.strip())
+    if match is None:
+        return
+    host, port = match.group(1).strip("[]"), int(match.group(2))
     try:
-        return Client(**where, timeout=timeout_s, set_as_default=False)
-    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except ConnectionRefusedError:
+        raise UsageError(f"--cluster {address}: no Dask scheduler answered (connection refused: nothing listens on port {port} of {host})") from None
+    except OSError as exc:
         raise UsageError(f"--cluster {address}: no Dask scheduler answered ({type(exc).__name__}: {exc})") from None
 
 

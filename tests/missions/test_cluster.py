@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -124,6 +125,26 @@ def test_a_worker_with_other_code_is_refused(shared: LoopbackCluster, monkeypatc
 def test_no_scheduler_is_one_usage_error() -> None:
     with pytest.raises(UsageError, match=r"--cluster tcp://127\.0\.0\.1:\d+: no Dask scheduler answered"):
         connect(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.0)
+
+
+@pytest.mark.parametrize("form", ["tcp://127.0.0.1:{port}", "127.0.0.1:{port}", "tcp://localhost:{port}"])
+def test_a_port_where_nothing_listens_is_refused_as_such(form: str) -> None:
+    """A refused connection is reported as refused (by the plain connection tried first), not
+    after the client's retries until the timeout."""
+    address = form.format(port=free_port())
+    with pytest.raises(UsageError, match=r"no Dask scheduler answered \(connection refused: nothing listens on port \d+ of "):
+        connect(address, timeout_s=30.0)
+
+
+def test_a_listening_port_that_is_no_scheduler_is_still_one_usage_error() -> None:
+    """The plain connection opens (something listens) but it is no Dask scheduler and never
+    answers: one usage error after twice the timeout (Dask's client alone would wait forever)."""
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with pytest.raises(UsageError, match=rf"--cluster tcp://127\.0\.0\.1:{port}: no Dask scheduler answered"):
+            connect(f"tcp://127.0.0.1:{port}", timeout_s=1.0)
 
 
 def test_cluster_and_view_or_jobs_are_refused(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
