@@ -140,10 +140,13 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Any:
         return outcome["client"]
     if "error" in outcome:
         exc = outcome["error"]
-        raise UsageError(f"--cluster {address}: no Dask scheduler answered ({type(exc).__name__}: {exc})")
-    raise UsageError(
-        f"--cluster {address}: no Dask scheduler answered within {2.0 * timeout_s:g} s (something accepts connections there, but does not speak Dask)"
-    )
+        raise _no_scheduler(address, f"({type(exc).__name__}: {exc})")
+    raise _no_scheduler(address, f"within {2.0 * timeout_s:g} s (something accepts connections there, but does not speak Dask)")
+
+
+def _no_scheduler(address: str, why: str) -> UsageError:
+    """The one error of a ``--cluster`` address where no scheduler answered, ``why`` appended."""
+    return UsageError(f"--cluster {address}: no Dask scheduler answered {why}")
 
 
 #: A scheduler's TCP address as ``--cluster`` takes it: ``[tcp://]HOST:PORT`` (HOST a name, an
@@ -167,9 +170,9 @@ def _check_reachable(address: str, timeout_s: float) -> None:
         with socket.create_connection((host, port), timeout=timeout_s):
             pass
     except ConnectionRefusedError:
-        raise UsageError(f"--cluster {address}: no Dask scheduler answered (connection refused: nothing listens on port {port} of {host})") from None
+        raise _no_scheduler(address, f"(connection refused: nothing listens on port {port} of {host})") from None
     except OSError as exc:
-        raise UsageError(f"--cluster {address}: no Dask scheduler answered ({type(exc).__name__}: {exc})") from None
+        raise _no_scheduler(address, f"({type(exc).__name__}: {exc})") from None
 
 
 class DaskCluster:
