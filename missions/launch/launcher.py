@@ -61,8 +61,8 @@ from missions.launch.supervisor import (
 from missions.launch.view import LaunchView
 from missions.runtime.rundir import RUN_ENTRIES, check_results_dir, claim_results_dir, previous_run, unique_results_dir
 from missions.runtime.signals import STOP_SIGNALS, Interrupted, stop_on_signals
+from missions.study.records import SimulationResult
 from missions.study.results import write_results
-from missions.study.simulator import SimulationResult
 
 __all__ = [
     "MAX_RESTARTS",

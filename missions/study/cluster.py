@@ -32,7 +32,7 @@ from typing import Any
 
 from comms.errors import FimnavError, UsageError
 from missions.study.executors import Chunk, simulate_chunk
-from missions.study.simulator import SimulationResult
+from missions.study.records import SimulationResult
 from planner.warm import available_cores, compile_aside
 
 #: Most seconds between two progress reports of a running chunk.

@@ -15,7 +15,7 @@ import numpy as np
 
 from missions.study.figures import _pyplot, _save, _set_log_axis, format_value
 from missions.study.layout import run_name
-from missions.study.simulator import SimulationResult
+from missions.study.records import SimulationResult
 
 #: Colour of each policy (the planner's first).
 POLICY_COLOURS = {"fim": "tab:blue", "centralized": "tab:green", "orbit": "tab:orange", "random": "tab:purple", "static": "tab:gray"}

@@ -28,7 +28,8 @@ from missions.runtime.signals import signals_deferred, worker_defaults
 from planner.warm import available_cores, compile_aside, missing_groups, warm_estimator, warm_planning
 
 if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where a chunk runs
-    from missions.study.simulator import RunSpec, SimStep, SimulationResult
+    from missions.study.records import RunSpec, SimulationResult
+    from missions.study.simulator import SimStep
 
 #: Fewest trials in a chunk: the simulator steps a chunk's trials together, one numpy call for
 #: all of them, so a short chunk costs more per trial (paper/joint, 100 trials × 60 steps, one

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover - types only
-    from missions.study.simulator import SimulationResult
+    from missions.study.records import SimulationResult
 
 
 class Feature(TypedDict):

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from missions.study.layout import run_name
-from missions.study.simulator import SimulationResult
+from missions.study.records import SimulationResult
 
 CRITERION_NAMES = {"A": "A-optimality", "D": "D-optimality"}
 RULE_NAMES = {"safe": "safe rule", "paper": "paper's literal rule"}

@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from missions.study.simulator import RunSpec, SimulationResult
+    from missions.study.records import RunSpec, SimulationResult
 
 #: File name of a fault-free run's :class:`missions.study.simulator.PenaltyReference` in its
 #: ``runs/<run>/`` directory.

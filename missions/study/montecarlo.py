@@ -28,8 +28,8 @@ import numpy as np
 
 from missions.format.loader import load_mission
 from missions.study.executors import MAX_CHUNKS, MIN_CHUNK_TRIALS, Chunk, ChunkExecutor, Watch, chunk_bounds, local_executor
+from missions.study.records import PenaltyReference, RunSpec, SimulationResult, fault_penalty_against, without_faults
 from missions.study.results import PENALTY_REFERENCE, ResultsWriter, spec_name
-from missions.study.simulator import PenaltyReference, RunSpec, SimulationResult, fault_penalty, without_faults
 from planner.params import Criterion
 
 #: Fields of :class:`SimulationResult` with the trial axis second (step axis first).
@@ -287,10 +287,10 @@ def iter_study(
             waiting[i] = merged
         elif i >= 0:
             reference = known.get(i)
-            yield RunDone(i, merged, fault_penalty(merged.spec.mission, merged, reference) if reference is not None else None)
+            yield RunDone(i, merged, fault_penalty_against(merged.spec.mission, merged, reference) if reference is not None else None)
         else:
             run = waiting.pop(-1 - i)
-            yield RunDone(-1 - i, run, fault_penalty(run.spec.mission, run, merged))
+            yield RunDone(-1 - i, run, fault_penalty_against(run.spec.mission, run, merged))
 
 
 def study_size(specs: Sequence[RunSpec], baselines: Path | None = None, oracle_estimate: bool = False, penalties: bool = True) -> int:

@@ -42,7 +42,7 @@ import numpy as np
 from missions.format.loader import mission_to_yaml
 from missions.runtime.rundir import make_results_dir, writing
 from missions.study.layout import PENALTY_REFERENCE, run_name, spec_name
-from missions.study.simulator import SAFETY_FAMILIES, PenaltyReference, SimulationResult, fault_penalty
+from missions.study.records import SAFETY_FAMILIES, PenaltyReference, SimulationResult
 
 __all__ = [
     "PENALTY_REFERENCE",
@@ -241,7 +241,11 @@ def _faults(result: SimulationResult, penalty: dict[str, Any] | None) -> dict[st
     mission = result.spec.mission
     if not mission.comms.faults.enabled:
         return {}
-    return {"faults": penalty if penalty is not None else fault_penalty(mission, result)}
+    if penalty is None:  # a result without its penalty (a launch's): the baseline simulated here
+        from missions.study.simulator import fault_penalty
+
+        penalty = fault_penalty(mission, result)
+    return {"faults": penalty}
 
 
 def _num(x: float) -> float | None:

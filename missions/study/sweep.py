@@ -46,7 +46,7 @@ from missions.format.loader import MissionError
 from missions.runtime.rundir import make_results_dir, writing
 from missions.study.executors import MAX_CHUNKS, MIN_CHUNK_TRIALS, ChunkExecutor
 from missions.study.montecarlo import expand_runs, iter_study
-from missions.study.simulator import SAFETY_FAMILIES, RunSpec
+from missions.study.records import SAFETY_FAMILIES, RunSpec
 
 #: Version of ``sweep.json`` and ``cell.json``.
 SWEEP_FORMAT: int = 1

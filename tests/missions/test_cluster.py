@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import signal
 import socket
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -63,6 +64,31 @@ def test_montecarlo_on_the_cluster_is_the_local_run(shared: LoopbackCluster, tmp
     for run in ("paper_joint_A", "paper_heterogeneous_A"):
         for name in ("peb.csv", "trajectories.csv"):
             assert (tmp_path / "cluster" / "runs" / run / name).read_bytes() == (tmp_path / "local" / "runs" / run / name).read_bytes()
+
+
+def test_the_client_of_a_cluster_study_never_loads_numba(shared: LoopbackCluster, tmp_path: Path) -> None:
+    """``fimnav montecarlo --cluster`` in a fresh process (a run with injected faults, so its
+    penalty is computed there too, and its figures): the study is written, and numba (the
+    compiler under the kernels, which run on the workers) was never imported by the command."""
+    probe = (
+        "import atexit, sys\n"
+        "atexit.register(lambda: print('numba imported:', 'numba' in sys.modules, flush=True))\n"
+        "from missions.cli.main import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    args = ["montecarlo", "paper/joint", "--trials", "2", "--steps", "4", "--set", "comms.faults.loss=0.2"]
+    out = subprocess.run(
+        [sys.executable, "-c", probe, *args, "--cluster", shared.address, "--out", str(tmp_path / "study")],
+        cwd=Path(__file__).resolve().parents[2],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "numba imported: False" in out.stdout, out.stdout
+    summary = json.loads((tmp_path / "study" / "summary.json").read_text())["runs"]
+    assert [s["run"] for s in summary] == ["paper_joint_A"] and summary[0]["faults"]["lost_fraction"] > 0
+    assert list((tmp_path / "study").rglob("*.png")), "the study's figures"
 
 
 def test_a_worker_killed_mid_study_loses_nothing(procs: list[Proc]) -> None:
