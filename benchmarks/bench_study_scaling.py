@@ -31,9 +31,11 @@ wall and CPU printed apart; without it the first cluster round pays that start-u
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import resource
+import signal
 import socket
 import statistics
 import subprocess
@@ -62,16 +64,27 @@ def proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+#: prctl's option that sets the signal a process gets when its parent dies (Linux).
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """In a child between fork and exec: SIGKILL when the benchmark's process ends, whatever
+    ends it (a signal that skips its clean-up included), so no cluster process outlives it."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+
+
 def start_cluster(env: dict[str, str]) -> tuple[str, list[subprocess.Popen[bytes]]]:
-    """A scheduler and two workers on loopback; returns the address and the processes once the
-    scheduler counts both workers."""
+    """A scheduler and two workers on loopback (each killed when this process ends); returns
+    the address and the processes once the scheduler counts both workers."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     dask = [sys.executable, "-m", "dask"]
-    procs = [subprocess.Popen([*dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"], env=env, stderr=subprocess.DEVNULL)]
+    scheduler = [*dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]
+    procs = [subprocess.Popen(scheduler, env=env, stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)]
     for _ in range(2):
         argv = [*dask, "worker", address, "--host", "127.0.0.1", "--no-nanny", "--nthreads", "1", "--no-dashboard"]
-        procs.append(subprocess.Popen(argv, env=env, stderr=subprocess.DEVNULL))
+        procs.append(subprocess.Popen(argv, env=env, stderr=subprocess.DEVNULL, preexec_fn=die_with_parent))
     from distributed import Client
 
     with Client(address, timeout=60, set_as_default=False) as client:
