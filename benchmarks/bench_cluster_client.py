@@ -19,7 +19,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import statistics
@@ -30,12 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_study_scaling import TIMING, proc_cpu_s, start_cluster
-
-
-def untimed(path: Path) -> list[dict[str, object]]:
-    """The runs of a ``summary.json`` without their wall times."""
-    return [{k: v for k, v in r.items() if k not in TIMING} for r in json.loads(path.read_text())["runs"]]
+from bench_study_scaling import proc_cpu_s, start_cluster, untimed
 
 
 def main() -> int:
