@@ -34,6 +34,12 @@ one_step(np.array([0.0, 0.0, 10.0]), np.array([0.5, 0.0, 0.0]), np.array([1.0, 2
 """
 
 
+#: The kernels the tests call directly (:mod:`tests.support.warm_kernels`), by group: compiled
+#: in the process that has just compiled their inner functions.
+WARM_TESTS_PLANNING = "import tests.support.warm_kernels as k\nk.compile_planning()"
+WARM_TESTS_ESTIMATOR = "import tests.support.warm_kernels as k\nk.compile_estimator()"
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Load the compiled planning, estimator and simulator kernels once, before any worker
     starts (the first run after a clean clone compiles them into numba's on-disk cache): the
@@ -57,13 +63,19 @@ def warm_up_scripts() -> list[str]:
     57-70 s wall and 90-107 s of CPU, against 102-120 s wall and 187-214 s of CPU when the first
     process went through a planner's start (:mod:`planner.node.warm`: both groups compiled in
     children, then the control step's inner functions again) while the second compiled the
-    estimator's kernels a second time. On the kernels built ahead of time (``FIMNAV_AOT=1``):
-    a planner's start (which builds the missing extension modules) and the estimator's."""
+    estimator's kernels a second time. Each process then compiles the kernels of its group
+    that tests call directly (:mod:`tests.support.warm_kernels`): on a cold cache the run's
+    tests then take the CPU they take on a warm one (599 s against 736 s of CPU when each
+    worker compiled them where a test first reached them), and the warm-up no longer (108 s to
+    the first test either way). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
+    planner's start (which builds the missing extension modules) and the estimator's."""
     from planner import aot
 
     if aot.enabled():
-        return [f"import planner.node.warm\n{WARM_CONTROL}", f"import planner.node.warm_estimator\n{WARM_SIMULATOR}"]
-    return [f"import planner.warm as w\nw.warm_planning()\n{WARM_CONTROL}", f"import planner.warm as w\nw.warm_estimator()\n{WARM_SIMULATOR}"]
+        planning, estimator = "import planner.node.warm", "import planner.node.warm_estimator"
+    else:
+        planning, estimator = "import planner.warm as w\nw.warm_planning()", "import planner.warm as w\nw.warm_estimator()"
+    return [f"{planning}\n{WARM_CONTROL}\n{WARM_TESTS_PLANNING}", f"{estimator}\n{WARM_SIMULATOR}\n{WARM_TESTS_ESTIMATOR}"]
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:

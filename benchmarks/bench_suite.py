@@ -1,0 +1,92 @@
+"""How long the default test run takes on a cold kernel cache, as after a fresh clone (CI, a new
+user's first ``python3 -m pytest``), for two checkouts (not a timed test).
+
+Each round runs ``python -m pytest -q`` in each checkout's root, the order swapped every round,
+after deleting the numba cache files (``*.nbi``, ``*.nbc``) under that checkout's packages: the
+run's warm-up (``tests/conftest.py``) and any test that reaches a kernel not yet compiled
+compile it, as in a fresh clone. Each checkout runs its own code, and so does every process its tests start
+(``PYTHONPATH`` is the checkout; the script refuses a checkout that imports fimnav from
+elsewhere), with this interpreter and its libraries. Printed per run: the wall time of the command, pytest's own
+figure (from the start of collection: it leaves the warm-up out) and the count of passed tests,
+which must be the same for both.
+
+``--warm`` keeps the caches (each checkout's first round then fills its own).
+
+Usage::
+
+    python benchmarks/bench_suite.py BEFORE AFTER [--rounds 1] [--warm]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+PACKAGES = ("planner", "missions", "comms", "vehicle_sim")
+SUMMARY = re.compile(r"(\d+) passed(?:, (\d+) skipped)? in ([\d.]+)s")
+
+
+def drop_kernel_cache(tree: Path) -> int:
+    """Delete numba's cache files under ``tree``'s packages; returns how many."""
+    files = [p for pkg in PACKAGES for pattern in ("*.nbi", "*.nbc") for p in (tree / pkg).rglob(pattern)]
+    for p in files:
+        p.unlink()
+    return len(files)
+
+
+def run_suite(tree: Path) -> tuple[float, float, int]:
+    """Wall seconds of ``python -m pytest -q`` in ``tree``, pytest's own seconds, tests passed."""
+    t0 = time.perf_counter()
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+    done = subprocess.run(argv, cwd=tree, env=dict(os.environ, PYTHONPATH=str(tree)), capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    found = SUMMARY.search(done.stdout.splitlines()[-1] if done.stdout else "")
+    if done.returncode != 0 or found is None:
+        raise SystemExit(f"bench_suite: the run in {tree} failed (exit {done.returncode}):\n{done.stdout[-3000:]}{done.stderr[-2000:]}")
+    return wall, float(found.group(3)), int(found.group(1))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("before", type=Path)
+    parser.add_argument("after", type=Path)
+    parser.add_argument("--rounds", type=int, default=1)
+    parser.add_argument("--warm", action="store_true", help="keep numba's caches")
+    args = parser.parse_args()
+    trees = {"before": args.before.resolve(), "after": args.after.resolve()}
+    for k, tree in trees.items():
+        code = "import missions; print(missions.__file__)"
+        where = subprocess.run(
+            [sys.executable, "-c", code], cwd="/", env=dict(os.environ, PYTHONPATH=str(tree)), capture_output=True, text=True, check=True
+        )
+        if not Path(where.stdout.strip()).is_relative_to(tree):
+            raise SystemExit(f"bench_suite: {k} imports fimnav from {where.stdout.strip()}, not from {tree}")
+    res: dict[str, list[tuple[float, float, int]]] = {k: [] for k in trees}
+    for r in range(args.rounds):
+        for k in list(trees)[r % 2 :] + list(trees)[: r % 2]:
+            dropped = 0 if args.warm else drop_kernel_cache(trees[k])
+            res[k].append(run_suite(trees[k]))
+            wall, own, passed = res[k][-1]
+            print(
+                f"round {r + 1}: {k}: wall {wall:.1f} s, pytest's figure {own:.1f} s, {passed} passed ({dropped} cache files dropped first)",
+                flush=True,
+            )
+    counts = {x[2] for v in res.values() for x in v}
+    if len(counts) != 1:
+        raise SystemExit(f"bench_suite: the runs passed different numbers of tests: {sorted(counts)}")
+    print(f"\n{'warm' if args.warm else 'cold'} kernel cache, {args.rounds} rounds; before = {trees['before']}, after = {trees['after']}\n")
+    print("| checkout | wall, median | pytest's figure, median |")
+    print("|---|---:|---:|")
+    for k, v in res.items():
+        print(f"| {k} | {statistics.median(x[0] for x in v):.1f} s | {statistics.median(x[1] for x in v):.1f} s |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
