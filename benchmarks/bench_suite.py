@@ -7,8 +7,9 @@ run's warm-up (``tests/conftest.py``) and any test that reaches a kernel not yet
 compile it, as in a fresh clone. Each checkout runs its own code, and so does every process its tests start
 (``PYTHONPATH`` is the checkout; the script refuses a checkout that imports fimnav from
 elsewhere), with this interpreter and its libraries. Printed per run: the wall time of the command, pytest's own
-figure (from the start of collection: it leaves the warm-up out) and the count of passed tests,
-which must be the same for both.
+figure (from the start of collection: it leaves the warm-up out), the CPU time of the command
+and every process it waited for (``RUSAGE_CHILDREN``: the warm-up, the workers, the processes
+the tests start) and the count of passed tests, which must be the same for both.
 
 ``--warm`` keeps the caches (each checkout's first round then fills its own).
 
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -40,16 +42,20 @@ def drop_kernel_cache(tree: Path) -> int:
     return len(files)
 
 
-def run_suite(tree: Path) -> tuple[float, float, int]:
-    """Wall seconds of ``python -m pytest -q`` in ``tree``, pytest's own seconds, tests passed."""
+def run_suite(tree: Path) -> tuple[float, float, float, int]:
+    """Wall seconds of ``python -m pytest -q`` in ``tree``, pytest's own seconds, CPU seconds,
+    tests passed."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
     done = subprocess.run(argv, cwd=tree, env=dict(os.environ, PYTHONPATH=str(tree)), capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     found = SUMMARY.search(done.stdout.splitlines()[-1] if done.stdout else "")
     if done.returncode != 0 or found is None:
         raise SystemExit(f"bench_suite: the run in {tree} failed (exit {done.returncode}):\n{done.stdout[-3000:]}{done.stderr[-2000:]}")
-    return wall, float(found.group(3)), int(found.group(1))
+    return wall, float(found.group(3)), cpu, int(found.group(1))
 
 
 def main() -> int:
@@ -67,24 +73,25 @@ def main() -> int:
         )
         if not Path(where.stdout.strip()).is_relative_to(tree):
             raise SystemExit(f"bench_suite: {k} imports fimnav from {where.stdout.strip()}, not from {tree}")
-    res: dict[str, list[tuple[float, float, int]]] = {k: [] for k in trees}
+    res: dict[str, list[tuple[float, float, float, int]]] = {k: [] for k in trees}
     for r in range(args.rounds):
         for k in list(trees)[r % 2 :] + list(trees)[: r % 2]:
             dropped = 0 if args.warm else drop_kernel_cache(trees[k])
             res[k].append(run_suite(trees[k]))
-            wall, own, passed = res[k][-1]
+            wall, own, cpu, passed = res[k][-1]
             print(
-                f"round {r + 1}: {k}: wall {wall:.1f} s, pytest's figure {own:.1f} s, {passed} passed ({dropped} cache files dropped first)",
+                f"round {r + 1}: {k}: wall {wall:.1f} s, pytest's figure {own:.1f} s, CPU {cpu:.0f} s, {passed} passed ({dropped} cache files dropped first)",
                 flush=True,
             )
-    counts = {x[2] for v in res.values() for x in v}
+    counts = {x[3] for v in res.values() for x in v}
     if len(counts) != 1:
         raise SystemExit(f"bench_suite: the runs passed different numbers of tests: {sorted(counts)}")
     print(f"\n{'warm' if args.warm else 'cold'} kernel cache, {args.rounds} rounds; before = {trees['before']}, after = {trees['after']}\n")
-    print("| checkout | wall, median | pytest's figure, median |")
-    print("|---|---:|---:|")
+    print("| checkout | wall, median | pytest's figure, median | CPU, median |")
+    print("|---|---:|---:|---:|")
     for k, v in res.items():
-        print(f"| {k} | {statistics.median(x[0] for x in v):.1f} s | {statistics.median(x[1] for x in v):.1f} s |")
+        wall, own, cpu = (statistics.median(x[i] for x in v) for i in range(3))
+        print(f"| {k} | {wall:.1f} s | {own:.1f} s | {cpu:.0f} s |")
     return 0
 
 

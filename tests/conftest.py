@@ -66,8 +66,8 @@ def warm_up_scripts() -> list[str]:
     estimator's kernels a second time. Each process then compiles the kernels of its group
     that tests call directly (:mod:`tests.support.warm_kernels`): on a cold cache the run's
     tests then take the CPU they take on a warm one (599 s against 736 s of CPU when each
-    worker compiled them where a test first reached them), and the warm-up no longer (108 s to
-    the first test either way). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
+    worker compiled them where a test first reached them), while the warm-up takes no longer
+    (the first test starts 108 s after the command either way; ``benchmarks/bench_suite.py``). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
     planner's start (which builds the missing extension modules) and the estimator's."""
     from planner import aot
 
