@@ -12,10 +12,13 @@ and every process it waited for (``RUSAGE_CHILDREN``: the warm-up, the workers, 
 the tests start) and the count of passed tests, which must be the same for both.
 
 ``--warm`` keeps the caches (each checkout's first round then fills its own).
+``--warm-up-only`` runs, instead of the suite, only its warm-up on the cold cache: the two
+processes of ``tests.conftest.warm_up_scripts`` at once, as the run starts them; printed: when
+each ended, and their CPU time.
 
 Usage::
 
-    python benchmarks/bench_suite.py BEFORE AFTER [--rounds 1] [--warm]
+    python benchmarks/bench_suite.py BEFORE AFTER [--rounds 1] [--warm | --warm-up-only]
 """
 
 from __future__ import annotations
@@ -58,12 +61,34 @@ def run_suite(tree: Path) -> tuple[float, float, float, int]:
     return wall, float(found.group(3)), cpu, int(found.group(1))
 
 
+def run_warm_up(tree: Path) -> tuple[float, float, float]:
+    """Wall seconds of the run's warm-up in ``tree`` (the later of its two processes' ends),
+    the planning process's end, and the CPU seconds of both."""
+    env = dict(os.environ, PYTHONPATH=str(tree), FIMNAV_AOT="0")  # as tests/__init__.py sets it
+    code = "from tests.conftest import warm_up_scripts; print(chr(0).join(warm_up_scripts()), end='')"
+    scripts = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, capture_output=True, text=True, check=True).stdout.split("\0")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    started = [subprocess.Popen([sys.executable, "-c", script], cwd=tree, env=env) for script in scripts]
+    ends = {}
+    while len(ends) < len(started):
+        for i, p in enumerate(started):
+            if i not in ends and p.poll() is not None:
+                if p.returncode != 0:
+                    raise SystemExit(f"bench_suite: the warm-up in {tree} failed (exit {p.returncode})")
+                ends[i] = time.perf_counter() - t0
+        time.sleep(0.05)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return max(ends.values()), ends[0], (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--warm", action="store_true", help="keep numba's caches")
+    parser.add_argument("--warm-up-only", action="store_true", help="time the run's warm-up alone, on a cold cache")
     args = parser.parse_args()
     trees = {"before": args.before.resolve(), "after": args.after.resolve()}
     for k, tree in trees.items():
@@ -73,6 +98,13 @@ def main() -> int:
         )
         if not Path(where.stdout.strip()).is_relative_to(tree):
             raise SystemExit(f"bench_suite: {k} imports fimnav from {where.stdout.strip()}, not from {tree}")
+    if args.warm_up_only:
+        for r in range(args.rounds):
+            for k in list(trees)[r % 2 :] + list(trees)[: r % 2]:
+                drop_kernel_cache(trees[k])
+                wall, planning, cpu = run_warm_up(trees[k])
+                print(f"round {r + 1}: {k}: warm-up {wall:.1f} s (planning process {planning:.1f} s), CPU {cpu:.1f} s", flush=True)
+        return 0
     res: dict[str, list[tuple[float, float, float, int]]] = {k: [] for k in trees}
     for r in range(args.rounds):
         for k in list(trees)[r % 2 :] + list(trees)[: r % 2]:

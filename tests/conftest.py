@@ -64,10 +64,10 @@ def warm_up_scripts() -> list[str]:
     process went through a planner's start (:mod:`planner.node.warm`: both groups compiled in
     children, then the control step's inner functions again) while the second compiled the
     estimator's kernels a second time. Each process then compiles the kernels of its group
-    that tests call directly (:mod:`tests.support.warm_kernels`): on a cold cache the run's
-    tests then take the CPU they take on a warm one (599 s against 736 s of CPU when each
-    worker compiled them where a test first reached them), while the warm-up takes no longer
-    (the first test starts 108 s after the command either way; ``benchmarks/bench_suite.py``). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
+    that tests call directly (:mod:`tests.support.warm_kernels`), where their inner functions
+    are already compiled: on a cold cache the tests that reached them first (4-15 s of CPU
+    each, compiling them again in their worker) take their warm time, for about 20 s more
+    CPU in the warm-up (``benchmarks/bench_suite.py`` times whole cold runs). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
     planner's start (which builds the missing extension modules) and the estimator's."""
     from planner import aot
 
