@@ -70,7 +70,7 @@ def run_warm_up(tree: Path) -> tuple[float, float, float]:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     started = [subprocess.Popen([sys.executable, "-c", script], cwd=tree, env=env) for script in scripts]
-    ends = {}
+    ends: dict[int, float] = {}
     while len(ends) < len(started):
         for i, p in enumerate(started):
             if i not in ends and p.poll() is not None:

@@ -66,8 +66,8 @@ def warm_up_scripts() -> list[str]:
     estimator's kernels a second time. Each process then compiles the kernels of its group
     that tests call directly (:mod:`tests.support.warm_kernels`), where their inner functions
     are already compiled: on a cold cache the tests that reached them first (4-15 s of CPU
-    each, compiling them again in their worker) take their warm time, for about 20 s more
-    CPU in the warm-up (``benchmarks/bench_suite.py`` times whole cold runs). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
+    each, compiling them again in their worker) take their warm time, for 7-41 s more CPU
+    in the warm-up (``benchmarks/bench_suite.py`` times it and whole cold runs). On the kernels built ahead of time (``FIMNAV_AOT=1``): a
     planner's start (which builds the missing extension modules) and the estimator's."""
     from planner import aot
 
