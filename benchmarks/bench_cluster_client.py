@@ -32,6 +32,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_study_scaling import proc_cpu_s, start_cluster, untimed
 
 
+def require_own_code(script: str, label: str, tree: Path, env: dict[str, str]) -> None:
+    """Exit with a message unless a process started with ``env`` (outside any checkout) imports
+    fimnav from ``tree``."""
+    code = "import missions; print(missions.__file__)"
+    where = subprocess.run([sys.executable, "-c", code], cwd="/", env=env, capture_output=True, text=True, check=True).stdout.strip()
+    if not Path(where).is_relative_to(tree):
+        raise SystemExit(f"{script}: {label} imports fimnav from {where}, not from {tree}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("before", type=Path, help="a checkout of the earlier commit")
@@ -47,11 +56,7 @@ def main() -> int:
         # ``python -m`` would import that checkout's packages, whatever PYTHONPATH says.
         os.chdir(tmp)
         for k, tree in trees.items():
-            where = subprocess.run(
-                [sys.executable, "-c", "import missions; print(missions.__file__)"], env=envs[k], capture_output=True, text=True, check=True
-            )
-            if not Path(where.stdout.strip()).is_relative_to(tree):
-                raise SystemExit(f"bench_cluster_client: {k} imports fimnav from {where.stdout.strip()}, not from {tree}")
+            require_own_code("bench_cluster_client", k, tree, envs[k])
         try:
             for k in trees:
                 clusters[k] = start_cluster(envs[k])

@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench_cluster_client import require_own_code
+
 PACKAGES = ("planner", "missions", "comms", "vehicle_sim")
 SUMMARY = re.compile(r"(\d+) passed(?:, (\d+) skipped)? in ([\d.]+)s")
 
@@ -92,12 +94,7 @@ def main() -> int:
     args = parser.parse_args()
     trees = {"before": args.before.resolve(), "after": args.after.resolve()}
     for k, tree in trees.items():
-        code = "import missions; print(missions.__file__)"
-        where = subprocess.run(
-            [sys.executable, "-c", code], cwd="/", env=dict(os.environ, PYTHONPATH=str(tree)), capture_output=True, text=True, check=True
-        )
-        if not Path(where.stdout.strip()).is_relative_to(tree):
-            raise SystemExit(f"bench_suite: {k} imports fimnav from {where.stdout.strip()}, not from {tree}")
+        require_own_code("bench_suite", k, tree, dict(os.environ, PYTHONPATH=str(tree)))
     if args.warm_up_only:
         for r in range(args.rounds):
             for k in list(trees)[r % 2 :] + list(trees)[: r % 2]:

@@ -70,9 +70,10 @@ MEMORY: dict[str, list[tuple[Any, ...]]] = {
 
 
 def _compile(module: Any, table: dict[str, list[tuple[Any, ...]]]) -> None:
+    from planner.aot import jit_kernel
+
     for name, signatures in table.items():
-        kernel = getattr(module, name)
-        dispatcher = getattr(kernel, "jit", kernel)  # an ahead-of-time entry keeps its JIT dispatcher
+        dispatcher = jit_kernel(getattr(module, name))
         for argtypes in signatures:
             dispatcher.compile(argtypes)
 
