@@ -35,7 +35,7 @@ def build(group: str) -> Path:
     module_path, names = GROUPS[group]
     target = path(group)
     try:
-        from numba.core import codegen
+        from numba.core import codegen, config
         from numba.pycc import CC
 
         # The JIT's feature set rather than the one implied by the CPU model: the same code
@@ -48,7 +48,8 @@ def build(group: str) -> Path:
         with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
             cc = CC(name)
             cc.output_dir = tmp
-            cc.target_cpu = "host"
+            # The JIT's CPU: ``NUMBA_CPU_NAME`` where set (missions.runtime.numerics pins it), else the host.
+            cc.target_cpu = getattr(config, "CPU_NAME", None) or "host"
             cc.verbose = False
             for kernel in names:
                 cc.export(kernel, parse_signature(SIGNATURES[kernel]))(jit_kernel(getattr(kernels, kernel)).py_func)

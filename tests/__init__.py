@@ -3,7 +3,12 @@
 
 pymavlink chooses MAVLink 1 or 2 when it is first imported, from ``MAVLINK20`` in the
 environment: it is set here, before any test module or test script can import pymavlink; so
-are the BLAS libraries' thread counts (:mod:`missions.runtime.threads`), before numpy.
+are the BLAS libraries' thread counts (:mod:`missions.runtime.threads`), before numpy, and the
+numerics are pinned (:mod:`missions.runtime.numerics`: numba's target CPU, OpenBLAS's kernels,
+numpy's SIMD loops), so that the recorded references (``tests/data/simulator_reference.npz``, the
+open-loop comparison's table) hold on every x86-64 machine with AVX2 and FMA. Where the machine
+cannot run the pinned configuration, :data:`UNPINNED` says why, and the tests that compare with
+a recording skip with that reason (:data:`tests.support.numerics.pinned`).
 
 The suite runs numba's JIT kernels (``FIMNAV_AOT=0``, unless the environment sets it), compiled
 once into numba's cache by tests/conftest.py: building the extension modules ahead of time
@@ -15,7 +20,9 @@ a first compile sets the kernel path in its command's environment and runs in ei
 """
 
 import os
+import sys
 
+from missions.runtime.numerics import is_pinned, pin_numerics
 from missions.runtime.threads import one_blas_thread
 
 os.environ["MAVLINK20"] = "1"
@@ -23,3 +30,13 @@ os.environ.setdefault("FIMNAV_AOT", "0")
 # As in every fimnav command (missions.cli.main): the tests that call the library in process
 # run it as a command does, and their BLAS threads do not spin on the other workers' cores.
 one_blas_thread(os.environ)
+
+_ALREADY_PINNED = is_pinned(os.environ)  # an xdist worker inherits the controller's pin
+#: ``None`` where the suite's numerics are pinned, else the reason they cannot be.
+UNPINNED = pin_numerics(os.environ)
+if UNPINNED is None and not _ALREADY_PINNED and {"numpy", "scipy", "numba"} & set(sys.modules):
+    raise RuntimeError(
+        f"{sorted({'numpy', 'scipy', 'numba'} & set(sys.modules))} imported before tests/__init__.py pinned the numerics "
+        "(missions.runtime.numerics): this process would not compute what the recorded references hold; "
+        "run the suite with python -m pytest, or set the variables of missions.runtime.numerics.PINNED first"
+    )

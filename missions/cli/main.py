@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 
 from comms.errors import FimnavError
+from missions.runtime.numerics import apply_requested
 from missions.runtime.signals import Stopped, exit_status, raise_on_signals
 from missions.runtime.threads import one_blas_thread
 
@@ -91,6 +92,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     command's error status (1, 2, 3), or 128 + the signal that ended it (SIGINT 130, SIGTERM
     143, SIGHUP 129; :mod:`missions.runtime.signals`)."""
     one_blas_thread(os.environ)  # before any subcommand's module imports numpy
+    problem = apply_requested(os.environ)  # FIMNAV_NUMERICS=portable: the same bits on every x86-64 machine
+    if problem:
+        print(f"fimnav: error: {problem}", file=sys.stderr)
+        return 2
     words = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(words)
     args = parser.parse_args(words)

@@ -8,6 +8,11 @@ code they replaced (commit 48f7e03) is guarded open loop on these recorded traje
 
     python -m tests.simulator.reference_runs      # rewrite tests/data/simulator_reference.npz
 
+It records with the suite's pinned numerics (``tests/__init__.py``, :mod:`missions.runtime.numerics`:
+numba's ``haswell`` target, OpenBLAS's Haswell kernels, numpy without AVX-512), which every
+x86-64 machine with AVX2 and FMA runs the same way; the ranging runs' steps would part by metres
+on another configuration.
+
 Rewrite the reference only for a change that is meant to change the planner's behaviour, and
 say so in that commit; then measure the open-loop comparison again on the new trajectories
 (``python -m tests.simulator.test_open_loop_vs_numpy`` prints what its table lists).

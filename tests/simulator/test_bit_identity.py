@@ -24,6 +24,11 @@ import numpy as np
 import pytest
 
 from tests.simulator.reference_runs import REFERENCE, STEPS, replay, run_names
+from tests.support.numerics import pinned
+
+#: Recorded with the suite's pinned numerics (tests/__init__.py): the ranging runs' steps part
+#: by metres on another configuration (a mirror-image tie decided by the last bits).
+pytestmark = pinned
 
 TOL_M = 1e-9
 
