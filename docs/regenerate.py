@@ -18,6 +18,11 @@ copies the figures into ``docs/figures/``.
 ``--only NAME`` (repeatable) runs and rewrites just those blocks. Each table states the command, the commit it was
 measured at and the package versions. The runs are deterministic for a given mission seed, so
 the same commit gives the same tables; a tree with uncommitted changes is stamped as such.
+They run with pinned numerics (:mod:`missions.runtime.numerics`, the commands shown as
+``FIMNAV_NUMERICS=portable fimnav ...``), so that any x86-64 machine with AVX2 and FMA gives the
+same tables bit for bit: with each machine's own choices the ranging runs' trajectories part
+with the last bits (their statistics agree, a rare event such as a keep-out crossing may come or
+go). On a machine that cannot run them the script runs with the host's and says so in the stamp.
 
 The per-command results directories are kept under ``--out`` (default ``results/docs``): each
 has the ``summary.json`` the tables are read from, the per-step CSVs and the figures.
@@ -28,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -36,12 +42,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 DOCS = Path(__file__).resolve().parent
 REPO = DOCS.parent
 if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))  # this clone's code, whatever else is installed
+
+from missions.runtime.numerics import NUMERICS_VARIABLE, pin_numerics  # noqa: E402
+
+#: Pinned before numpy loads (``None``), else why this machine cannot be.
+UNPINNED = pin_numerics(os.environ)
+
+import numpy as np  # noqa: E402
 
 #: Paper missions in the order of the case-study table, with the label the table uses.
 CASE_STUDY_RUNS: tuple[tuple[str, str], ...] = (
@@ -130,8 +141,10 @@ class Command:
         return ["montecarlo", *self.args, "--out", str(self.out), *reuse]
 
     def shown(self) -> str:
-        """The command as a user types it (results directory left to its default)."""
-        return "fimnav " + " ".join(["montecarlo", *self.args])
+        """The command as a user types it (results directory left to its default), with the
+        numerics it ran with."""
+        pinned = f"{NUMERICS_VARIABLE}=portable " if UNPINNED is None else ""
+        return pinned + "fimnav " + " ".join(["montecarlo", *self.args])
 
 
 def commands(out: Path, trials: int | None, steps: int | None, jobs: int, figures: bool) -> dict[str, Command]:
@@ -184,8 +197,9 @@ def stamp() -> str:
 
     commit = git("rev-parse", "--short=7", "HEAD") or "unknown"
     dirty = " with uncommitted changes" if git("status", "--porcelain", "--untracked-files=no") else ""
+    numerics = "pinned numerics" if UNPINNED is None else f"the host's numerics ({UNPINNED})"
     return (f"commit {commit}{dirty}, fimnav {version('fimnav')}, Python {sys.version.split()[0]}, "
-            f"numpy {numpy.__version__}, scipy {scipy.__version__}")
+            f"numpy {numpy.__version__}, scipy {scipy.__version__}, {numerics}")
 
 
 STAMP_FILE = "regenerate-stamp.txt"
@@ -383,7 +397,7 @@ def fault_grid(per_setting: Sequence[Sequence[dict[str, Any]]]) -> list[str]:
     by = [{r["run"]: r for r in runs} for runs in per_setting]
     total = 0
     worst: dict[str, float] = {}
-    for mission_id, label in CASE_STUDY_RUNS:
+    for mission_id, _label in CASE_STUDY_RUNS:
         for crit in "AD":
             cells = []
             for setting in by:
