@@ -1,6 +1,6 @@
 """Regenerate every result table and figure of the documentation from scratch.
 
-    python docs/regenerate.py                 # the full size the docs quote (about two hours on 2 cores)
+    python docs/regenerate.py                 # the full size the docs quote (8 minutes on a 2-core Zen 5 machine)
     python docs/regenerate.py --trials 5 --steps 100 --out /tmp/quick --no-docs   # a quick look
 
 It runs the studies that the docs name, as ``fimnav montecarlo`` commands, through the same
