@@ -31,6 +31,7 @@ numba are imported. Nothing here imports them.
 
 from __future__ import annotations
 
+import hashlib
 import platform
 from collections.abc import Mapping, MutableMapping
 from pathlib import Path
@@ -56,18 +57,36 @@ PINNED: dict[str, str] = {
 REQUIRED_FLAGS = frozenset({"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "movbe", "popcnt", "abm"})
 
 
-def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
-    """The first processor's flags in ``cpuinfo`` (Linux); empty where the file is absent or
-    has none."""
+def _cpuinfo_field(name: str, cpuinfo: Path) -> str | None:
+    """The first processor's ``name`` field in ``cpuinfo`` (Linux), ``None`` where absent."""
     try:
         text = cpuinfo.read_text(encoding="ascii", errors="replace")
     except OSError:
-        return frozenset()
+        return None
     for line in text.splitlines():
         key, _, value = line.partition(":")
-        if key.strip() == "flags":
-            return frozenset(value.split())
-    return frozenset()
+        if key.strip() == name:
+            return value.strip()
+    return None
+
+
+def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
+    """The first processor's flags in ``cpuinfo`` (Linux); empty where the file is absent or
+    has none."""
+    return frozenset((_cpuinfo_field("flags", cpuinfo) or "").split())
+
+
+def numerics_identity(environ: Mapping[str, str], cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """What sets a process's last bits besides its code and library versions: ``pinned`` where
+    ``environ`` holds :data:`PINNED`, else ``host:`` the CPU's model and a digest of its flags
+    (``cpuinfo``; the machine's architecture where the file is absent). Two processes of equal
+    identity, code and libraries compute the same bits (:func:`missions.study.cluster.environment`)."""
+    if is_pinned(environ):
+        return "pinned"
+    flags = cpu_flags(cpuinfo)
+    model = _cpuinfo_field("model name", cpuinfo) or platform.machine() or "unknown CPU"
+    digest = hashlib.sha256(" ".join(sorted(flags)).encode()).hexdigest()[:8] if flags else "no flags"
+    return f"host: {model}, flags {digest}"
 
 
 def why_not_pinnable(flags: frozenset[str] | None = None, machine: str | None = None) -> str | None:

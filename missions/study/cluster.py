@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import os
 import platform
 import queue
 import re
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from comms.errors import FimnavError, UsageError
+from missions.runtime.numerics import numerics_identity
 from missions.study.executors import Chunk, simulate_chunk
 from missions.study.records import SimulationResult
 from planner.warm import available_cores, compile_aside
@@ -53,8 +55,9 @@ class EnvironmentMismatch(ValueError):
 
 def environment() -> dict[str, str]:
     """What a worker must share with the submitting machine for bit-identical results: Python's
-    version, the versions of :data:`VERSIONED` (absent ones as "-"), and a SHA-256 of fimnav's
-    sources (every ``.py`` of :data:`FINGERPRINT_PACKAGES`, by relative path)."""
+    version, the versions of :data:`VERSIONED` (absent ones as "-"), a SHA-256 of fimnav's
+    sources (every ``.py`` of :data:`FINGERPRINT_PACKAGES`, by relative path), and the numerics
+    (:func:`missions.runtime.numerics.numerics_identity`: pinned, or the host's CPU kind)."""
     from importlib.metadata import PackageNotFoundError, version
 
     env = {"python": platform.python_version()}
@@ -73,6 +76,7 @@ def environment() -> dict[str, str]:
             digest.update(f"{package}/{path.relative_to(root).as_posix()}\0".encode())
             digest.update(path.read_bytes())
     env["fimnav sources"] = digest.hexdigest()[:16]
+    env["numerics"] = numerics_identity(os.environ)
     return env
 
 
@@ -90,7 +94,10 @@ def run_chunk_on_worker(chunk: Chunk, tag: str, topic: str, expected: dict[str, 
     here = environment()
     diff = [f"{k} {here.get(k)} (submitted from {v})" for k, v in expected.items() if here.get(k) != v]
     if diff:
-        raise EnvironmentMismatch(f"worker {worker.address} runs other code: {', '.join(diff)}")
+        hint = ""
+        if here.get("numerics") != expected.get("numerics"):
+            hint = "; to mix CPU kinds, pin the numerics of the study and of every worker (docs/studies.md)"
+        raise EnvironmentMismatch(f"worker {worker.address} runs other code: {', '.join(diff)}{hint}")
     # A cold kernel cache (a fresh node): the planning and estimator kernels compiled in two
     # child processes at once, by one worker of the node while the others wait (planner.warm).
     compile_aside(available_cores())

@@ -6,6 +6,7 @@ progress counts every trial-step once. The reference is the same study in this p
 from __future__ import annotations
 
 import json
+import re
 import signal
 import socket
 import subprocess
@@ -148,6 +149,20 @@ def test_a_worker_with_other_code_is_refused(shared: LoopbackCluster, monkeypatc
         list(executor.map([Chunk(RunSpec(paper_mission("joint"), "A", 1, 2))]))
 
 
+def test_a_worker_with_other_numerics_is_refused(shared: LoopbackCluster, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A study submitted from a process with the host's numerics to workers that run pinned
+    ones (or the other way round, or another CPU kind): one error naming the numerics of both and
+    how to mix CPU kinds, nothing simulated."""
+    cluster = shared
+    here = environment()
+    monkeypatch.setattr(cluster_mod, "environment", lambda: {**here, "numerics": "host: Some CPU, flags 0123abcd"})
+    with DaskCluster(cluster.address) as executor, pytest.raises(FimnavError) as raised:
+        list(executor.map([Chunk(RunSpec(paper_mission("joint"), "A", 1, 2))]))
+    message = str(raised.value)
+    assert re.search(r"worker tcp://127\.0\.0\.1:\d+ runs other code: numerics pinned \(submitted from host: Some CPU, flags 0123abcd\)", message), message
+    assert "pin the numerics" in message and "docs/studies.md" in message and "\n" not in message
+
+
 def test_no_scheduler_is_one_usage_error() -> None:
     with pytest.raises(UsageError, match=r"--cluster tcp://127\.0\.0\.1:\d+: no Dask scheduler answered"):
         connect(f"tcp://127.0.0.1:{free_port()}", timeout_s=1.0)
@@ -210,6 +225,7 @@ def _command(pid: int) -> str:
 
 def test_environment_names_the_code_and_libraries() -> None:
     env = environment()
-    assert set(env) == {"python", "numpy", "scipy", "numba", "pydantic", "fimnav sources"}
+    assert set(env) == {"python", "numpy", "scipy", "numba", "pydantic", "fimnav sources", "numerics"}
+    assert env["numerics"] == "pinned"  # the suite's processes, tests/__init__.py
     assert env["numpy"] == np.__version__ and len(env["fimnav sources"]) == 16
     assert environment() == env

@@ -13,7 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from missions.runtime.numerics import NUMERICS_VARIABLE, PINNED, REQUIRED_FLAGS, apply_requested, cpu_flags, is_pinned, why_not_pinnable
+from missions.runtime.numerics import (
+    NUMERICS_VARIABLE,
+    PINNED,
+    REQUIRED_FLAGS,
+    apply_requested,
+    cpu_flags,
+    is_pinned,
+    numerics_identity,
+    why_not_pinnable,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 HASWELL = frozenset({"fpu", "sse2", "avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "movbe", "popcnt", "abm"})
@@ -70,6 +79,20 @@ def test_the_machine_check_reads_the_flags_it_needs(tmp_path: Path) -> None:
     assert cpu_flags(info) == {"fpu", "sse2", "avx", "avx2"}
     assert cpu_flags(tmp_path / "absent") == frozenset()
     assert REQUIRED_FLAGS <= HASWELL
+
+
+def test_the_identity_tells_pinned_from_each_cpu_kind(tmp_path: Path) -> None:
+    """What a cluster compares (missions.study.cluster.environment): pinned whatever the CPU,
+    else the CPU's model and flags, so that two kinds differ and one kind matches itself."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.write_text("processor\t: 0\nmodel name\t: CPU One\nflags\t\t: fpu avx avx2\n")
+    b.write_text("processor\t: 0\nmodel name\t: CPU One\nflags\t\t: fpu avx avx2 avx512f\n")
+    assert numerics_identity(dict(PINNED), a) == numerics_identity(dict(PINNED), b) == "pinned"
+    host_a, host_b = numerics_identity({}, a), numerics_identity({}, b)
+    assert host_a.startswith("host: CPU One, flags ") and host_a != host_b
+    assert numerics_identity({}, a) == host_a
+    assert numerics_identity({**PINNED, "OPENBLAS_CORETYPE": "Zen"}, a) == host_a  # half pinned is not pinned
+    assert numerics_identity({}, tmp_path / "absent").startswith("host: ")
 
 
 def test_the_variable_is_read_as_documented() -> None:
