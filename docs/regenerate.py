@@ -22,7 +22,8 @@ They run with pinned numerics (:mod:`missions.runtime.numerics`, the commands sh
 ``FIMNAV_NUMERICS=portable fimnav ...``), so that any x86-64 machine with AVX2 and FMA gives the
 same tables bit for bit: with each machine's own choices the ranging runs' trajectories part
 with the last bits (their statistics agree, a rare event such as a keep-out crossing may come or
-go). On a machine that cannot run them the script runs with the host's and says so in the stamp.
+go). On a machine that cannot run them, or with ``FIMNAV_NUMERICS=host``, the script runs with
+the host's and says so in the stamp.
 
 The per-command results directories are kept under ``--out`` (default ``results/docs``): each
 has the ``summary.json`` the tables are read from, the per-step CSVs and the figures.
@@ -49,8 +50,9 @@ if str(REPO) not in sys.path[:1]:
 
 from missions.runtime.numerics import NUMERICS_VARIABLE, pin_numerics  # noqa: E402
 
-#: Pinned before numpy loads (``None``), else why this machine cannot be.
-UNPINNED = pin_numerics(os.environ)
+#: Pinned before numpy loads (``None``), else why not: this machine cannot run the pinned
+#: numerics, or ``FIMNAV_NUMERICS=host`` asks for its own.
+UNPINNED = f"{NUMERICS_VARIABLE}=host" if os.environ.get(NUMERICS_VARIABLE, "").strip() == "host" else pin_numerics(os.environ)
 
 import numpy as np  # noqa: E402
 

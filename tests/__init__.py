@@ -7,8 +7,9 @@ are the BLAS libraries' thread counts (:mod:`missions.runtime.threads`), before 
 numerics are pinned (:mod:`missions.runtime.numerics`: numba's target CPU, OpenBLAS's kernels,
 numpy's SIMD loops), so that the recorded references (``tests/data/simulator_reference.npz``, the
 open-loop comparison's table) hold on every x86-64 machine with AVX2 and FMA. Where the machine
-cannot run the pinned configuration, :data:`UNPINNED` says why, and the tests that compare with
-a recording skip with that reason (:data:`tests.support.numerics.pinned`).
+cannot run the pinned configuration, or with ``FIMNAV_NUMERICS=host``, :data:`UNPINNED` says
+why, and the tests that compare with a recording skip with that reason
+(:data:`tests.support.numerics.pinned`).
 
 The suite runs numba's JIT kernels (``FIMNAV_AOT=0``, unless the environment sets it), compiled
 once into numba's cache by tests/conftest.py: building the extension modules ahead of time
@@ -22,7 +23,7 @@ a first compile sets the kernel path in its command's environment and runs in ei
 import os
 import sys
 
-from missions.runtime.numerics import is_pinned, pin_numerics
+from missions.runtime.numerics import NUMERICS_VARIABLE, is_pinned, pin_numerics
 from missions.runtime.threads import one_blas_thread
 
 os.environ["MAVLINK20"] = "1"
@@ -32,8 +33,13 @@ os.environ.setdefault("FIMNAV_AOT", "0")
 one_blas_thread(os.environ)
 
 _ALREADY_PINNED = is_pinned(os.environ)  # an xdist worker inherits the controller's pin
-#: ``None`` where the suite's numerics are pinned, else the reason they cannot be.
-UNPINNED = pin_numerics(os.environ)
+#: ``None`` where the suite's numerics are pinned, else the reason they are not:
+#: ``FIMNAV_NUMERICS=host python -m pytest`` runs the suite with this machine's own.
+UNPINNED = (
+    f"{NUMERICS_VARIABLE}=host: this run uses the machine's own numerics, not the pinned ones the recording was made with"
+    if os.environ.get(NUMERICS_VARIABLE, "").strip() == "host"
+    else pin_numerics(os.environ)
+)
 if UNPINNED is None and not _ALREADY_PINNED and {"numpy", "scipy", "numba"} & set(sys.modules):
     raise RuntimeError(
         f"{sorted({'numpy', 'scipy', 'numba'} & set(sys.modules))} imported before tests/__init__.py pinned the numerics "

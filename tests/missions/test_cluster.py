@@ -6,6 +6,7 @@ progress counts every trial-step once. The reference is the same study in this p
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import socket
@@ -20,12 +21,14 @@ from distributed import Client
 
 from comms.errors import FimnavError, UsageError
 from missions.cli.main import main
+from missions.runtime.numerics import numerics_identity
 from missions.study import cluster as cluster_mod
 from missions.study.cluster import DaskCluster, connect, environment
 from missions.study.executors import Chunk
 from missions.study.montecarlo import expand_runs, run_study, study_size
 from missions.study.results import summarize
 from missions.study.simulator import RunSpec
+from tests import UNPINNED
 from tests.missions.test_study import LOSS, _assert_same, _untimed
 from tests.simulator.conftest import paper_mission
 from tests.support.dask import LoopbackCluster, start_cluster, worker_addresses
@@ -159,7 +162,10 @@ def test_a_worker_with_other_numerics_is_refused(shared: LoopbackCluster, monkey
     with DaskCluster(cluster.address) as executor, pytest.raises(FimnavError) as raised:
         list(executor.map([Chunk(RunSpec(paper_mission("joint"), "A", 1, 2))]))
     message = str(raised.value)
-    assert re.search(r"worker tcp://127\.0\.0\.1:\d+ runs other code: numerics pinned \(submitted from host: Some CPU, flags 0123abcd\)", message), message
+    expected = (
+        rf"worker tcp://127\.0\.0\.1:\d+ runs other code: numerics {re.escape(here['numerics'])} \(submitted from host: Some CPU, flags 0123abcd\)"
+    )
+    assert re.search(expected, message), message
     assert "pin the numerics" in message and "docs/studies.md" in message and "\n" not in message
 
 
@@ -226,6 +232,6 @@ def _command(pid: int) -> str:
 def test_environment_names_the_code_and_libraries() -> None:
     env = environment()
     assert set(env) == {"python", "numpy", "scipy", "numba", "pydantic", "fimnav sources", "numerics"}
-    assert env["numerics"] == "pinned"  # the suite's processes, tests/__init__.py
+    assert env["numerics"] == ("pinned" if UNPINNED is None else numerics_identity(os.environ))  # tests/__init__.py
     assert env["numpy"] == np.__version__ and len(env["fimnav sources"]) == 16
     assert environment() == env
