@@ -14,10 +14,12 @@ choose code by CPU when they load:
   CPU has them (``NPY_DISABLE_CPU_FEATURES``); they differ from the AVX2 ones by an ulp on a few
   per cent of arguments.
 
-A study is deterministic on one machine whatever its number of workers. Across machines, bearing
-and joint runs agree to about 1e-12 m; ranging runs do not: a range-only estimate from coplanar
-drones has two mirror-image solutions, and the last bits decide which one an early step takes,
-so trajectories part after a few steps (their statistics agree). :func:`pin_numerics` sets the
+A study is deterministic on one machine whatever its number of workers. Across machines, one
+step's estimates of bearing and joint swarms agree to about 1e-12 m, and their runs part only
+after the safety filter or a keep-out first decides differently; ranging runs part within a few
+steps: a range-only estimate from coplanar drones has two mirror-image solutions, and the last
+bits decide which one an early step takes. Their statistics agree; a rare event such as a
+keep-out crossing may come or go. :func:`pin_numerics` sets the
 three libraries to one configuration that every x86-64 CPU with AVX2 and FMA runs the same way
 (Intel since 2013, AMD since 2015): numba's ``haswell`` target, OpenBLAS's Haswell kernels, numpy
 without its AVX-512 loops. The test suite runs pinned (``tests/__init__.py``), so that its
