@@ -48,11 +48,11 @@ REPO = DOCS.parent
 if str(REPO) not in sys.path[:1]:
     sys.path.insert(0, str(REPO))  # this clone's code, whatever else is installed
 
-from missions.runtime.numerics import NUMERICS_VARIABLE, pin_numerics  # noqa: E402
+from missions.runtime.numerics import NUMERICS_VARIABLE, pin_unless_host  # noqa: E402
 
 #: Pinned before numpy loads (``None``), else why not: this machine cannot run the pinned
 #: numerics, or ``FIMNAV_NUMERICS=host`` asks for its own.
-UNPINNED = f"{NUMERICS_VARIABLE}=host" if os.environ.get(NUMERICS_VARIABLE, "").strip() == "host" else pin_numerics(os.environ)
+UNPINNED = pin_unless_host(os.environ)
 
 import numpy as np  # noqa: E402
 

@@ -121,7 +121,7 @@ def sources(module: str) -> list[Path]:
     return sorted(seen)
 
 
-def _cpu() -> tuple[str, str]:
+def jit_cpu() -> tuple[str, str]:
     """The CPU name and features numba's JIT compiles for (its environment variables, else the
     host's)."""
     from numba.core import codegen, config
@@ -135,14 +135,14 @@ def _cpu() -> tuple[str, str]:
 @functools.cache
 def key(group: str) -> str:
     """The key of ``group``'s extension module: a digest of its sources (:func:`sources`),
-    numba's, numpy's and Python's versions and the CPU (:func:`_cpu`). Computed once per process (the
+    numba's, numpy's and Python's versions and the CPU (:func:`jit_cpu`). Computed once per process (the
     kernels a process runs are the sources it imported)."""
     import numba
     import numpy
 
     module = GROUPS[group][0]
     h = hashlib.sha256()
-    for part in (group, numba.__version__, numpy.__version__, sys.version, *_cpu(), repr(GROUPS[group][1])):
+    for part in (group, numba.__version__, numpy.__version__, sys.version, *jit_cpu(), repr(GROUPS[group][1])):
         h.update(part.encode())
         h.update(b"\0")
     for path in [*sources(module), _PLANNER / "aot.py", _PLANNER / "aot_signatures.py"]:
@@ -478,6 +478,7 @@ __all__ = [
     "failed",
     "failure_file",
     "forget_failure",
+    "jit_cpu",
     "jit_kernel",
     "key",
     "load",

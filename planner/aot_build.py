@@ -14,7 +14,19 @@ import tempfile
 import time
 from pathlib import Path
 
-from planner.aot import GROUPS, UNUSED_MODULE_S, directory, failed, failure_file, forget_failure, jit_kernel, module_name, parse_signature, path
+from planner.aot import (
+    GROUPS,
+    UNUSED_MODULE_S,
+    directory,
+    failed,
+    failure_file,
+    forget_failure,
+    jit_cpu,
+    jit_kernel,
+    module_name,
+    parse_signature,
+    path,
+)
 from planner.aot_signatures import SIGNATURES
 
 
@@ -35,7 +47,7 @@ def build(group: str) -> Path:
     module_path, names = GROUPS[group]
     target = path(group)
     try:
-        from numba.core import codegen, config
+        from numba.core import codegen
         from numba.pycc import CC
 
         # The JIT's feature set rather than the one implied by the CPU model: the same code
@@ -48,8 +60,8 @@ def build(group: str) -> Path:
         with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as tmp:
             cc = CC(name)
             cc.output_dir = tmp
-            # The JIT's CPU: ``NUMBA_CPU_NAME`` where set (missions.runtime.numerics pins it), else the host.
-            cc.target_cpu = getattr(config, "CPU_NAME", None) or "host"
+            # The JIT's CPU: ``NUMBA_CPU_NAME`` where set (missions.runtime.numerics pins it), else the host's.
+            cc.target_cpu = jit_cpu()[0]
             cc.verbose = False
             for kernel in names:
                 cc.export(kernel, parse_signature(SIGNATURES[kernel]))(jit_kernel(getattr(kernels, kernel)).py_func)

@@ -23,7 +23,7 @@ a first compile sets the kernel path in its command's environment and runs in ei
 import os
 import sys
 
-from missions.runtime.numerics import NUMERICS_VARIABLE, is_pinned, pin_numerics
+from missions.runtime.numerics import is_pinned, pin_unless_host
 from missions.runtime.threads import one_blas_thread
 
 os.environ["MAVLINK20"] = "1"
@@ -35,11 +35,7 @@ one_blas_thread(os.environ)
 _ALREADY_PINNED = is_pinned(os.environ)  # an xdist worker inherits the controller's pin
 #: ``None`` where the suite's numerics are pinned, else the reason they are not:
 #: ``FIMNAV_NUMERICS=host python -m pytest`` runs the suite with this machine's own.
-UNPINNED = (
-    f"{NUMERICS_VARIABLE}=host: this run uses the machine's own numerics, not the pinned ones the recording was made with"
-    if os.environ.get(NUMERICS_VARIABLE, "").strip() == "host"
-    else pin_numerics(os.environ)
-)
+UNPINNED = pin_unless_host(os.environ)
 if UNPINNED is None and not _ALREADY_PINNED and {"numpy", "scipy", "numba"} & set(sys.modules):
     raise RuntimeError(
         f"{sorted({'numpy', 'scipy', 'numba'} & set(sys.modules))} imported before tests/__init__.py pinned the numerics "

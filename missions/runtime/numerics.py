@@ -59,23 +59,25 @@ PINNED: dict[str, str] = {
 REQUIRED_FLAGS = frozenset({"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "movbe", "popcnt", "abm"})
 
 
-def _cpuinfo_field(name: str, cpuinfo: Path) -> str | None:
-    """The first processor's ``name`` field in ``cpuinfo`` (Linux), ``None`` where absent."""
+def _cpuinfo(cpuinfo: Path) -> dict[str, str]:
+    """The first processor's fields in ``cpuinfo`` (Linux); empty where the file is absent."""
     try:
         text = cpuinfo.read_text(encoding="ascii", errors="replace")
     except OSError:
-        return None
+        return {}
+    fields: dict[str, str] = {}
     for line in text.splitlines():
+        if not line.strip():
+            break  # the first processor's block ends
         key, _, value = line.partition(":")
-        if key.strip() == name:
-            return value.strip()
-    return None
+        fields.setdefault(key.strip(), value.strip())
+    return fields
 
 
 def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
     """The first processor's flags in ``cpuinfo`` (Linux); empty where the file is absent or
     has none."""
-    return frozenset((_cpuinfo_field("flags", cpuinfo) or "").split())
+    return frozenset(_cpuinfo(cpuinfo).get("flags", "").split())
 
 
 def numerics_identity(environ: Mapping[str, str], cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
@@ -85,9 +87,10 @@ def numerics_identity(environ: Mapping[str, str], cpuinfo: Path = Path("/proc/cp
     identity, code and libraries compute the same bits (:func:`missions.study.cluster.environment`)."""
     if is_pinned(environ):
         return "pinned"
-    flags = cpu_flags(cpuinfo)
-    model = _cpuinfo_field("model name", cpuinfo) or platform.machine() or "unknown CPU"
-    digest = hashlib.sha256(" ".join(sorted(flags)).encode()).hexdigest()[:8] if flags else "no flags"
+    fields = _cpuinfo(cpuinfo)
+    flags = fields.get("flags", "").split()
+    model = fields.get("model name") or platform.machine() or "unknown CPU"
+    digest = hashlib.sha256(" ".join(sorted(set(flags))).encode()).hexdigest()[:8] if flags else "no flags"
     return f"host: {model}, flags {digest}"
 
 
@@ -113,6 +116,14 @@ def pin_numerics(environ: MutableMapping[str, str]) -> str | None:
     if reason is None:
         environ.update(PINNED)
     return reason
+
+
+def pin_unless_host(environ: MutableMapping[str, str]) -> str | None:
+    """:func:`pin_numerics`, unless :data:`NUMERICS_VARIABLE` is ``host`` (the test suite's and
+    ``docs/regenerate.py``'s default is pinned): ``None`` where pinned, else why not."""
+    if environ.get(NUMERICS_VARIABLE, "").strip() == "host":
+        return f"{NUMERICS_VARIABLE}=host: this run uses the machine's own numerics"
+    return pin_numerics(environ)
 
 
 def is_pinned(environ: Mapping[str, str]) -> bool:
