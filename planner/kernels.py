@@ -675,8 +675,8 @@ N_VECTORS = 11
 S_NEGCLOSE, S_STRICT_UAV, S_BUFFERS, S_SLACK_UAV, S_SLACK_SRC, S_SLACK_OBS, S_EXACT, S_EXACT_PHYS, S_PHYS_OBS = range(9)
 N_SCORES = 9
 # Rows of the candidates' pass masks: the tiers, the certificate, dead reckoning, scratch.
-O_STRICT, O_SLACK, O_T3, O_T4, O_T5, O_T6, O_T7, O_T8, O_CERT, O_STRICT_CERT, O_RECK, O_EVERY, O_STRICT_RECK, O_BOTH = range(14)
-N_MASKS = 14
+O_STRICT, O_SLACK, O_T3, O_T4, O_T5, O_T6, O_T7, O_T8, O_CERT, O_STRICT_CERT, O_RECK, O_EVERY, O_STRICT_RECK, O_BOTH, O_T5F, O_T5G = range(16)
+N_MASKS = 16
 
 
 def limits_array(values: tuple[float, ...], safe: bool, derived: tuple[float, ...]) -> np.ndarray:
@@ -1200,12 +1200,19 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
     smax, tb = lim[L_SMAX], lim[L_TB]
     source_required = keepout + tb
     obstacle_required = lim[L_DOBS] + 0.5 * smax + tb
+    # The keep-out's floor (tiers 5 and 5'): d_S* + its fixed inflation, never more than the
+    # keep-out itself; a drone already inside it may not come nearer.
+    floor_r = min(lim[L_DSRC] + min(SOURCE_INFLATION_MIN_M, lim[L_DSRC]), keepout)
+    dx, dy, dz = p[0] - source[0], p[1] - source[1], p[2] - source[2]
+    floor_need = min(math.sqrt(dx * dx + dy * dy + dz * dz) - floor_r, 0.0)
     margins, slack = mc[0], mc[1]
     for c in range(cand.shape[0]):
         x, y, z = p[0] + cand[c, 0], p[1] + cand[c, 1], p[2] + cand[c, 2]
         m_s, m_l, m_h, m_r = peer_margins(x, y, z, peers, planes, wn, idx, n_idx, lim[L_DUAV])
         dx, dy, dz = x - source[0], y - source[1], z - source[2]
-        margins[c, SOURCE] = math.sqrt(dx * dx + dy * dy + dz * dz) - source_required
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        src_floor = dist - floor_r >= floor_need
+        margins[c, SOURCE] = dist - source_required
         margins[c, OBSTACLE] = distance_to_boxes(x, y, z, bmin, bmax) - obstacle_required
         margins[c, ALTITUDE] = altitude_margin(z, th[c], lim)
         margins[c, UAV] = m_s
@@ -1231,6 +1238,8 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
         wc[S_SLACK_UAV, c], wc[S_SLACK_SRC, c], wc[S_SLACK_OBS, c], wc[S_EXACT, c] = slack[c, UAV], slack[c, SOURCE], slack[c, OBSTACLE], exact
         okc[O_T3, c] = (exact >= 0.0) & uav_hard & src_hard
         okc[O_T4, c] = (exact >= 0.0) & src_hard & (m_r >= 0.0)
+        okc[O_T5F, c] = (exact >= 0.0) & uav_hard & src_floor
+        okc[O_T5G, c] = (exact >= 0.0) & src_floor
         okc[O_T5, c] = (exact >= 0.0) & uav_hard
         okc[O_T6, c] = exact >= 0.0
         okc[O_T7, c] = (phys_obstacle >= 0.0) & (slack[c, ALTITUDE] >= 0.0)
@@ -1343,7 +1352,9 @@ def envelope_pick(okc, wc, has_reck):
         (O_SLACK, S_STRICT_UAV),  # 2. the peers' requirements loose
         (O_T3, S_BUFFERS),  # 3. the peers' and the source's turn-away buffers relaxed
         (O_T4, S_SLACK_UAV),  # 4. the peers' balls beyond d_U* + v_max Δt of their records given up
-        (O_T5, S_SLACK_SRC),  # 5. the source keep-out relaxed, the peers' balls kept
+        (O_T5F, S_SLACK_SRC),  # 5. the source keep-out relaxed to its floor, the peers' balls kept
+        (O_T5G, S_SLACK_UAV),  # 5'. the peers' balls given up, the keep-out's floor kept
+        (O_T5, S_SLACK_SRC),  # 5''. the source keep-out relaxed, the peers' balls kept
         (O_T6, S_BUFFERS),  # 6. the peers relaxed too
         (O_T7, S_SLACK_OBS),  # 7. the obstacle buffers relaxed
         (O_T8, S_EXACT),  # 8. every buffer relaxed
@@ -1523,7 +1534,7 @@ SOURCE_SIGMA_FACTOR: float = 3.0
 #: :data:`SOURCE_TAIL_MAX_M`.
 SOURCE_TAIL_SIGMA_FACTOR: float = 4.0
 #: Largest inflation (m) of the converged estimate's :data:`SOURCE_TAIL_SIGMA_FACTOR` σ.
-SOURCE_TAIL_MAX_M: float = 3.0
+SOURCE_TAIL_MAX_M: float = 4.0
 #: Smallest inflation (m) of d_S* about the estimate, however small its σ.
 SOURCE_INFLATION_MIN_M: float = 1.5
 #: Standard deviations of the own ranges' lower bound (:func:`own_lower_bound`).
@@ -1594,7 +1605,7 @@ def own_los(p, s, measured, use_measured, bmin, bmax, grad, work):
 @inner
 def source_keepout(sigma, lim):
     """Keep-out radius (m) about an estimate of largest standard deviation σ (m):
-    d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*) (:func:`planner.agent.source_keepout_m`)."""
+    d_S* + min(max(3σ, min(4σ, 4 m), 1.5 m), d_S*) (:func:`planner.agent.source_keepout_m`)."""
     d_s = lim[L_DSRC]
     tail = min(SOURCE_TAIL_SIGMA_FACTOR * sigma, SOURCE_TAIL_MAX_M)
     inflation = max(max(SOURCE_SIGMA_FACTOR * sigma, tail), min(SOURCE_INFLATION_MIN_M, d_s))

@@ -178,3 +178,27 @@ def test_a_squeezed_drone_inside_a_peers_reachable_ball_comes_no_nearer_its_reco
     outside = pick(d_record - 0.5)  # outside: the ball itself may shrink to d_U* + v_max Δt
     assert np.linalg.norm(outside - source) >= d_source - 1e-9
     assert LIM.d_uav_m + LIM.step_max_m <= np.linalg.norm(outside - record) < d_record
+
+
+def test_a_squeezed_drone_inside_a_peers_reachable_ball_at_the_keep_outs_floor_gives_up_the_ball() -> None:
+    """The same squeeze as above with the drone already at the keep-out's floor, d_S* + 1.5 m
+    from the estimate (1 cm inside it): the floor outranks the peer's ball (the peer's own filter
+    keeps this drone's ball; nothing keeps the source's), so the drone comes nearer the record
+    and no nearer the estimate. Above the floor the ball is kept (the test above)."""
+    tb = LIM.turn_buffer_m
+    p = np.array([0.0, 0.0, 10.0])
+    prev = np.array([LIM.step_max_m, 0.0, 0.0])
+    floor = LIM.d_source_m + 1.5
+    direction = np.array([20.0, -50.0, 0.0]) / np.linalg.norm([20.0, -50.0, 0.0])
+    source = p + (floor - 0.01) * direction
+    d_source = float(np.linalg.norm(p - source))
+    record = np.array([3.0, 5.0, 10.0])
+    d_record = float(np.linalg.norm(p - record))
+    need = np.zeros(4)
+    need[SOURCE] = -0.01 - tb
+    strict = np.array([LIM.d_uav_m + 4.0 * LIM.step_max_m + 2.0 * tb])
+    step, margins = envelope(p, prev, need, record[None], np.zeros((1, 3)), strict, strict, np.array([d_record]), source, floor)
+    end = p + step
+    assert margins[UAV] < 0.0
+    assert np.linalg.norm(end - source) >= d_source - 1e-9  # the floor kept
+    assert np.linalg.norm(end - record) < d_record  # the ball given up

@@ -1,6 +1,6 @@
 """A wrong source estimate must never also be a confident one (issue 7: source keep-out).
 
-The planner keeps drone i out of a sphere of radius d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*)
+The planner keeps drone i out of a sphere of radius d_S* + min(max(3σ, min(4σ, 4 m), 1.5 m), d_S*)
 about its estimate (planner.agent.source_keepout_m, σ the estimate's largest standard deviation
 from the estimator's information). The true source's d_S* sphere lies inside it only while the
 estimate error is at most that inflation: a gross error with a small claimed σ lets the drone
@@ -204,15 +204,18 @@ def test_new_config_fields_are_validated(field: str, value: float) -> None:
         (0.3, 1.5),  # 4σ = 1.2 m, below the floor
         (0.5, 2.0),  # 4σ
         (0.64, 2.56),  # 4σ (the paper/joint D case below: error 2.50 m)
-        (0.75, 3.0),  # 4σ reaches its 3 m limit
-        (0.9, 3.0),  # 3σ = 2.7 m, the tail term held at 3 m
-        (1.2, 3.6),  # 3σ
+        (0.75, 3.0),  # 4σ
+        (0.99, 3.96),  # 4σ (the paper/joint A case with loss and delay: σ = 1.0 m, error 3.1-3.3 m)
+        (1.0, 4.0),  # 4σ reaches its 4 m limit
+        (1.2, 4.0),  # 3σ = 3.6 m, the tail term held at 4 m
+        (4.0 / 3.0, 4.0),  # 3σ takes over
+        (1.5, 4.5),  # 3σ
         (10.0, 30.0),  # 3σ
         (20.0, 50.0),  # 3σ capped at d_S*
     ],
 )
-def test_keep_out_inflation_is_four_sigma_up_to_three_metres_then_three_sigma(sigma_m: float, inflation_m: float) -> None:
-    """d_S* + min(max(3σ, min(4σ, 3 m), 1.5 m), d_S*), written out per regime (docs/control.md,
+def test_keep_out_inflation_is_four_sigma_up_to_four_metres_then_three_sigma(sigma_m: float, inflation_m: float) -> None:
+    """d_S* + min(max(3σ, min(4σ, 4 m), 1.5 m), d_S*), written out per regime (docs/control.md,
     "Source keep-out"): continuous, and never below the former max(3σ, 1.5 m)."""
     limits = Limits(d_source_m=D_SOURCE_M)
     got = float(source_keepout_m(limits, sigma_m)) - D_SOURCE_M
@@ -221,7 +224,7 @@ def test_keep_out_inflation_is_four_sigma_up_to_three_metres_then_three_sigma(si
 
 
 def test_keep_out_inflation_is_continuous_and_non_decreasing_in_sigma() -> None:
-    """No jump where one regime hands over to the next (σ = 0.375, 0.75 and 1 m, and the cap)."""
+    """No jump where one regime hands over to the next (σ = 0.375, 1 and 4/3 m, and the cap)."""
     sigma = np.linspace(0.0, 25.0, 250_001)
     inflation = source_keepout_m(Limits(d_source_m=D_SOURCE_M), sigma) - D_SOURCE_M
     steps = np.diff(inflation)

@@ -36,6 +36,9 @@ from planner.params import Limits
 from tests.reference_numpy.planner.fim import FimStatus
 from tests.reference_numpy.planner.geometry import distance_to_boxes, distance_to_boxes_with_gradient
 
+#: The fixed part (m) of the source keep-out's inflation (as :mod:`tests.reference_numpy.planner.agent`'s).
+SOURCE_INFLATION_MIN_M: float = 1.5
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
@@ -961,6 +964,7 @@ def _relaxation_tiers(
     need: FloatArray,
     hard: _Clearances | None,
     limits: Limits,
+    clear: _Clearances,
 ) -> tuple[list[tuple[BoolArray, FloatArray]], FloatArray]:
     """The tiers of :func:`_envelope_search`, most demanding first: per tier, which candidates
     (n, C) pass it and the score (n, C) the pick maximises among them; and the physical margin
@@ -974,6 +978,13 @@ def _relaxation_tiers(
     uav_hard = (_peer_margin(p[:, None, :] + cand, hard) if hard is not None else slack[..., UAV] + 2.0 * tb) >= 0.0
     src_hard = margins[..., SOURCE] + tb >= np.minimum(need[:, None, SOURCE] + tb, 0.0)
     uav_record = _record_clearance_kept(p, cand, hard, limits.step_max_m) if hard is not None else uav_hard
+    # The keep-out's floor: d_S* + its fixed inflation (never more than the keep-out); a drone
+    # already inside it may not come nearer.
+    keepout = np.broadcast_to(clear.source_required, p.shape[:-1]) - tb
+    floor_r = np.minimum(limits.d_source_m + min(SOURCE_INFLATION_MIN_M, limits.d_source_m), keepout)
+    d_now = np.sqrt(((p - clear.source) ** 2).sum(-1))
+    d_cand = np.sqrt(((p[:, None, :] + cand - clear.source[:, None, :]) ** 2).sum(-1))
+    src_floor = d_cand - floor_r[:, None] >= np.minimum(d_now - floor_r, 0.0)[:, None]
     # Physical margins of the exactly known clearances: without the recursive-feasibility
     # buffers (turn away, segment interior, tilt swing back).
     z = p[:, None, 2] + cand[..., 2]
@@ -993,7 +1004,13 @@ def _relaxation_tiers(
         #    of a lost peer's plane given up, the source keep-out kept: squeezed between stale
         #    peers' balls (or a plane) and the keep-out, drones went up to 0.91 m inside d_S*.
         ((exact >= 0.0) & src_hard & uav_record, slack[..., UAV]),
-        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),  # 5. source keep-out relaxed, the peers' balls kept
+        # 5. the source keep-out relaxed to its floor, the peers' balls kept; 5'. the peers'
+        #    balls given up, the floor kept (a drone at the altitude floor, squeezed by a lost
+        #    peer's plane, went 0.48 m inside d_S* where the keep-out went first);
+        #    5''. the source keep-out relaxed, the peers' balls kept.
+        ((exact >= 0.0) & uav_hard & src_floor, slack[..., SOURCE]),
+        ((exact >= 0.0) & src_floor, slack[..., UAV]),
+        ((exact >= 0.0) & uav_hard, slack[..., SOURCE]),
         (exact >= 0.0, np.minimum(slack[..., UAV], slack[..., SOURCE])),  # 6. peers relaxed too
         # 7. the obstacle buffers relaxed (conservative: the turn-away and segment-interior
         #    allowances leave real room); the altitude keeps its tilt buffer, which is the
@@ -1094,7 +1111,7 @@ def _envelope_search(
     if loose is not None:
         margins[..., UAV] = _peer_margin(p[:, None, :] + cand, loose)
     slack = margins - need[:, None, :]
-    tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits)
+    tiers, exact_phys = _relaxation_tiers(p, cand, u, margins, slack, strict, strict_uav, need, hard, limits, clear)
     infeasible = np.asarray(~tiers[1][0].any(-1))
     reckoned = _dead_reckoning_kept(p, cand, hard, limits) if hard is not None else None
     if reckoned is not None:
