@@ -1095,7 +1095,9 @@ def _envelope_search(
     3. the peers' reachable balls beyond d_U* + v_max Δt of their records and, in a
        partition, the d_U*/2 in front of a lost peer's plane (:func:`_record_clearance_kept`), the source
        keep-out kept;
-    4. the source keep-out (it follows the estimate), the peers kept as in 1;
+    4. the source keep-out (it follows the estimate) down to its floor d_S* + 1.5 m, the peers
+       kept as in 2; then the peers' balls and planes, that floor kept; then the rest of the
+       keep-out, the peers kept as in 2;
     5. the peers' clearance (their data age);
     6. only then the recursive-feasibility buffers of the exactly known obstacles and
        altitude box.
