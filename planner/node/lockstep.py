@@ -66,7 +66,7 @@ class LockstepDriver:
     def run(self) -> dict[str, Any]:
         """Pre-flight (or rejoin), the steps, the end of mission; return the summary."""
         first = self._rejoin() if self.config.rejoin else self._start()
-        if self.config.rejoin:
+        if self.config.rejoin and first < self.config.steps:
             self._rebuild(first)
         done_steps = 0
         for k in range(first, self.config.steps):
@@ -305,7 +305,9 @@ class LockstepDriver:
         The clock's current step p is answered as done (this planner has neither its
         measurement, published before it subscribed, nor its peers' records) and the planner
         flies from p + 1; its peers wait for it again from its first record on. The control
-        stream is advanced past the steps it missed, so its draws stay those of its step."""
+        stream is advanced past the steps it missed, so its draws stay those of its step. At or
+        after the mission's last step there is nothing left to fly: it returns the step count,
+        and the vehicle gets the mission's end as every other drone does (:meth:`_end`)."""
         link = self.io.require_link()
         t = self.config.preflight_timeout_s
         link.wait_heartbeat(t)
@@ -319,11 +321,23 @@ class LockstepDriver:
         if self.swarm.tick is None:
             raise NodeError(f"uav {self.uav}: internal: no clock tick after waiting for one")
         p = self.swarm.tick.step
-        if p >= self.config.steps - 1:
-            raise NodeError(f"uav {self.uav}: cannot rejoin at step {p}: the mission has {self.config.steps} steps")
         # The one rule: a vehicle a pilot flies (armed in another mode, or a take-over the
         # launch says is in force) is left as it is; only one armed in GUIDED/OFFBOARD is flown.
         taken = self.takeover.found_at_start("rejoin")
+        if p >= self.config.steps - 1:
+            # The mission is at its last step or over: nothing left to fly, but the vehicle
+            # still gets the mission's end (hold, land or return; left to a pilot who has it),
+            # as every other drone does, rather than being left where its predecessor died.
+            if p < self.config.steps:
+                self.swarm.publish_done(p)
+            log.warning(
+                "uav %d rejoined at step %d of a %d-step mission: nothing left to fly; the end of mission (%s) follows",
+                self.uav,
+                p,
+                self.config.steps,
+                self.config.end_action,
+            )
+            return self.config.steps
         self.swarm.publish_done(p)
         self.core.skip_control_draws(p + 1)
         log.warning("uav %d rejoined at step %d (%s from step %d)", self.uav, p, "taken over" if taken else "flying", p + 1)

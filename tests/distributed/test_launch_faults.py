@@ -89,12 +89,17 @@ def test_a_dead_vehicle_loses_its_drone_and_the_mission_goes_on(tmp_path: Path, 
     assert summary["violations"] == {k: 0 for k in summary["violations"]}
 
 
-# 10-15 s: in the slow set to keep the default run under 5 minutes; the default run rebuilds a
+# 30-60 s: in the slow set to keep the default run under 5 minutes; the default run rebuilds a
 # restarted planner's state from the logs in tests/planner/test_replay_own_log.py.
 @pytest.mark.slow
 def test_a_killed_planner_is_restarted_and_rejoins(tmp_path: Path, launches: list[Launch]) -> None:
     out = tmp_path / "dead_planner"
-    steps = 150
+    # 1200 steps (about 30 s): the replacement, a fresh interpreter, must come up while the
+    # swarm still flies. The swarm flies 300 steps in about 7 s here, and beside two other
+    # launches of a parallel run the replacement took 8 s to come up: with 150 or 300 steps the
+    # swarm reached its end first (a replacement that late gives its drone the mission's end
+    # instead: test_pilot_rule.py).
+    steps = 1200
     # A fresh interpreter (--no-fork-server): the replacement then takes ~1 s to start, long
     # enough (8+ steps) to see the vehicle hold after its guided timeout; forked, it is back
     # within ~5 steps (the rejoin itself is the same code).

@@ -240,6 +240,57 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
     assert_untouched_until_handback(tlog, flavour, handback_unix)
 
 
+def test_a_lockstep_planner_restarted_after_the_last_step_gives_its_drone_the_mission_end(tmp_path: Path, procs: list[Proc]) -> None:
+    """Lockstep: the planner flies 4 steps and is killed (SIGKILL); the swarm's clock runs the
+    mission to its end without it. ``fimnav plan --rejoin`` on the same vehicle (as ``fimnav
+    launch --on-failure restart`` starts it, late on a loaded machine) has nothing left to fly:
+    it gives the vehicle the mission's end action, as every other drone gets it (land: the
+    vehicle's .tlog ends in LAND, commanded by the planner), and exits 0 with no step flown,
+    not with an error a launcher would restart again and that would leave the drone holding
+    where its first planner died."""
+    steps = 8
+    mission = write_mission(tmp_path / "m.yaml", "rejoin-late", [[10.0, 20.0, 8.0]], steps, "land")
+    hub = LockstepHub("rejoin-late", 1, 1.0)
+    tlog = tmp_path / "vehicle_1.tlog"
+    try:
+        vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--lockstep",
+                              "--flavour", "ardupilot", "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client", "--tlog", str(tlog)))
+        procs.append(vehicle)
+        port = int(vehicle.ready(30.0)["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+        argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep", *hub.client,
+                      "--log", str(tmp_path / "p1.jsonl"), "--step-timeout", "30")
+        first = Proc(argv)
+        procs.append(first)
+        t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
+        for k in range(4):
+            hub.clock.run_step(k, t0, 30.0)
+        first.p.send_signal(signal.SIGKILL)
+        first.p.wait(10.0)
+        wait_for(lambda: planner_alive(hub) is False, 20.0, "the clock to see planner 1 gone")
+        for k in range(4, steps):
+            hub.clock.run_step(k, t0, 30.0)
+        second = Proc([*argv, "--rejoin"])
+        procs.append(second)
+
+        def ended() -> bool:  # the end tick, re-sent as the launcher does
+            hub.clock.end(steps, t0)
+            return second.p.poll() is not None
+
+        wait_for(ended, 60.0, "the replacement's end", interval_s=0.5)
+    finally:
+        hub.close()
+    assert second.p.returncode == 0 and "Traceback" not in second.err, second.tail()
+    assert f"rejoined at step {steps} of a {steps}-step mission: nothing left to fly" in second.err, second.err[-2000:]
+    summary = json.loads(second.out.strip().splitlines()[-1])
+    assert summary["steps"] == 0
+    assert summary["end"] == {"action": "land", "confirmed": True, "mode": "LAND"}, summary["end"]
+    vehicle.stop()
+    events = tlog_events(tlog)
+    assert [v for t, kind, v in events if kind == "set_mode"][-1] == 1  # the command came from the planner
+    modes = [v for t, kind, v in events if kind == "mode"]
+    assert modes[-1][0] == ON_STOP_MODE[("ardupilot", "land")][0], modes[-3:]
+
+
 @pytest.mark.slow  # 12-18 s each (the 2 s loss threshold, the hand-back's start-up, the mission's end); default run: tests/node/test_link_return_node.py, tests/external/test_setpoint_race.py
 @pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
 def test_a_vehicle_found_in_a_pilots_mode_when_the_link_returns_is_left_to_the_pilot(tmp_path: Path, procs: list[Proc], flavour: str) -> None:
