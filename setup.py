@@ -41,7 +41,14 @@ class BuildPyWithKernels(build_py):
         path = os.pathsep.join(p for p in (str(build_lib), os.environ.get("PYTHONPATH")) if p)
         print("building the compiled kernels for this machine (about a minute on two cores)", file=sys.stderr, flush=True)
         with tempfile.TemporaryDirectory() as numba_cache:  # what numba caches meanwhile stays out of the wheel
-            env = dict(os.environ, PYTHONPATH=path, FIMNAV_AOT_DIR=str(build_lib / "planner" / "__pycache__" / "aot"), NUMBA_CACHE_DIR=numba_cache)
+            # and so does the bytecode of the modules the build imports from the built package
+            env = dict(
+                os.environ,
+                PYTHONPATH=path,
+                FIMNAV_AOT_DIR=str(build_lib / "planner" / "__pycache__" / "aot"),
+                NUMBA_CACHE_DIR=numba_cache,
+                PYTHONDONTWRITEBYTECODE="1",
+            )
             done = subprocess.run([sys.executable, "-c", _BUILD], env=env, cwd=build_lib, check=False)
         if done.returncode != 0:
             print("the compiled kernels were not built into the package: the first command builds them", file=sys.stderr)
