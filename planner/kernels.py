@@ -1202,7 +1202,7 @@ def envelope_scores(p, u, need, peers, planes, wn, idx, n_idx, source, keepout, 
     obstacle_required = lim[L_DOBS] + 0.5 * smax + tb
     # The keep-out's floor (tiers 5 and 5'): d_S* + its fixed inflation, never more than the
     # keep-out itself; a drone already inside it may not come nearer.
-    floor_r = min(lim[L_DSRC] + min(SOURCE_INFLATION_MIN_M, lim[L_DSRC]), keepout)
+    floor_r = min(keepout_floor(lim), keepout)
     dx, dy, dz = p[0] - source[0], p[1] - source[1], p[2] - source[2]
     floor_need = min(math.sqrt(dx * dx + dy * dy + dz * dz) - floor_r, 0.0)
     margins, slack = mc[0], mc[1]
@@ -1623,8 +1623,14 @@ def followable(p, centre, r, sigma, last_centre, last_r, lim):
     ax, ay, az = p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]
     bx, by, bz = p[0] - last_centre[0], p[1] - last_centre[1], p[2] - last_centre[2]
     moved = math.sqrt(ax * ax + ay * ay + az * az) - math.sqrt(bx * bx + by * by + bz * bz)
-    floor = d_s + min(SOURCE_INFLATION_MIN_M, d_s)
-    return min(r, max(last_r + moved + lim[L_TB], floor))
+    return min(r, max(last_r + moved + lim[L_TB], keepout_floor(lim)))
+
+
+@inner
+def keepout_floor(lim):
+    """The smallest keep-out radius (m) about an estimate: d_S* + min(1.5 m, d_S*), the keep-out's
+    fixed inflation (:data:`SOURCE_INFLATION_MIN_M`)."""
+    return lim[L_DSRC] + min(SOURCE_INFLATION_MIN_M, lim[L_DSRC])
 
 
 @inner

@@ -96,6 +96,38 @@ def planner_alive(hub: LockstepHub) -> bool:
     return 1 in hub.clock.alive
 
 
+def lockstep_vehicle_and_planner(
+    tmp_path: Path, procs: list[Proc], hub: LockstepHub, mission: Path, flavour: str, tlog: Path
+) -> tuple[Proc, int, list[str]]:
+    """A lockstep simulated vehicle of ``mission`` (drone 1, ``flavour``, its .tlog to ``tlog``)
+    on the hub's Zenoh, started; returns it, its MAVLink port and the argv of its lockstep planner
+    (log ``p1.jsonl`` in ``tmp_path``, 30 s step timeout)."""
+    vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--lockstep",
+                          "--flavour", flavour, "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client", "--tlog", str(tlog)))
+    procs.append(vehicle)
+    port = int(vehicle.ready(30.0)["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
+    argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep", *hub.client,
+                  "--log", str(tmp_path / "p1.jsonl"), "--step-timeout", "30")
+    return vehicle, port, argv
+
+
+def kill_planner(planner: Proc, hub: LockstepHub) -> None:
+    """SIGKILL planner 1 and wait until the lockstep clock sees its liveliness token gone."""
+    planner.p.send_signal(signal.SIGKILL)
+    planner.p.wait(10.0)
+    wait_for(lambda: planner_alive(hub) is False, 20.0, "the clock to see planner 1 gone")
+
+
+def end_until_exit(hub: LockstepHub, planner: Proc, steps: int, t0: float, timeout_s: float, what: str) -> None:
+    """Send the end tick (re-sent, as the launcher does) until ``planner`` exits."""
+
+    def ended() -> bool:
+        hub.clock.end(steps, t0)
+        return planner.p.poll() is not None
+
+    wait_for(ended, timeout_s, what, interval_s=0.5)
+
+
 def assert_untouched_until_handback(tlog: Path, flavour: str, handback_unix: float) -> None:
     """From the ground station's mode change until ``fimnav handback`` ran (UNIX s; the .tlog
     is stamped in UNIX time): no setpoint reached the vehicle, no mode change came from the
@@ -182,13 +214,7 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
     hub = LockstepHub("rejoin-taken", 1, 1.0)
     tlog = tmp_path / "vehicle_1.tlog"
     try:
-        vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--lockstep",
-                              "--flavour", flavour, "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client", "--tlog", str(tlog)))
-        procs.append(vehicle)
-        port = int(vehicle.ready(30.0)["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
-        log = tmp_path / "p1.jsonl"
-        argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep", *hub.client,
-                      "--log", str(log), "--step-timeout", "30")
+        vehicle, port, argv = lockstep_vehicle_and_planner(tmp_path, procs, hub, mission, flavour, tlog)
         first = Proc(argv)
         procs.append(first)
         t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
@@ -198,9 +224,7 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
         for k in range(4, 6):
             hub.clock.run_step(k, t0, 30.0)
         first.expect(r"taken over at step 4", 10.0, stream="err")
-        first.p.send_signal(signal.SIGKILL)
-        first.p.wait(10.0)
-        wait_for(lambda: planner_alive(hub) is False, 20.0, "the clock to see planner 1 gone")
+        kill_planner(first, hub)
         second = Proc([*argv, "--rejoin"])
         procs.append(second)
         wait_for(lambda: planner_alive(hub), 30.0, "the replacement to join the swarm", procs=[second])
@@ -222,12 +246,7 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
             k += 1
         for j in range(k, steps):
             hub.clock.run_step(j, t0, 30.0)
-
-        def ended() -> bool:  # the end tick, re-sent as the launcher does
-            hub.clock.end(steps, t0)
-            return second.p.poll() is not None
-
-        wait_for(ended, 30.0, "the planner's end", interval_s=0.5)
+        end_until_exit(hub, second, steps, t0, 30.0, "the planner's end")
         records = hub.records_of(1)
     finally:
         hub.close()
@@ -253,30 +272,18 @@ def test_a_lockstep_planner_restarted_after_the_last_step_gives_its_drone_the_mi
     hub = LockstepHub("rejoin-late", 1, 1.0)
     tlog = tmp_path / "vehicle_1.tlog"
     try:
-        vehicle = Proc(fimnav("vehicle", "--mission", str(mission), "--sysid", "1", "--mavlink", "udpin:127.0.0.1:0", "--lockstep",
-                              "--flavour", "ardupilot", "--zenoh-connect", hub.endpoint, "--zenoh-mode", "client", "--tlog", str(tlog)))
-        procs.append(vehicle)
-        port = int(vehicle.ready(30.0)["vehicles"][0]["mavlink"].rsplit(":", 1)[1])
-        argv = fimnav("plan", "--mission", str(mission), "--uav", "1", "--mavlink", f"udpout:127.0.0.1:{port}", "--lockstep", *hub.client,
-                      "--log", str(tmp_path / "p1.jsonl"), "--step-timeout", "30")
+        vehicle, _, argv = lockstep_vehicle_and_planner(tmp_path, procs, hub, mission, "ardupilot", tlog)
         first = Proc(argv)
         procs.append(first)
         t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
         for k in range(4):
             hub.clock.run_step(k, t0, 30.0)
-        first.p.send_signal(signal.SIGKILL)
-        first.p.wait(10.0)
-        wait_for(lambda: planner_alive(hub) is False, 20.0, "the clock to see planner 1 gone")
+        kill_planner(first, hub)
         for k in range(4, steps):
             hub.clock.run_step(k, t0, 30.0)
         second = Proc([*argv, "--rejoin"])
         procs.append(second)
-
-        def ended() -> bool:  # the end tick, re-sent as the launcher does
-            hub.clock.end(steps, t0)
-            return second.p.poll() is not None
-
-        wait_for(ended, 60.0, "the replacement's end", interval_s=0.5)
+        end_until_exit(hub, second, steps, t0, 60.0, "the replacement's end")
     finally:
         hub.close()
     assert second.p.returncode == 0 and "Traceback" not in second.err, second.tail()

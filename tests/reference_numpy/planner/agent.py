@@ -46,7 +46,13 @@ from planner import estimator as est
 from planner.config import PlannerConfig
 from planner.params import Channel, Criterion, Limits
 from planner.sensing import COMPONENTS, SensingComponent
-from tests.reference_numpy.planner.control import StepResult, control_step, lost_contact_planes, source_activation_margin_m
+from tests.reference_numpy.planner.control import (
+    SOURCE_INFLATION_MIN_M,
+    StepResult,
+    control_step,
+    lost_contact_planes,
+    source_activation_margin_m,
+)
 from tests.reference_numpy.planner.fim import CostGradient, FimStatus, cost_gradient, fisher_information
 from tests.reference_numpy.planner.geometry import link_clearance_with_gradient
 
@@ -59,8 +65,6 @@ SOURCE_SIGMA_FACTOR: float = 3.0
 SOURCE_TAIL_SIGMA_FACTOR: float = 4.0
 #: Largest inflation (m) of the converged estimate's :data:`SOURCE_TAIL_SIGMA_FACTOR` σ.
 SOURCE_TAIL_MAX_M: float = 4.0
-#: Smallest inflation (m) of d_S* about the estimate, however small its σ.
-SOURCE_INFLATION_MIN_M: float = 1.5
 #: Own ranges (the last ones, the current step's included) a ranging drone combines into a
 #: lower bound on its distance to the source (:meth:`OwnRanges.lower_bound_m`).
 OWN_RANGE_WINDOW: int = 10

@@ -36,7 +36,8 @@ from planner.params import Limits
 from tests.reference_numpy.planner.fim import FimStatus
 from tests.reference_numpy.planner.geometry import distance_to_boxes, distance_to_boxes_with_gradient
 
-#: The fixed part (m) of the source keep-out's inflation (as :mod:`tests.reference_numpy.planner.agent`'s).
+#: Smallest inflation (m) of d_S* about the estimate, however small its σ (the keep-out's
+#: floor; :mod:`tests.reference_numpy.planner.agent` takes it from here).
 SOURCE_INFLATION_MIN_M: float = 1.5
 
 FloatArray = NDArray[np.float64]
