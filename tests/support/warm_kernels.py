@@ -57,7 +57,7 @@ PLANNING: dict[str, list[tuple[Any, ...]]] = {
 
 #: ``planner.estimator.kernels.memory``: name → argument types.
 MEMORY: dict[str, list[tuple[Any, ...]]] = {
-    "_group": [(f2, I, f2, f1, f1, F, b1, i1, i2), (f2, I, rf2, rf1, rf1, F, b1, i1, i2)],
+    "_group": [(f2, I, f2, f1, f1, F, i1, i1, i2), (f2, I, rf2, rf1, rf1, F, i1, i1, i2)],
     "best_start": [(f2, I, f1, f1, F, f1, I, f2, f1), (f2, I, rf1, rf1, F, f1, I, f2, f1)],
     "best_start_batch": [(f3, rf2, rf2, F, f1, I)],
     "evaluate": [(f2, I, f1, F, B, f2, f1, f2), (f2, I, rf1, F, B, f2, f1, f2)],

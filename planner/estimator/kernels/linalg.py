@@ -189,7 +189,7 @@ def dot(a: np.ndarray, b: np.ndarray, n: int) -> float:
     return acc0 + acc1
 
 
-@counting
+@borrowing
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """``numpy.sum``'s sum of at most 128 values a[lo:lo + n]: one by one below 8, else eight
     accumulators, added pairwise, then the rest one by one."""
@@ -198,22 +198,28 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
         for i in range(n):
             res += a[lo + i]
         return res
-    r = np.empty(8)
-    for k in range(8):
-        r[k] = a[lo + k]
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
     i = 8
     while i < n - n % 8:
-        for k in range(8):
-            r[k] += a[lo + i + k]
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
         i += 8
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
     while i < n:
         res += a[lo + i]
         i += 1
     return res
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=True)  # counting said explicitly: borrowing callers
 def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
     """Σ a[lo:lo + n] in ``numpy.sum``'s pairwise order: blocks of at most 128 values
     (:func:`_block_sum`), longer runs halved (the first half a multiple of 8) and their sums

@@ -358,7 +358,7 @@ def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: flo
 def _group(
     mem: np.ndarray, nc: int, pos: np.ndarray, rng: np.ndarray, sig: np.ndarray, rf: float, fresh: np.ndarray, cell: np.ndarray, iw: np.ndarray
 ) -> int:
-    """The rows that joined no cell (``fresh``; ``cell`` holds their fallback cell): a row
+    """The rows that joined no cell (``fresh`` ≠ 0; ``cell`` holds their fallback cell): a row
     within reach of an earlier such row of its σ_r0 shares that row's cell (the first row that
     reaches it, followed to the group's first row); the first row of each group takes an empty
     cell, in index order, while any is left (its σ_r0 set); the others' rows keep their
@@ -368,7 +368,7 @@ def _group(
     for j in range(M):
         leader[j] = 0
         for i in range(j + 1):
-            if fresh[i] and fresh[j] and sig[i] == sig[j]:
+            if fresh[i] != 0 and fresh[j] != 0 and sig[i] == sig[j]:
                 dx, dy, dz = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1], pos[i, 2] - pos[j, 2]
                 if math.sqrt(dx * dx + dy * dy + dz * dz) <= rf * nmax(abs(rng[i]), 1.0):
                     leader[j] = i
@@ -382,7 +382,7 @@ def _group(
     used = nc
     for m in range(M):
         took[m] = -1
-        if fresh[m] and leader[m] == m:
+        if fresh[m] != 0 and leader[m] == m:
             while c < C and mem[M_N, c] >= EMPTY:
                 c += 1
             if c < C:
@@ -391,7 +391,7 @@ def _group(
                 used = max(used, c + 1)
                 c += 1
     for m in range(M):
-        if fresh[m] and took[leader[m]] >= 0:
+        if fresh[m] != 0 and took[leader[m]] >= 0:
             cell[m] = took[leader[m]]
     return used
 
@@ -411,7 +411,7 @@ def _save_empty(mem: np.ndarray, M: int, k: int, iw: np.ndarray, backup: np.ndar
     return k
 
 
-@counting
+@borrowing
 def insert(
     mem: np.ndarray,
     nc: int,
@@ -429,17 +429,17 @@ def insert(
     (0: absent) and σ_r0 ``sig`` (M,), to the cells ``mem`` (NM, C) whose first ``nc`` are
     used, in place (the rule of :func:`planner.estimator.memory.insert`, against the cells as
     they were before the call). Each cell's sums grow by the sum of its rows' terms, in row
-    order. ``iw`` (5, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
-    the number k of cells changed and iw[4, 1:k+1] which; ``backup`` (NM, M) their columns
+    order. ``iw`` (6, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
+    the number k of cells changed and iw[4, 1:k+1] which, iw[5] whether each row joined no cell; ``backup`` (NM, M) their columns
     before the call if ``keep`` (else only which); ``sc`` (≥ 1, C) float scratch. Returns the new count of used cells."""
     C, M = mem.shape[1], rng.shape[0]
     iw[4, 0] = 0
     if C == 0 or M == 0:
         return nc
-    cell = iw[3]
-    fresh = np.zeros(M, dtype=np.bool_)
+    cell, fresh = iw[3], iw[5]
     for m in range(M):
         cell[m] = -1
+        fresh[m] = 0
         if not w[m] > 0.0:
             continue
         best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc[0])
@@ -447,13 +447,13 @@ def insert(
         if d_same <= radius * radius:
             cell[m] = best
         else:
-            fresh[m] = True
+            fresh[m] = 1
             cell[m] = best if np.isfinite(d_same) else near
     k = 0  # the changed cells, their columns saved before any change (σ_r0 of a taken cell too)
     used = nc
     any_fresh = False
     for m in range(M):
-        any_fresh = any_fresh or fresh[m]
+        any_fresh = any_fresh or fresh[m] != 0
     if any_fresh:
         k = _save_empty(mem, M, k, iw, backup, keep)
         used = _group(mem, nc, pos, rng, sig, rf, fresh, cell, iw)
@@ -547,7 +547,7 @@ def insert_batch(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarra
     """:func:`insert` for every element of a batch (E, NM, C) of memories; returns new cells."""
     out = mem.copy()
     M = rng.shape[1]
-    iw = np.zeros((5, max(2 * M, 1) + 1), dtype=np.int64)
+    iw = np.zeros((6, max(2 * M, 1) + 1), dtype=np.int64)
     backup = np.zeros((NM, 2 * M))
     sc = np.empty((1, mem.shape[2]))
     for e in range(mem.shape[0]):

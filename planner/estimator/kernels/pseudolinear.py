@@ -71,11 +71,12 @@ def pl_rows(rows: np.ndarray, n: int, D: float, p: np.ndarray, A: np.ndarray, b:
     _normal_equations(c, om, beta, 4 * n, A, b)
 
 
-@counting
-def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: np.ndarray, b: np.ndarray) -> None:
+@borrowing
+def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: np.ndarray, b: np.ndarray, work: np.ndarray) -> None:
     """A, b += the squared-range equations 2pᵀp0 − R = ‖p‖² − d̂² + σ_r²(D) of every range of the
-    first n rows, ω = a/(4D²σ_r²(D)), D = ``scale[k]`` (m); summed in numpy's order."""
-    c, om, beta = np.empty((3, n)), np.empty(n), np.empty(n)
+    first n rows, ω = a/(4D²σ_r²(D)), D = ``scale[k]`` (m); summed in numpy's order. ``work``
+    (8, ≥ n) scratch: the coefficients, their weighted copies, ω and the right-hand sides."""
+    c, wc, om, beta = work[0:3], work[3:6], work[6], work[7]
     for k in range(n):
         px, py, pz = rows[k, R_PX], rows[k, R_PY], rows[k, R_PZ]
         D = scale[k]
@@ -84,7 +85,6 @@ def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: 
         om[k] = rows[k, R_AR] / (4.0 * D2 * var_r)
         c[0, k], c[1, k], c[2, k] = 2.0 * px, 2.0 * py, 2.0 * pz
         beta[k] = px * px + py * py + pz * pz - rows[k, R_ZR] * rows[k, R_ZR] + var_r
-    wc = np.empty((3, n))
     for i in range(3):
         for k in range(n):
             wc[i, k] = om[k] * c[i, k]
@@ -130,17 +130,20 @@ def range_scale(x: np.ndarray, initialised: bool, rows: np.ndarray, n: int, p: n
             out[k] = D
 
 
-@counting
+@borrowing
 def pl_cost(A: np.ndarray, b: np.ndarray, x: np.ndarray) -> float:
-    """θᵀAθ − 2bᵀθ at θ = (x, ‖x‖²), in numpy's order."""
-    th = np.empty(4)
-    th[0], th[1], th[2] = x[0], x[1], x[2]
-    th[3] = dot(x, x, np.int64(3))
+    """θᵀAθ − 2bᵀθ at θ = (x, ‖x‖²), in numpy's order (bᵀθ as :func:`dot` sums four terms)."""
+    t0, t1, t2 = x[0], x[1], x[2]
+    t3 = dot(x, x, np.int64(3))
     q = 0.0
     for i in range(4):
+        ti = t0 if i == 0 else (t1 if i == 1 else (t2 if i == 2 else t3))
         for j in range(4):
-            q += th[i] * A[i, j] * th[j]
-    return q - 2.0 * dot(b, th, np.int64(4))
+            tj = t0 if j == 0 else (t1 if j == 1 else (t2 if j == 2 else t3))
+            q += ti * A[i, j] * tj
+    acc0 = b[2] * t2 + (b[0] * t0 + 0.0)
+    acc1 = b[3] * t3 + (b[1] * t1 + 0.0)
+    return q - 2.0 * (acc0 + acc1)
 
 
 @borrowing
@@ -171,12 +174,13 @@ def determined(A: np.ndarray, p: np.ndarray) -> bool:
     return eigvalsh_min(A[:3, :3]) * limit * limit >= 1.0
 
 
-@counting
-def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray, v: np.ndarray) -> tuple[float, int]:
+@borrowing
+def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray, v: np.ndarray, work: np.ndarray) -> tuple[float, int]:
     """θ_LS (``theta``, 4) of the Jacobi-scaled system's well-conditioned part (R decoupled
     when it has no squared-range equation), its weakest direction in θ units (``v``, 4);
-    returns that direction's R component in the scaled frame and the rank."""
-    As, s, bs = np.empty((4, 4)), np.empty(4), np.empty(4)
+    returns that direction's R component in the scaled frame and the rank. ``work`` (≥ 48,)
+    scratch."""
+    As, s, bs = work[0:16].reshape((4, 4)), work[16:20], work[20:24]
     no_r = not A[3, 3] > 1e-300
     for i in range(4):
         d = 1.0 if (no_r and i == 3) else A[i, i]
@@ -186,12 +190,13 @@ def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray,
         for j in range(4):
             a = (1.0 if i == j else 0.0) if (no_r and (i == 3 or j == 3)) else A[i, j]
             As[i, j] = a * s[i] * s[j]
-    ev, V = np.empty(4), np.empty((4, 4))
+    ev, V = work[24:28], work[28:44].reshape((4, 4))
     eigh(As, ev, V)
     tol = p[P_PL_RCOND] * nmax(ev[3], 1e-300)
-    inv_ev = np.zeros(4)
+    inv_ev = work[44:48]
     rank = 0
     for j in range(4):
+        inv_ev[j] = 0.0
         if ev[j] > tol:
             inv_ev[j] = 1.0 / ev[j]
             rank += 1
@@ -205,16 +210,19 @@ def _ls_solution(A: np.ndarray, b: np.ndarray, p: np.ndarray, theta: np.ndarray,
     return V[3, 0], rank
 
 
-@counting
-def pl_solve(A: np.ndarray, b: np.ndarray, p: np.ndarray, out: np.ndarray) -> bool:
+@borrowing
+def pl_solve(A: np.ndarray, b: np.ndarray, p: np.ndarray, out: np.ndarray, work: np.ndarray) -> bool:
     """Solve the PL normal equations for p0 (``out``, 0 where not ok); returns ok. The
     candidates are θ_LS (if full rank) and the two points of the line θ_LS + t v along the
     weakest direction that satisfy R = ‖p0‖² (Cheung et al. 2004); the one of lowest
-    constrained PL cost, near-ties broken by ``mirror`` (the lower or the upper point)."""
+    constrained PL cost, near-ties broken by ``mirror`` (the lower or the upper point).
+    ``work`` (≥ 65,) scratch."""
     has_r = A[3, 3] > 1e-300
-    theta, v = np.empty(4), np.empty(4)
-    v_r, rank = _ls_solution(A, b, p, theta, v)
-    x, r1, r2 = theta[:3].copy(), np.empty(3), np.empty(3)
+    theta, v = work[0:4], work[4:8]
+    v_r, rank = _ls_solution(A, b, p, theta, v, work[17:])
+    x, r1, r2 = work[8:11], work[11:14], work[14:17]
+    for i in range(3):
+        x[i] = theta[i]
     cost_ls = pl_cost(A, b, x) if rank == 4 else np.inf
     qa = dot(v, v, np.int64(3))
     use_root = False

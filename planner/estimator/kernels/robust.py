@@ -122,7 +122,7 @@ def extra_terms(
     return cost
 
 
-@counting
+@borrowing
 def cost_at(
     x: np.ndarray,
     rows: np.ndarray,
@@ -154,9 +154,16 @@ def cost_at(
         s_r += cr
     cost = s_a + s_e + s_r
     if _has_extra(xa, K):
-        grad = (np.zeros((K, 3)), np.zeros((K, 9)), np.zeros((2, 3 + xz.shape[1])))
-        cost = cost + extra_terms(cb, buf, x, rows, K, xz, xa, p, tukey, grad, np.bool_(False))
+        cost = cost + _extra_cost(x, rows, K, xz, xa, p, tukey, cb, buf)
     return cost
+
+
+@counting
+def _extra_cost(x: np.ndarray, rows: np.ndarray, K: int, xz: np.ndarray, xa: np.ndarray, p: np.ndarray, tukey: bool, cb, buf: np.ndarray) -> float:
+    """The extension components' cost at x (:func:`extra_terms`, their gradients not kept):
+    apart from :func:`cost_at`, which allocates nothing without them."""
+    grad = (np.zeros((K, 3)), np.zeros((K, 9)), np.zeros((2, 3 + xz.shape[1])))
+    return extra_terms(cb, buf, x, rows, K, xz, xa, p, tukey, grad, np.bool_(False))
 
 
 @borrowing

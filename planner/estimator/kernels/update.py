@@ -117,6 +117,11 @@ from planner.estimator.layout import (
     W_W,
 )
 
+#: Offsets into the flat pseudo-linear scratch of :func:`workspace`: :func:`pl_solve` uses
+#: [0, 65), a range system (A, b) [PLS_AP, PLS_AP + 20), the re-check's system, candidate and
+#: prior [PLS_A, PLS_A + 38).
+PLS_AP, PLS_BP, PLS_A, PLS_SIZE = 72, 88, 96, 136
+
 
 # --------------------------------------------------------------------------- array helpers
 @borrowing
@@ -284,11 +289,11 @@ def _set_prior(fo: np.ndarray, lam: np.ndarray, fisher: np.ndarray, eta: np.ndar
 
 
 @counting
-def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray) -> bool:
+def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray, pls: np.ndarray) -> bool:
     """Step 1 for an element not initialised: the new records' PL equations join its system;
     where it becomes solvable (and :func:`determined`) the estimate is its solution in the
     box and the records dropped before initialisation become the prior. Returns whether it
-    initialised now."""
+    initialised now. ``pls``: :func:`workspace`'s pseudo-linear scratch."""
     M = nrows.shape[0]
     A_new, b_new = np.zeros((4, 4)), np.zeros(4)
     pl_rows(nrows, M, distance_scale(nrows, M, p), p, A_new, b_new)
@@ -300,7 +305,7 @@ def _initialise(fo: np.ndarray, x: np.ndarray, nrows: np.ndarray, p: np.ndarray)
         fo[F_PLB + i] += b_new[i]
         b[i] = fo[F_PLB + i]
     xi = np.empty(3)
-    if not (pl_solve(A, b, p, xi) and determined(A, p)):
+    if not (pl_solve(A, b, p, xi, pls) and determined(A, p)):
         return False
     for i in range(3):
         x[i] = clip(xi[i], p[P_LO + i], p[P_HI + i])
@@ -364,24 +369,36 @@ def _recheck_memory(
     flags[0] = flags[1] = True  # fresh start, long run
 
 
-@counting
+@borrowing
 def _recheck_system(
-    fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray
+    fo: np.ndarray, x_prev: np.ndarray, rw: np.ndarray, rrows: np.ndarray, scale: np.ndarray, p: np.ndarray, A: np.ndarray, b: np.ndarray, pl: tuple
 ) -> None:
     """The re-check's system (A, b): the squared-range summary plus the ranges still in the
-    range window, weighted at the previous estimate."""
+    range window, weighted at the previous estimate. ``pl`` = :func:`workspace`'s
+    pseudo-linear scratch (rows, flat)."""
     R = rw.shape[0]
+    plw, pls = pl
     _range_rows(rw, R, p[P_LAMBDA], p, rrows)
     range_scale(x_prev, np.bool_(True), rrows, R, p, scale)
-    A_p, b_p = np.zeros((4, 4)), np.zeros(4)
-    pl_range_rows(rrows, R, scale, p[P_GAMMA], A_p, b_p)
+    A_p, b_p = pls[PLS_AP : PLS_AP + 16].reshape((4, 4)), pls[PLS_BP : PLS_BP + 4]
+    _zero_system(A_p, b_p)
+    pl_range_rows(rrows, R, scale, p[P_GAMMA], A_p, b_p, plw)
     for i in range(4):
         for j in range(4):
             A[i, j] = fo[F_PRA + 4 * i + j] + A_p[i, j]
         b[i] = fo[F_PRB + i] + b_p[i]
 
 
-@counting
+@borrowing
+def _zero_system(A: np.ndarray, b: np.ndarray) -> None:
+    """A (4, 4) and b (4,) set to zero."""
+    for i in range(4):
+        for j in range(4):
+            A[i, j] = 0.0
+        b[i] = 0.0
+
+
+@borrowing
 def _recheck(
     fo: np.ndarray,
     x: np.ndarray,
@@ -402,17 +419,18 @@ def _recheck(
     memory (:func:`_recheck_memory`); the others move to the candidate when the PL cost drops by more than
     ``recheck_threshold`` and the new records prefer it (their full likelihood, Huber loss),
     claiming ``recheck_trust`` of the summary's information. ``new`` = (rows, extension values,
-    weights) of the new records; ``scratch`` = (range rows, scales, evaluation, buffer)."""
+    weights) of the new records; ``scratch`` = (range rows, scales, evaluation, buffer,
+    pseudo-linear scratch: rows, flat)."""
     nrows, nxz, nxa = new
-    rrows, scale, ev, buf = scratch
+    rrows, scale, ev, buf, plw, pls = scratch
     M = nrows.shape[0]
     x_prev = fo[F_EST : F_EST + 3]
-    A, b = np.empty((4, 4)), np.empty(4)
-    _recheck_system(fo, x_prev, rw, rrows, scale, p, A, b)
+    A, b = pls[PLS_A : PLS_A + 16].reshape((4, 4)), pls[PLS_A + 16 : PLS_A + 20]
+    _recheck_system(fo, x_prev, rw, rrows, scale, p, A, b, (plw, pls))
     if not A[0, 0] + A[1, 1] + A[2, 2] + A[3, 3] > 0.0:
         return
-    x_pl, cand = np.empty(3), np.empty(3)
-    ok = pl_solve(A, b, p, x_pl)
+    x_pl, cand = pls[PLS_A + 20 : PLS_A + 23], pls[PLS_A + 23 : PLS_A + 26]
+    ok = pl_solve(A, b, p, x_pl, pls)
     for i in range(3):
         cand[i] = clip(x_pl[i] if ok else x_prev[i], p[P_LO + i], p[P_HI + i])
     if p[P_CELLS] > 0 and ranges_only:
@@ -423,7 +441,7 @@ def _recheck(
     drop = pl_cost(A, b, x_prev) - pl_cost(A, b, cand)
     c_cand = cost_at(cand, nrows, M, nxz, nxa, p, p[P_HUBER], huber, ml, ev, gls, cb, buf)
     if drop > p[P_RECHECK_THR] and c_cand < c_prev:
-        lam, eta = np.empty((3, 3)), np.empty(3)
+        lam, eta = pls[PLS_A + 26 : PLS_A + 35].reshape((3, 3)), pls[PLS_A + 35 : PLS_A + 38]
         schur_prior(A, b, lam, eta)
         _set_prior(fo, lam, lam, eta, p[P_RECHECK_TRUST])
         _copy1(x, cand)
@@ -431,19 +449,17 @@ def _recheck(
 
 
 # --------------------------------------------------------------------------- step 2
-@counting
-def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray) -> None:
+@borrowing
+def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, J: np.ndarray, gate: np.ndarray) -> None:
     """The innovation gate against the previous state (when ``gate_sigma`` is set and it was
     observable): tr(J⁻¹) = tr(adj J)/det J, m², bounds the variance of the previous estimate
-    along any direction (J its information)."""
+    along any direction (J its information). ``J`` (3, 3), ``gate`` (3,): scratch."""
     if not (p[P_GATE] == p[P_GATE] and observable):
         return
-    J = np.empty((3, 3))
     _get(fi, np.int64(F_INFO), np.int64(3), J)
     det = det3(J)
     if det > 0.0:
         tr_adj = J[1, 1] * J[2, 2] - J[1, 2] ** 2 + J[0, 0] * J[2, 2] - J[0, 2] ** 2 + J[0, 0] * J[1, 1] - J[0, 1] ** 2
-        gate = np.empty(3)
         gate[0], gate[1], gate[2] = p[P_GATE], p[P_GATE_FRAC], tr_adj / det
         _gate_rows(x, rows, K, p, gate)
 
@@ -624,17 +640,17 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 
 # --------------------------------------------------------------------------- the windows and the memory
-@counting
+@borrowing
 def _advance_range_window(
     fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray
 ) -> None:
     """The new ranges join the range window ``rwo`` (weights times λ); the oldest rows (the
     invalid ones first) leave it and join the re-check's squared-range summary, each weighted
     at this call's estimate. ``scratch`` = (range rows, scales, pool of ≥ M rows: the rows
-    leaving). One pass per validity over the window then the new rows, each row written once
-    to where it goes."""
+    leaving, pseudo-linear scratch: rows, flat). One pass per validity over the window then
+    the new rows, each row written once to where it goes."""
     R, M = rw.shape[0], nraw.shape[0]
-    rrows, scale, pool = scratch
+    rrows, scale, pool, plw, pls = scratch
     lam = p[P_LAMBDA]
     k = 0
     for valid in (False, True):  # invalid rows first, stable: the first M leave
@@ -664,8 +680,9 @@ def _advance_range_window(
         has_range = has_range or rrows[m, R_AR] > 0.0
     if has_range:
         range_scale(fo[F_EST : F_EST + 3], initialised, rrows, M, p, scale)
-        A_r, b_r = np.zeros((4, 4)), np.zeros(4)
-        pl_range_rows(rrows, M, scale, p[P_GAMMA], A_r, b_r)
+        A_r, b_r = pls[PLS_AP : PLS_AP + 16].reshape((4, 4)), pls[PLS_AP + 16 : PLS_AP + 20]
+        _zero_system(A_r, b_r)
+        pl_range_rows(rrows, M, scale, p[P_GAMMA], A_r, b_r, plw)
         for i in range(4):
             for j in range(4):
                 fo[F_PRA + 4 * i + j] += A_r[i, j]
@@ -698,7 +715,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     in place)."""
     fs, ist, rwin, win, mem = state
     fs2, ist2, rwin2, win2, mem2 = outs
-    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw, small, flags = ws
+    raw, rows, xz, xa, nraw, nrows, nxz, nxa, ev, xg, xh, counts, rrows, scale, buf, memory, mi, pool, fi, ii, rw, small, flags, plw, pls = ws
     sm, sv = small
     _copy1(fi, fs[e])
     _copy1(ii, ist[e])
@@ -720,7 +737,7 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     before = ii[I_INIT] != 0
     flags[0] = ii[I_SUSP] != 0 and before  # fresh start, long run
     flags[1] = False
-    if M > 0 and not before and _initialise(fo, x, nrows, p):
+    if M > 0 and not before and _initialise(fo, x, nrows, p, pls):
         io[I_INIT] = 1
         flags[0] = flags[1] = True
     take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
@@ -728,17 +745,17 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
     mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p, np.bool_(due and before)) if take else mi[0]  # the re-check's swap reads the columns
     mi[2] = take
     if due and before:
-        _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf), p, cb)
+        _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf, plw, pls), p, cb)
     obs, susp = False, False
     if io[I_INIT] != 0:
-        _gate_previous(fi, ii[I_OBS] != 0 and before, x, rows, K, p)
+        _gate_previous(fi, ii[I_OBS] != 0 and before, x, rows, K, p, sm[2], sv[11])
         refined = (sv[1], sm[0], sm[1], sv[2])
         _refine(fo, x, flags, before, K, (rows, xz, xa), (ev, xg, xh, counts), p, cb, buf, refined, small)
         obs, susp = _finish(fo, fi, x, M, (ev, xg, xh, counts), p, refined, small)
     else:
         _inactive(fo, M, win.shape[1], rows, p)
     io[I_OBS], io[I_SUSP] = obs, susp
-    _advance_range_window(fo, io[I_INIT] != 0, rw, nraw, (rrows, scale, pool), p, rwin2[e])
+    _advance_range_window(fo, io[I_INIT] != 0, rw, nraw, (rrows, scale, pool, plw, pls), p, rwin2[e])
     if win.shape[1] > 0:
         _copy2(win2[e], raw[K - win.shape[1] : K])
     _count(io, nrows, nxa)
@@ -753,10 +770,13 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     scratch, the insertion's record and saved cells, columns of ranges) and its counts; the
     range window's pool; copies of the element's float row, flags and range window; small
     matrices (16, 3, 3) and vectors (16, 3) (slots: :func:`_element` 0-2, :func:`_finish`,
-    :func:`_refine`); the element's two flags (fresh start, long run)."""
+    :func:`_refine`); the element's two flags (fresh start, long run); the pseudo-linear
+    scratch: rows (8, ·) of :func:`~planner.estimator.kernels.pseudolinear.pl_range_rows`
+    and a flat array (:func:`~planner.estimator.kernels.pseudolinear.pl_solve`'s from 0,
+    the range systems' from ``PLS_AP``, the re-check's from ``PLS_A``)."""
     K = W + M
     cols = (np.zeros((M, 3)), np.zeros(M), np.zeros(M), np.zeros(M))
-    memory = (np.zeros((NM, C)), np.zeros((km.NSC, C)), np.zeros((5, 2 * M + 1), dtype=np.int64), np.zeros((NM, 2 * M)), cols)
+    memory = (np.zeros((NM, C)), np.zeros((km.NSC, C)), np.zeros((6, 2 * M + 1), dtype=np.int64), np.zeros((NM, 2 * M)), cols)
     return (
         np.zeros((K, NW + X)),
         np.zeros((K, NRC)),
@@ -781,6 +801,8 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
         np.zeros((R, NRW)),
         (np.zeros((16, 3, 3)), np.zeros((16, 3))),
         np.zeros(2, dtype=np.bool_),
+        np.zeros((8, max(R + M, K, 1))),
+        np.zeros(PLS_SIZE),
     )
 
 
