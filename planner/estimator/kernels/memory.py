@@ -329,29 +329,44 @@ def best_start(
 
 
 # --------------------------------------------------------------------------- insertion
+@borrowing(fastmath={"nnan", "nsz"})
+def _least(key: np.ndarray, n: int) -> float:
+    """min key[:n] (+inf if n = 0) of values none of which is NaN (the compiler vectorises it
+    as a min reduction: exact, whatever the order)."""
+    m = np.inf
+    for c in range(n):
+        v = key[c]
+        m = v if v < m else m
+    return m
+
+
 @borrowing
-def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, d2: np.ndarray) -> tuple[int, float, int]:
+def _nearest(mem: np.ndarray, nc: int, px: float, py: float, pz: float, sig: float, sc: np.ndarray) -> tuple[int, float, int]:
     """The occupied cell nearest to (px, py, pz) of σ_r0 ``sig`` and its squared distance
     ‖p̄‖² − 2p̄·p + ‖p‖² (floored at 0), (0, inf) if there is none; and, only where there is
     none (else the first), the nearest occupied cell of any σ_r0 (0 if none). The first of
-    equally near cells. ``d2`` (≥ nc,) scratch: the squared distances, inf for the empty
-    cells, in a loop the compiler vectorises, then the minima."""
+    equally near cells. ``sc`` (≥ 2, ≥ nc) scratch: sc[0] the squared distances, inf for the
+    empty cells, sc[1] the same, inf for the cells of another σ_r0 and NaN distances, in a loop
+    the compiler vectorises; then their least (:func:`_least`) and the first cell that has it."""
+    d2, key = sc[0], sc[1]
     pp = px * px + py * py + pz * pz
     for c in range(nc):
         v = mem[M_CC, c] - 2.0 * (mem[M_CX, c] * px + mem[M_CX + 1, c] * py + mem[M_CX + 2, c] * pz) + pp
         v = 0.0 if v < 0.0 else v  # NaN kept
-        d2[c] = np.inf if mem[M_N, c] < EMPTY else v
-    best, bd = 0, np.inf
-    for c in range(nc):
-        if d2[c] < bd and mem[M_S0, c] == sig:
-            best, bd = c, d2[c]
+        d = np.inf if mem[M_N, c] < EMPTY else v
+        d2[c] = d
+        key[c] = d if (mem[M_S0, c] == sig and d == d) else np.inf
+    bd = _least(key, nc)
     if bd < np.inf:
-        return best, bd, best
+        best = 0
+        while key[best] != bd:
+            best += 1
+        return best, key[best], best
     near, nd = 0, np.inf
     for c in range(nc):
         if d2[c] < nd:
             near, nd = c, d2[c]
-    return best, bd, near
+    return 0, np.inf, near
 
 
 @borrowing
@@ -431,7 +446,7 @@ def insert(
     they were before the call). Each cell's sums grow by the sum of its rows' terms, in row
     order. ``iw`` (6, M) int scratch: iw[3] is left holding each row's cell (−1: none), iw[4, 0]
     the number k of cells changed and iw[4, 1:k+1] which, iw[5] whether each row joined no cell; ``backup`` (NM, M) their columns
-    before the call if ``keep`` (else only which); ``sc`` (≥ 1, C) float scratch. Returns the new count of used cells."""
+    before the call if ``keep`` (else only which); ``sc`` (≥ 2, C) float scratch. Returns the new count of used cells."""
     C, M = mem.shape[1], rng.shape[0]
     iw[4, 0] = 0
     if C == 0 or M == 0:
@@ -442,7 +457,7 @@ def insert(
         fresh[m] = 0
         if not w[m] > 0.0:
             continue
-        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc[0])
+        best, d_same, near = _nearest(mem, nc, pos[m, 0], pos[m, 1], pos[m, 2], sig[m], sc)
         radius = rf * nmax(abs(mem[M_S1, best]) / mem[M_N, best], 1.0) if np.isfinite(d_same) else 0.0
         if d_same <= radius * radius:
             cell[m] = best
@@ -549,7 +564,7 @@ def insert_batch(mem: np.ndarray, pos: np.ndarray, rng: np.ndarray, w: np.ndarra
     M = rng.shape[1]
     iw = np.zeros((6, max(2 * M, 1) + 1), dtype=np.int64)
     backup = np.zeros((NM, 2 * M))
-    sc = np.empty((1, mem.shape[2]))
+    sc = np.empty((2, mem.shape[2]))
     for e in range(mem.shape[0]):
         insert(out[e], used_cells(out[e]), pos[e], rng[e], w[e], sig[e], rf, iw, backup, sc, np.bool_(False))
     return out
