@@ -15,15 +15,14 @@ machine). Another (a cluster's) plugs in behind the same method.
 
 from __future__ import annotations
 
-import itertools
 import multiprocessing
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
+from missions.runtime.allocator import keep_freed_memory
 from missions.runtime.signals import signals_deferred, worker_defaults
 from planner.warm import available_cores, compile_aside, missing_groups, warm_estimator, warm_planning
 
@@ -37,6 +36,9 @@ if TYPE_CHECKING:  # the simulator (and its compiled kernels) is imported where 
 MIN_CHUNK_TRIALS: int = 50
 #: Most chunks a run is cut into: two workers share a run of 100 trials or more.
 MAX_CHUNKS: int = 4
+#: A local pool runs ahead of the chunk whose result is due by at most this many chunks per
+#: worker (:class:`LocalPool`): the results of chunks that end early wait in memory for theirs.
+AHEAD_PER_WORKER: int = 3
 
 #: What :func:`simulate_chunk` calls for the chunk holding a run's first trial when the study is
 #: watched live: given the run, a context that yields the per-step observer
@@ -134,19 +136,34 @@ class LocalPool:
         """See :meth:`ChunkExecutor.map`."""
         if not chunks:
             return
-        # A ProcessPoolExecutor fed a window of workers + 1 chunks, its results taken in order.
-        # Leaving early (an error, a signal, Ctrl-C) kills the workers at once and then shuts the
-        # executor down: its manager thread sees them gone and ends. (multiprocessing.Pool's
-        # terminate could wait forever on its task queue's lock, held by an idle worker blocked
-        # reading the queue.)
+        # A ProcessPoolExecutor kept fed: workers + 1 chunks not yet done (a worker that ends a
+        # chunk finds the next one queued), whichever chunk ended, so a long chunk at the head
+        # holds up no worker; the results are yielded in the order of ``chunks``, those ending
+        # early kept until their turn, at most AHEAD_PER_WORKER × workers chunks submitted and
+        # not yet yielded (the memory they hold). Leaving early (an error, a signal, Ctrl-C)
+        # kills the workers at once and then shuts the executor down: its manager thread sees
+        # them gone and ends. (multiprocessing.Pool's terminate could wait forever on its task
+        # queue's lock, held by an idle worker blocked reading the queue.)
         # The workers are forked at the first submit, with Ctrl-C, SIGTERM and SIGHUP held back
         # (signals_deferred): interrupted while it forks, the command would lose the signal
         # (raised in a fork hook, where Python ignores it) or leave behind a worker it had not
         # yet recorded. A signal held back is raised when the deferral ends.
         workers = min(self.workers, len(chunks))
-        pending: deque[tuple[Chunk, Future[SimulationResult]]] = deque()
+        futures: dict[int, Future[SimulationResult]] = {}
+        submitted = yielded = 0
         pool: ProcessPoolExecutor | None = None
         done = False
+
+        def feed(pool: ProcessPoolExecutor) -> None:
+            nonlocal submitted
+            while (
+                submitted < len(chunks)
+                and submitted - yielded < AHEAD_PER_WORKER * workers
+                and sum(not f.done() for f in futures.values()) < workers + 1
+            ):
+                futures[submitted] = pool.submit(simulate_chunk, chunks[submitted])
+                submitted += 1
+
         # The planning and estimator kernels are loaded here, before the fork, so the workers
         # inherit them rather than each loading them (or, on a cold cache, each compiling them
         # all): missing ones are first compiled in child processes, a group each, at once, on
@@ -162,17 +179,20 @@ class LocalPool:
         try:
             with signals_deferred():
                 pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=worker_defaults)
-                pending.append((chunks[0], pool.submit(simulate_chunk, chunks[0])))
-            ahead = iter(chunks[1:])
-            for chunk in itertools.islice(ahead, workers):
-                pending.append((chunk, pool.submit(simulate_chunk, chunk)))
-            while pending:
-                chunk, future = pending.popleft()
-                result = future.result()
-                for more in itertools.islice(ahead, 1):
-                    pending.append((more, pool.submit(simulate_chunk, more)))
+                futures[0] = pool.submit(simulate_chunk, chunks[0])
+                submitted = 1
+            while yielded < len(chunks):
+                feed(pool)
+                head = futures[yielded]
+                if not head.done():
+                    wait([f for f in futures.values() if not f.done()], return_when=FIRST_COMPLETED)
+                    continue
+                result = head.result()
+                del futures[yielded]
+                yielded += 1
+                feed(pool)
                 if progress is not None:
-                    progress(chunk.trial_steps)
+                    progress(chunks[yielded - 1].trial_steps)
                 yield result
             done = True
         finally:
@@ -185,5 +205,8 @@ class LocalPool:
 
 
 def local_executor(workers: int) -> ChunkExecutor:
-    """:class:`InProcess` for one worker, else a :class:`LocalPool` of ``workers``."""
+    """:class:`InProcess` for one worker, else a :class:`LocalPool` of ``workers``. This process
+    (and the pool's workers, forked from it) keeps the memory it frees for the next step's
+    arrays (:func:`missions.runtime.allocator.keep_freed_memory`)."""
+    keep_freed_memory()
     return InProcess() if workers <= 1 else LocalPool(workers)
