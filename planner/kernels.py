@@ -2123,12 +2123,13 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
     # The tracks as they were (each drone's step then writes its own slot). Element loops, not
     # slice assignments: numba compiles a slice assignment's shape-mismatch message (string
     # formatting) into the kernel, a seventh of this group's first compile.
-    track, track_steps = old[ST_TRACK], old[ST_TRACK_STEPS]
+    # Flat loops over the C-contiguous arrays (the compiler vectorises them).
+    track, track_steps = old[ST_TRACK].reshape(-1), old[ST_TRACK_STEPS].reshape(-1)
+    new_track, new_steps = new[ST_TRACK].reshape(-1), new[ST_TRACK_STEPS].reshape(-1)
+    for i in range(track_steps.shape[0]):
+        new_steps[i] = track_steps[i]
     for i in range(track.shape[0]):
-        for j in range(track.shape[1]):
-            new[ST_TRACK_STEPS][i, j] = track_steps[i, j]
-            for a in range(track.shape[2]):
-                new[ST_TRACK][i, j, a] = track[i, j, a]
+        new_track[i] = track[i]
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)

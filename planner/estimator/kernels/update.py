@@ -741,11 +741,14 @@ def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_u
         io[I_INIT] = 1
         flags[0] = flags[1] = True
     take = _takes(ii[I_ANG] != 0, nrows, nxa, p)
-    mi[0] = km.used_cells(mo) if (take or (due and before)) and mo.shape[1] > 0 else 0  # read by those two only
+    ranges_only = ii[I_ANG] == 0
+    # Read by the insertion and the re-check on the memory only (a scan of the cells: none for
+    # an element that has used angles, whose memory stays empty).
+    mi[0] = km.used_cells(mo) if (take or (due and before and ranges_only)) and mo.shape[1] > 0 else 0
     mi[1] = _insert_ranges(mo, mi[0], nrows, memory, p, np.bool_(due and before)) if take else mi[0]  # the re-check's swap reads the columns
     mi[2] = take
     if due and before:
-        _recheck(fo, x, flags, ii[I_ANG] == 0, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf, plw, pls), p, cb)
+        _recheck(fo, x, flags, ranges_only, rw, (nrows, nxz, nxa), mo, memory, mi, (rrows, scale, ev, buf, plw, pls), p, cb)
     obs, susp = False, False
     if io[I_INIT] != 0:
         _gate_previous(fi, ii[I_OBS] != 0 and before, x, rows, K, p, sm[2], sv[11])
