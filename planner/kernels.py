@@ -472,6 +472,22 @@ def invert(J, inv, work, need_logdet):
 
 
 @inner
+def invert_for_cost(J, inv, work, criterion_d):
+    """:func:`invert` for the planning cost (:func:`criterion_derivative`): a J that is
+    :func:`well_conditioned` skips the eigenvalues for either criterion (status OK, the same
+    inverse); its ln det J, which only the D criterion reads, is then that of the inverse's LU
+    factorisation, Σ ln |u_ii| (in ``work``), equal to Σ ln λ up to rounding (a few ε
+    relative; the cost's value only, which no step reads: the gradient and the status are
+    those of :func:`invert`). Elsewhere :func:`invert` itself."""
+    if well_conditioned(J):
+        inverse3(J, inv, work)
+        if not criterion_d:
+            return OK, np.nan
+        return OK, math.log(abs(work[0, 0])) + math.log(abs(work[1, 1])) + math.log(abs(work[2, 2]))
+    return invert(J, inv, work, criterion_d)
+
+
+@inner
 def add_fim_terms(src, positions, ranging, bearing, los_w, ch, J):
     """J += the range and bearing terms (eqs. 10-12) of the drones at ``positions`` (N, 3) seen
     from the source ``src`` (3,): ``ranging``, ``bearing`` (N,) bool (κ_j, β_j, and the view
@@ -530,7 +546,7 @@ def criterion_derivative(J, criterion_d, M, work):
     C = −ln det J, M = −J⁻¹ (``criterion_d``). Returns (C, status); singular: (+inf, 2), M = 0.
     ``work``: scratch (2, 3, 3)."""
     inv = work[0]
-    status, logdet = invert(J, inv, work[1], criterion_d)
+    status, logdet = invert_for_cost(J, inv, work[1], criterion_d)
     for i in range(3):
         for k in range(3):
             mik = -(inv[i, 0] * inv[0, k] + inv[i, 1] * inv[1, k] + inv[i, 2] * inv[2, k])

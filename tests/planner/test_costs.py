@@ -255,6 +255,25 @@ def _indefinite_with_positive_trace_and_det(rng: np.random.Generator) -> np.ndar
     return (q * lam) @ q.T
 
 
+def test_the_d_cost_skips_the_eigenvalues_of_a_well_conditioned_fim_with_the_same_status_and_gradient():
+    """The D cost's gradient also skips the eigenvalues where J is provably well conditioned:
+    its status is bit for bit ``invert_fim``'s and its value −ln det J that of the eigenvalues
+    to a few ε (ln det from the LU factors). (Its gradient, −J⁻¹ through eq. 14, is checked
+    against finite differences by :func:`test_cost_gradient_matches_finite_differences`.)"""
+    rng = np.random.default_rng(20261130)
+    mats = [random_spd(rng, cond) for cond in np.logspace(0.0, 14.0, 57) for _ in range(8)]
+    mats += [_indefinite_with_positive_trace_and_det(rng) for _ in range(50)]
+    J = np.array(mats)
+    src, own = np.zeros(3), np.array([30.0, -40.0, 12.0])
+    cg = cost_gradient(J, np.broadcast_to(src, (len(J), 3)), np.broadcast_to(own, (len(J), 3)), True, True, True, Channel(), "D")
+    ref = invert_fim(J)
+    np.testing.assert_array_equal(cg.status, ref.status)
+    finite = ref.status != FimStatus.SINGULAR
+    assert finite.sum() > 300 and (~finite).sum() > 10
+    np.testing.assert_allclose(cg.value[finite], -ref.logdet[finite], rtol=1e-12, atol=1e-12)
+    assert np.all(np.isinf(cg.value[~finite]))
+
+
 def test_a_cost_status_and_inverse_are_those_of_the_eigenvalues_at_every_condition():
     """The A cost's gradient (``cost_gradient``) skips the eigenvalues where trace, leading
     minors and determinant already prove J well conditioned: its status and cost must be
