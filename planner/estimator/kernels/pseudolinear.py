@@ -77,11 +77,19 @@ def pl_range_rows(rows: np.ndarray, n: int, scale: np.ndarray, gamma: float, A: 
     first n rows, ω = a/(4D²σ_r²(D)), D = ``scale[k]`` (m); summed in numpy's order. ``work``
     (8, ≥ n) scratch: the coefficients, their weighted copies, ω and the right-hand sides."""
     c, wc, om, beta = work[0:3], work[3:6], work[6], work[7]
+    # D^γ in a loop of its own, not beside γ = 2's D²: the compiler would compute both and
+    # keep one (a pow call for every row).
+    if gamma == 2.0:
+        for k in range(n):
+            om[k] = scale[k] * scale[k]
+    else:
+        for k in range(n):
+            om[k] = scale[k] ** gamma
     for k in range(n):
         px, py, pz = rows[k, R_PX], rows[k, R_PY], rows[k, R_PZ]
         D = scale[k]
         D2 = D * D
-        var_r = rows[k, R_S0] * rows[k, R_S0] * (D2 if gamma == 2.0 else D**gamma)
+        var_r = rows[k, R_S0] * rows[k, R_S0] * om[k]
         om[k] = rows[k, R_AR] / (4.0 * D2 * var_r)
         c[0, k], c[1, k], c[2, k] = 2.0 * px, 2.0 * py, 2.0 * pz
         beta[k] = px * px + py * py + pz * pz - rows[k, R_ZR] * rows[k, R_ZR] + var_r
