@@ -111,6 +111,17 @@ def lockstep_vehicle_and_planner(
     return vehicle, port, argv
 
 
+def start_and_fly(procs: list[Proc], hub: LockstepHub, argv: list[str], steps: int) -> tuple[Proc, float]:
+    """Start the lockstep planner ``argv``, let the clock's preflight see it and run its first
+    ``steps`` steps; returns the planner and the clock's start (t0)."""
+    planner = Proc(argv)
+    procs.append(planner)
+    t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
+    for k in range(steps):
+        hub.clock.run_step(k, t0, 30.0)
+    return planner, t0
+
+
 def kill_planner(planner: Proc, hub: LockstepHub) -> None:
     """SIGKILL planner 1 and wait until the lockstep clock sees its liveliness token gone."""
     planner.p.send_signal(signal.SIGKILL)
@@ -215,11 +226,7 @@ def test_a_lockstep_planner_restarted_while_taken_over_takes_nothing(tmp_path: P
     tlog = tmp_path / "vehicle_1.tlog"
     try:
         vehicle, port, argv = lockstep_vehicle_and_planner(tmp_path, procs, hub, mission, flavour, tlog)
-        first = Proc(argv)
-        procs.append(first)
-        t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
-        for k in range(4):
-            hub.clock.run_step(k, t0, 30.0)
+        first, t0 = start_and_fly(procs, hub, argv, 4)
         ground_station_sets(port, flavour)
         for k in range(4, 6):
             hub.clock.run_step(k, t0, 30.0)
@@ -273,11 +280,7 @@ def test_a_lockstep_planner_restarted_after_the_last_step_gives_its_drone_the_mi
     tlog = tmp_path / "vehicle_1.tlog"
     try:
         vehicle, _, argv = lockstep_vehicle_and_planner(tmp_path, procs, hub, mission, "ardupilot", tlog)
-        first = Proc(argv)
-        procs.append(first)
-        t0 = hub.clock.preflight(60.0, lambda: any(p.p.poll() is not None for p in procs))
-        for k in range(4):
-            hub.clock.run_step(k, t0, 30.0)
+        first, t0 = start_and_fly(procs, hub, argv, 4)
         kill_planner(first, hub)
         for k in range(4, steps):
             hub.clock.run_step(k, t0, 30.0)

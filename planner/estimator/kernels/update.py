@@ -118,8 +118,8 @@ from planner.estimator.layout import (
 )
 
 #: Offsets into the flat pseudo-linear scratch of :func:`workspace`: :func:`pl_solve` uses
-#: [0, 65), a range system (A, b) [PLS_AP, PLS_AP + 20), the re-check's system, candidate and
-#: prior [PLS_A, PLS_A + 38).
+#: [0, 65), a range system's A [PLS_AP, PLS_AP + 16) and b [PLS_BP, PLS_BP + 4), the re-check's
+#: system, candidate and prior [PLS_A, PLS_A + 38).
 PLS_AP, PLS_BP, PLS_A, PLS_SIZE = 72, 88, 96, 136
 
 
@@ -681,7 +681,7 @@ def _advance_range_window(
         has_range = has_range or rrows[m, R_AR] > 0.0
     if has_range:
         range_scale(fo[F_EST : F_EST + 3], initialised, rrows, M, p, scale)
-        A_r, b_r = pls[PLS_AP : PLS_AP + 16].reshape((4, 4)), pls[PLS_AP + 16 : PLS_AP + 20]
+        A_r, b_r = pls[PLS_AP : PLS_AP + 16].reshape((4, 4)), pls[PLS_BP : PLS_BP + 4]
         _zero_system(A_r, b_r)
         pl_range_rows(rrows, M, scale, p[P_GAMMA], A_r, b_r, plw)
         for i in range(4):
@@ -774,7 +774,7 @@ def workspace(W: int, M: int, R: int, C: int, X: int) -> tuple:
     scratch, the insertion's record and saved cells, columns of ranges) and its counts; the
     range window's pool; copies of the element's float row, flags and range window; small
     matrices (16, 3, 3) and vectors (16, 3) (slots: :func:`_element` 0-2, :func:`_finish`,
-    :func:`_refine`); the element's two flags (fresh start, long run); the pseudo-linear
+    :func:`_refine`; matrix 2 and vector 11: :func:`_gate_previous`); the element's two flags (fresh start, long run); the pseudo-linear
     scratch: rows (8, ·) of :func:`~planner.estimator.kernels.pseudolinear.pl_range_rows`
     and a flat array (:func:`~planner.estimator.kernels.pseudolinear.pl_solve`'s from 0,
     the range systems' from ``PLS_AP``, the re-check's from ``PLS_A``)."""
