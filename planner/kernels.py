@@ -478,13 +478,13 @@ def invert_for_cost(J, inv, work, criterion_d):
     inverse); its ln det J, which only the D criterion reads, is then that of the inverse's LU
     factorisation, Σ ln |u_ii| (in ``work``), equal to Σ ln λ up to rounding (a few ε
     relative; the cost's value only, which no step reads: the gradient and the status are
-    those of :func:`invert`). Elsewhere :func:`invert` itself, with its eigenvalues."""
+    those of :func:`invert`). Elsewhere :func:`invert` itself."""
     if well_conditioned(J):
         inverse3(J, inv, work)
         if not criterion_d:
             return OK, np.nan
         return OK, math.log(abs(work[0, 0])) + math.log(abs(work[1, 1])) + math.log(abs(work[2, 2]))
-    return invert(J, inv, work, True)  # the eigenvalues decide (ln det unread for A)
+    return invert(J, inv, work, criterion_d)
 
 
 @inner
