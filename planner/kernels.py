@@ -20,6 +20,12 @@ about 40 % of the planning step's time; ``tests/simulator/test_reference_counts.
 that a simulation leaves no array of the compiled code alive). Written for numba's compile time as well as for speed: short functions with few
 branches (``&`` rather than ``and``, ``min``/``max`` rather than conditional expressions),
 since numba's compile time grows faster than linearly with the branches of a function.
+The per-drone bodies of the batch step (:func:`plan_cost`, :func:`plan_one`, :func:`control_one`,
+:func:`advance_state`) are compiled into the loop over the drones, :func:`plan_drones`
+(``inline="always"``), itself ``@inner``: a call passes every array of its tuples as separate
+words, and passing the scene, the state and the workspace again for each drone was about a
+tenth of the step. (Inlined into the entry kernel instead, which counts references, they would
+count theirs: slower.)
 
 Imports: numpy and numba only.
 """
@@ -1463,7 +1469,7 @@ def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, sou
     return True, infeasible
 
 
-@inner
+@inner(inline="always")
 def control_one(p, prev, grad, status, peers, mask, age, planes, drift, source, keepout, uni, bmin, bmax, lim, xi, pert, source_exact, u, active, ws):
     """One drone's control step (eqs. 14-17 and 2, and the safety filter with the safe rule):
     the step to ``u`` (3,), m, the active constraint families to ``active`` (4,); returns
@@ -1748,7 +1754,7 @@ def loiter_gradient(prev, out):
 ) = range(12)
 
 
-@inner
+@inner(inline="always")
 def advance_state(b, k, p, own_range, own_los, view_pos, valid, saved, old, new):
     """Drone b's carried state after the records of step k: its own range (NaN: none) and LOS flag
     enter its window (oldest first), its position ``p`` its track (slot k mod T), and each peer's
@@ -1844,7 +1850,7 @@ def keepout_policy(p, p_hat, information, observable, status, ranges, range_los,
     return np.int64(STATUS_OK if loiter else status), keepout, loiter
 
 
-@inner
+@inner(inline="always")
 def plan_one(b, scene, cost, old, new, config, out, ws):
     """Drone b's planning step after its cost (:func:`planner.agent.plan`): the carried state's
     update (:func:`advance_state`), the keep-out and loiter policy (:func:`keepout_policy`; with
@@ -2070,7 +2076,7 @@ def dead_reckoning_batch(p, cand, reck_now, reck_next, lim):
     return ok, known
 
 
-@inner
+@inner(inline="always")
 def plan_cost(b, scene, view_los, roles, config, cost, ws):
     """Drone b's cost of eq. 6 and its gradient w.r.t. its own position, to ``cost`` (value (B,),
     ∇C (B, 3), status (B,)): the predicted line of sight q of its own link (:func:`own_los`; q = 1
@@ -2146,6 +2152,14 @@ def plan_batch(scene, view_los, roles, old, config, new, out, cost, given_cost):
         new_steps[i] = track_steps[i]
     for i in range(track.shape[0]):
         new_track[i] = track[i]
+    plan_drones(scene, view_los, roles, old, config, new, out, cost, given_cost, wsc, ws)
+
+
+@inner
+def plan_drones(scene, view_los, roles, old, config, new, out, cost, given_cost, wsc, ws):
+    """:func:`plan_cost` (unless ``given_cost``) and :func:`plan_one` of every drone of
+    :func:`plan_batch`, in order (their bodies compiled into this loop: the scene's and the
+    workspace's arrays are not passed again for each drone)."""
     for b in range(scene[4].shape[0]):
         if not given_cost:
             plan_cost(b, scene, view_los, roles, config, cost, wsc)

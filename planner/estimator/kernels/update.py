@@ -13,7 +13,10 @@ and the memory's advance.
 Compile-time hygiene (the first update compiles everything once, then loads it from numba's
 cache): constants passed to another kernel are typed (``np.int64``, ``np.bool_``) so that each
 kernel compiles once, not once per literal value, and arrays are copied by loops (no slice
-assignment, no reshape: each compiles its shape checks and error messages).
+assignment, no reshape: each compiles its shape checks and error messages). The element's body
+is compiled into the loop over the elements (:func:`_elements`, ``inline="always"``, without
+reference counting as the body is): the state, the new records and the workspace, some forty
+arrays each passed as several words, are not passed again for each element.
 """
 
 from __future__ import annotations
@@ -708,7 +711,7 @@ def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
 
 
 # --------------------------------------------------------------------------- one element, a batch
-@borrowing
+@borrowing(inline="always")
 def _element(e: int, state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple, overwrite: bool) -> None:
     """One element's update (the package doc's steps, in :func:`planner.estimator.update`'s
     order); ``ws`` = :func:`workspace`. With ``overwrite`` the outputs ``outs`` are the
@@ -834,9 +837,16 @@ def update_batch(state: tuple, new: tuple, cfg: np.ndarray, channel: tuple, due:
     fs, ist, rwin, win, mem = state
     outs = state if overwrite else (np.empty_like(fs), np.empty_like(ist), np.empty_like(rwin), np.empty_like(win), np.empty_like(mem))
     ws = workspace(win.shape[1], new[1].shape[1], rwin.shape[1], mem.shape[2], new[5].shape[2])
-    for e in range(fs.shape[0]):
-        _element(e, state, new, p, due, extra_used, cb, ws, outs, overwrite)
+    _elements(state, new, p, due, extra_used, cb, ws, outs, overwrite)
     return outs
+
+
+@borrowing
+def _elements(state: tuple, new: tuple, p: np.ndarray, due: bool, extra_used: np.ndarray, cb, ws: tuple, outs: tuple, overwrite: bool) -> None:
+    """:func:`_element` of every element of the batch, in order (its body compiled into this
+    loop: the workspace's and the state's arrays are not passed again for each element)."""
+    for e in range(state[0].shape[0]):
+        _element(e, state, new, p, due, extra_used, cb, ws, outs, overwrite)
 
 
 # The entry kernels built ahead of time, when they are (planner.aot): bound here, at import.
