@@ -20,12 +20,15 @@ about 40 % of the planning step's time; ``tests/simulator/test_reference_counts.
 that a simulation leaves no array of the compiled code alive). Written for numba's compile time as well as for speed: short functions with few
 branches (``&`` rather than ``and``, ``min``/``max`` rather than conditional expressions),
 since numba's compile time grows faster than linearly with the branches of a function.
-The per-drone bodies of the batch step (:func:`plan_cost`, :func:`plan_one`, :func:`control_one`,
-:func:`advance_state`) are compiled into the loop over the drones, :func:`plan_drones`
+The functions the batch step calls once per drone (:func:`plan_cost`, :func:`plan_one` and,
+under it, :func:`advance_state`, :func:`keepout_policy`, :func:`peer_rows`, :func:`control_one`
+with :func:`constraints`, :func:`requirements`, :func:`_orthogonalise` and
+:func:`safety_filter`) are compiled into the loop over the drones, :func:`plan_drones`
 (``inline="always"``), itself ``@inner``: a call passes every array of its tuples as separate
 words, and passing the scene, the state and the workspace again for each drone was about a
-tenth of the step. (Inlined into the entry kernel instead, which counts references, they would
-count theirs: slower.)
+fifth of the step. Those called per candidate step of the filter stay calls (inlining them
+gained nothing measurable). Inlined into the entry kernel instead, which counts references, the
+bodies would count theirs: slower.
 
 Imports: numpy and numba only.
 """
@@ -798,7 +801,7 @@ def _select3(sel, col, v, c):
             sel[2], col[2] = v, c
 
 
-@inner
+@inner(inline="always")
 def constraints(p, peers, mask, age, planes, source, keepout, bmin, bmax, lim, source_exact, wn, vec, active):
     """Constraint values g = d − d* of eqs. 15-17 less their activation margins (safe rule: one
     step of both parties' motion and the turn-away buffers, docs/control.md): every peer (to
@@ -864,7 +867,7 @@ def _normal(c, p, peers, planes, wn, source, vec):
         out[0], out[1], out[2] = 0.0, 0.0, 2.0 * (c == N + 3) - 1.0
 
 
-@inner
+@inner(inline="always")
 def _orthogonalise(U, V, m):
     """One-sided Jacobi SVD of the 3 × m matrix ``U`` (in place; ``V`` (3, 3) the accumulated
     rotations): afterwards U's columns are orthogonal and A = U Vᵀ."""
@@ -999,7 +1002,7 @@ def limited_step(grad, status, prev, uni, projected, P, corr, xi, pert, lim, u):
 
 
 # --------------------------------------------------------------------------- the safety filter's requirements
-@inner
+@inner(inline="always")
 def requirements(peers, mask, age, drift, g_s, g_o, p_z, lim, wn, reck, vec):
     """The safety filter's requirements (docs/control.md, "Safety filter").
 
@@ -1431,7 +1434,7 @@ def envelope_search(p, u, prev, has_prev, need, peers, planes, wn, reck, idx, n_
 
 
 # --------------------------------------------------------------------------- one drone's step
-@inner
+@inner(inline="always")
 def safety_filter(p, prev, has_prev, theta, peers, mask, age, planes, drift, source, keepout, g_s, g_o, bmin, bmax, lim, u, active, ws):
     """Step 4 of :func:`control_one` (safe rule): check the limited step ``u`` (3,), m, of tilt Θ
     against the required clearances (:func:`requirements`) and the loiter certificate
@@ -1803,7 +1806,7 @@ def bisector_plane(a, b, lost, point, normal):
         point[k] = 0.5 * (a[k] + b[k]) if plane else b[k]
 
 
-@inner
+@inner(inline="always")
 def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_start, hop_rule, rows, mask, ages, planes):
     """The peer rows of drone i's anti-collision constraint (:func:`planner.agent.plan`): the peers
     heard directly (``hop_rule``: h_ij = 1; else every known peer), each at its record with the
@@ -1827,7 +1830,7 @@ def peer_rows(i, k, view_pos, valid, saved, hops, lost, own_then, start, has_sta
         mask[j] = (valid[j] & other & relevant) | unheard
 
 
-@inner
+@inner(inline="always")
 def keepout_policy(p, p_hat, information, observable, status, ranges, range_los, last_centre, last_keepout, loitering, lim, ch):
     """The FIM status the control step sees, the source keep-out radius (m) and whether the drone
     loiters (docs/control.md, "Own-range loiter"): an unobservable estimate

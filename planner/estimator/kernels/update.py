@@ -14,9 +14,12 @@ Compile-time hygiene (the first update compiles everything once, then loads it f
 cache): constants passed to another kernel are typed (``np.int64``, ``np.bool_``) so that each
 kernel compiles once, not once per literal value, and arrays are copied by loops (no slice
 assignment, no reshape: each compiles its shape checks and error messages). The element's body
-is compiled into the loop over the elements (:func:`_elements`, ``inline="always"``, without
-reference counting as the body is): the state, the new records and the workspace, some forty
-arrays each passed as several words, are not passed again for each element.
+and the steps it calls once per element (the copies, :func:`_start`, :func:`fill_rows`,
+:func:`_new_raw`, :func:`_merge`, :func:`_takes`, :func:`_gate_previous`, :func:`_refine`,
+:func:`_finish`, :func:`_advance_range_window`, :func:`_count`) are compiled into the loop over
+the elements (:func:`_elements`, ``inline="always"``, without reference counting as they are):
+the state, the new records and the workspace, some forty arrays each passed as several words,
+are not passed again for each element and step.
 """
 
 from __future__ import annotations
@@ -144,7 +147,7 @@ def _put(f: np.ndarray, off: int, a: np.ndarray, scale: float) -> None:
             f[off + n * i + j] = a[i, j] * scale if scale != 1.0 else a[i, j]
 
 
-@borrowing
+@borrowing(inline="always")
 def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two C-contiguous 2-D arrays of one shape (one flat loop, which the compiler
     vectorises: the rows are a few values each)."""
@@ -153,7 +156,7 @@ def _copy2(dst: np.ndarray, src: np.ndarray) -> None:
         d[i] = s[i]
 
 
-@borrowing
+@borrowing(inline="always")
 def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
     """dst = src, two 1-D arrays of one length."""
     for i in range(src.shape[0]):
@@ -161,7 +164,7 @@ def _copy1(dst: np.ndarray, src: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- the records
-@borrowing
+@borrowing(inline="always")
 def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, rows: np.ndarray, xz: np.ndarray, xa: np.ndarray) -> None:
     """The first n rows (component-major, NaN replaced by 0 and weight 0) of the raw records
     ``raw`` (position, range, azimuth, elevation, LOS, weight, extension values): ranges get
@@ -188,7 +191,7 @@ def fill_rows(raw: np.ndarray, n: int, p: np.ndarray, extra_used: np.ndarray, ro
             xa[k, j] = w if present else 0.0
 
 
-@borrowing
+@borrowing(inline="always")
 def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, los: np.ndarray, xv: np.ndarray, nraw: np.ndarray) -> None:
     """The new records of one element as raw rows, weight 1 where the position is finite."""
     for m in range(rng.shape[0]):
@@ -200,7 +203,7 @@ def _new_raw(pos: np.ndarray, rng: np.ndarray, az: np.ndarray, el: np.ndarray, l
             nraw[m, NW + j] = xv[m, j]
 
 
-@borrowing
+@borrowing(inline="always")
 def _merge(win: np.ndarray, nraw: np.ndarray, lam: float, raw: np.ndarray) -> int:
     """All rows of this call into ``raw``: the window (weights times λ) then the new ones; with
     a window and new rows, the invalid ones first (stable: by validity, then by age). Returns
@@ -254,7 +257,7 @@ def _insert_ranges(mem: np.ndarray, nc: int, nrows: np.ndarray, memory: tuple, p
     return km.insert(mem, nc, pos, zr, ar, s0, p[P_RADIUS], iw, backup, sc, keep)
 
 
-@borrowing
+@borrowing(inline="always")
 def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarray) -> bool:
     """Whether this call's ranges join the range memory: the memory is on, the new rows carry a
     range and the element never used another component (these rows included)."""
@@ -268,7 +271,7 @@ def _takes(angles_before: bool, nrows: np.ndarray, nxa: np.ndarray, p: np.ndarra
 
 
 # --------------------------------------------------------------------------- steps 1 and 3
-@borrowing
+@borrowing(inline="always")
 def _start(fi: np.ndarray, io: np.ndarray, p: np.ndarray, fo: np.ndarray) -> None:
     """The output row before the call's records: the prior times λ (times λ·
     ``suspect_deflation`` for a suspect element), the PL systems times λ, the rest as was."""
@@ -453,7 +456,7 @@ def _recheck(
 
 
 # --------------------------------------------------------------------------- step 2
-@borrowing
+@borrowing(inline="always")
 def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.ndarray, K: int, p: np.ndarray, J: np.ndarray, gate: np.ndarray) -> None:
     """The innovation gate against the previous state (when ``gate_sigma`` is set and it was
     observable): tr(J⁻¹) = tr(adj J)/det J, m², bounds the variance of the previous estimate
@@ -468,7 +471,7 @@ def _gate_previous(fi: np.ndarray, observable: bool, x: np.ndarray, rows: np.nda
         _gate_rows(x, rows, K, p, gate)
 
 
-@borrowing
+@borrowing(inline="always")
 def _refine(
     fo: np.ndarray,
     x: np.ndarray,
@@ -570,7 +573,7 @@ def _suspect(counts: np.ndarray, p: np.ndarray) -> bool:
     return False
 
 
-@borrowing
+@borrowing(inline="always")
 def _finish(fo: np.ndarray, fi: np.ndarray, x: np.ndarray, M: int, work: tuple, p: np.ndarray, refined: tuple, small: tuple) -> tuple[bool, bool]:
     """Steps 3-5 after the refinement of an initialised element: the suspect flag, the rows
     leaving the window (the oldest M) marginalised into the prior (linearised at x_lin), the
@@ -644,7 +647,7 @@ def _inactive(fo: np.ndarray, M: int, W: int, rows: np.ndarray, p: np.ndarray) -
 
 
 # --------------------------------------------------------------------------- the windows and the memory
-@borrowing
+@borrowing(inline="always")
 def _advance_range_window(
     fo: np.ndarray, initialised: bool, rw: np.ndarray, nraw: np.ndarray, scratch: tuple, p: np.ndarray, rwo: np.ndarray
 ) -> None:
@@ -693,7 +696,7 @@ def _advance_range_window(
             fo[F_PRB + i] += b_r[i]
 
 
-@borrowing
+@borrowing(inline="always")
 def _count(io: np.ndarray, nrows: np.ndarray, nxa: np.ndarray) -> bool:
     """The values the new rows used join the count, and whether any record ever used a value
     other than a range; returns whether the new rows carry a range."""
