@@ -414,14 +414,11 @@ def in_study(mission: str, criterion: str) -> None:
     --criterion C --jobs 1 --no-figures`` (the mission's trials and steps) with every call of
     :func:`planner.kernels.plan_batch` timed, wall and the thread's CPU; per drone-step."""
     from missions.cli.main import main as fimnav
-    from planner import aot
     from planner.warm import available_cores, compile_aside
 
-    # A study's start binds the kernel modules' entry kernels again (planner.warm.compile_aside),
-    # which would replace the timer: bind them now and keep that binding while the study runs.
+    # The kernel as the study calls it: bound to the built module first (the study's own start
+    # then leaves the timer in its place, planner.aot.bind).
     compile_aside(available_cores())
-    rebind = aot.bind_built
-    aot.bind_built = lambda: None
     kernel = K.plan_batch
     total = {"wall": 0.0, "cpu": 0.0, "calls": 0, "drone_steps": 0}
 
@@ -440,7 +437,6 @@ def in_study(mission: str, criterion: str) -> None:
             fimnav(["montecarlo", mission, "--criterion", criterion, "--jobs", "1", "--no-figures", "--out", str(Path(out) / "run")])
     finally:
         K.plan_batch = kernel
-        aot.bind_built = rebind
     if total["calls"] == 0:
         raise SystemExit(f"bench_planning_step: the study made no call of planner.kernels.plan_batch that the timer saw ({mission})")
     n = max(total["drone_steps"], 1)

@@ -376,7 +376,9 @@ def jit_kernel(kernel: Any) -> Any:
 def bind(group: str, namespace: MutableMapping[str, Any]) -> bool:
     """Bind the entry kernels of ``group`` in ``namespace`` (the kernel module's globals) to its
     extension module when there is one; returns whether they are bound. Called by each kernel
-    module at its import, and again by :func:`bind_built` once a build is done."""
+    module at its import, and again by :func:`bind_built` once a build is done. A kernel bound to
+    this very module already keeps its binding (and the argument types it has accepted), and a
+    name that holds neither a JIT kernel nor a binding (a caller's stand-in) is left as it is."""
     module = load(group)
     if module is None:
         return False
@@ -384,8 +386,14 @@ def bind(group: str, namespace: MutableMapping[str, Any]) -> bool:
 
     for name in GROUPS[group][1]:
         compiled = getattr(module, name, None)
-        if compiled is not None and name in namespace:
-            namespace[name] = Entry(compiled, jit_kernel(namespace[name]), _accepts(SIGNATURES[name]))
+        if compiled is None or name not in namespace:
+            continue
+        current = namespace[name]
+        if isinstance(current, Entry) and current.compiled is compiled:
+            continue
+        if not isinstance(current, Entry) and not hasattr(current, "py_func"):
+            continue
+        namespace[name] = Entry(compiled, jit_kernel(current), _accepts(SIGNATURES[name]))
     return True
 
 

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -131,6 +132,44 @@ def test_a_built_group_gives_the_jit_results_bit_for_bit_and_another_type_goes_t
     assert first == "Entry ['array(float32, 2d, C)']"
     same, clear, blocked = second.split()
     assert same == "True" and int(clear) > 0 and int(blocked) > 0
+
+
+def test_binding_again_keeps_a_binding_to_the_same_module_and_leaves_a_stand_in(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A study's start binds every group again (planner.warm.compile_aside): a kernel already
+    bound to the loaded module keeps its binding; a name a caller replaced (a timer) is left;
+    a newly built module replaces the old binding, over the same JIT kernel."""
+    group = "simulator"
+    name = aot.GROUPS[group][1][0]
+
+    def jit(*args: object) -> str:
+        return "jit"
+
+    jit.py_func = jit  # type: ignore[attr-defined]  # what marks a JIT kernel
+
+    def built(*args: object) -> str:
+        return "built"
+
+    def rebuilt(*args: object) -> str:
+        return "rebuilt"
+
+    monkeypatch.setattr(aot, "load", lambda g: types.SimpleNamespace(**{name: built}))
+    namespace: dict[str, object] = {name: jit}
+    assert aot.bind(group, namespace)
+    first = namespace[name]
+    assert isinstance(first, aot.Entry) and first.compiled is built and first.jit is jit
+    assert aot.bind(group, namespace) and namespace[name] is first
+
+    def stand_in(*args: object) -> None:
+        return None
+
+    namespace[name] = stand_in
+    assert aot.bind(group, namespace) and namespace[name] is stand_in
+
+    namespace[name] = first
+    monkeypatch.setattr(aot, "load", lambda g: types.SimpleNamespace(**{name: rebuilt}))
+    assert aot.bind(group, namespace)
+    again = namespace[name]
+    assert isinstance(again, aot.Entry) and again is not first and again.compiled is rebuilt and again.jit is jit
 
 
 def test_a_failed_build_is_recorded_and_its_group_is_the_jits(tmp_path: Path) -> None:
@@ -265,7 +304,9 @@ def test_the_packages_build_carries_this_machines_kernel_modules_and_nothing_num
         (src / name).write_bytes((ROOT / name).read_bytes())
     env = {k: v for k, v in os.environ.items() if k not in ("FIMNAV_AOT_DIR", "FIMNAV_AOT", "NUMBA_CACHE_DIR", "PYTHONPATH")}
     built = tmp_path / "lib"
-    done = subprocess.run([sys.executable, "setup.py", "build_py", "--build-lib", str(built)], cwd=src, env=env, text=True, capture_output=True, timeout=900)
+    done = subprocess.run(
+        [sys.executable, "setup.py", "build_py", "--build-lib", str(built)], cwd=src, env=env, text=True, capture_output=True, timeout=900
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     assert "building the compiled kernels for this machine" in done.stderr
     suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
@@ -286,7 +327,12 @@ def test_the_packages_build_carries_this_machines_kernel_modules_and_nothing_num
         exec(open("setup.py").read())
     """
     editable = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(as_editable), str(tmp_path / "editable")], cwd=src, env=env, text=True, capture_output=True, timeout=300
+        [sys.executable, "-c", textwrap.dedent(as_editable), str(tmp_path / "editable")],
+        cwd=src,
+        env=env,
+        text=True,
+        capture_output=True,
+        timeout=300,
     )
     assert editable.returncode == 0, editable.stderr
     assert "building the compiled kernels" not in editable.stderr, editable.stderr
@@ -313,6 +359,9 @@ def test_lapacks_bindings_are_loaded_without_scipy_linalgs_package(tmp_path: Pat
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["True"] * 6
     # scipy.linalg imported first: its own import of the bindings is the one used.
-    late = run("import sys, scipy.linalg; from planner import aot; print(aot.preload_lapack(), scipy.linalg.cython_lapack is sys.modules[aot.LAPACK_MODULE])", tmp_path)
+    late = run(
+        "import sys, scipy.linalg; from planner import aot; print(aot.preload_lapack(), scipy.linalg.cython_lapack is sys.modules[aot.LAPACK_MODULE])",
+        tmp_path,
+    )
     assert late.returncode == 0, late.stderr
     assert late.stdout.split() == ["True", "True"]
